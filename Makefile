@@ -1,0 +1,17 @@
+# The two commands a new user needs: `make demo` and `make test`. Both set up first (idempotent).
+.PHONY: setup demo test bench validate-crosstalk clean
+
+setup:
+	@bash scripts/setup.sh
+
+demo: setup
+	.venv/bin/nrhdr demo
+
+test: setup
+	.venv/bin/python -m pytest -q -ra tests
+
+bench: setup
+	.venv/bin/python benchmarks/reconstruction.py
+
+clean:
+	rm -rf demo_out .pytest_cache

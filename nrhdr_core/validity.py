@@ -1,0 +1,127 @@
+"""Per-frame validity, pixel selection and ND scaling (paper section 2.3, Eq. 3).
+
+`classify(raw, profile, mode)` turns a raw frame into the HDR frame of docs/ARCHITECTURE.md: float32 linear
+DN values (attenuated pixels scaled by ND, Eq. 3) and a uint8 state per pixel. Missing pixels carry the
+bound their state implies: a clipped pixel's value is its lower bound, a too-dark pixel's its upper bound.
+
+Selection modes (section 2.3, Fig. 3/4):
+- ``all``: every pixel that is neither clipped nor below SNR = 0 dB is valid ("valid pixel").
+- ``best``: as ``all``, but an attenuated pixel is discarded when a regular pixel among its 8 neighbours is
+  valid ("best pixel only": at most half the pixels known in mid-tones).
+- ``threshold``: attenuated pixels below ``l_min`` (code above black) are invalid; the paper's practical
+  choice and the default.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .profile import CameraProfile
+from .sensor import zero_db_signal_dn
+
+VALID = 0
+CLIPPED = 1
+DARK = 2
+DISCARDED = 3
+UNCALIBRATED = 4
+REASON_MASK = 0x0F
+RECONSTRUCTED = 0x40
+ATTENUATED = 0x80
+
+MODES = ("all", "best", "threshold")
+_MODE_ID = {m: i for i, m in enumerate(MODES)}
+
+
+def known_mask(state: np.ndarray) -> np.ndarray:
+    """True where the pixel was measured and is trusted (reason VALID)."""
+    return (state & REASON_MASK) == VALID
+
+
+def missing_mask(state: np.ndarray) -> np.ndarray:
+    """True where the pixel must be reconstructed: not VALID and not yet RECONSTRUCTED."""
+    return ((state & REASON_MASK) != VALID) & ((state & RECONSTRUCTED) == 0)
+
+
+def bounds(values: np.ndarray, state: np.ndarray):
+    """(lower, upper) float32 arrays, NaN where there is no bound: CLIPPED pixels are at least their
+    value, DARK pixels at most their value (paper 2.3; fse-reference 'Quirks')."""
+    reason = state & REASON_MASK
+    lower = np.where(reason == CLIPPED, values, np.nan).astype(np.float32)
+    upper = np.where(reason == DARK, values, np.nan).astype(np.float32)
+    return lower, upper
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, mode, values, state):
+    h, w = raw.shape
+    for y in prange(h):
+        for x in range(w):
+            code = np.float32(raw[y, x])
+            att = mask[y, x]
+            s = np.float32(nd) if att else np.float32(1.0)
+            sig = code - np.float32(black)
+            st = np.uint8(ATTENUATED) if att else np.uint8(0)
+            if raw[y, x] >= clip_code:
+                values[y, x] = (np.float32(clip_code) - np.float32(black)) * s
+                state[y, x] = st | np.uint8(CLIPPED)
+                continue
+            thr = np.float32(dark_att) if att else np.float32(dark_reg)
+            if sig < thr:
+                values[y, x] = thr * s
+                state[y, x] = st | np.uint8(DARK)
+                continue
+            values[y, x] = sig * s
+            reason = VALID
+            if mode == 1 and att:
+                # best pixel only: drop when a valid regular neighbour exists (8-neighbourhood)
+                for dy in range(-1, 2):
+                    yy = y + dy
+                    if yy < 0 or yy >= h:
+                        continue
+                    for dx in range(-1, 2):
+                        xx = x + dx
+                        if xx < 0 or xx >= w or (dy == 0 and dx == 0) or mask[yy, xx]:
+                            continue
+                        c2 = raw[yy, xx]
+                        if c2 < clip_code and np.float32(c2) - np.float32(black) >= np.float32(dark_reg):
+                            reason = DISCARDED
+            state[y, x] = st | np.uint8(reason)
+
+
+def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l_min: float | None = None,
+             values: np.ndarray | None = None, state: np.ndarray | None = None):
+    """Classify a raw frame (uint16 (H, W)) into (values float32, state uint8), Eq. 3. Output arrays may be
+    passed in (e.g. mapped GStreamer memory) and are filled in place. `l_min` overrides the profile's."""
+    if mode not in _MODE_ID:
+        raise ValueError(f"selection mode must be one of {MODES}, got {mode!r}")
+    raw = np.asarray(raw)
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise ValueError(f"raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")
+    if raw.shape != profile.mask.shape:
+        raise ValueError(f"raw frame is {raw.shape[1]}x{raw.shape[0]} but the profile's mask is "
+                         f"{profile.width}x{profile.height}")
+    if values is None:
+        values = np.empty(raw.shape, np.float32)
+    if state is None:
+        state = np.empty(raw.shape, np.uint8)
+    s0 = zero_db_signal_dn(profile)
+    lm = profile.l_min if l_min is None else float(l_min)
+    if mode == "threshold":
+        dark_att, dark_reg = lm, -np.inf
+    else:
+        dark_att, dark_reg = s0, s0
+    _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
+                     float(profile.nd), float(dark_att), float(dark_reg), _MODE_ID[mode], values, state)
+    return values, state
+
+
+def valid_ratio(state: np.ndarray) -> float:
+    """Share of known pixels (paper Fig. 4 / 8b)."""
+    return float(np.mean(known_mask(state)))
+
+
+def warmup() -> None:
+    """Compile the kernel on a tiny frame (elements call this in do_start, never at import)."""
+    from .profile import make
+    p = make(np.zeros((2, 2), bool))
+    classify(np.zeros((2, 2), np.uint16), p)

@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Idempotent set-up for nrhdr on Debian 12: Debian packages (GStreamer, its Python plugin loader,
+# PyGObject), a virtualenv made from /usr/bin/python3 with --system-site-packages (the plugin
+# loader embeds the system Python), and the project installed into it. Safe to run repeatedly.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PKGS=(gstreamer1.0-tools gstreamer1.0-python3-plugin-loader python3-gst-1.0 python3-gi
+      gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base
+      gstreamer1.0-plugins-good python3-venv python3-dev)
+missing=()
+for p in "${PKGS[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "setup: installing Debian packages: ${missing[*]}"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating .venv from /usr/bin/python3 (--system-site-packages)"
+  /usr/bin/python3 -m venv --system-site-packages .venv
+fi
+
+stamp=.venv/.nrhdr-installed
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  echo "setup: installing nrhdr and its pip dependencies into .venv"
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e ".[dev]"
+  touch "$stamp"
+fi
