@@ -1,0 +1,239 @@
+"""Reconstruction of missing pixels (paper section 2.2, 2.4, 5): one entry point, several methods.
+
+Methods, from fastest to most accurate:
+- ``preview``: pull-push normalised averaging on an image pyramid (numba); live preview.
+- ``nearest``: nearest known pixel (scipy's exact Euclidean distance transform).
+- ``linear``: Delaunay triangulation of the known pixels and linear interpolation on it (scipy), the
+  paper's "triangular interpolation" of Fig. 10g.
+- ``fse``: Frequency Selective Extrapolation (ref. 9; `fse.py`), the paper's method of Fig. 10h.
+
+All methods leave known pixels bit-exact, honour optional bounds (a clipped pixel is at least `lower`, a
+too-dark pixel at most `upper`), and cost nothing when no pixel is missing.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from numba import njit
+
+METHODS = ("fse", "linear", "nearest", "preview")
+
+
+class ReconstructionWarning(UserWarning):
+    pass
+
+
+def _validate(values, known, lower, upper):
+    v = np.asarray(values)
+    k = np.asarray(known)
+    if v.ndim != 2:
+        raise ValueError(f"values must be a 2-D array (H, W), got shape {v.shape}")
+    if k.shape != v.shape:
+        raise ValueError(f"known mask shape {k.shape} differs from values shape {v.shape}")
+    if k.dtype != bool:
+        raise ValueError(f"known must be a boolean array, got {k.dtype}")
+    if not np.issubdtype(v.dtype, np.number) or np.iscomplexobj(v):
+        raise ValueError(f"values must be real numbers, got {v.dtype}")
+    vk = v[k]
+    if vk.size and not np.isfinite(vk).all():
+        raise ValueError("values contain NaN or Inf at known pixels; reconstruction needs finite data")
+    out = []
+    for name, b in (("lower", lower), ("upper", upper)):
+        if b is None:
+            out.append(None)
+            continue
+        b = np.asarray(b, dtype=np.float32)
+        if b.shape != v.shape:
+            raise ValueError(f"{name} bound shape {b.shape} differs from values shape {v.shape}")
+        if np.isinf(b).any():
+            raise ValueError(f"{name} bound contains Inf; use NaN for 'no bound'")
+        out.append(b)
+    return v, k, out[0], out[1]
+
+
+def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lower=None, upper=None,
+                **params) -> np.ndarray:
+    """Fill the pixels where `known` is False; returns float32 (H, W), known pixels bit-exact.
+
+    values: float (H, W) in any scale (8-bit data or linear HDR); known: bool (H, W);
+    lower/upper: optional float (H, W) bounds for missing pixels, NaN = no bound;
+    preset/params: FSE parameter set (`fse.FSE_PRESETS`) and overrides; ignored by other methods.
+    With no known pixel the result is all zeros and a ReconstructionWarning is issued."""
+    if method not in METHODS:
+        raise ValueError(f"reconstruction method must be one of {METHODS}, got {method!r}")
+    v, k, lower, upper = _validate(values, known, lower, upper)
+    out = np.array(v, dtype=np.float32, copy=True)
+    miss = ~k
+    if not miss.any():
+        return out
+    if not k.any():
+        warnings.warn("no pixel is known: returning zeros", ReconstructionWarning, stacklevel=2)
+        out[:] = 0.0
+        return _apply_bounds(out, miss, lower, upper)
+    if method == "fse":
+        from .fse import fse_reconstruct
+        out = fse_reconstruct(out, k, lower=lower, upper=upper, preset=preset, **params)
+    else:
+        if params:
+            raise ValueError(f"method {method!r} takes no parameters, got {sorted(params)}")
+        if method == "preview":
+            out = _preview(out, k)
+        elif method == "nearest":
+            out = _nearest(out, k)
+        else:
+            out = _linear(out, k)
+    out = np.asarray(out, dtype=np.float32)
+    out[k] = np.asarray(v, dtype=np.float32)[k]
+    return _apply_bounds(out, miss, lower, upper)
+
+
+def _apply_bounds(out, miss, lower, upper):
+    if lower is not None:
+        m = miss & ~np.isnan(lower)
+        out[m] = np.maximum(out[m], lower[m])
+    if upper is not None:
+        m = miss & ~np.isnan(upper)
+        out[m] = np.minimum(out[m], upper[m])
+    return out
+
+
+def _nearest(out, k):
+    from scipy import ndimage
+    idx = ndimage.distance_transform_edt(~k, return_distances=False, return_indices=True)
+    return out[idx[0], idx[1]]
+
+
+def _linear(out, k):
+    """Delaunay-linear on the known pixels; outside their convex hull, nearest known pixel."""
+    from scipy.interpolate import LinearNDInterpolator
+    from scipy.spatial import QhullError
+    ky, kx = np.nonzero(k)
+    my, mx = np.nonzero(~k)
+    if ky.size < 3:
+        return _nearest(out, k)
+    try:
+        interp = LinearNDInterpolator(np.column_stack([ky, kx]).astype(np.float64),
+                                      out[ky, kx].astype(np.float64), fill_value=np.nan)
+        vals = interp(np.column_stack([my, mx]).astype(np.float64))
+    except QhullError:  # all known pixels collinear (e.g. a 1 x N image)
+        return _nearest(out, k) if out.ndim == 2 and min(out.shape) > 1 else _linear_1d(out, k)
+    res = out.copy()
+    res[my, mx] = vals
+    hole = np.isnan(res)
+    if hole.any():
+        near = _nearest(out, k)
+        res[hole] = near[hole]
+    return res
+
+
+def _linear_1d(out, k):
+    flat, kf = out.ravel(), k.ravel()
+    x = np.arange(flat.size)
+    return np.interp(x, x[kf], flat[kf]).astype(np.float32).reshape(out.shape)
+
+
+@njit(cache=True, nogil=True)
+def _pull_push(vals, wts, levels):
+    """Pull-push (Gortler et al. 1996): sum values and weights down a 2x pyramid, then fill each
+    level's empty pixels from the coarser level (bilinear-ish 2x2 box). In place on level 0."""
+    h, w = vals.shape
+    # pyramid storage: concatenated levels, offsets computed on the fly
+    hs = np.empty(levels + 1, np.int64)
+    ws = np.empty(levels + 1, np.int64)
+    off = np.empty(levels + 2, np.int64)
+    hs[0], ws[0], off[0] = h, w, 0
+    for l in range(levels):
+        hs[l + 1] = (hs[l] + 1) // 2
+        ws[l + 1] = (ws[l] + 1) // 2
+    for l in range(levels + 1):
+        off[l + 1] = off[l] + hs[l] * ws[l]
+    pv = np.zeros(off[levels + 1], np.float32)
+    pw = np.zeros(off[levels + 1], np.float32)
+    for y in range(h):
+        for x in range(w):
+            pw[y * w + x] = wts[y, x]
+            pv[y * w + x] = vals[y, x] * wts[y, x]
+    for l in range(levels):  # pull
+        h0, w0, o0 = hs[l], ws[l], off[l]
+        h1, w1, o1 = hs[l + 1], ws[l + 1], off[l + 1]
+        for y in range(h0):
+            for x in range(w0):
+                i1 = o1 + (y // 2) * w1 + x // 2
+                pv[i1] += pv[o0 + y * w0 + x]
+                pw[i1] += pw[o0 + y * w0 + x]
+        for i in range(h1 * w1):  # cap weights at 1 (normalise full cells)
+            if pw[o1 + i] > 1.0:
+                pv[o1 + i] /= pw[o1 + i]
+                pw[o1 + i] = 1.0
+    for l in range(levels - 1, -1, -1):  # push
+        h0, w0, o0 = hs[l], ws[l], off[l]
+        w1, o1 = ws[l + 1], off[l + 1]
+        for y in range(h0):
+            for x in range(w0):
+                i0 = o0 + y * w0 + x
+                wt = pw[i0]
+                if wt < 1.0:
+                    i1 = o1 + (y // 2) * w1 + x // 2
+                    c = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
+                    # blend: own normalised average weighted by its weight, coarse fills the rest
+                    own = pv[i0] / wt if wt > 0 else np.float32(0.0)
+                    v = wt * own + (np.float32(1.0) - wt) * c
+                    pv[i0] = v
+                    pw[i0] = 1.0
+                else:
+                    pv[i0] = pv[i0] / wt
+                    pw[i0] = 1.0
+    for y in range(h):
+        for x in range(w):
+            vals[y, x] = pv[y * w + x]
+
+
+@njit(cache=True, nogil=True)
+def _fill_3x3(vals, known, coarse, out):
+    """Missing pixels with known 8-neighbours get their weighted mean (edges 2, corners 1); the rest
+    take the pull-push value `coarse`."""
+    h, w = vals.shape
+    for y in range(h):
+        for x in range(w):
+            if known[y, x]:
+                out[y, x] = vals[y, x]
+                continue
+            acc = np.float32(0.0)
+            wsum = np.float32(0.0)
+            for dy in range(-1, 2):
+                yy = y + dy
+                if yy < 0 or yy >= h:
+                    continue
+                for dx in range(-1, 2):
+                    xx = x + dx
+                    if xx < 0 or xx >= w or not known[yy, xx]:
+                        continue
+                    wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
+                    acc += wt * vals[yy, xx]
+                    wsum += wt
+            out[y, x] = acc / wsum if wsum > 0 else coarse[y, x]
+
+
+def _preview(out, k):
+    h, w = out.shape
+    levels = int(np.ceil(np.log2(max(h, w, 2))))
+    coarse = out.astype(np.float32)
+    _pull_push(coarse, k.astype(np.float32), levels)
+    res = np.empty_like(coarse)
+    _fill_3x3(out.astype(np.float32), k, coarse, res)
+    return res
+
+
+def warmup() -> None:
+    """Compile the numba methods on a tiny image (called from element start, never at import)."""
+    v = np.zeros((4, 4), np.float32)
+    k = np.ones((4, 4), bool)
+    k[1, 1] = False
+    reconstruct(v, k, method="preview")
+    try:
+        from . import fse
+        if hasattr(fse, "warmup"):
+            fse.warmup()
+    except ImportError:
+        pass

@@ -1,0 +1,70 @@
+"""A synthesised HDR test scene, so the demo needs no external data.
+
+An interior at mid-grey with textured walls, a deep shadow, a zone plate (fine detail that regular
+sub-sampling aliases, paper 2.1), a window onto a bright sky 3-4 stops above the regular pixels' clipping
+(recoverable through the ND pixels) crossed by dark branches (strong edges), and a lamp far beyond even the
+ND pixels' range. About 17 stops from the shadow to the lamp. Deterministic for a given seed.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _value_noise(h, w, rng, octaves=5, base=8):
+    from scipy.ndimage import zoom
+    acc = np.zeros((h, w))
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        cells = base * 2 ** o
+        g = rng.random((cells + 1, int(cells * w / h) + 1))
+        up = zoom(g, (h / g.shape[0], w / g.shape[1]), order=3)[:h, :w]
+        acc += amp * up
+        total += amp
+        amp *= 0.55
+    return acc / total
+
+
+def synthetic_hdr_scene(height: int = 1200, width: int = 1600, seed: int = 7) -> np.ndarray:
+    """Linear relative luminance (float32, H x W), median near 0.5."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+    u, v = xx / width, yy / height
+    # wall: soft gradient with texture
+    lum = (0.35 + 0.45 * u) * (0.75 + 0.5 * _value_noise(height, width, rng))
+    # floor shadow (bottom band), deep corner
+    shadow = np.clip((v - 0.78) / 0.05, 0, 1)
+    lum *= 1.0 - 0.9 * shadow
+    corner = np.exp(-(((u - 0.0) / 0.18) ** 2 + ((v - 1.0) / 0.2) ** 2))
+    lum *= 1.0 - 0.95 * corner
+    # zone plate patch at mid-grey
+    cx, cy, r = 0.22 * width, 0.35 * height, 0.14 * height
+    rr2 = (xx - cx) ** 2 + (yy - cy) ** 2
+    zp = 0.5 + 0.5 * np.cos(np.pi * rr2 / (4.4 * r))
+    inside = rr2 < r * r
+    lum = np.where(inside, 0.15 + 0.7 * zp, lum)
+    # window: sky at 6-16x mid-grey with clouds, branches across it, frame around it
+    x0, x1, y0, y1 = 0.48 * width, 0.92 * width, 0.12 * height, 0.62 * height
+    win = (xx >= x0) & (xx < x1) & (yy >= y0) & (yy < y1)
+    sky = 6.0 + 10.0 * (1 - (yy - y0) / (y1 - y0)) * (0.3 + 0.7 * _value_noise(height, width, rng, 4, 4))
+    branches = np.zeros_like(lum, dtype=bool)
+    for _ in range(9):
+        ax, ay = rng.uniform(x0, x1), y1
+        ang = rng.uniform(-2.2, -0.9)
+        L = rng.uniform(0.3, 0.8) * (y1 - y0)
+        thick = rng.uniform(2.0, 7.0)
+        bx, by = ax + L * np.cos(ang), ay + L * np.sin(ang)
+        # distance from segment
+        dx, dy = bx - ax, by - ay
+        t = np.clip(((xx - ax) * dx + (yy - ay) * dy) / (dx * dx + dy * dy), 0, 1)
+        d = np.hypot(xx - (ax + t * dx), yy - (ay + t * dy))
+        branches |= d < thick * (1.2 - t)
+    sky = np.where(branches, 1.2, sky)
+    lum = np.where(win, sky, lum)
+    frame = ((np.abs(xx - x0) < 10) | (np.abs(xx - x1) < 10)) & (yy > y0 - 10) & (yy < y1 + 10)
+    frame |= ((np.abs(yy - y0) < 10) | (np.abs(yy - y1) < 10)) & (xx > x0 - 10) & (xx < x1 + 10)
+    lum = np.where(frame, 0.12, lum)
+    # lamp: a hot core far beyond the ND pixels' range with a 1/r^2 glow
+    lx, ly = 0.3 * width, 0.72 * height
+    d2 = ((xx - lx) ** 2 + (yy - ly) ** 2) / (0.006 * width) ** 2
+    lum = lum + 20000.0 / (1.0 + d2 ** 2)
+    return lum.astype(np.float32)

@@ -1,0 +1,80 @@
+"""Logarithmic tone mapping for display (paper section 5, Fig. 10 g/h; hdr-references 'Tone mapping').
+
+y = log(1 + q x) / log(1 + q), x = clip(L 2^e / white, 0, 1): the standard logarithmic operator
+(HDR Toolbox LogarithmicTMO) with contrast q and exposure e in stops. The normaliser `white` is fixed
+(the sensor's largest scaled value, (clip - black) * ND) or smoothed over time (`WhiteTracker`), never a
+per-frame min/max: video must not flicker.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+DEFAULT_CONTRAST = 1000.0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _log_kernel(values, scale, q, inv_den, out_max, out):
+    h, w = values.shape
+    for y in prange(h):
+        for x in range(w):
+            v = values[y, x] * scale
+            if not (v > 0.0):  # also maps NaN to black
+                v = np.float32(0.0)
+            elif v > 1.0:
+                v = np.float32(1.0)
+            t = math.log1p(q * v) * inv_den
+            out[y, x] = np.uint16(t * out_max + np.float32(0.5)) if out_max > 255 else np.uint8(
+                t * out_max + np.float32(0.5))
+
+
+def log_tonemap(values: np.ndarray, white: float, exposure_stops: float = 0.0,
+                contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None,
+                dtype=np.uint8) -> np.ndarray:
+    """Map linear values (H, W) to uint8 or uint16 display codes; `out` (filled in place) fixes the type."""
+    if not (white > 0 and math.isfinite(white)):
+        raise ValueError(f"tone mapping white must be a finite number > 0, got {white}")
+    if not (contrast > 0 and math.isfinite(contrast)):
+        raise ValueError(f"tone mapping contrast must be > 0, got {contrast}")
+    v = np.asarray(values, dtype=np.float32)
+    if out is None:
+        out = np.empty(v.shape, dtype=dtype)
+    if out.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"tone mapping output must be uint8 or uint16, got {out.dtype}")
+    out_max = 255.0 if out.dtype == np.uint8 else 65535.0
+    scale = np.float32(2.0 ** exposure_stops / white)
+    q = np.float32(contrast)
+    _log_kernel(v, scale, q, np.float32(1.0 / math.log1p(contrast)), np.float32(out_max), out)
+    return out
+
+
+def robust_peak(values: np.ndarray, percentile: float = 99.9, stride: int = 4) -> float:
+    """A flicker-robust frame statistic: the given percentile of a subsampled frame (not the maximum)."""
+    sub = np.asarray(values)[::stride, ::stride]
+    sub = sub[np.isfinite(sub)]
+    return float(np.percentile(sub, percentile)) if sub.size else 0.0
+
+
+class WhiteTracker:
+    """Temporally smoothed normaliser, libcamera style: white_t = speed * peak_t + (1 - speed) * white_t-1,
+    peak_t a high percentile of the frame; the first frame initialises it."""
+
+    def __init__(self, speed: float = 0.1, percentile: float = 99.9):
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"smoothing speed must be in (0, 1], got {speed}")
+        self.speed, self.percentile, self.white = speed, percentile, None
+
+    def update(self, values: np.ndarray) -> float:
+        peak = max(robust_peak(values, self.percentile), 1e-6)
+        self.white = peak if self.white is None else self.speed * peak + (1 - self.speed) * self.white
+        return self.white
+
+    def reset(self) -> None:
+        self.white = None
+
+
+def warmup() -> None:
+    log_tonemap(np.ones((2, 2), np.float32), 1.0)
+    log_tonemap(np.ones((2, 2), np.float32), 1.0, dtype=np.uint16)
