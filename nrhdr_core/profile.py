@@ -33,7 +33,8 @@ class CameraProfile:
     bit_depth: int = 12
     clip_code: int = 4094             # codes >= clip_code are clipped (paper: DN_max = 4095 - 1)
     black_level: float = 0.0          # code of zero light
-    gain: float = 4095.0 / 8000.0     # DN per electron
+    gain: float = 4400.0 / 8000.0     # DN per electron: the ADC clips before the full well, so saturated
+                                      # pixels always read >= clip_code despite read noise
     read_noise: float = 2.0           # electrons rms
     full_well: float = 8000.0         # electrons
     l_min: float = 100.0              # attenuated pixels below this signal (code - black) are invalid (2.3)
@@ -91,6 +92,10 @@ def validate(p: CameraProfile, where: str = "profile") -> None:
         bad("black_level", f"must be in 0..clip_code-1, got {p.black_level}")
     if not (math.isfinite(p.read_noise) and p.read_noise >= 0):
         bad("read_noise", f"must be >= 0, got {p.read_noise}")
+    sat = p.full_well * p.gain + p.black_level
+    if sat < p.clip_code + 3.0 * p.read_noise * p.gain:
+        bad("gain", f"full_well * gain + black_level = {sat:.1f} DN does not reach clip_code "
+                    f"{p.clip_code} by 3 sigma of read noise: saturated pixels would read as valid")
     if not (math.isfinite(p.l_min) and 0 <= p.l_min < p.clip_code - p.black_level):
         bad("l_min", f"must be in 0..clip_code-black_level, got {p.l_min}")
 

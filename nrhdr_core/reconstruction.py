@@ -108,6 +108,8 @@ def _linear(out, k):
     """Delaunay-linear on the known pixels; outside their convex hull, nearest known pixel."""
     from scipy.interpolate import LinearNDInterpolator
     from scipy.spatial import QhullError
+    if min(out.shape) == 1:
+        return _linear_1d(out, k)
     ky, kx = np.nonzero(k)
     my, mx = np.nonzero(~k)
     if ky.size < 3:
@@ -116,8 +118,8 @@ def _linear(out, k):
         interp = LinearNDInterpolator(np.column_stack([ky, kx]).astype(np.float64),
                                       out[ky, kx].astype(np.float64), fill_value=np.nan)
         vals = interp(np.column_stack([my, mx]).astype(np.float64))
-    except QhullError:  # all known pixels collinear (e.g. a 1 x N image)
-        return _nearest(out, k) if out.ndim == 2 and min(out.shape) > 1 else _linear_1d(out, k)
+    except QhullError:  # all known pixels collinear: no triangle exists
+        return _nearest(out, k)
     res = out.copy()
     res[my, mx] = vals
     hole = np.isnan(res)

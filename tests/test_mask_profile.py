@@ -1,0 +1,84 @@
+"""ND masks (paper Fig. 1, 2) and the camera profile file format (docs/PROFILE.md)."""
+import json
+
+import numpy as np
+import pytest
+
+from nrhdr_core import io, mask, profile
+
+
+def test_nonregular_mask_half_attenuated_and_seeded():
+    a = mask.nonregular_mask(48, 64, seed=1)
+    b = mask.nonregular_mask(48, 64, seed=1)
+    c = mask.nonregular_mask(48, 64, seed=2)
+    assert a.dtype == bool and a.sum() == 48 * 64 // 2
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+
+
+def test_regular_mask_is_2x2_periodic():
+    m = mask.regular_mask(6, 8)
+    assert m.sum() == 24
+    assert np.array_equal(m[:2, :2], m[2:4, 2:4]) and np.array_equal(m[:2, :2], m[4:6, 6:8])
+
+
+def test_spectra_fig2_regular_two_peaks_nonregular_one():
+    reg = mask.mask_spectrum(mask.regular_mask(128, 128))
+    non = mask.mask_spectrum(mask.nonregular_mask(128, 128, seed=0))
+    def second_peak(s):
+        s = s.copy()
+        s[64, 64] = 0  # DC after fftshift
+        return s.max()
+    # regular: a second peak as strong as DC (aliasing ambiguity); non-regular: noise-like floor
+    assert second_peak(reg) == pytest.approx(1.0)
+    assert second_peak(non) < 0.05
+
+
+def test_profile_roundtrip(tmp_path):
+    p = profile.default(30, 40, seed=9, nd=7.5, l_min=250.0, black_level=16.0, read_noise=3.0)
+    path = profile.save(p, tmp_path / "cam.json")
+    q = profile.load(path)
+    assert np.array_equal(p.mask, q.mask)
+    for f in ("nd", "bit_depth", "clip_code", "black_level", "gain", "read_noise", "full_well", "l_min"):
+        assert getattr(p, f) == getattr(q, f)
+    assert q.white == pytest.approx((4094 - 16) * 7.5)
+    # the mask is a viewable 8-bit PNG, 255 = attenuated
+    png = io.read_image(tmp_path / "cam_mask.png", np.uint8)
+    assert png.dtype == np.uint8 and set(np.unique(png)) <= {0, 255}
+    assert np.array_equal(png[:, :, 0] == 255, p.mask)
+    doc = json.loads(path.read_text())
+    assert doc["format"] == "nrhdr-camera-profile" and doc["version"] == 1 and doc["crosstalk"] is None
+
+
+@pytest.mark.parametrize("field,value,words", [
+    ("nd", 0.5, "nd"), ("clip_code", 5000, "clip_code"), ("l_min", 5000.0, "l_min"),
+    ("read_noise", -1.0, "read_noise"), ("bit_depth", 20, "bit_depth"),
+])
+def test_profile_validation_names_the_field(field, value, words):
+    with pytest.raises(profile.ProfileError, match=words):
+        profile.default(8, 8, **{field: value})
+
+
+def test_profile_load_errors(tmp_path):
+    p = profile.default(8, 10)
+    path = profile.save(p, tmp_path / "cam.json")
+    with pytest.raises(profile.ProfileError, match="not found"):
+        profile.load(tmp_path / "missing.json")
+    bad = tmp_path / "corrupt.json"
+    bad.write_text("{ not json")
+    with pytest.raises(profile.ProfileError, match="corrupt.json.*not a valid JSON"):
+        profile.load(bad)
+    doc = json.loads(path.read_text())
+    for change, words in [({"version": 99}, "version"), ({"format": "x"}, "format"),
+                          ({"width": 12}, "mask.*10x8.*12x8"), ({"nd": "six"}, "nd"),
+                          ({"mask": "nope.png"}, "mask.*no such file")]:
+        d = dict(doc, **change)
+        f = tmp_path / "edited.json"
+        f.write_text(json.dumps(d))
+        with pytest.raises(profile.ProfileError, match=words):
+            profile.load(f)
+
+
+def test_mask_png_must_be_binary(tmp_path):
+    io.write_image(tmp_path / "m.png", np.full((4, 4), 128, np.uint8), np.uint8)
+    with pytest.raises(io.ImageFileError, match="only 0.*255"):
+        io.read_mask(tmp_path / "m.png")
