@@ -1,0 +1,278 @@
+"""Shared helpers of the nrhdr GStreamer elements: the HDR frame (`other/x-nrhdr`, docs/ARCHITECTURE.md),
+error posting, string "enum" properties and profile loading.
+
+Importing this module initialises GStreamer (idempotent) but compiles nothing: numba kernels are warmed up
+in the elements' `do_start`.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import sys
+import threading
+import traceback
+
+import gi
+
+gi.require_version("Gst", "1.0")
+gi.require_version("GstBase", "1.0")
+gi.require_version("GstVideo", "1.0")
+from gi.repository import GObject, Gst, GstBase, GstVideo  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+if not Gst.is_initialized():
+    Gst.init(None)
+
+__all__ = ["Gst", "GstBase", "GstVideo", "GObject", "np", "HDR_MEDIA_TYPE", "hdr_template_caps",
+           "HdrInfo", "alloc_hdr_buffer", "map_hdr", "map_video", "ErrorPoster", "Choice", "load_profile",
+           "copy_timestamps", "MUTABLE_PLAYING", "MUTABLE_READY"]
+
+HDR_MEDIA_TYPE = "other/x-nrhdr"
+_INT_RANGE = "(int)[1,2147483647]"
+_FPS_RANGE = "(fraction)[0/1,2147483647/1]"
+
+RW = Gst.MapFlags.READ | Gst.MapFlags.WRITE
+MUTABLE_PLAYING = int(Gst.PARAM_MUTABLE_PLAYING)
+MUTABLE_READY = int(Gst.PARAM_MUTABLE_READY)
+PROP_RW = GObject.ParamFlags.READWRITE
+
+
+def hdr_template_caps() -> Gst.Caps:
+    return Gst.Caps.from_string(f"{HDR_MEDIA_TYPE}, width={_INT_RANGE}, height={_INT_RANGE}, "
+                                f"framerate={_FPS_RANGE}")
+
+
+def raw_template_caps(formats: str) -> Gst.Caps:
+    return Gst.Caps.from_string(f"video/x-raw, format=(string){formats}, width={_INT_RANGE}, "
+                                f"height={_INT_RANGE}, framerate={_FPS_RANGE}")
+
+
+def copy_fields(src: Gst.Structure, dst: Gst.Structure, fields=("width", "height", "framerate")) -> None:
+    for f in fields:
+        if src.has_field(f):
+            dst.set_value(f, src.get_value(f))
+
+
+def transform_caps_by_structure(caps: Gst.Caps, filt: Gst.Caps | None, make) -> Gst.Caps:
+    """Map each structure of `caps` with `make(structure) -> list[Gst.Structure]`, then intersect with the
+    filter (first-caps order kept)."""
+    out = Gst.Caps.new_empty()
+    for i in range(caps.get_size()):
+        for s in make(caps.get_structure(i)):
+            out.append_structure(s)
+    if filt is not None:
+        out = filt.intersect_full(out, Gst.CapsIntersectMode.FIRST)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class HdrInfo:
+    """The fixed `other/x-nrhdr` caps of a stream."""
+    width: int
+    height: int
+    fps_n: int
+    fps_d: int
+    white: float | None
+    profile: str | None
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    @property
+    def size(self) -> int:
+        return 5 * self.pixels
+
+    @classmethod
+    def from_caps(cls, caps: Gst.Caps) -> "HdrInfo":
+        if caps is None or caps.get_size() < 1:
+            raise ValueError("no caps")
+        s = caps.get_structure(0)
+        if s.get_name() != HDR_MEDIA_TYPE:
+            raise ValueError(f"caps are {s.get_name()}, expected {HDR_MEDIA_TYPE}")
+        okw, w = s.get_int("width")
+        okh, h = s.get_int("height")
+        if not (okw and okh) or w < 1 or h < 1:
+            raise ValueError(f"{HDR_MEDIA_TYPE} caps without a fixed width/height: {caps.to_string()}")
+        okf, fn, fd = s.get_fraction("framerate")
+        if not okf:
+            fn, fd = 0, 1
+        white = None
+        if s.has_field("white"):
+            okwh, wv = s.get_double("white")
+            if okwh and np.isfinite(wv) and wv > 0:
+                white = float(wv)
+        prof = s.get_string("profile") if s.has_field("profile") else None
+        return cls(w, h, fn, fd, white, prof or None)
+
+
+def _alloc_params():
+    try:
+        p = Gst.AllocationParams()
+        p.align = 63
+        return p
+    except Exception:  # pragma: no cover - binding differences
+        return None
+
+
+_PARAMS = None
+
+
+def alloc_hdr_buffer(width: int, height: int) -> Gst.Buffer:
+    """A new HDR frame: block 0 float32 values (4*W*H bytes), block 1 uint8 state (W*H bytes)."""
+    global _PARAMS
+    if _PARAMS is None:
+        _PARAMS = _alloc_params()
+    n = width * height
+    alloc = Gst.Allocator.find(None)
+    buf = Gst.Buffer.new()
+    buf.append_memory(alloc.alloc(4 * n, _PARAMS))
+    buf.append_memory(alloc.alloc(n, _PARAMS))
+    return buf
+
+
+def check_hdr_buffer(buf: Gst.Buffer, info: HdrInfo) -> None:
+    n = info.pixels
+    if buf.n_memory() != 2:
+        raise ValueError(f"buffer is not an nrhdr HDR frame: {buf.n_memory()} memory blocks, expected 2 "
+                         f"(float32 values, uint8 state)")
+    s0 = buf.peek_memory(0).get_sizes()[0]
+    s1 = buf.peek_memory(1).get_sizes()[0]
+    if s0 != 4 * n or s1 != n:
+        raise ValueError(f"HDR frame blocks are {s0} and {s1} bytes; {info.width}x{info.height} needs "
+                         f"{4 * n} and {n}")
+
+
+@contextlib.contextmanager
+def map_hdr(buf: Gst.Buffer, info: HdrInfo, write: bool):
+    """Yield (values float32 (H, W), state uint8 (H, W)) views of an HDR frame's two memory blocks. The views
+    are only valid inside the `with` block."""
+    check_hdr_buffer(buf, info)
+    flags = RW if write else Gst.MapFlags.READ
+    shape = (info.height, info.width)
+    ok0, m0 = buf.map_range(0, 1, flags)
+    if not ok0:
+        raise RuntimeError("cannot map the HDR values block" + (" for writing" if write else ""))
+    try:
+        ok1, m1 = buf.map_range(1, 1, flags)
+        if not ok1:
+            raise RuntimeError("cannot map the HDR state block" + (" for writing" if write else ""))
+        try:
+            yield (np.ndarray(shape, np.float32, buffer=m0.data), np.ndarray(shape, np.uint8, buffer=m1.data))
+        finally:
+            buf.unmap(m1)
+    finally:
+        buf.unmap(m0)
+
+
+@contextlib.contextmanager
+def map_video(buf: Gst.Buffer, vi: GstVideo.VideoInfo, dtype, write: bool):
+    """Yield an (H, W) view of a single-plane gray video buffer. The row stride is the VideoInfo's when
+    the buffer has the VideoInfo's size, else size / height (e.g. rawvideoparse plane-strides=<2*W>)."""
+    dtype = np.dtype(dtype)
+    h, w = vi.height, vi.width
+    size = buf.get_size()
+    if size == vi.size:
+        stride, offset = vi.stride[0], vi.offset[0]
+    elif h > 0 and size % h == 0 and size // h >= w * dtype.itemsize:
+        stride, offset = size // h, 0
+    else:
+        raise ValueError(f"buffer of {size} bytes does not hold a {w}x{h} {vi.finfo.name} frame "
+                         f"({vi.size} bytes expected)")
+    ok, mi = buf.map(RW if write else Gst.MapFlags.READ)
+    if not ok:
+        raise RuntimeError("cannot map the video buffer" + (" for writing" if write else ""))
+    try:
+        yield np.ndarray((h, w), dtype, buffer=mi.data, offset=offset, strides=(stride, dtype.itemsize))
+    finally:
+        buf.unmap(mi)
+
+
+def copy_timestamps(src: Gst.Buffer, dst: Gst.Buffer) -> None:
+    dst.pts = src.pts
+    dst.dts = src.dts
+    dst.duration = src.duration
+    dst.offset = src.offset
+    dst.offset_end = src.offset_end
+    if src.has_flags(Gst.BufferFlags.DISCONT):
+        dst.set_flags(Gst.BufferFlags.DISCONT)
+
+
+class ErrorPoster:
+    """Mixin (plain Python, no vfuncs) for posting element errors that name the element and the problem.
+    gst-launch prints them as `ERROR: from element /GstPipeline:pipeline0/GstNrValidity:nrvalidity0: <text>`."""
+
+    def post_error(self, text: str, debug: str | None = None, kind: str = "stream") -> None:
+        domains = {
+            "stream": (Gst.stream_error_quark(), int(Gst.StreamError.FAILED)),
+            "format": (Gst.stream_error_quark(), int(Gst.StreamError.FORMAT)),
+            "settings": (Gst.resource_error_quark(), int(Gst.ResourceError.SETTINGS)),
+            "read": (Gst.resource_error_quark(), int(Gst.ResourceError.READ)),
+            "write": (Gst.resource_error_quark(), int(Gst.ResourceError.WRITE)),
+            "not-found": (Gst.resource_error_quark(), int(Gst.ResourceError.NOT_FOUND)),
+            "negotiation": (Gst.core_error_quark(), int(Gst.CoreError.NEGOTIATION)),
+        }
+        domain, code = domains.get(kind, domains["stream"])
+        f = sys._getframe(1)
+        if f.f_code.co_name == "post_exception" and f.f_back is not None:
+            f = f.f_back
+        self.message_full(Gst.MessageType.ERROR, domain, code, text, debug, f.f_code.co_filename,
+                          f.f_code.co_name, f.f_lineno)
+
+    def post_exception(self, where: str, exc: BaseException) -> Gst.FlowReturn:
+        """Post an element error for an exception raised in a vfunc and return FlowReturn.ERROR."""
+        tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+        self.post_error(f"{where}: {type(exc).__name__}: {exc}", tb)
+        return Gst.FlowReturn.ERROR
+
+
+class Choice:
+    """A string property restricted to a set of words (PyGObject 3.42 cannot register new GEnum types).
+    `set(value)` returns None when valid, else an error text; an invalid value set before start is
+    remembered so `do_start` fails with a clear element error instead of silently using a default."""
+
+    def __init__(self, prop: str, choices, default: str):
+        self.prop, self.choices, self.value, self.invalid = prop, tuple(choices), default, None
+
+    def check(self, value) -> str | None:
+        v = str(value).strip().lower() if value is not None else ""
+        if v not in self.choices:
+            return f"invalid value {value!r} for property '{self.prop}' (choose one of: {', '.join(self.choices)})"
+        return None
+
+    def blurb(self, text: str) -> str:
+        return f"{text} (one of: {', '.join(self.choices)})"
+
+
+# ---- profiles --------------------------------------------------------------------------------------
+
+_profile_cache: dict = {}
+_profile_lock = threading.Lock()
+
+
+def load_profile(path: str):
+    """nrhdr_core.profile.load with a small cache keyed by (absolute path, mtime, size); ProfileError
+    propagates with its message naming the file and the field."""
+    from nrhdr_core import profile as profile_mod
+    if not path:
+        raise profile_mod.ProfileError("no camera profile set (property 'profile' is empty)")
+    ap = os.path.abspath(os.path.expanduser(path))
+    try:
+        st = os.stat(ap)
+        key = (ap, st.st_mtime_ns, st.st_size)
+    except OSError:
+        key = None
+    if key is not None:
+        with _profile_lock:
+            p = _profile_cache.get(key)
+        if p is not None:
+            return p
+    p = profile_mod.load(ap)
+    if key is not None:
+        with _profile_lock:
+            if len(_profile_cache) >= 8:
+                _profile_cache.clear()
+            _profile_cache[key] = p
+    return p

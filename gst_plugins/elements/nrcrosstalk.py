@@ -1,0 +1,133 @@
+"""nrcrosstalk: crosstalk correction of HDR frames in place (paper section 3.2).
+
+Applies the camera profile's crosstalk calibration with `nrhdr_core.crosstalk.correct(values, state,
+profile, mode)` on the mapped frame. Without a calibration in the profile (or with mode=off) the core
+returns the frame unchanged, so frames pass through untouched.
+"""
+from __future__ import annotations
+
+from ._common import (MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster, GObject, Gst, GstBase, HdrInfo,
+                      hdr_template_caps, load_profile, map_hdr)
+
+MODES = ("lut", "kernel", "off")
+
+
+class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
+    __gtype_name__ = "GstNrCrosstalk"
+    __gstmetadata__ = (
+        "nrhdr crosstalk correction",
+        "Filter/Effect/Video",
+        "Corrects optical/electrical crosstalk between ND-filtered and regular pixels of HDR frames "
+        "(other/x-nrhdr) with the camera profile's calibration (paper 3.2); identity without a calibration",
+        "nrhdr project",
+    )
+    __gsttemplates__ = (
+        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, hdr_template_caps()),
+        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
+    )
+
+    def __init__(self):
+        super().__init__()
+        self._profile_path = ""
+        self._mode = Choice("mode", MODES, "lut")
+        self._profile = None
+        self._info = None
+        self._frames = 0
+        self.set_in_place(True)
+        self.set_passthrough(False)
+
+    @GObject.Property(type=str, default="", nick="Camera profile",
+                      blurb="Camera profile JSON with the crosstalk calibration. Empty = the profile named "
+                            "in the caps by nrvalidity (field 'profile')",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_READY)
+    def profile(self):
+        return self._profile_path
+
+    @profile.setter
+    def profile(self, value):
+        self._profile_path = value or ""
+
+    @GObject.Property(type=str, default="lut", nick="Correction mode",
+                      blurb="'lut' = per-code look-up table, 'kernel' = neighbour kernel, 'off' = pass "
+                            "frames through (one of: lut, kernel, off)",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+    def mode(self):
+        return self._mode.value
+
+    @mode.setter
+    def mode(self, value):
+        err = self._mode.check(value)
+        if err:
+            self._mode.invalid = err
+            Gst.warning(f"{self.get_name()}: {err}")
+            return
+        self._mode.invalid = None
+        self._mode.value = str(value).strip().lower()
+
+    def do_start(self):
+        try:
+            if self._mode.invalid:
+                self.post_error(self._mode.invalid, kind="settings")
+                return False
+            self._profile = None
+            if self._profile_path:
+                try:
+                    self._profile = load_profile(self._profile_path)
+                except ValueError as e:
+                    self.post_error(str(e), kind="read")
+                    return False
+            from nrhdr_core import crosstalk
+            if hasattr(crosstalk, "warmup"):
+                crosstalk.warmup()
+            self._frames = 0
+            return True
+        except Exception as e:  # noqa: BLE001
+            self.post_exception("start", e)
+            return False
+
+    def do_stop(self):
+        self._info = None
+        return True
+
+    def do_set_caps(self, incaps, outcaps):
+        try:
+            info = HdrInfo.from_caps(incaps)
+            if not self._profile_path:
+                if not info.profile:
+                    self.post_error("no camera profile: set the 'profile' property or put nrvalidity "
+                                    "upstream (its caps name the profile)", kind="settings")
+                    return False
+                try:
+                    self._profile = load_profile(info.profile)
+                except ValueError as e:
+                    self.post_error(str(e), kind="read")
+                    return False
+            p = self._profile
+            if (p.width, p.height) != (info.width, info.height):
+                self.post_error(f"profile {p.path} has a {p.width}x{p.height} mask but the stream is "
+                                f"{info.width}x{info.height}", kind="format")
+                return False
+            self._info = info
+            return True
+        except Exception as e:  # noqa: BLE001
+            self.post_exception("set_caps", e)
+            return False
+
+    def do_transform_ip(self, buf):
+        try:
+            mode = self._mode.value
+            if self._info is None:
+                self.post_error("no caps negotiated before the first buffer", kind="negotiation")
+                return Gst.FlowReturn.NOT_NEGOTIATED
+            if mode != "off":
+                from nrhdr_core import crosstalk
+                with map_hdr(buf, self._info, write=True) as (values, state):
+                    v2, s2 = crosstalk.correct(values, state, self._profile, mode)
+                    if v2 is not values:
+                        values[...] = v2
+                    if s2 is not state:
+                        state[...] = s2
+            self._frames += 1
+            return Gst.FlowReturn.OK
+        except Exception as e:  # noqa: BLE001
+            return self.post_exception(f"frame {self._frames}", e)

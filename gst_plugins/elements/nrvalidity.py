@@ -1,0 +1,227 @@
+"""nrvalidity: raw GRAY16_LE sensor frames in, HDR frames (`other/x-nrhdr`) out (paper section 2.3, Eq. 3).
+
+Clipped pixels and attenuated pixels below l_min become missing, attenuated pixels are scaled by ND, and a
+per-pixel state byte (valid / clipped / too dark / discarded, + attenuated bit) travels in the frame's
+second memory block (docs/ARCHITECTURE.md). Core: `nrhdr_core.validity.classify`.
+"""
+from __future__ import annotations
+
+import os
+import urllib.parse
+
+from ._common import (MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster, GObject, Gst, GstBase,
+                      GstVideo, HDR_MEDIA_TYPE, alloc_hdr_buffer, copy_fields, copy_timestamps,
+                      hdr_template_caps, load_profile, map_hdr, map_video, raw_template_caps,
+                      transform_caps_by_structure, HdrInfo)
+
+MODES = ("all", "best", "threshold")
+
+
+class NrValidity(ErrorPoster, GstBase.BaseTransform):
+    __gtype_name__ = "GstNrValidity"
+    __gstmetadata__ = (
+        "nrhdr validity and ND scaling",
+        "Filter/Converter/Video",
+        "Raw GRAY16_LE frames of a non-regular ND sensor to linear HDR frames (other/x-nrhdr): clipped and "
+        "too-dark pixels become missing, attenuated pixels are scaled by ND (paper Eq. 3), a per-pixel "
+        "state travels with the frame",
+        "nrhdr project",
+    )
+    __gsttemplates__ = (
+        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS,
+                            raw_template_caps("GRAY16_LE")),
+        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
+    )
+
+    def __init__(self):
+        super().__init__()
+        self._profile_path = ""
+        self._mode = Choice("mode", MODES, "threshold")
+        self._l_min = -1.0
+        self._profile = None
+        self._in_info = None
+        self._out_info = None
+        self._frames = 0
+        self._size_checked = False
+        self.set_passthrough(False)
+        self.set_in_place(False)
+
+    # ---- properties ---------------------------------------------------------------------------------
+    @GObject.Property(type=str, default="", nick="Camera profile",
+                      blurb="Camera profile JSON (nrhdr_core.profile): ND mask, ND factor, clip code, black "
+                            "level, l_min. Required; the stream's frame size must equal the mask's",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_READY)
+    def profile(self):
+        return self._profile_path
+
+    @profile.setter
+    def profile(self, value):
+        self._profile_path = value or ""
+
+    @GObject.Property(type=str, default="threshold", nick="Selection mode",
+                      blurb="Pixel selection (paper 2.3): 'all' = every pixel neither clipped nor below "
+                            "SNR 0 dB; 'best' = attenuated pixels dropped where a valid regular neighbour "
+                            "exists; 'threshold' = attenuated pixels below l-min are invalid "
+                            "(one of: all, best, threshold)",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+    def mode(self):
+        return self._mode.value
+
+    @mode.setter
+    def mode(self, value):
+        err = self._mode.check(value)
+        if err:
+            self._mode.invalid = err
+            Gst.warning(f"{self.get_name()}: {err}")
+            return
+        self._mode.invalid = None
+        self._mode.value = str(value).strip().lower()
+
+    @GObject.Property(type=float, default=-1.0, minimum=-1.0, maximum=65535.0, nick="l_min",
+                      blurb="Threshold mode: attenuated pixels whose signal (code - black level) is below "
+                            "this are too dark (paper 2.3). -1 = the profile's l_min",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+    def l_min(self):
+        return self._l_min
+
+    @l_min.setter
+    def l_min(self, value):
+        self._l_min = float(value)
+
+    # ---- state --------------------------------------------------------------------------------------
+    def do_start(self):
+        try:
+            if self._mode.invalid:
+                self.post_error(self._mode.invalid, kind="settings")
+                return False
+            try:
+                self._profile = load_profile(self._profile_path)
+            except ValueError as e:  # ProfileError is a ValueError
+                self.post_error(str(e), kind="settings" if not self._profile_path else "read")
+                return False
+            from nrhdr_core import validity
+            validity.warmup()
+            self._frames = 0
+            self._size_checked = False
+            return True
+        except Exception as e:  # noqa: BLE001
+            self.post_exception("start", e)
+            return False
+
+    def do_stop(self):
+        self._profile = None
+        self._in_info = self._out_info = None
+        return True
+
+    # ---- caps ---------------------------------------------------------------------------------------
+    def do_transform_caps(self, direction, caps, filt):
+        prof = self._profile
+
+        def to_hdr(s):
+            n = Gst.Structure.new_empty(HDR_MEDIA_TYPE)
+            copy_fields(s, n)
+            if prof is not None:
+                n.set_value("white", float(prof.white))
+                if prof.path is not None:
+                    n.set_value("profile", str(prof.path))
+            return [n]
+
+        def to_raw(s):
+            n = Gst.Structure.new_empty("video/x-raw")
+            n.set_value("format", "GRAY16_LE")
+            copy_fields(s, n)
+            return [n]
+
+        return transform_caps_by_structure(caps, filt, to_hdr if direction == Gst.PadDirection.SINK
+                                           else to_raw)
+
+    def do_accept_caps(self, direction, caps):
+        ok = GstBase.BaseTransform.do_accept_caps(self, direction, caps)
+        if not ok and direction == Gst.PadDirection.SINK and caps is not None and caps.is_fixed():
+            s = caps.get_structure(0)
+            fmt = s.get_string("format") if s.has_field("format") else None
+            if s.get_name() == "video/x-raw" and fmt and fmt != "GRAY16_LE":
+                self.post_error(f"needs raw GRAY16_LE sensor frames, got format {fmt} "
+                                f"({caps.to_string()})", kind="format")
+            else:
+                self.post_error(f"cannot accept {caps.to_string()}: needs video/x-raw, format=GRAY16_LE",
+                                kind="format")
+        return ok
+
+    def do_set_caps(self, incaps, outcaps):
+        try:
+            vi = GstVideo.VideoInfo.new_from_caps(incaps)
+            if vi is None:
+                self.post_error(f"cannot parse input caps {incaps.to_string()}", kind="format")
+                return False
+            prof = self._profile
+            if prof is None:
+                self.post_error("no camera profile loaded", kind="settings")
+                return False
+            if (vi.width, vi.height) != (prof.width, prof.height):
+                name = os.path.basename(str(prof.path)) if prof.path else self._profile_path
+                self.post_error(f"profile {name} has a {prof.width}x{prof.height} mask but the stream is "
+                                f"{vi.width}x{vi.height}", kind="format")
+                return False
+            self._in_info = vi
+            self._out_info = HdrInfo.from_caps(outcaps)
+            return True
+        except Exception as e:  # noqa: BLE001
+            self.post_exception("set_caps", e)
+            return False
+
+    # ---- data ---------------------------------------------------------------------------------------
+    def do_prepare_output_buffer(self, inbuf):
+        try:
+            oi = self._out_info
+            if oi is None:
+                self.post_error("no caps negotiated before the first buffer", kind="negotiation")
+                return Gst.FlowReturn.NOT_NEGOTIATED, None
+            out = alloc_hdr_buffer(oi.width, oi.height)
+            copy_timestamps(inbuf, out)
+            return Gst.FlowReturn.OK, out
+        except Exception as e:  # noqa: BLE001
+            return self.post_exception("prepare_output_buffer", e), None
+
+    def _check_truncated(self, inbuf) -> bool:
+        """rawvideoparse silently drops a partial last frame: ask upstream for the byte size of its input
+        (filesrc answers) and refuse a file that is not a whole number of frames."""
+        self._size_checked = True
+        frame = inbuf.get_size()
+        try:
+            ok, total = self.sinkpad.peer_query_duration(Gst.Format.BYTES)
+        except Exception:  # noqa: BLE001
+            return True
+        if not ok or total is None or total <= 0 or frame <= 0 or total % frame == 0:
+            return True
+        where = "input"
+        try:
+            q = Gst.Query.new_uri()
+            if self.sinkpad.peer_query(q):
+                uri = q.parse_uri()
+                if uri and uri.startswith("file://"):
+                    where = urllib.parse.unquote(uri[len("file://"):])
+                elif uri:
+                    where = uri
+        except Exception:  # noqa: BLE001
+            pass
+        vi = self._in_info
+        self.post_error(f"{where} is {total} bytes, not a whole number of {frame}-byte {vi.width}x{vi.height} "
+                        f"GRAY16_LE frames ({total // frame} frames + {total % frame} bytes): the last frame "
+                        f"is truncated", kind="format")
+        return False
+
+    def do_transform(self, inbuf, outbuf):
+        try:
+            if not self._size_checked and not self._check_truncated(inbuf):
+                return Gst.FlowReturn.ERROR
+            from nrhdr_core import validity
+            lm = None if self._l_min < 0 else self._l_min
+            mode = self._mode.value
+            with map_video(inbuf, self._in_info, "<u2", write=False) as raw, \
+                    map_hdr(outbuf, self._out_info, write=True) as (values, state):
+                validity.classify(raw, self._profile, mode=mode, l_min=lm, values=values, state=state)
+            self._frames += 1
+            return Gst.FlowReturn.OK
+        except Exception as e:  # noqa: BLE001
+            return self.post_exception(f"frame {self._frames}", e)

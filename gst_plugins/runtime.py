@@ -1,0 +1,211 @@
+"""Running nrhdr pipelines: environment for gst-launch-1.0 / gst-inspect-1.0 subprocesses (the Python
+plugin loader embeds /usr/bin/python3 and must be told where the project and the venv's packages are) and an
+in-process runner for apps.
+
+- `plugin_dir()`: the folder holding `python/` (the loader shims) -> GST_PLUGIN_PATH.
+- `gst_env(base=None)`: a copy of `base` (default os.environ) with GST_PLUGIN_PATH, PYTHONPATH and a
+  private GST_REGISTRY set.
+- `launch(args)` / `inspect(args)`: run gst-launch-1.0 -e / gst-inspect-1.0 with that environment and
+  return the exit code.
+- `run_pipeline(description, on_message=None)`: register the elements in this process, run the pipeline
+  until EOS or error, return 0 / 1 (errors printed to stderr with the element's name).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tempfile
+from pathlib import Path
+
+_PKG_DIR = Path(__file__).resolve().parent          # <root>/gst_plugins
+PROJECT_ROOT = _PKG_DIR.parent                      # holds nrhdr_core/ and gst_plugins/
+
+
+def plugin_dir() -> Path:
+    """The folder that holds `python/` with the loader shims (GST_PLUGIN_PATH entry)."""
+    return _PKG_DIR
+
+
+def _site_packages() -> list[str]:
+    out = []
+    for key in ("purelib", "platlib"):
+        p = sysconfig.get_paths().get(key)
+        if p and p not in out and os.path.isdir(p):
+            out.append(p)
+    return out
+
+
+def _code_fingerprint() -> str:
+    """Hash of the element and loader sources (names, sizes, mtimes) and the interpreter: a new registry
+    file whenever they change, so a cached failed import never sticks (docs: gstreamer-python.md)."""
+    h = hashlib.sha1()
+    h.update(sys.executable.encode())
+    h.update(str(PROJECT_ROOT).encode())
+    for d in (_PKG_DIR / "python", _PKG_DIR / "elements"):  # core modules are imported lazily in do_start
+        try:
+            entries = sorted(d.glob("*.py"))
+        except OSError:
+            continue
+        for f in entries:
+            try:
+                st = f.stat()
+            except OSError:
+                continue
+            h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()[:16]
+
+
+def _registry_file() -> str:
+    name = f"registry-{_code_fingerprint()}.bin"
+    for base in (Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nrhdr",
+                 Path(tempfile.gettempdir()) / f"nrhdr-{os.getuid() if hasattr(os, 'getuid') else 0}"):
+        try:
+            base.mkdir(parents=True, exist_ok=True)
+            if os.access(base, os.W_OK):
+                for old in base.glob("registry-*.bin"):  # keep the folder small
+                    if old.name != name:
+                        try:
+                            old.unlink()
+                        except OSError:
+                            pass
+                return str(base / name)
+        except OSError:
+            continue
+    return str(Path(tempfile.mkdtemp(prefix="nrhdr-registry-")) / name)
+
+
+def _prepend(value: str | None, entries: list[str]) -> str:
+    parts = list(entries)
+    for p in (value or "").split(os.pathsep):
+        if p and p not in parts:
+            parts.append(p)
+    return os.pathsep.join(parts)
+
+
+def gst_env(base: dict | None = None) -> dict:
+    """Environment for gst-launch-1.0 / gst-inspect-1.0 subprocesses that load the nrhdr elements.
+
+    GST_PLUGIN_PATH gets plugin_dir(); PYTHONPATH gets the project root (nrhdr_core, gst_plugins) and this
+    interpreter's site-packages (numpy, numba, OpenImageIO of the venv) before any existing entries;
+    GST_REGISTRY is a private file (~/.cache/nrhdr/, else a temp dir) unless `base` already sets one."""
+    env = dict(os.environ if base is None else base)
+    env["GST_PLUGIN_PATH"] = _prepend(env.get("GST_PLUGIN_PATH"), [str(plugin_dir())])
+    env["PYTHONPATH"] = _prepend(env.get("PYTHONPATH"), [str(PROJECT_ROOT)] + _site_packages())
+    if not env.get("GST_REGISTRY"):
+        env["GST_REGISTRY"] = _registry_file()
+    # The scan may run in gst-plugin-scanner (fork) or in-process: both see the env above. Python
+    # output should not be buffered so element tracebacks interleave with gst-launch output.
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
+def _tool(name: str) -> str:
+    exe = shutil.which(name)
+    if exe is None:
+        raise FileNotFoundError(f"{name} not found: install gstreamer1.0-tools (scripts/setup.sh does)")
+    return exe
+
+
+def launch(args: list[str]) -> int:
+    """Run `gst-launch-1.0 -e <args>` with gst_env(); returns its exit code (non-zero on error)."""
+    try:
+        exe = _tool("gst-launch-1.0")
+    except FileNotFoundError as e:
+        print(f"nrhdr: {e}", file=sys.stderr)
+        return 127
+    args = list(args)
+    if "-e" not in args and "--eos-on-shutdown" not in args:
+        args = ["-e"] + args
+    return subprocess.call([exe] + args, env=gst_env())
+
+
+def inspect(args: list[str]) -> int:
+    """Run `gst-inspect-1.0 <args>` with gst_env(); returns its exit code."""
+    try:
+        exe = _tool("gst-inspect-1.0")
+    except FileNotFoundError as e:
+        print(f"nrhdr: {e}", file=sys.stderr)
+        return 127
+    return subprocess.call([exe] + list(args), env=gst_env())
+
+
+def run_pipeline(description: str, on_message=None) -> int:
+    """Run a gst-launch style pipeline in this process with the nrhdr elements registered in-process.
+
+    Blocks until EOS (returns 0) or the first error (prints `ERROR from <element>: <text>` and the debug
+    text to stderr, returns 1). `on_message(msg)` is called for every bus message (e.g. the element messages
+    "nrhdr-frame-stats" of nrreconstruct). Ctrl-C sends EOS so files are finished; a second Ctrl-C stops."""
+    import gst_plugins
+    gst_plugins.register_all()
+    from gi.repository import GLib, Gst
+
+    try:
+        pipeline = Gst.parse_launch(description)
+    except GLib.Error as e:
+        print(f"ERROR: invalid pipeline: {e.message}", file=sys.stderr)
+        return 1
+    if isinstance(pipeline, Gst.Element) and not isinstance(pipeline, Gst.Pipeline):
+        p = Gst.Pipeline.new(None)
+        p.add(pipeline)
+        pipeline = p
+    bus = pipeline.get_bus()
+    result = {"rc": 1, "done": False}
+    interrupted = [0]
+
+    def handle(msg) -> bool:
+        """Return True when the run is over."""
+        if on_message is not None:
+            try:
+                on_message(msg)
+            except Exception as e:  # noqa: BLE001 - an app callback must not kill the run silently
+                print(f"nrhdr: on_message callback failed: {type(e).__name__}: {e}", file=sys.stderr)
+        t = msg.type
+        if t == Gst.MessageType.EOS:
+            result["rc"] = 0
+            return True
+        if t == Gst.MessageType.ERROR:
+            err, dbg = msg.parse_error()
+            src = msg.src.get_path_string() if msg.src is not None else "?"
+            name = msg.src.get_name() if msg.src is not None else "?"
+            print(f"ERROR from {name} ({src}): {err.message}", file=sys.stderr)
+            if dbg:
+                print(f"debug: {dbg}", file=sys.stderr)
+            result["rc"] = 1
+            return True
+        if t == Gst.MessageType.WARNING:
+            w, dbg = msg.parse_warning()
+            name = msg.src.get_name() if msg.src is not None else "?"
+            print(f"WARNING from {name}: {w.message}", file=sys.stderr)
+        return False
+
+    ret = pipeline.set_state(Gst.State.PLAYING)
+    try:
+        if ret == Gst.StateChangeReturn.FAILURE:
+            # the element that failed has usually posted an error: report it
+            msg = bus.pop_filtered(Gst.MessageType.ERROR)
+            if msg is not None:
+                handle(msg)
+            else:
+                print("ERROR: the pipeline could not start (state change failed)", file=sys.stderr)
+            return 1
+        mask = Gst.MessageType.ANY
+        while True:
+            try:
+                msg = bus.timed_pop_filtered(100 * Gst.MSECOND, mask)
+            except KeyboardInterrupt:
+                interrupted[0] += 1
+                if interrupted[0] == 1:
+                    print("nrhdr: interrupted, sending EOS (Ctrl-C again to stop now)", file=sys.stderr)
+                    pipeline.send_event(Gst.Event.new_eos())
+                    continue
+                return 130
+            if msg is None:
+                continue
+            if handle(msg):
+                return result["rc"]
+    finally:
+        pipeline.set_state(Gst.State.NULL)
