@@ -1,0 +1,117 @@
+"""The simulator (scene to raw video with motion) and the file layer (OpenImageIO, raw video, EXR)."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from nrhdr_core import io, profile, simulate, validity
+from conftest import shared_data
+
+
+def small_scene(rng):
+    yy, xx = np.mgrid[0:120, 0:160].astype(np.float32)
+    return (1.0 + 0.5 * np.sin(xx / 7.0) * np.cos(yy / 9.0) + (xx > 100) * 20.0).astype(np.float32)
+
+
+def test_clip_folder_contents_and_truth(tmp_path, rng):
+    p = profile.default(48, 64, seed=2)
+    info = simulate.simulate_clip(small_scene(rng), tmp_path / "c", p, frames=4, fps=25, seed=3,
+                                  sequence="png", progress=False)
+    d = tmp_path / "c"
+    assert (d / "clip.raw").stat().st_size == 4 * 48 * 64 * 2
+    assert json.loads((d / "clip.json").read_text())["frames"] == 4
+    assert profile.load(d / "camera.json").mask.tolist() == p.mask.tolist()
+    raw = io.read_raw_video(d / "clip.raw", 64, 48)
+    assert raw.shape == (4, 48, 64)
+    seq = io.read_image(d / "raw_png" / "frame_00002.png", np.uint16)[:, :, 0]
+    assert np.array_equal(seq, raw[2])
+    # the truth is the noise-free flux: the ND-scaled capture agrees with it where nothing clips
+    truth, _ = io.read_exr(d / "truth" / "frame_00001.exr")
+    v, s = validity.classify(np.asarray(raw[1]), p, "all")
+    ok = validity.known_mask(s) & (truth > 300)
+    rel = (v[ok] - truth[ok]) / truth[ok]
+    assert abs(rel.mean()) < 0.01            # unbiased
+    assert rel.std() < 0.15                  # within shot noise of ND pixels
+    # camera motion: consecutive truths differ
+    t0, _ = io.read_exr(d / "truth" / "frame_00000.exr")
+    t3, _ = io.read_exr(d / "truth" / "frame_00003.exr")
+    assert np.abs(t0 - t3).mean() > 0.01 * t0.mean()
+    assert info["exposure_scale"] > 0
+
+
+def test_simulation_is_deterministic(tmp_path, rng):
+    s = small_scene(rng)
+    p = profile.default(24, 32, seed=1)
+    simulate.simulate_clip(s, tmp_path / "a", p, frames=2, seed=5, progress=False)
+    simulate.simulate_clip(s, tmp_path / "b", p, frames=2, seed=5, progress=False)
+    simulate.simulate_clip(s, tmp_path / "c", p, frames=2, seed=6, progress=False)
+    a, b, c = ((tmp_path / x / "clip.raw").read_bytes() for x in "abc")
+    assert a == b and a != c
+
+
+def test_exposure_stops_double_the_flux(rng):
+    p = profile.default(8, 8)
+    s = small_scene(rng)
+    assert simulate.exposure_scale(s, p, 1.0) == pytest.approx(2 * simulate.exposure_scale(s, p, 0.0))
+
+
+def test_simulate_errors(tmp_path):
+    with pytest.raises(ValueError, match="frames"):
+        simulate.simulate_clip(np.ones((10, 10)), tmp_path, frames=0)
+    with pytest.raises(FileNotFoundError, match="clip.json"):
+        simulate.load_clip(tmp_path)
+
+
+def test_exr_roundtrip_with_state(tmp_path, rng):
+    v = (rng.random((9, 11)) * 1e5).astype(np.float32)
+    s = rng.integers(0, 255, (9, 11)).astype(np.uint8)
+    io.write_exr(tmp_path / "f.exr", v, s)
+    v2, s2 = io.read_exr(tmp_path / "f.exr")
+    assert np.array_equal(v, v2) and np.array_equal(s, s2)
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]  # no temp file left
+
+
+def test_read_luminance_cleans_negative_and_nonfinite(tmp_path):
+    px = np.zeros((4, 4, 3), np.float32)
+    px[0, 0] = -1.0
+    px[1, 1] = np.nan
+    px[2, 2] = np.inf
+    px[3, 3] = [1.0, 2.0, 3.0]
+    io.write_image(tmp_path / "s.exr", px, np.float32)
+    lum = io.read_luminance(tmp_path / "s.exr")
+    assert np.isfinite(lum).all() and (lum >= 0).all()
+    assert lum[3, 3] == pytest.approx(0.2126 + 2 * 0.7152 + 3 * 0.0722, rel=1e-5)
+    assert lum[2, 2] == lum.max()
+
+
+def test_raw_video_truncated_is_an_error(tmp_path):
+    with io.RawVideoWriter(tmp_path / "r.raw", 4, 3) as w:
+        w.write(np.zeros((3, 4), np.uint16))
+    with open(tmp_path / "r.raw", "ab") as f:
+        f.write(b"\0" * 5)
+    with pytest.raises(io.ImageFileError, match="r.raw.*1 frames \\+ 5 bytes"):
+        io.read_raw_video(tmp_path / "r.raw", 4, 3)
+
+
+def test_raw_writer_aborted_leaves_nothing(tmp_path):
+    with pytest.raises(RuntimeError):
+        with io.RawVideoWriter(tmp_path / "x.raw", 2, 2) as w:
+            w.write(np.zeros((2, 2), np.uint16))
+            raise RuntimeError("interrupted")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_missing_image_names_the_file(tmp_path):
+    with pytest.raises(io.ImageFileError, match="nothere.exr"):
+        io.read_luminance(tmp_path / "nothere.exr")
+
+
+@pytest.mark.parametrize("name", ["Desk.exr", "MtTamWest.exr"])
+def test_real_hdr_scene_to_raw(tmp_path, name):
+    scene = io.read_luminance(shared_data("hdr", name))
+    assert np.isfinite(scene).all() and (scene >= 0).all() and scene.max() > 30 * np.median(scene)
+    p = profile.default(60, 80, seed=0)
+    simulate.simulate_clip(scene, tmp_path / "c", p, frames=2, progress=False)
+    raw = io.read_raw_video(tmp_path / "c" / "clip.raw", 80, 60)
+    assert raw.shape == (2, 60, 80) and raw.max() <= 4095
