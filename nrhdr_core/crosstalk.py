@@ -1,29 +1,498 @@
-"""Crosstalk (paper section 3): sensor model and correction. (Interface stub; the full model, LUT and
-neighbour-kernel correction land with the crosstalk issue.)"""
+"""Crosstalk (paper section 3): a realistic sensor model and the calibrated correction (docs/CROSSTALK.md).
+
+Sensor model (`SensorModel`, used by `sensor.capture`): every pixel receives a share of the charge/light of
+its 8 neighbours through a 3 x 3 kernel (edge terms, corner terms, row/column anisotropy) that varies from
+pixel to pixel (a glued-on mask is not uniform: a smooth field times a random factor); the coupling grows
+with the source's signal, and a source approaching full well blooms into its neighbours (non-linear, paper
+3.2); the spilled charge leaves the source (the centre term is 1 - outgoing share). Photo-response (PRNU) and
+dark-signal (DSNU) non-uniformity follow.
+
+Correction (`correct`, element `nrcrosstalk`), from a `CrosstalkCalibration` made by `calibration.py` out of
+flat-field sweeps:
+- ``lut`` (paper 3.2): each pixel's code-to-flux curve measured on the flats (one knot per calibrated
+  exposure plus the pixel's clipping point); codes are interpolated between knots, and codes above the
+  pixel's calibrated range become UNCALIBRATED (missing), never extrapolated. The paper's assumption: the
+  neighbours are as bright as the pixel.
+- ``kernel`` (beyond the paper): the LUT applied after removing the difference between the crosstalk the
+  pixel's *actual* neighbours send and what flat neighbours would have sent: per-direction spill functions
+  sigma_d(e) of the source signal e (calibrated from the flats, non-linear near saturation), scaled by the
+  pixel's own crosstalk amplitude alpha. On flats it equals ``lut``; at edges it follows the neighbours.
+- ``off``: identity.
+
+Values are linear DN (attenuated pixels scaled by ND, docs/ARCHITECTURE.md); the correction returns flux in
+the same units. Clipped pixels keep their state; their lower bound is lowered to the pixel's calibrated
+clipping flux (the nominal bound (clip - black) * ND overstates it under crosstalk). Dark pixels keep their
+state; their upper bound is mapped through the LUT.
+"""
 from __future__ import annotations
 
+import dataclasses
+import math
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
 import numpy as np
+from numba import njit, prange
 
 MODES = ("lut", "kernel", "off")
+_MODE_ID = {"lut": 0, "kernel": 1}
+CALIB_FORMAT = "nrhdr-crosstalk"
+CALIB_VERSION = 1
+
+# the 8 neighbour directions (dy, dx), source = target + (dy, dx); index d is used everywhere
+DIRS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)], dtype=np.int64)
+
+# state byte (duplicated from validity to keep numba kernels free of module globals lookups)
+_VALID, _CLIPPED, _DARK, _UNCAL = 0, 1, 2, 4
+_ATT = 0x80
 
 
-def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut"):
-    """Correct attenuated pixels in place (paper 3.2). Without a calibration in the profile, or with
-    mode 'off', frames pass through unchanged. Returns (values, state)."""
+# ======================================================================================================
+# Sensor model
+# ======================================================================================================
+
+def _shift(a: np.ndarray, dy: int, dx: int) -> np.ndarray:
+    """out[y, x] = a[y + dy, x + dx], zero outside."""
+    h, w = a.shape
+    out = np.zeros_like(a)
+    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+    out[yd, xd] = a[ys, xs]
+    return out
+
+
+def _soft_hinge(t: np.ndarray, width: float) -> np.ndarray:
+    """0 for t <= 0, t^2 / (2 width) up to width, then t - width / 2 (C1-smooth)."""
+    t = np.maximum(t, 0.0)
+    return np.where(t < width, t * t / (2.0 * width), t - 0.5 * width)
+
+
+@dataclasses.dataclass
+class SensorModel:
+    """Crosstalk + PRNU + DSNU acting on mean electrons (before shot noise), see module doc.
+
+    kernel[1 + dy, 1 + dx]: share of the source at (y + dy, x + dx) that lands in (y, x) (centre ignored),
+    at half full well; `spread` (H, W) multiplies the kernel of each target pixel; `gamma` makes the coupling
+    signal dependent: k * (1 + gamma * (min(e / FW, 1) - 0.5)); `bloom[1 + dy, 1 + dx]` is the share of the
+    source's charge above `knee` * FW that overflows into the target (smooth hinge of width `knee_width`);
+    `prnu` (H, W) gains and `dsnu` (H, W) dark electrons are applied last.
+    """
+    kernel: np.ndarray
+    spread: np.ndarray | None = None
+    gamma: float = 0.0
+    bloom: np.ndarray | None = None
+    knee: float = 0.9
+    knee_width: float = 0.2
+    prnu: np.ndarray | None = None
+    dsnu: np.ndarray | None = None
+    name: str = "custom"
+
+    def apply(self, electrons_mean: np.ndarray, profile, rng=None) -> np.ndarray:
+        e = np.asarray(electrons_mean, dtype=np.float64)
+        h, w = e.shape
+        fw = float(profile.full_well)
+        spread = np.ones((h, w)) if self.spread is None else np.asarray(self.spread, np.float64)
+        if spread.shape != e.shape:
+            raise ValueError(f"sensor model is {spread.shape[1]}x{spread.shape[0]} but the frame is {w}x{h}")
+        u = np.minimum(e / fw, 1.0)
+        lin = e * (1.0 + self.gamma * (u - 0.5))              # signal-dependent coupling
+        bl = None
+        if self.bloom is not None and np.any(self.bloom):
+            bl = fw * _soft_hinge(e / fw - self.knee, self.knee_width)
+        out = e.copy()
+        for dy, dx in DIRS:
+            k = float(self.kernel[1 + dy, 1 + dx])
+            if k != 0.0:
+                out += spread * k * _shift(lin, dy, dx)             # received from the source p + d
+                out -= _shift(spread, -dy, -dx) * k * lin           # sent to the target p - d
+            if bl is not None:
+                b = float(self.bloom[1 + dy, 1 + dx])
+                if b != 0.0:
+                    out += spread * b * _shift(bl, dy, dx)
+        if self.prnu is not None:
+            out *= self.prnu
+        if self.dsnu is not None:
+            out += self.dsnu
+        return np.maximum(out, 0.0)
+
+    def truth(self) -> dict:
+        """Summary of the known model (for validation reports)."""
+        k = np.asarray(self.kernel, float)
+        return {"name": self.name, "kernel": k.tolist(), "gamma": self.gamma,
+                "bloom": None if self.bloom is None else np.asarray(self.bloom, float).tolist(),
+                "knee": self.knee,
+                "spread_mean": None if self.spread is None else float(np.mean(self.spread)),
+                "spread_std": None if self.spread is None else float(np.std(self.spread)),
+                "prnu_std": None if self.prnu is None else float(np.std(self.prnu)),
+                "dsnu_mean_e": None if self.dsnu is None else float(np.mean(self.dsnu))}
+
+
+def make_kernel(edge_h: float, edge_v: float, corner: float) -> np.ndarray:
+    """3 x 3 kernel: left/right neighbours edge_h, up/down edge_v, diagonals corner; centre 0."""
+    return np.array([[corner, edge_v, corner], [edge_h, 0.0, edge_h], [corner, edge_v, corner]], float)
+
+
+PRESETS = ("none", "prototype", "linear", "mild")
+
+
+def sensor_model_preset(name: str, height: int, width: int, seed: int = 0) -> SensorModel | None:
+    """Named sensor models.
+
+    - ``none``: no crosstalk (None).
+    - ``prototype``: like the paper's glued-mask CCD prototype: ~1 % edge spill (1.2 % along columns),
+      0.3 % corners, coupling rising with signal, blooming of saturated sources (mostly along columns),
+      a non-uniform mask (smooth field x log-normal factor, ~35 % rms), 0.8 % PRNU, DSNU ~3 +- 1.5 e-.
+      With ND 6.35 it reproduces the paper's effective-ND spread (docs/CROSSTALK.md).
+    - ``linear``: uniform, linear 1 % / 0.25 % kernel, nothing else (for tests and textbook comparisons).
+    - ``mild``: the prototype's structure at a third of its strength.
+    """
+    if name in (None, "", "none"):
+        return None
+    if name not in PRESETS:
+        raise ValueError(f"sensor model preset must be one of {PRESETS}, got {name!r}")
+    if height < 1 or width < 1:
+        raise ValueError(f"sensor size must be positive, got {width}x{height}")
+    if name == "linear":
+        return SensorModel(kernel=make_kernel(0.01, 0.01, 0.0025), name="linear")
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0xC0557A1C]))
+    yy, xx = np.mgrid[0:height, 0:width]
+    yn, xn = yy / max(height - 1, 1) - 0.5, xx / max(width - 1, 1) - 0.5
+    # glue thickness: a tilt and a bowl over the sensor, plus a random per-pixel factor
+    smooth = 1.0 + 0.25 * xn - 0.15 * yn + 0.3 * (xn * xn + yn * yn - 1.0 / 6.0)
+    spread = smooth * rng.lognormal(mean=-0.5 * 0.35 ** 2, sigma=0.35, size=(height, width))
+    prnu = 1.0 + 0.008 * rng.standard_normal((height, width))
+    dsnu = np.maximum(3.0 + 1.5 * rng.standard_normal((height, width)), 0.0)
+    s = 1.0 if name == "prototype" else 1.0 / 3.0
+    return SensorModel(kernel=s * make_kernel(0.010, 0.012, 0.003), spread=spread, gamma=0.7,
+                       bloom=s * make_kernel(0.004, 0.012, 0.001), knee=0.9, knee_width=0.2,
+                       prnu=prnu, dsnu=dsnu, name=name)
+
+
+# ======================================================================================================
+# Calibration container, storage
+# ======================================================================================================
+
+@dataclasses.dataclass(eq=False)
+class CrosstalkCalibration:
+    """Per-pixel LUT and neighbour model measured from flat-field sweeps (see calibration.py).
+
+    codes_q (H, W, K) uint16: the pixel's mean code above black at knot k (`code = q * qscale - qoffset`);
+    knots k < n_knots[y, x] are valid and strictly increasing; knot k maps to flux `knot_flux[k]` (linear DN
+    of a regular pixel; knot 0 is the dark level, flux 0). clip_flux (H, W): flux at which the pixel reaches
+    `clip_code` (NaN if it never did within the sweep: its range ends at its last knot). Kernel mode:
+    sigma (8, J) spill from a source in direction d at source signal sig_e (J,), alpha (H, W) the pixel's
+    crosstalk amplitude relative to the sensor average.
+    """
+    codes_q: np.ndarray
+    qscale: float
+    qoffset: float
+    n_knots: np.ndarray
+    knot_flux: np.ndarray
+    clip_flux: np.ndarray
+    nd: float
+    black_level: float
+    clip_code: int
+    sig_e: np.ndarray
+    sigma: np.ndarray
+    alpha: np.ndarray
+    info: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def shape(self):
+        return self.codes_q.shape[:2]
+
+    def codes(self) -> np.ndarray:
+        """(H, W, K) float32 codes above black (invalid knots included)."""
+        return self.codes_q.astype(np.float32) * np.float32(self.qscale) - np.float32(self.qoffset)
+
+
+def quantize_codes(codes: np.ndarray, max_code: int):
+    """float codes above black -> (uint16, qscale, qoffset) with ~1/16 DN resolution for 12-bit data."""
+    qoffset = 256.0
+    qscale = (max_code + 2 * qoffset) / 65535.0
+    q = np.rint((np.nan_to_num(codes, nan=0.0) + qoffset) / qscale)
+    return np.clip(q, 0, 65535).astype(np.uint16), float(qscale), float(qoffset)
+
+
+_ARRAYS = ("codes_q", "n_knots", "knot_flux", "clip_flux", "sig_e", "sigma", "alpha")
+
+
+def save_calibration(calib: CrosstalkCalibration, path) -> dict:
+    """Write the calibration as a compressed .npz (atomic); return the profile's JSON entry."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix="." + path.stem + ".", suffix=".npz", dir=path.parent)
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, codes_q=calib.codes_q, n_knots=calib.n_knots.astype(np.uint8),
+                            knot_flux=calib.knot_flux.astype(np.float64),
+                            clip_flux=calib.clip_flux.astype(np.float32),
+                            sig_e=calib.sig_e.astype(np.float64), sigma=calib.sigma.astype(np.float64),
+                            alpha=calib.alpha.astype(np.float16))
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    h, w = calib.shape
+    return {"format": CALIB_FORMAT, "version": CALIB_VERSION, "file": path.name, "width": int(w),
+            "height": int(h), "knots": int(calib.codes_q.shape[2]), "qscale": calib.qscale,
+            "qoffset": calib.qoffset, "nd": float(calib.nd), "black_level": float(calib.black_level),
+            "clip_code": int(calib.clip_code), "info": calib.info}
+
+
+def load_calibration(entry: dict, base_dir, shape) -> CrosstalkCalibration:
+    """Read the calibration named by a profile's 'crosstalk' entry; ValueError on any inconsistency."""
+    if not isinstance(entry, dict):
+        raise ValueError(f"crosstalk entry must be an object, got {type(entry).__name__}")
+    if entry.get("format") != CALIB_FORMAT:
+        raise ValueError(f"crosstalk entry: field 'format' must be '{CALIB_FORMAT}'")
+    if entry.get("version") != CALIB_VERSION:
+        raise ValueError(f"crosstalk entry: this nrhdr reads version {CALIB_VERSION}, got "
+                         f"{entry.get('version')!r}")
+    for k in ("file", "qscale", "qoffset", "nd", "black_level", "clip_code"):
+        if k not in entry:
+            raise ValueError(f"crosstalk entry: missing field '{k}'")
+    path = Path(base_dir) / str(entry["file"])
+    if not path.is_file():
+        raise ValueError(f"{path}: crosstalk calibration file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arr = {k: np.array(z[k]) for k in _ARRAYS}
+    except KeyError as e:
+        raise ValueError(f"{path}: crosstalk calibration lacks array {e}") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise ValueError(f"{path}: not a readable crosstalk calibration (.npz): {e}") from None
+    h, w = int(shape[0]), int(shape[1])
+    cq = arr["codes_q"]
+    if cq.ndim != 3 or cq.shape[:2] != (h, w) or cq.dtype != np.uint16:
+        raise ValueError(f"{path}: LUT is {cq.shape} {cq.dtype}, expected uint16 ({h}, {w}, K) for the "
+                         f"profile's {w}x{h} mask")
+    k = cq.shape[2]
+    if arr["knot_flux"].shape != (k,) or arr["n_knots"].shape != (h, w) or arr["clip_flux"].shape != (h, w) \
+            or arr["alpha"].shape != (h, w):
+        raise ValueError(f"{path}: array shapes are inconsistent (corrupt calibration)")
+    if arr["sigma"].ndim != 2 or arr["sigma"].shape[0] != 8 or arr["sigma"].shape[1] != arr["sig_e"].shape[0]:
+        raise ValueError(f"{path}: neighbour spill table has shape {arr['sigma'].shape}, expected (8, J)")
+    if int(arr["n_knots"].max(initial=0)) > k:
+        raise ValueError(f"{path}: knot counts exceed the {k} stored knots (corrupt calibration)")
+    if not np.all(np.isfinite(arr["knot_flux"])) or np.any(np.diff(arr["knot_flux"]) < 0):
+        raise ValueError(f"{path}: knot fluxes must be finite and increasing")
+    if not np.all(np.isfinite(arr["sigma"])) or not np.all(np.isfinite(arr["sig_e"])):
+        raise ValueError(f"{path}: neighbour spill table contains non-finite values")
+    nd = float(entry["nd"])
+    if not (math.isfinite(nd) and nd >= 1):
+        raise ValueError(f"crosstalk entry: field 'nd' must be >= 1, got {entry['nd']!r}")
+    return CrosstalkCalibration(
+        codes_q=np.ascontiguousarray(cq), qscale=float(entry["qscale"]), qoffset=float(entry["qoffset"]),
+        n_knots=arr["n_knots"].astype(np.int32), knot_flux=arr["knot_flux"].astype(np.float64),
+        clip_flux=arr["clip_flux"].astype(np.float32), nd=nd, black_level=float(entry["black_level"]),
+        clip_code=int(entry["clip_code"]), sig_e=arr["sig_e"].astype(np.float32),
+        sigma=np.ascontiguousarray(arr["sigma"].astype(np.float32)),
+        alpha=arr["alpha"].astype(np.float32), info=dict(entry.get("info") or {}))
+
+
+# ======================================================================================================
+# Correction kernels (numba)
+# ======================================================================================================
+
+@njit(cache=True, nogil=True)
+def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
+    """Flux of code m (above black) for pixel (y, x); returns (flux, ok). ok False: above the calibrated
+    range (or no range)."""
+    if n < 2:
+        return np.float32(0.0), False
+    c0 = np.float32(codes_q[y, x, 0]) * qs - qo
+    c1 = np.float32(codes_q[y, x, 1]) * qs - qo
+    if m <= c0:
+        # below the pixel's dark level: follow the first segment (dark subtraction)
+        return np.float32(knot_flux[0]) + (m - c0) * (np.float32(knot_flux[1]) - np.float32(knot_flux[0])) \
+            / max(c1 - c0, np.float32(1e-3)), True
+    prev_c = c0
+    prev_f = np.float32(knot_flux[0])
+    for k in range(1, n):
+        c = np.float32(codes_q[y, x, k]) * qs - qo
+        f = np.float32(knot_flux[k])
+        if m <= c:
+            return prev_f + (m - prev_c) * (f - prev_f) / max(c - prev_c, np.float32(1e-3)), True
+        prev_c = c
+        prev_f = f
+    # between the last knot and the clipping point (measured: the pixel clipped before the next knot)
+    if cflux == cflux and clip_rel > prev_c and m <= clip_rel:
+        return prev_f + (m - prev_c) * (cflux - prev_f) / (clip_rel - prev_c), True
+    return np.float32(0.0), False
+
+
+@njit(cache=True, nogil=True)
+def _spill(sig_e, sigma, d, e):
+    """sigma_d(e): piecewise linear in the table, linear through 0 below it, last slope above it."""
+    j = sig_e.shape[0]
+    if e <= sig_e[0]:
+        if sig_e[0] <= 0:
+            return np.float32(0.0)
+        return sigma[d, 0] * e / sig_e[0]
+    if e >= sig_e[j - 1]:
+        sl = (sigma[d, j - 1] - sigma[d, j - 2]) / max(sig_e[j - 1] - sig_e[j - 2], np.float32(1e-6))
+        return sigma[d, j - 1] + (e - sig_e[j - 1]) * sl
+    lo = 0
+    hi = j - 1
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if sig_e[mid] <= e:
+            lo = mid
+        else:
+            hi = mid
+    t = (e - sig_e[lo]) / (sig_e[hi] - sig_e[lo])
+    return sigma[d, lo] + t * (sigma[d, hi] - sigma[d, lo])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, nd, lut_out, ok_out):
+    """lut_out = LUT flux of every pixel's value (for VALID pixels; others keep their bound)."""
+    h, w = values.shape
+    for y in prange(h):
+        for x in range(w):
+            st = state[y, x]
+            s = np.float32(nd) if (st & _ATT) != 0 else np.float32(1.0)
+            v = values[y, x]
+            lut_out[y, x] = v
+            ok_out[y, x] = False
+            if (st & 0x0F) == _VALID:
+                f, ok = _lut_eval(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel,
+                                  clip_flux[y, x], v / s)
+                if ok:
+                    lut_out[y, x] = f
+                    ok_out[y, x] = True
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux,
+                    nd, mode, dirs, sig_e, sigma, alpha, iters):
+    h, w = values.shape
+    ndf = np.float32(nd)
+    for y in prange(h):
+        for x in range(w):
+            st = state[y, x]
+            reason = st & 0x0F
+            att = (st & _ATT) != 0
+            s = ndf if att else np.float32(1.0)
+            n = n_knots[y, x]
+            cf = clip_flux[y, x]
+            if reason == _VALID:
+                m = src[y, x] / s
+                f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m)
+                if not ok:
+                    state[y, x] = (st & 0xF0) | _UNCAL
+                    continue
+                if mode == 1:
+                    tp = np.float32(1.0) / s
+                    a = alpha[y, x]
+                    for _ in range(iters):
+                        delta = np.float32(0.0)
+                        for d in range(8):
+                            yy = y + dirs[d, 0]
+                            xx = x + dirs[d, 1]
+                            if yy < 0 or yy >= h or xx < 0 or xx >= w:
+                                continue
+                            stn = state[yy, xx]
+                            tn = np.float32(1.0) / ndf if (stn & _ATT) != 0 else np.float32(1.0)
+                            fn = est[yy, xx]
+                            delta += _spill(sig_e, sigma, d, fn * tn) - _spill(sig_e, sigma, d, f * tn)
+                        f2, ok2 = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m - a * delta)
+                        if not ok2:
+                            break
+                        f = f2
+                    if f < 0:
+                        f = np.float32(0.0)
+                values[y, x] = f
+            elif reason == _CLIPPED:
+                # the true flux is at least the flux at which this pixel clips
+                if cf == cf and cf < values[y, x]:
+                    values[y, x] = cf
+            elif reason == _DARK:
+                f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, src[y, x] / s)
+                if ok and f > 0:
+                    values[y, x] = f
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _neighbour_estimate(values, state, lut, ok, dirs, est):
+    """Flux estimate of every pixel as a crosstalk source: LUT flux where known; a clipped pixel is at
+    least its bound and at least as bright as its brightest known neighbour; others their value."""
+    h, w = values.shape
+    for y in prange(h):
+        for x in range(w):
+            reason = state[y, x] & 0x0F
+            v = lut[y, x]
+            if reason == _CLIPPED:
+                b = v
+                for d in range(8):
+                    yy = y + dirs[d, 0]
+                    xx = x + dirs[d, 1]
+                    if 0 <= yy < h and 0 <= xx < w and ok[yy, xx] and lut[yy, xx] > b:
+                        b = lut[yy, xx]
+                v = b
+            est[y, x] = v
+
+
+def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", iterations: int = 2):
+    """Correct crosstalk in place (paper 3.2). `values` float32 linear DN (attenuated pixels scaled by ND),
+    `state` uint8 (docs/ARCHITECTURE.md). Identity without a calibration or with mode 'off'. VALID pixels
+    whose code lies outside their calibrated range become UNCALIBRATED (value left as measured).
+    Returns (values, state)."""
     if mode not in MODES:
         raise ValueError(f"crosstalk mode must be one of {MODES}, got {mode!r}")
-    if mode == "off" or profile.crosstalk is None:
+    calib = getattr(profile, "crosstalk", None)
+    if mode == "off" or calib is None:
         return values, state
-    raise NotImplementedError("crosstalk correction with a calibration is not implemented yet")
+    if values.dtype != np.float32 or state.dtype != np.uint8 or values.shape != state.shape \
+            or values.ndim != 2:
+        raise ValueError(f"values must be float32 and state uint8 of the same 2-D shape, got "
+                         f"{values.dtype} {values.shape} and {state.dtype} {state.shape}")
+    if values.shape != tuple(calib.shape):
+        raise ValueError(f"frame is {values.shape[1]}x{values.shape[0]} but the crosstalk calibration is "
+                         f"{calib.shape[1]}x{calib.shape[0]}")
+    nd = float(profile.nd)
+    clip_rel = np.float32(float(calib.clip_code) - float(calib.black_level))
+    src = values.copy()
+    est = values
+    if mode == "kernel":
+        lut = np.empty_like(values)
+        ok = np.empty(values.shape, np.bool_)
+        _lut_pass(values, state, calib.codes_q, calib.n_knots, np.float32(calib.qscale),
+                  np.float32(calib.qoffset), calib.knot_flux, clip_rel, calib.clip_flux, nd, lut, ok)
+        est = np.empty_like(values)
+        _neighbour_estimate(values, state, lut, ok, DIRS, est)
+    _correct_kernel(values, state, src, est, calib.codes_q, calib.n_knots, np.float32(calib.qscale),
+                    np.float32(calib.qoffset), calib.knot_flux, clip_rel, calib.clip_flux, nd,
+                    _MODE_ID[mode], DIRS, calib.sig_e, calib.sigma, calib.alpha, int(iterations))
+    return values, state
 
 
-def save_calibration(calib, path) -> dict:
-    raise NotImplementedError
-
-
-def load_calibration(entry: dict, base_dir, shape):
-    raise NotImplementedError
+def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float = 0.0,
+                         clip_code: int = 4094) -> CrosstalkCalibration:
+    """A calibration that maps every code to code * s (zero crosstalk); for warmup() and tests."""
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    top = float(clip_code) - black_level
+    codes = np.zeros((h, w, 3), np.float32)
+    codes[:, :, 1] = np.where(mask, top / nd, top)
+    codes[:, :, 2] = np.where(mask, top, top + 1.0)
+    q, qs, qo = quantize_codes(codes, int(clip_code) + 1)
+    return CrosstalkCalibration(
+        codes_q=q, qscale=qs, qoffset=qo, n_knots=np.where(mask, 3, 2).astype(np.int32),
+        knot_flux=np.array([0.0, top, top * nd], np.float64),
+        clip_flux=np.full((h, w), np.nan, np.float32), nd=nd, black_level=black_level,
+        clip_code=clip_code, sig_e=np.array([0.0, 1.0], np.float32), sigma=np.zeros((8, 2), np.float32),
+        alpha=np.ones((h, w), np.float32), info={"identity": True})
 
 
 def warmup() -> None:
-    pass
+    """Compile the kernels on a tiny frame (elements call this in do_start, never at import)."""
+    from .profile import make
+    p = make(np.zeros((3, 3), bool))
+    p = p.replace(crosstalk=identity_calibration(p.mask, nd=p.nd, clip_code=p.clip_code))
+    for mode in ("lut", "kernel"):
+        v = np.ones((3, 3), np.float32) * 10
+        s = np.zeros((3, 3), np.uint8)
+        correct(v, s, p, mode=mode)
