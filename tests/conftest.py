@@ -32,3 +32,213 @@ def rng():
 def small_profile():
     from nrhdr_core import profile
     return profile.default(64, 80, seed=3)
+
+
+# ---- GStreamer (tests/test_elements.py, test_pipelines.py, test_gst_errors.py) -----------------------
+
+@pytest.fixture(scope="session")
+def gst_registry(tmp_path_factory):
+    """A private GStreamer registry file for this test session (in-process and subprocesses): a cached
+    failed plugin import in the user's registry can never leak into the tests."""
+    reg = tmp_path_factory.mktemp("gst-registry") / "registry.bin"
+    os.environ["GST_REGISTRY"] = str(reg)
+    return reg
+
+
+@pytest.fixture(scope="session")
+def gst(gst_registry):
+    """GStreamer initialised in-process with the nrhdr elements registered (gst_plugins.register_all)."""
+    gi = pytest.importorskip("gi")
+    try:
+        gi.require_version("Gst", "1.0")
+        gi.require_version("GstApp", "1.0")
+    except ValueError as e:
+        pytest.skip(f"GStreamer GObject introspection missing: {e}")
+    import gst_plugins
+    gst_plugins.register_all()
+    from gi.repository import Gst, GstApp  # noqa: F401  (GstApp: appsrc/appsink methods)
+    return Gst
+
+
+@pytest.fixture(scope="session")
+def gst_subprocess_env(gst_registry):
+    """Environment for gst-launch-1.0 / pipelines/*.sh subprocesses: gst_plugins.runtime.gst_env() with the
+    session's private registry and this interpreter's nrhdr command first on PATH."""
+    import shutil
+    import sys
+    if shutil.which("gst-launch-1.0") is None:
+        pytest.skip("gst-launch-1.0 not installed")
+    from gst_plugins import runtime
+    env = runtime.gst_env()
+    env["GST_REGISTRY"] = str(gst_registry)
+    bindir = os.path.dirname(sys.executable)
+    env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
+    nrhdr = os.path.join(bindir, "nrhdr")
+    if os.path.exists(nrhdr):
+        env["NRHDR"] = nrhdr
+    env.pop("DISPLAY", None)
+    env.pop("WAYLAND_DISPLAY", None)
+    return env
+
+
+def make_test_clip(out_dir, width=64, height=48, frames=5, fps=5, seed=7, black_level=0.0):
+    """A tiny clip folder like `nrhdr simulate` writes (clip.raw GRAY16_LE, clip.json, camera.json +
+    camera_mask.png): a horizontal log ramp over ~4.5 decades that moves one pixel per frame, so every clip
+    has dark, valid and clipped pixels of both kinds. Returns (dir, profile, raw frames (N, H, W) uint16)."""
+    import json
+    from nrhdr_core import io, profile, sensor
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    prof = profile.default(height, width, seed=seed, black_level=black_level)
+    profile.save(prof, out / "camera.json")
+    prof = profile.load(out / "camera.json")
+    rng = np.random.default_rng(seed)
+    _, xx = np.mgrid[0:height, 0:width]
+    raws = []
+    with io.RawVideoWriter(out / "clip.raw", width, height) as w:
+        for i in range(frames):
+            flux = 10.0 ** (0.5 + 4.7 * ((xx + i) % width) / width)
+            raw = sensor.capture(flux, prof, rng)
+            w.write(raw)
+            raws.append(raw)
+    (out / "clip.json").write_text(json.dumps(
+        {"format": "nrhdr-clip", "version": 1, "width": width, "height": height, "fps": fps,
+         "frames": frames, "raw": "clip.raw", "pixel_format": "GRAY16_LE", "profile": "camera.json"},
+        indent=2) + "\n")
+    return out, prof, np.stack(raws)
+
+
+@pytest.fixture(scope="session")
+def tiny_clip(tmp_path_factory):
+    """(clip dir, profile, raw frames): 64x48, 5 frames at 5 fps."""
+    return make_test_clip(tmp_path_factory.mktemp("clip") / "clip")
+
+
+class GstRun:
+    """Result of run_appsrc: samples [(caps str, pts, duration, payload)], bus messages, first error."""
+
+    def __init__(self):
+        self.samples, self.messages, self.error, self.eos = [], [], None, False
+
+    @property
+    def error_text(self) -> str:
+        return "" if self.error is None else f"{self.error[0]}: {self.error[1]}"
+
+    def element_messages(self, name):
+        return [m.get_structure() for m in self.messages
+                if m.type == m.type.ELEMENT and m.get_structure() is not None
+                and m.get_structure().get_name() == name]
+
+
+def hdr_buffer(values, state, pts=None, duration=None):
+    """An HDR frame buffer (two memory blocks) holding copies of `values` and `state`."""
+    from gst_plugins.elements._common import alloc_hdr_buffer
+    v = np.ascontiguousarray(values, np.float32)
+    s = np.ascontiguousarray(state, np.uint8)
+    h, w = v.shape
+    buf = alloc_hdr_buffer(w, h)
+    for i, a in enumerate((v, s)):
+        from gi.repository import Gst
+        ok, mi = buf.map_range(i, 1, Gst.MapFlags.WRITE)
+        assert ok
+        np.ndarray(a.shape, a.dtype, buffer=mi.data)[...] = a
+        buf.unmap(mi)
+    if pts is not None:
+        buf.pts = pts
+    if duration is not None:
+        buf.duration = duration
+    return buf
+
+
+def raw_buffer(raw, pts=None, duration=None):
+    from gi.repository import Gst
+    buf = Gst.Buffer.new_wrapped(np.ascontiguousarray(raw, "<u2").tobytes())
+    if pts is not None:
+        buf.pts = pts
+    if duration is not None:
+        buf.duration = duration
+    return buf
+
+
+def sample_payload(sample):
+    """numpy copies of a sample: (values, state) for other/x-nrhdr, an (H, W) array for gray video."""
+    from gi.repository import Gst, GstVideo
+    caps = sample.get_caps()
+    buf = sample.get_buffer()
+    s = caps.get_structure(0)
+    if s.get_name() == "other/x-nrhdr":
+        w, h = s.get_int("width")[1], s.get_int("height")[1]
+        out = []
+        for i, dt in ((0, np.float32), (1, np.uint8)):
+            ok, mi = buf.map_range(i, 1, Gst.MapFlags.READ)
+            assert ok
+            out.append(np.ndarray((h, w), dt, buffer=mi.data).copy())
+            buf.unmap(mi)
+        return tuple(out)
+    vi = GstVideo.VideoInfo.new_from_caps(caps)
+    dt = np.uint8 if vi.finfo.name == "GRAY8" else np.dtype("<u2")
+    ok, mi = buf.map(Gst.MapFlags.READ)
+    assert ok
+    a = np.ndarray((vi.height, vi.width), dt, buffer=mi.data, offset=vi.offset[0],
+                   strides=(vi.stride[0], np.dtype(dt).itemsize)).copy()
+    buf.unmap(mi)
+    return a
+
+
+def run_appsrc(desc, caps, buffers, before_push=None, lockstep=False, timeout=20.0):
+    """appsrc (caps) ! <desc> ! appsink; push `buffers`, then EOS; collect every sample and bus message.
+    `before_push(i, pipeline)` runs before buffer i is pushed; with lockstep the sample of buffer i is
+    pulled before buffer i+1 is pushed (deterministic property changes while PLAYING)."""
+    import time
+    from gi.repository import Gst, GstApp  # noqa: F401
+    res = GstRun()
+    pipeline = Gst.parse_launch(f"appsrc name=src format=time ! {desc} ! appsink name=sink sync=false")
+    src, sink = pipeline.get_by_name("src"), pipeline.get_by_name("sink")
+    src.set_property("caps", Gst.Caps.from_string(caps) if isinstance(caps, str) else caps)
+    bus = pipeline.get_bus()
+
+    def drain_bus():
+        while True:
+            m = bus.pop()
+            if m is None:
+                return
+            res.messages.append(m)
+            if m.type == Gst.MessageType.ERROR and res.error is None:
+                err, _dbg = m.parse_error()
+                res.error = (m.src.get_name(), err.message)
+
+    def pull(deadline, until_eos):
+        while time.monotonic() < deadline:
+            drain_bus()
+            if res.error is not None:
+                return False
+            smp = sink.try_pull_sample(50 * Gst.MSECOND)
+            if smp is not None:
+                b = smp.get_buffer()
+                res.samples.append((smp.get_caps().to_string(), b.pts, b.duration, sample_payload(smp)))
+                if not until_eos:
+                    return True
+            elif sink.is_eos():
+                return True
+        return False
+
+    try:
+        if pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
+            drain_bus()
+            return res
+        deadline = time.monotonic() + timeout
+        for i, b in enumerate(buffers):
+            if before_push is not None:
+                before_push(i, pipeline)
+            if src.push_buffer(b) != Gst.FlowReturn.OK:
+                break
+            if lockstep and not pull(deadline, until_eos=False):
+                break
+        src.end_of_stream()
+        pull(deadline, until_eos=True)
+        res.eos = bool(sink.is_eos())
+        drain_bus()
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+        drain_bus()
+    return res

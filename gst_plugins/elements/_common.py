@@ -205,6 +205,12 @@ class ErrorPoster:
     gst-launch prints them as `ERROR: from element /GstPipeline:pipeline0/GstNrValidity:nrvalidity0: <text>`."""
 
     def post_error(self, text: str, debug: str | None = None, kind: str = "stream") -> None:
+        """Post an element error; the same text is posted once per run (upstream may retry a refused
+        caps event several times). `reset_errors()` in do_start."""
+        posted = self.__dict__.setdefault("_nr_posted", set())
+        if text in posted:
+            return
+        posted.add(text)
         domains = {
             "stream": (Gst.stream_error_quark(), int(Gst.StreamError.FAILED)),
             "format": (Gst.stream_error_quark(), int(Gst.StreamError.FORMAT)),
@@ -220,6 +226,9 @@ class ErrorPoster:
             f = f.f_back
         self.message_full(Gst.MessageType.ERROR, domain, code, text, debug, f.f_code.co_filename,
                           f.f_code.co_name, f.f_lineno)
+
+    def reset_errors(self) -> None:
+        self.__dict__["_nr_posted"] = set()
 
     def post_exception(self, where: str, exc: BaseException) -> Gst.FlowReturn:
         """Post an element error for an exception raised in a vfunc and return FlowReturn.ERROR."""

@@ -65,6 +65,7 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
         self._mode.value = str(value).strip().lower()
 
     def do_start(self):
+        self.reset_errors()
         try:
             if self._mode.invalid:
                 self.post_error(self._mode.invalid, kind="settings")

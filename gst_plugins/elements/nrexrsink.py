@@ -76,6 +76,7 @@ class NrExrSink(ErrorPoster, GstBase.BaseSink):
         self._start_index = int(value)
 
     def do_start(self):
+        self.reset_errors()
         try:
             if not self._location:
                 self.post_error("no file location set (property 'location')", kind="settings")

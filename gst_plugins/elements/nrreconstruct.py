@@ -120,6 +120,7 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
 
     # ---- state --------------------------------------------------------------------------------------
     def do_start(self):
+        self.reset_errors()
         try:
             for c in (self._method, self._preset):
                 if c.invalid:

@@ -125,6 +125,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
 
     # ---- state --------------------------------------------------------------------------------------
     def do_start(self):
+        self.reset_errors()
         try:
             if self._normalise.invalid:
                 self.post_error(self._normalise.invalid, kind="settings")

@@ -90,6 +90,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
 
     # ---- state --------------------------------------------------------------------------------------
     def do_start(self):
+        self.reset_errors()
         try:
             if self._mode.invalid:
                 self.post_error(self._mode.invalid, kind="settings")
@@ -141,8 +142,11 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
             s = caps.get_structure(0)
             fmt = s.get_string("format") if s.has_field("format") else None
             if s.get_name() == "video/x-raw" and fmt and fmt != "GRAY16_LE":
-                self.post_error(f"needs raw GRAY16_LE sensor frames, got format {fmt} "
-                                f"({caps.to_string()})", kind="format")
+                okw, w = s.get_int("width")
+                okh, h = s.get_int("height")
+                size = f" {w}x{h}" if okw and okh else ""
+                self.post_error(f"needs raw GRAY16_LE sensor frames (video/x-raw, format=GRAY16_LE), got "
+                                f"{fmt}{size}", kind="format")
             else:
                 self.post_error(f"cannot accept {caps.to_string()}: needs video/x-raw, format=GRAY16_LE",
                                 kind="format")
