@@ -276,7 +276,7 @@ class CalibrationResult:
 
 def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = None, l_min: float = 100.0,
               clip_code: int | None = None, bit_depth: int | None = None, name: str = "calibrated",
-              mask_name: str = "mask", progress: bool = True) -> CalibrationResult:
+              mask_name: str = "mask", progress: bool = True, smooth_chi2: float = 4.0) -> CalibrationResult:
     """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep."""
     from tqdm import tqdm
     mask = np.asarray(mask, bool)
@@ -289,7 +289,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     if mask.all() or not mask.any():
         raise CalibrationError(f"{mask_name}: the mask must contain both attenuated (255) and regular (0) "
                                f"pixels")
-    steps = tqdm(total=6, desc="calibrating", unit="step", disable=not progress, file=sys.stderr)
+    steps = tqdm(total=7, desc="calibrating", unit="step", disable=not progress, file=sys.stderr)
     t = sweep.exposures.astype(np.float64)
     mean, maxc, tvar = sweep.mean, sweep.maxcode, sweep.tvar
     reg = ~mask
@@ -432,13 +432,85 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     flux = kappa_reg * t                                                  # (E,) regular DN
     steps.update(1)
 
+    # ---- kernel mode: per-direction spill sigma_d(e), per-pixel amplitude alpha ---------------------
+    okb = lit & np.all(np.isfinite(b), axis=1) & (frac_att >= 0.8)
+    fe = flux[okb]
+    bb = b[okb]
+    order = np.argsort(fe)
+    fe, bb = fe[order], bb[order]
+    sigma = np.zeros((8, fe.size))
+    for j in range(fe.size):
+        lowf = fe[j] / nd
+        if j == 0 or lowf <= fe[0]:
+            base = bb[0] * nd / (nd - 1) if nd > 1.0001 else bb[0]
+            prev = base * (lowf / fe[0]) if fe.size else 0.0
+            sigma[:, j] = bb[j] + prev if j > 0 else base
+        else:
+            prev = np.array([np.interp(lowf, fe[:j], sigma[k, :j]) for k in range(8)])
+            sigma[:, j] = bb[j] + prev
+    if fe.size < 2:
+        fe = np.array([0.0, 1.0])
+        sigma = np.zeros((8, 2))
+    # population model of every pixel's curve: b_d at every exposure from the spill table
+    b_model = np.zeros((E, 8))
+    for i in range(E):
+        if lit[i]:
+            b_model[i] = _spill_np(fe, sigma, flux[i]) - _spill_np(fe, sigma, flux[i] / nd)
+    # per pixel: d_p = g * E_p + alpha * Y_p over its unclipped lit exposures (ridge towards alpha = 1);
+    # g absorbs PRNU, alpha the pixel's crosstalk amplitude (non-uniform mask)
+    S = {k: np.zeros((H, W)) for k in ("ee", "ey", "yy", "ed", "yd")}
+    Ys = np.zeros((E, H, W), np.float32)
+    for i in range(E):
+        if not lit[i]:
+            continue
+        u = unclipped[i]
+        Y = np.tensordot(b_model[i], ind_reg, axes=1) * mask - np.tensordot(b_model[i], ind_att, axes=1) * reg
+        Ys[i] = Y
+        Ep = np.where(mask, flux[i] / nd, flux[i])
+        dd = d[i]
+        S["ee"] += np.where(u, Ep * Ep, 0)
+        S["ey"] += np.where(u, Ep * Y, 0)
+        S["yy"] += np.where(u, Y * Y, 0)
+        S["ed"] += np.where(u, Ep * dd, 0)
+        S["yd"] += np.where(u, Y * dd, 0)
+    lam = 0.3
+    a11, a12, a22 = S["ee"], S["ey"], S["yy"] * (1 + lam)
+    r1, r2 = S["ed"], S["yd"] + lam * S["yy"]
+    det = a11 * a22 - a12 * a12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha = (a11 * r2 - a12 * r1) / det
+        gfit = (r1 - a12 * alpha) / a11
+    alpha = np.where(np.isfinite(alpha) & (S["yy"] > 0), np.clip(alpha, 0.0, 5.0), 1.0)
+    gfit = np.where(S["yy"] > 0, (r1 - a12 * alpha) / np.maximum(a11, 1e-30), r1 / np.maximum(a11, 1e-30))
+    gfit = np.where(np.isfinite(gfit) & (a11 > 0), gfit, 1.0)
+    # smoothed curves: where the 2-parameter model explains a pixel's knots within the measurement noise,
+    # its LUT uses the model (averages the flats' noise over all exposures); otherwise the raw means
+    chi = np.zeros((H, W))
+    cnt = np.zeros((H, W))
+    for i in range(E):
+        if not lit[i]:
+            continue
+        u = unclipped[i]
+        Ep = np.where(mask, flux[i] / nd, flux[i])
+        fit = gfit * Ep + alpha * Ys[i]
+        var = tvar[i] / sweep.frames[i] + 0.25
+        chi += np.where(u, (d[i] - fit) ** 2 / var, 0)
+        cnt += u
+        Ys[i] = fit                                     # reuse: the model curve
+    smooth_ok = (cnt >= 3) & (chi / np.maximum(cnt, 1) < smooth_chi2)
+    alpha = alpha.astype(np.float32)
+    curve = np.where(smooth_ok[None], Ys, d).astype(np.float32)
+    curve[~lit] = d[~lit]
+    del Ys
+    steps.update(1)
+
     # ---- per-pixel LUT knots ------------------------------------------------------------------------
     idx = np.arange(E)
     if E > MAX_KNOTS:
         keep = np.unique(np.round(np.linspace(0, E - 1, MAX_KNOTS)).astype(int))
         idx = keep
     Ek = idx.size
-    codes = (mean[idx] - black).astype(np.float32)                        # code above black
+    codes = (curve[idx] + (dark - black)[None]).astype(np.float32)                        # code above black
     if t[0] != 0:                                                          # synthetic dark knot
         codes = np.concatenate([(dark - black)[None].astype(np.float32), codes])
         kflux = np.concatenate([[0.0], flux[idx]])
@@ -462,54 +534,16 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     nextf = kflux[np.clip(nk, 0, Ek - 1)]
     slope = (lastf - prevf) / np.maximum(lastc - prevc, 1e-3)
     est = lastf + (top - lastc) * slope
+    # smoothed pixels: where the model curve crosses the clip code between the last knot and the next
+    model_next = np.take_along_axis(codes, np.clip(nk, 0, Ek - 1)[None], 0)[0]
+    use_model = smooth_ok & (model_next > lastc + 1e-3) & (model_next >= top)
+    est_m = lastf + (top - lastc) * (nextf - lastf) / np.maximum(model_next - lastc, 1e-3)
+    est = np.where(use_model, est_m, est)
     est = np.clip(est, lastf, nextf)
     good = ncl & (nk >= 2)
     clip_flux[good] = est[good]
     codes_t = np.ascontiguousarray(np.moveaxis(codes, 0, -1))              # (H, W, K)
     q, qs, qo = crosstalk.quantize_codes(codes_t, max_code)
-    steps.update(1)
-
-    # ---- kernel mode: per-direction spill sigma_d(e), per-pixel amplitude alpha ---------------------
-    okb = lit & np.all(np.isfinite(b), axis=1) & (frac_att >= 0.8)
-    fe = flux[okb]
-    bb = b[okb]
-    order = np.argsort(fe)
-    fe, bb = fe[order], bb[order]
-    sigma = np.zeros((8, fe.size))
-    for j in range(fe.size):
-        lowf = fe[j] / nd
-        if j == 0 or lowf <= fe[0]:
-            base = bb[0] * nd / (nd - 1) if nd > 1.0001 else bb[0]
-            prev = base * (lowf / fe[0]) if fe.size else 0.0
-            sigma[:, j] = bb[j] + prev if j > 0 else base
-        else:
-            prev = np.array([np.interp(lowf, fe[:j], sigma[k, :j]) for k in range(8)])
-            sigma[:, j] = bb[j] + prev
-    if fe.size < 2:
-        fe = np.array([0.0, 1.0])
-        sigma = np.zeros((8, 2))
-    # alpha: fit d_p = g * E_p + alpha * Y_p over the pixel's unclipped lit exposures (ridge towards 1)
-    S = {k: np.zeros((H, W)) for k in ("ee", "ey", "yy", "ed", "yd")}
-    for i in range(E):
-        if not (lit[i] and okb[i]):
-            continue
-        u = unclipped[i]
-        ind_term = np.tensordot(b[i], ind_reg, axes=1) * mask - np.tensordot(b[i], ind_att, axes=1) * reg
-        Ep = np.where(mask, flux[i] / nd, flux[i])
-        Y = ind_term
-        dd = d[i]
-        S["ee"] += np.where(u, Ep * Ep, 0)
-        S["ey"] += np.where(u, Ep * Y, 0)
-        S["yy"] += np.where(u, Y * Y, 0)
-        S["ed"] += np.where(u, Ep * dd, 0)
-        S["yd"] += np.where(u, Y * dd, 0)
-    lam = 0.3
-    a11, a12, a22 = S["ee"], S["ey"], S["yy"] * (1 + lam)
-    r1, r2 = S["ed"], S["yd"] + lam * S["yy"]
-    det = a11 * a22 - a12 * a12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        alpha = (a11 * r2 - a12 * r1) / det
-    alpha = np.where(np.isfinite(alpha) & (S["yy"] > 0), np.clip(alpha, 0.0, 5.0), 1.0).astype(np.float32)
     steps.update(1)
     steps.close()
 
@@ -568,6 +602,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         "kernel_estimate": k_eff,
         "pixels_without_calibration": uncal,
         "lut_knots": int(Ek),
+        "lut_smoothed_pct": round(float(np.mean(smooth_ok)) * 100, 2),
     }
     if nd_nominal:
         summary["nd_vs_nominal_pct"] = round(100 * (nd / nd_nominal - 1), 2)
@@ -575,6 +610,19 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
                                           "exposures", "frames", "kernel_estimate")}
     ref_att = np.where(np.isfinite(h0), h0, np.nan)
     return CalibrationResult(prof, summary, flux, ref_att, H0, nd_eff, rf, ratio, meas, examples)
+
+
+def _spill_np(fe, sigma, e):
+    """sigma_d(e) for the 8 directions, as crosstalk._spill (linear through 0 below, last slope above)."""
+    e = float(e)
+    if fe.size < 2 or e <= 0:
+        return np.zeros(8)
+    if e <= fe[0]:
+        return sigma[:, 0] * (e / fe[0]) if fe[0] > 0 else np.zeros(8)
+    if e >= fe[-1]:
+        sl = (sigma[:, -1] - sigma[:, -2]) / max(fe[-1] - fe[-2], 1e-9)
+        return sigma[:, -1] + (e - fe[-1]) * sl
+    return np.array([np.interp(e, fe, sigma[k]) for k in range(8)])
 
 
 def _flux_at_code(codes, kflux, n_knots, level):

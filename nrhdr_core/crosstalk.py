@@ -397,6 +397,8 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                             stn = state[yy, xx]
                             tn = np.float32(1.0) / ndf if (stn & _ATT) != 0 else np.float32(1.0)
                             fn = est[yy, xx]
+                            if (stn & 0x0F) == _DARK and fn > f:
+                                fn = f          # an upper bound only: assume no brighter than this pixel
                             delta += _spill(sig_e, sigma, d, fn * tn) - _spill(sig_e, sigma, d, f * tn)
                         f2, ok2 = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m - a * delta)
                         if not ok2:
@@ -435,7 +437,8 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
             est[y, x] = v
 
 
-def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", iterations: int = 2):
+def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", iterations: int = 2,
+            passes: int = 2):
     """Correct crosstalk in place (paper 3.2). `values` float32 linear DN (attenuated pixels scaled by ND),
     `state` uint8 (docs/ARCHITECTURE.md). Identity without a calibration or with mode 'off'. VALID pixels
     whose code lies outside their calibrated range become UNCALIBRATED (value left as measured).
@@ -455,17 +458,26 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     nd = float(profile.nd)
     clip_rel = np.float32(float(calib.clip_code) - float(calib.black_level))
     src = values.copy()
-    est = values
-    if mode == "kernel":
-        lut = np.empty_like(values)
-        ok = np.empty(values.shape, np.bool_)
-        _lut_pass(values, state, calib.codes_q, calib.n_knots, np.float32(calib.qscale),
-                  np.float32(calib.qoffset), calib.knot_flux, clip_rel, calib.clip_flux, nd, lut, ok)
-        est = np.empty_like(values)
-        _neighbour_estimate(values, state, lut, ok, DIRS, est)
-    _correct_kernel(values, state, src, est, calib.codes_q, calib.n_knots, np.float32(calib.qscale),
-                    np.float32(calib.qoffset), calib.knot_flux, clip_rel, calib.clip_flux, nd,
-                    _MODE_ID[mode], DIRS, calib.sig_e, calib.sigma, calib.alpha, int(iterations))
+    args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
+            calib.knot_flux, clip_rel, calib.clip_flux, nd)
+    if mode == "lut":
+        _correct_kernel(values, state, src, src, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha, 0)
+        return values, state
+    # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
+    state0 = state.copy()
+    lut = np.empty_like(values)
+    ok = np.empty(values.shape, np.bool_)
+    est = np.empty_like(values)
+    _lut_pass(src, state0, *args, lut, ok)
+    for p in range(max(1, int(passes))):
+        _neighbour_estimate(src, state0, lut, ok, DIRS, est)
+        if p > 0:
+            state[:] = state0
+        values[:] = src
+        _correct_kernel(values, state, src, est, *args, 1, DIRS, calib.sig_e, calib.sigma, calib.alpha,
+                        int(iterations))
+        lut[:] = values
+        ok[:] = (state & 0x0F) == _VALID
     return values, state
 
 
