@@ -12,6 +12,9 @@ from ._common import (MUTABLE_READY, ErrorPoster, GObject, Gst, GstBase, HdrInfo
 
 def format_location(pattern: str, index: int) -> str:
     """printf-style file name, like multifilesink: 'out/frame_%05d.exr' % index. Raises ValueError."""
+    if "%" not in pattern:
+        raise ValueError(f"location {pattern!r} has no %d: every frame would overwrite the same file "
+                         f"(use e.g. out/frame_%05d.exr)")
     try:
         name = pattern % index
     except (TypeError, ValueError) as e:

@@ -1,0 +1,134 @@
+"""The shipped pipelines (pipelines/*.sh, gst-launch-1.0 through `nrhdr launch`), `nrhdr inspect` and the
+embedding example, run as subprocesses on a tiny generated clip (64x48, 5 frames)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.gst
+
+ROOT = Path(__file__).resolve().parents[1]
+PIPELINES = ROOT / "pipelines"
+VALID, RECONSTRUCTED, ATTENUATED = 0, 0x40, 0x80
+
+
+def run(cmd, env, cwd=None, timeout=120):
+    p = subprocess.run([str(c) for c in cmd], env=env, cwd=cwd, capture_output=True, text=True,
+                       timeout=timeout)
+    return p.returncode, p.stdout + p.stderr
+
+
+def test_shipped_pipelines_exist_and_use_nrhdr_launch():
+    names = {p.name for p in PIPELINES.glob("*.sh")}
+    assert {"raw_to_png.sh", "raw_to_exr.sh", "raw_to_display.sh", "raw_to_display_headless.sh"} <= names
+    for n in names - {"common.sh"}:
+        text = (PIPELINES / n).read_text()
+        assert '"$NRHDR" launch' in text, n
+        assert (PIPELINES / n).stat().st_mode & 0o111, f"{n} is not executable"
+
+
+def test_raw_to_png(gst_subprocess_env, tiny_clip, tmp_path):
+    from nrhdr_core import io
+    d, prof, raws = tiny_clip
+    rc, out = run(["bash", PIPELINES / "raw_to_png.sh", d, tmp_path / "png"], gst_subprocess_env)
+    assert rc == 0, out
+    files = sorted((tmp_path / "png").glob("frame_*.png"))
+    assert [f.name for f in files] == [f"frame_{i:05d}.png" for i in range(len(raws))]
+    for f in files:
+        img = io.read_image(f, np.uint8)
+        assert img.shape == (prof.height, prof.width, 1)
+        assert img.max() > img.min()
+
+
+def test_raw_to_exr(gst_subprocess_env, tiny_clip, tmp_path):
+    from nrhdr_core import io
+    d, prof, raws = tiny_clip
+    rc, out = run(["bash", PIPELINES / "raw_to_exr.sh", d, tmp_path / "exr"], gst_subprocess_env)
+    assert rc == 0, out
+    files = sorted((tmp_path / "exr").glob("frame_*.exr"))
+    assert [f.name for f in files] == [f"frame_{i:05d}.exr" for i in range(len(raws))]
+    for i, f in enumerate(files):
+        v, st = io.read_exr(f)
+        assert v.shape == (prof.height, prof.width) and st is not None
+        # measured (valid) pixels keep Eq. 3: (code - black) * (ND if attenuated else 1)
+        known = (st & 0x0F) == VALID
+        scale = np.where(prof.mask, prof.nd, 1.0)
+        exp = (raws[i].astype(np.float64) - prof.black_level) * scale
+        np.testing.assert_allclose(v[known], exp[known], rtol=1e-5)
+        assert np.array_equal((st & ATTENUATED) != 0, prof.mask)
+        assert ((st[~known] & RECONSTRUCTED) != 0).all()
+        assert 0 < (~known).mean() < 1
+
+
+def test_raw_to_display_headless(gst_subprocess_env, tiny_clip):
+    d, prof, raws = tiny_clip
+    env = dict(gst_subprocess_env, SYNC="false")
+    rc, out = run(["bash", PIPELINES / "raw_to_display_headless.sh", d], env)
+    assert rc == 0, out
+    assert "Got EOS" in out
+
+
+def test_raw_to_display_falls_back_without_a_display(gst_subprocess_env, tiny_clip):
+    """autovideosink picks fakesink when there is no display: the preview script still runs to EOS
+    (in real time: 5 frames at 5 fps)."""
+    d, prof, raws = tiny_clip
+    rc, out = run(["bash", PIPELINES / "raw_to_display.sh", d], gst_subprocess_env)
+    assert rc == 0, out
+    assert "Got EOS" in out
+
+
+def test_pipeline_without_clip_says_how_to_make_one(gst_subprocess_env, tmp_path):
+    rc, out = run(["bash", PIPELINES / "raw_to_png.sh"], gst_subprocess_env, cwd=tmp_path)
+    assert rc != 0
+    assert "demo_out/clip is not a clip folder" in out and "nrhdr simulate" in out
+
+
+def test_nrhdr_inspect_documents_every_element(gst_subprocess_env):
+    from gst_plugins import runtime
+    expect = {
+        "nrvalidity": ["profile", "mode", "l-min", "Filter/Converter/Video", "GRAY16_LE", "other/x-nrhdr"],
+        "nrcrosstalk": ["profile", "mode", "Filter/Effect/Video"],
+        "nrreconstruct": ["method", "preset", "use-bounds", "Filter/Effect/Video",
+                          "changeable in NULL, READY, PAUSED or PLAYING state"],
+        "nrtonemap": ["normalise", "white", "exposure", "contrast", "smoothing", "GRAY8", "GRAY16_LE",
+                      "Range:"],
+        "nrexrsink": ["location", "write-state", "Sink/Video"],
+    }
+    for name, words in expect.items():
+        p = subprocess.run(["gst-inspect-1.0", name], env=runtime.gst_env(gst_subprocess_env),
+                           capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stdout + p.stderr
+        for w in words:
+            assert w in p.stdout, (name, w)
+
+
+def test_gst_env_and_plugin_dir():
+    from gst_plugins import runtime
+    env = runtime.gst_env({"PYTHONPATH": "/x", "PATH": "/usr/bin"})
+    assert (runtime.plugin_dir() / "python" / "nrvalidity.py").is_file()
+    assert env["GST_PLUGIN_PATH"].split(":")[0] == str(runtime.plugin_dir())
+    pp = env["PYTHONPATH"].split(":")
+    assert pp[0] == str(ROOT) and pp[-1] == "/x"
+    import sysconfig
+    assert sysconfig.get_paths()["purelib"] in pp
+    assert env["GST_REGISTRY"].endswith(".bin")
+    assert runtime.gst_env({"GST_REGISTRY": "/tmp/r.bin"})["GST_REGISTRY"] == "/tmp/r.bin"
+
+
+def test_record_app_example(gst_subprocess_env, tiny_clip, tmp_path):
+    d, prof, raws = tiny_clip
+    app = ROOT / "examples" / "record_app.py"
+    rc, out = run([sys.executable, app, d, tmp_path / "rec", "--method", "nearest"], gst_subprocess_env)
+    assert rc == 0, out
+    assert len(list((tmp_path / "rec" / "exr").glob("frame_*.exr"))) == len(raws)
+    assert len(list((tmp_path / "rec" / "png").glob("frame_*.png"))) == len(raws)
+    assert "reconstructed" in out
+    # an error (frame size differs from the profile) ends with a message naming the element, exit 1
+    (tmp_path / "bad").mkdir()
+    rc, out = run([sys.executable, app, d, tmp_path / "bad", "--width", "32"], gst_subprocess_env)
+    assert rc == 1, out
+    assert "nrvalidity" in out and "but the stream is 32x" in out
