@@ -1,0 +1,812 @@
+"""Frequency Selective Extrapolation (FSE) in numba.
+
+Block-wise sparse Fourier model fitted to the known pixels of a support area around each block
+(Seiler & Kaup, SPL 2010; Seiler et al., TIP 2015, "FSR"), with the refinements of Genser et al.
+(IWSSIP 2017/2018, PCS 2018): adaptive iteration count, spectral prior, processing order by neighbour
+availability. Facts: ``/work/shared/docs/fse-reference.md``; design and measured choices: ``docs/FSE.md``.
+
+Public entry points: :func:`fse_reconstruct`, :data:`FSE_PRESETS`, :func:`warmup`.
+Nothing is compiled at import time; kernels compile on first call (``cache=True``).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+from numba import njit, prange, get_num_threads
+
+__all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
+
+# --------------------------------------------------------------------------------------------------
+# Presets. Every preset is a complete, explicit parameter set; ``**params`` override single entries.
+# ``window``: FFT window = support area (N x N); ``max_block``/``min_block``: quadtree sizes;
+# ``split_sigma``: area sigma below which a block of that size is not split further;
+# ``rho``: isotropic weight decay per block size; ``delta``: weight of already reconstructed pixels;
+# ``gamma``: orthogonality-deficiency compensation; iterations n = clip(round(iter_c * sigma),
+# iter_min, iter_max) (a conjugate pair counts 2); ``prior``: spectral prior on/off;
+# ``domain``: "auto" | "linear" | "log" | "local" (see docs/FSE.md); ``use_bounds``: clamp to lower/upper.
+# --------------------------------------------------------------------------------------------------
+_BASE = dict(
+    window=32,
+    max_block=16,
+    min_block=4,
+    split_sigma={16: 0.014, 8: 0.030, 4: 0.090},
+    rho={16: 0.80, 8: 0.70, 4: 0.66, 2: 0.64},
+    delta=0.5,
+    gamma=0.5,
+    iter_c=1000.0,
+    iter_min=20,
+    iter_max=100,
+    prior=True,
+    pair_exact=False,
+    domain="auto",
+    hdr_domain="log",
+    hdr_threshold_stops=10.0,
+    log_scale_stops=3.0,
+    use_bounds=True,
+    edge_penalty=1.0,
+    order_levels=16,
+)
+
+FSE_PRESETS: dict[str, dict] = {
+    "preview": dict(_BASE, window=16, max_block=8, min_block=8, iter_c=0.0, iter_min=6, iter_max=6,
+                    gamma=0.7),
+    "fast": dict(_BASE, window=32, max_block=16, min_block=8, iter_c=500.0, iter_min=10, iter_max=40,
+                 gamma=0.5),
+    "balanced": dict(_BASE),
+    "best": dict(_BASE, window=64, min_block=2, gamma=0.2, iter_c=2000.0, iter_min=50, iter_max=400,
+                 split_sigma={16: 0.014, 8: 0.030, 4: 0.090}),
+}
+
+
+def resolve_params(preset: str = "balanced", **params) -> dict:
+    """Preset merged with overrides; unknown keys raise ``TypeError``."""
+    if preset not in FSE_PRESETS:
+        raise ValueError(f"unknown FSE preset {preset!r}; choose one of {sorted(FSE_PRESETS)}")
+    p = dict(FSE_PRESETS[preset])
+    for k, v in params.items():
+        if k not in p:
+            raise TypeError(f"unknown FSE parameter {k!r}; known: {sorted(p)}")
+        p[k] = v
+    n = int(p["window"])
+    if n not in (8, 16, 32, 64, 128):
+        raise ValueError("window must be a power of two in 8..128")
+    for key in ("max_block", "min_block"):
+        b = int(p[key])
+        if b not in (1, 2, 4, 8, 16, 32) or b > n:
+            raise ValueError(f"{key} must be a power of two <= window")
+    if p["min_block"] > p["max_block"]:
+        raise ValueError("min_block must be <= max_block")
+    if p["domain"] not in ("auto", "linear", "log", "local"):
+        raise ValueError("domain must be one of auto, linear, log, local")
+    return p
+
+
+# --------------------------------------------------------------------------------------------------
+# Tables
+# --------------------------------------------------------------------------------------------------
+def _tables(p):
+    n = int(p["window"])
+    h = n // 2 + 1
+    nn = np.arange(n)
+    ang = 2.0 * np.pi * np.outer(nn, np.arange(h)) / n
+    cos_t = np.cos(ang).astype(np.float32)          # (n, h): cos(2 pi n v / N)
+    sin_t = np.sin(ang).astype(np.float32)
+    tw_c = np.cos(2.0 * np.pi * nn / n).astype(np.float32)   # e^{-i 2 pi t/N} = (c, -s)
+    tw_s = np.sin(2.0 * np.pi * nn / n).astype(np.float32)
+    bits = int(round(math.log2(n)))
+    bitrev = np.array([int(format(i, f"0{bits}b")[::-1], 2) for i in range(n)], dtype=np.int64)
+    # spectral prior on the half spectrum, squared (selection works on energies)
+    fu = np.minimum(nn, n - nn).astype(np.float64)[:, None]
+    fv = np.arange(h, dtype=np.float64)[None, :]
+    if p["prior"]:
+        pr = np.clip(1.0 - math.sqrt(2.0) * np.sqrt(fu ** 2 + fv ** 2) / n, 0.0, 1.0)
+    else:
+        pr = np.ones((n, h))
+    prior2 = np.ascontiguousarray((pr ** 2).T).astype(np.float32)   # (h, n): [v, u]
+    # isotropic weight decay rho^r per block size level
+    sizes = []
+    b = int(p["max_block"])
+    while b >= int(p["min_block"]):
+        sizes.append(b)
+        b //= 2
+    c = (n - 1) / 2.0
+    r = np.sqrt((nn[:, None] - c) ** 2 + (nn[None, :] - c) ** 2)
+    rho_tab = np.empty((len(sizes), n, n), np.float32)
+    split = np.zeros(len(sizes), np.float64)
+    for i, s in enumerate(sizes):
+        rho = float(p["rho"].get(s, min(p["rho"].values()) if s < min(p["rho"]) else max(p["rho"].values())))
+        rho_tab[i] = (rho ** r).astype(np.float32)
+        split[i] = float(p["split_sigma"].get(s, 0.0))
+    return cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, np.array(sizes, np.int64)
+
+
+# --------------------------------------------------------------------------------------------------
+# Scheduling: quadtree leaves and rounds of independent tiles
+# --------------------------------------------------------------------------------------------------
+@njit(cache=True, nogil=True)
+def _integral(img, state):
+    h, w = img.shape
+    c = np.zeros((h + 1, w + 1), np.float64)
+    s1 = np.zeros((h + 1, w + 1), np.float64)
+    s2 = np.zeros((h + 1, w + 1), np.float64)
+    for y in range(h):
+        rc = 0.0
+        r1 = 0.0
+        r2 = 0.0
+        for x in range(w):
+            if state[y, x] == 1:
+                v = np.float64(img[y, x])
+                rc += 1.0
+                r1 += v
+                r2 += v * v
+            c[y + 1, x + 1] = c[y, x + 1] + rc
+            s1[y + 1, x + 1] = s1[y, x + 1] + r1
+            s2[y + 1, x + 1] = s2[y, x + 1] + r2
+    return c, s1, s2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _box(a, y0, x0, y1, x1):
+    return a[y1, x1] - a[y0, x1] - a[y1, x0] + a[y0, x0]
+
+
+@njit(cache=True, nogil=True)
+def _area_sigma(c, s1, s2, y, x, b, n, h, w, scale, local):
+    o = (n - b) // 2
+    y0 = max(y - o, 0)
+    x0 = max(x - o, 0)
+    y1 = min(y - o + n, h)
+    x1 = min(x - o + n, w)
+    if y1 <= y0 or x1 <= x0:
+        return 0.0
+    cnt = _box(c, y0, x0, y1, x1)
+    if cnt < 2.0:
+        return 0.0
+    m = _box(s1, y0, x0, y1, x1) / cnt
+    var = _box(s2, y0, x0, y1, x1) / cnt - m * m
+    if var < 0.0:
+        var = 0.0
+    sc = scale
+    if local:
+        sc = abs(m) * scale
+        if sc <= 0.0:
+            return 0.0
+    return math.sqrt(var) / sc
+
+
+@njit(cache=True, nogil=True)
+def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels):
+    """Quadtree leaves per tile (only leaves with missing pixels) and the round of every tile.
+
+    Returns (tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_lvl, n_rounds)."""
+    h, w = state.shape
+    th = (h + tile - 1) // tile
+    tw = (w + tile - 1) // tile
+    nt = th * tw
+    miss = np.zeros(nt, np.int64)
+    for y in range(h):
+        for x in range(w):
+            if state[y, x] == 0:
+                miss[(y // tile) * tw + x // tile] += 1
+    need_sigma = False
+    for i in range(sizes.shape[0] - 1):
+        if split[i] > 0.0:
+            need_sigma = True
+    if need_sigma:
+        c, s1, s2 = _integral(img, state)
+    else:
+        c = np.zeros((1, 1))
+        s1 = c
+        s2 = c
+    # leaves: depth-first, z-order inside the tile
+    cap = 16
+    for t in range(nt):
+        if miss[t] > 0:
+            cap += (tile // sizes[sizes.shape[0] - 1]) ** 2
+    leaf_y = np.empty(cap, np.int64)
+    leaf_x = np.empty(cap, np.int64)
+    leaf_l = np.empty(cap, np.int64)
+    leaf_ptr = np.zeros(nt + 1, np.int64)
+    sy = np.empty(4 * 64, np.int64)
+    sx = np.empty(4 * 64, np.int64)
+    sl = np.empty(4 * 64, np.int64)
+    nl = 0
+    for t in range(nt):
+        leaf_ptr[t] = nl
+        if miss[t] == 0:
+            continue
+        ty = (t // tw) * tile
+        tx = (t % tw) * tile
+        sp = 0
+        sy[0] = ty
+        sx[0] = tx
+        sl[0] = 0
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            y = sy[sp]
+            x = sx[sp]
+            lv = sl[sp]
+            b = sizes[lv]
+            if y >= h or x >= w:
+                continue
+            # any missing pixel in this block?
+            anym = False
+            for yy in range(y, min(y + b, h)):
+                for xx in range(x, min(x + b, w)):
+                    if state[yy, xx] == 0:
+                        anym = True
+                        break
+                if anym:
+                    break
+            if not anym:
+                continue
+            leaf = lv == sizes.shape[0] - 1
+            if not leaf:
+                if split[lv] <= 0.0:
+                    leaf = False
+                else:
+                    sg = _area_sigma(c, s1, s2, y, x, b, n, h, w, scale, local)
+                    leaf = sg < split[lv]
+            if leaf:
+                leaf_y[nl] = y
+                leaf_x[nl] = x
+                leaf_l[nl] = lv
+                nl += 1
+            else:
+                hb = b // 2
+                # push in reverse so that the top-left child is processed first
+                sy[sp] = y + hb
+                sx[sp] = x + hb
+                sl[sp] = lv + 1
+                sy[sp + 1] = y + hb
+                sx[sp + 1] = x
+                sl[sp + 1] = lv + 1
+                sy[sp + 2] = y
+                sx[sp + 2] = x + hb
+                sl[sp + 2] = lv + 1
+                sy[sp + 3] = y
+                sx[sp + 3] = x
+                sl[sp + 3] = lv + 1
+                sp += 4
+    leaf_ptr[nt] = nl
+    # rounds: priority = missing share of the 3x3 tile neighbourhood (not yet reconstructed),
+    # out-of-image neighbours count as missing * edge_penalty; a round is a greedy set of
+    # mutually non-adjacent tiles of the lowest priority level.
+    tile_round = np.full(nt, -1, np.int64)
+    rem = 0
+    for t in range(nt):
+        if miss[t] > 0:
+            tile_round[t] = -2
+            rem += 1
+    cur = np.zeros(nt, np.float64)
+    for t in range(nt):
+        ty = t // tw
+        tx = t % tw
+        area = min(tile, h - ty * tile) * min(tile, w - tx * tile)
+        cur[t] = miss[t] / area
+    lvl = np.zeros(nt, np.int64)
+    in_round = np.zeros(nt, np.bool_)
+    round_tiles = np.empty(max(rem, 1), np.int64)
+    round_ptr = np.zeros(rem + 2, np.int64)
+    r = 0
+    k = 0
+    while rem > 0:
+        lmin = 1 << 60
+        for t in range(nt):
+            if tile_round[t] != -2:
+                continue
+            ty = t // tw
+            tx = t % tw
+            p = 0.0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    yy = ty + dy
+                    xx = tx + dx
+                    if yy < 0 or yy >= th or xx < 0 or xx >= tw:
+                        p += edge_penalty
+                    else:
+                        p += cur[yy * tw + xx]
+            lv = int(p / 9.0 * levels)
+            lvl[t] = lv
+            if lv < lmin:
+                lmin = lv
+        round_ptr[r] = k
+        for t in range(nt):
+            if tile_round[t] != -2 or lvl[t] != lmin:
+                continue
+            ty = t // tw
+            tx = t % tw
+            ok = True
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    yy = ty + dy
+                    xx = tx + dx
+                    if 0 <= yy < th and 0 <= xx < tw and in_round[yy * tw + xx]:
+                        ok = False
+            if ok:
+                in_round[t] = True
+                round_tiles[k] = t
+                k += 1
+        for i in range(round_ptr[r], k):
+            t = round_tiles[i]
+            in_round[t] = False
+            tile_round[t] = r
+            cur[t] = 0.0
+            rem -= 1
+        r += 1
+    round_ptr[r] = k
+    return tile_round, round_ptr[: r + 1], round_tiles[:k], leaf_ptr, leaf_y[:nl], leaf_x[:nl], leaf_l[:nl], r
+
+
+# --------------------------------------------------------------------------------------------------
+# One block
+# --------------------------------------------------------------------------------------------------
+@njit(cache=True, nogil=True, fastmath=True)
+def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tile, tw_tiles, t_self, r_cur,
+           by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+           delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
+           wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i):
+    """Reconstruct the missing pixels of block (by, bx, b) in place. Returns False if its support
+    area has no usable pixel (left for the fallback)."""
+    h, w = img.shape
+    hh = n // 2 + 1
+    o = (n - b) // 2
+    ay = by - o
+    ax = bx - o
+    # ---- gather weights and values (pixels of same-round tiles are never read) ----
+    sw = 0.0
+    swf = 0.0
+    cnt = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    for i in range(n):
+        y = ay + i
+        for j in range(n):
+            x = ax + j
+            wv = np.float32(0.0)
+            fv = np.float32(0.0)
+            if 0 <= y < h and 0 <= x < w:
+                st = state[y, x]
+                if st == 1:
+                    wv = rho_tab[lvl, i, j]
+                    fv = img[y, x]
+                elif st == 2:
+                    tt = (y // tile) * tw_tiles + x // tile
+                    if tt == t_self or tile_round[tt] < r_cur:
+                        wv = np.float32(delta) * rho_tab[lvl, i, j]
+                        fv = img[y, x]
+                if wv > 0.0:
+                    sw += wv
+                    swf += wv * fv
+                    cnt += 1.0
+                    s1 += fv
+                    s2 += fv * fv
+            wbuf[i, j] = wv
+            xbuf[i, j] = fv
+    if sw <= 0.0:
+        return False
+    mean = swf / sw
+    # texture-adaptive iteration count from the (unweighted) std of the usable pixels
+    m1 = s1 / cnt
+    var = s2 / cnt - m1 * m1
+    if var < 0.0:
+        var = 0.0
+    sc = scale
+    if local:
+        sc = abs(m1) * scale
+    sigma = 0.0
+    if sc > 0.0:
+        sigma = math.sqrt(var) / sc
+    nit = int(round(iter_c * sigma))
+    if nit < iter_min:
+        nit = iter_min
+    if nit > iter_max:
+        nit = iter_max
+    fm = np.float32(mean)
+    for i in range(n):
+        wrow = wbuf[i]
+        xrow = xbuf[i]
+        for j in range(n):
+            xrow[j] = wrow[j] * (xrow[j] - fm)
+    # ---- forward DFT of w and w*f: rows (real -> half spectrum) by table, columns by radix-2 FFT ----
+    for i in range(n):
+        m = bitrev[i]
+        a1r = t1r[m]
+        a1i = t1i[m]
+        a2r = t2r[m]
+        a2i = t2i[m]
+        for v in range(hh):
+            a1r[v] = 0.0
+            a1i[v] = 0.0
+            a2r[v] = 0.0
+            a2i[v] = 0.0
+        wrow = wbuf[i]
+        xrow = xbuf[i]
+        for j in range(n):
+            a = wrow[j]
+            if a == 0.0:
+                continue
+            bb = xrow[j]
+            crow = cos_t[j]
+            srow = sin_t[j]
+            for v in range(hh):
+                a1r[v] += a * crow[v]
+                a1i[v] -= a * srow[v]
+                a2r[v] += bb * crow[v]
+                a2i[v] -= bb * srow[v]
+    s = 2
+    while s <= n:
+        half = s // 2
+        step = n // s
+        for st0 in range(0, n, s):
+            for k in range(half):
+                c = tw_c[k * step]
+                sn = -tw_s[k * step]
+                a0 = st0 + k
+                b0 = a0 + half
+                p1r = t1r[a0]
+                p1i = t1i[a0]
+                q1r = t1r[b0]
+                q1i = t1i[b0]
+                p2r = t2r[a0]
+                p2i = t2i[a0]
+                q2r = t2r[b0]
+                q2i = t2i[b0]
+                for v in range(hh):
+                    xr = q1r[v] * c - q1i[v] * sn
+                    xi = q1r[v] * sn + q1i[v] * c
+                    q1r[v] = p1r[v] - xr
+                    q1i[v] = p1i[v] - xi
+                    p1r[v] += xr
+                    p1i[v] += xi
+                    xr = q2r[v] * c - q2i[v] * sn
+                    xi = q2r[v] * sn + q2i[v] * c
+                    q2r[v] = p2r[v] - xr
+                    q2i[v] = p2i[v] - xi
+                    p2r[v] += xr
+                    p2i[v] += xi
+        s *= 2
+    # Transposed layout for the iterations: R[v, u] (v = half-spectrum index, u full, contiguous);
+    # W on a doubled periodic grid W[v', u'] (v', u' in 0..2n) so that W(j - k) and W(j + k) are
+    # contiguous slices without modulo.
+    for u in range(n):
+        un = (n - u) % n
+        for v in range(hh):
+            a = t1r[u, v]
+            bq = t1i[u, v]
+            wr[v, u] = a
+            wi[v, u] = bq
+            wr[v, u + n] = a
+            wi[v, u + n] = bq
+            wr[v + n, u] = a
+            wi[v + n, u] = bq
+            wr[v + n, u + n] = a
+            wi[v + n, u + n] = bq
+            if 0 < v < n - v:
+                wr[n - v, un] = a
+                wi[n - v, un] = -bq
+                wr[n - v, un + n] = a
+                wi[n - v, un + n] = -bq
+                wr[2 * n - v, un] = a
+                wi[2 * n - v, un] = -bq
+                wr[2 * n - v, un + n] = a
+                wi[2 * n - v, un + n] = -bq
+    for v in range(hh):
+        mx = np.float32(0.0)
+        rrow = rr[v]
+        irow = ri[v]
+        erow = en[v]
+        prow = prior2[v]
+        for u in range(n):
+            a = t2r[u, v]
+            bq = t2i[u, v]
+            rrow[u] = a
+            irow[u] = bq
+            e = (a * a + bq * bq) * prow[u]
+            erow[u] = e
+            mx = max(mx, e)
+        rm[v] = mx
+    w0 = wr[0, 0]
+    g = np.float32(gamma) / w0
+    # ---- iterations: select bin, add conjugate pair, update residual spectrum in place ----
+    it = 0
+    ns = 0
+    while it < nit:
+        kv = 0
+        best = rm[0]
+        for v in range(1, hh):
+            if rm[v] > best:
+                best = rm[v]
+                kv = v
+        if best <= 0.0:
+            break
+        ku = 0
+        for u in range(n):
+            if en[kv, u] == best:
+                ku = u
+                break
+        cr = rr[kv, ku] * g
+        ci = ri[kv, ku] * g
+        selfm = ((ku == 0) or (2 * ku == n)) and ((kv == 0) or (2 * kv == n))
+        if pair_exact and not selfm:
+            # weighted least-squares projection onto the real pair {phi_k, phi_-k}:
+            # R = c W(0) + conj(c) W(2k)
+            w2r = wr[2 * kv, 2 * ku]
+            w2i = wi[2 * kv, 2 * ku]
+            den = w0 * w0 - (w2r * w2r + w2i * w2i)
+            if den > 1e-3 * w0 * w0:
+                r0 = rr[kv, ku]
+                i0 = ri[kv, ku]
+                gg = np.float32(gamma) / den
+                cr = (r0 * w0 - (r0 * w2r + i0 * w2i)) * gg
+                ci = (i0 * w0 - (r0 * w2i - i0 * w2r)) * gg
+        if selfm:
+            ci = np.float32(0.0)
+            u1 = n - ku
+            for v in range(hh):
+                v1 = v - kv + n
+                w1r = wr[v1, u1:u1 + n]
+                w1i = wi[v1, u1:u1 + n]
+                rrow = rr[v]
+                irow = ri[v]
+                erow = en[v]
+                prow = prior2[v]
+                mx = np.float32(0.0)
+                for u in range(n):
+                    nr = rrow[u] - cr * w1r[u]
+                    ni = irow[u] - cr * w1i[u]
+                    rrow[u] = nr
+                    irow[u] = ni
+                    e = (nr * nr + ni * ni) * prow[u]
+                    erow[u] = e
+                    mx = max(mx, e)
+                rm[v] = mx
+            it += 1
+        else:
+            u1 = n - ku
+            for v in range(hh):
+                v1 = v - kv + n
+                v2 = v + kv
+                w1r = wr[v1, u1:u1 + n]
+                w1i = wi[v1, u1:u1 + n]
+                w2r = wr[v2, ku:ku + n]
+                w2i = wi[v2, ku:ku + n]
+                rrow = rr[v]
+                irow = ri[v]
+                erow = en[v]
+                prow = prior2[v]
+                mx = np.float32(0.0)
+                for u in range(n):
+                    a = w1r[u]
+                    bq = w1i[u]
+                    a2 = w2r[u]
+                    b2 = w2i[u]
+                    nr = rrow[u] - (cr * (a + a2) + ci * (b2 - bq))
+                    ni = irow[u] - (cr * (bq + b2) + ci * (a - a2))
+                    rrow[u] = nr
+                    irow[u] = ni
+                    e = (nr * nr + ni * ni) * prow[u]
+                    erow[u] = e
+                    mx = max(mx, e)
+                rm[v] = mx
+            it += 2
+        sel_u[ns] = ku
+        sel_v[ns] = kv
+        sel_r[ns] = cr if selfm else 2.0 * cr
+        sel_i[ns] = ci if selfm else 2.0 * ci
+        ns += 1
+    # ---- synthesis of the block only: g(m) = mean + sum Re(c e^{+i 2 pi k m / N}) ----
+    for i in range(b):
+        y = by + i
+        if y >= h:
+            break
+        for j in range(b):
+            x = bx + j
+            if x >= w:
+                break
+            if state[y, x] != 0:
+                continue
+            acc = mean
+            pi_ = o + i
+            pj = o + j
+            for q in range(ns):
+                ph = (sel_u[q] * pi_ + sel_v[q] * pj) % n
+                acc += sel_r[q] * tw_c[ph] - sel_i[q] * tw_s[ph]
+            val = np.float32(acc)
+            if use_lo and val < lo[y, x]:
+                val = lo[y, x]
+            if use_hi and val > hi[y, x]:
+                val = hi[y, x]
+            img[y, x] = val
+            state[y, x] = 2
+    return True
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
+         leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+         delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads):
+    h, w = img.shape
+    tw_tiles = (w + tile - 1) // tile
+    hh = n // 2 + 1
+    nsel = iter_max + 2
+    # per-thread scratch, allocated once
+    wbuf = np.zeros((nthreads, n, n), np.float32)
+    xbuf = np.zeros((nthreads, n, n), np.float32)
+    t1r = np.zeros((nthreads, n, hh), np.float32)
+    t1i = np.zeros((nthreads, n, hh), np.float32)
+    t2r = np.zeros((nthreads, n, hh), np.float32)
+    t2i = np.zeros((nthreads, n, hh), np.float32)
+    wr = np.zeros((nthreads, 2 * n, 2 * n), np.float32)
+    wi = np.zeros((nthreads, 2 * n, 2 * n), np.float32)
+    rr = np.zeros((nthreads, hh, n), np.float32)
+    ri = np.zeros((nthreads, hh, n), np.float32)
+    en = np.zeros((nthreads, hh, n), np.float32)
+    rm = np.zeros((nthreads, hh), np.float32)
+    sel_u = np.zeros((nthreads, nsel), np.int64)
+    sel_v = np.zeros((nthreads, nsel), np.int64)
+    sel_r = np.zeros((nthreads, nsel), np.float32)
+    sel_i = np.zeros((nthreads, nsel), np.float32)
+    nround = round_ptr.shape[0] - 1
+    for r in range(nround):
+        r0 = round_ptr[r]
+        cntr = round_ptr[r + 1] - r0
+        for th in prange(nthreads):
+            for q in range(th, cntr, nthreads):
+                t = round_tiles[r0 + q]
+                for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
+                    lv = leaf_l[li]
+                    _block(img, state, lo, hi, use_lo, use_hi, tile_round, tile, tw_tiles, t, r,
+                           leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
+                           tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                           local, pair_exact, wbuf[th], xbuf[th], t1r[th], t1i[th], t2r[th], t2i[th], wr[th],
+                           wi[th], rr[th], ri[th], en[th], rm[th], sel_u[th], sel_v[th], sel_r[th],
+                           sel_i[th])
+
+
+# --------------------------------------------------------------------------------------------------
+# Python wrapper
+# --------------------------------------------------------------------------------------------------
+def _dynamic_range_stops(v: np.ndarray) -> float:
+    pos = v[v > 0]
+    if pos.size < 2:
+        return 0.0
+    lo_, hi_ = np.percentile(pos, [0.1, 99.9])
+    return float(np.log2(hi_ / lo_)) if lo_ > 0 else 0.0
+
+
+def _choose_domain(p, kv):
+    d = p["domain"]
+    if d != "auto":
+        return d
+    if kv.size and kv.min() > 0 and _dynamic_range_stops(kv) >= float(p["hdr_threshold_stops"]):
+        return p["hdr_domain"]
+    return "linear"
+
+
+def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanced", **params):
+    """Reconstruct the pixels where ``known`` is False with FSE; returns float32 (H, W).
+
+    ``values``: finite float (H, W), any scale; ``known``: bool (H, W); known pixels are returned
+    bit-exact. ``lower``/``upper``: optional float arrays (NaN = no bound): a missing pixel's
+    reconstruction is clamped to ``[lower, upper]`` (clipped pixels: >= clip level; dark pixels:
+    <= threshold). ``preset`` selects one of :data:`FSE_PRESETS`, ``**params`` override entries.
+    The output does not depend on the number of threads (each round's blocks read only pixels
+    finalised in earlier rounds). See docs/FSE.md.
+    """
+    p = resolve_params(preset, **params)
+    v = np.asarray(values)
+    k = np.asarray(known, dtype=bool)
+    if v.ndim != 2 or k.shape != v.shape:
+        raise ValueError("values and known must be 2-D arrays of the same shape")
+    v32 = np.ascontiguousarray(v, dtype=np.float32)
+    out = v32.copy()
+    miss = ~k
+    if not miss.any():
+        return out
+    kv = v32[k]
+    if kv.size == 0:
+        warnings.warn("fse_reconstruct: no known pixel; output is filled from the bounds or 0",
+                      RuntimeWarning, stacklevel=2)
+        return _fill_without_data(out, miss, lower, upper)
+    domain = _choose_domain(p, kv)
+    # bounds
+    lo_arr, hi_arr, use_lo, use_hi = _bounds(lower, upper, v.shape, p["use_bounds"])
+    if domain == "log":
+        floor = float(kv[kv > 0].min()) if np.any(kv > 0) else 1.0
+        floor = floor * 0.5 if floor > 0 else 1e-30
+        work = np.log2(np.maximum(v32, floor)).astype(np.float32)
+        if use_lo:
+            lo_arr = np.log2(np.maximum(lo_arr, floor)).astype(np.float32)
+        if use_hi:
+            hi_arr = np.log2(np.maximum(hi_arr, floor)).astype(np.float32)
+        scale = float(p["log_scale_stops"])
+        local = False
+    elif domain == "local":
+        work = v32.copy()
+        scale = 1.0 / 0.4   # std relative to 2.5x the local mean ~ std/255 for mid-grey 8-bit data
+        local = True
+    else:
+        work = v32.copy()
+        rng = float(kv.max() - kv.min())
+        scale = rng if rng > 0 else 1.0
+        local = False
+    work[miss] = 0.0
+    state = k.astype(np.uint8)
+    tables = _tables(p)
+    cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, sizes = tables
+    n = int(p["window"])
+    tile = int(p["max_block"])
+    plan = _plan(work, state, tile, n, sizes, split, scale, local, float(p["edge_penalty"]),
+                 int(p["order_levels"]))
+    tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, _nr = plan
+    nthreads = int(get_num_threads())
+    _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
+         leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+         float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
+         int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
+    left = state == 0
+    if left.any():
+        _nearest_fill(work, left)
+    if domain == "log":
+        rec = np.exp2(work[miss].astype(np.float64)).astype(np.float32)
+    else:
+        rec = work[miss]
+    out[miss] = rec
+    return out
+
+
+def _bounds(lower, upper, shape, use):
+    use_lo = use_hi = False
+    lo_arr = np.zeros((1, 1), np.float32)
+    hi_arr = np.zeros((1, 1), np.float32)
+    if use and lower is not None:
+        lo_arr = np.ascontiguousarray(np.broadcast_to(np.asarray(lower, np.float32), shape)).copy()
+        lo_arr[np.isnan(lo_arr)] = -np.inf
+        use_lo = bool(np.isfinite(lo_arr).any())
+        if not use_lo:
+            lo_arr = np.zeros((1, 1), np.float32)
+    if use and upper is not None:
+        hi_arr = np.ascontiguousarray(np.broadcast_to(np.asarray(upper, np.float32), shape)).copy()
+        hi_arr[np.isnan(hi_arr)] = np.inf
+        use_hi = bool(np.isfinite(hi_arr).any())
+        if not use_hi:
+            hi_arr = np.zeros((1, 1), np.float32)
+    return lo_arr, hi_arr, use_lo, use_hi
+
+
+def _nearest_fill(work, left):
+    from scipy import ndimage
+    src = ~left
+    if not src.any():
+        work[left] = 0.0
+        return
+    idx = ndimage.distance_transform_edt(left, return_distances=False, return_indices=True)
+    work[left] = work[idx[0][left], idx[1][left]]
+
+
+def _fill_without_data(out, miss, lower, upper):
+    fill = np.zeros(out.shape, np.float32)
+    if lower is not None:
+        lo = np.broadcast_to(np.asarray(lower, np.float32), out.shape)
+        m = np.isfinite(lo)
+        fill[m] = np.maximum(fill[m], lo[m])
+    if upper is not None:
+        hi = np.broadcast_to(np.asarray(upper, np.float32), out.shape)
+        m = np.isfinite(hi)
+        fill[m] = np.minimum(fill[m], hi[m])
+    out[miss] = fill[miss]
+    return out
+
+
+def warmup() -> None:
+    """Compile the kernels on a tiny image (call from an element's ``do_start``)."""
+    rng = np.random.default_rng(0)
+    v = rng.random((24, 24)).astype(np.float32)
+    k = rng.random((24, 24)) < 0.5
+    for preset in ("preview", "balanced"):
+        fse_reconstruct(v, k, lower=np.full_like(v, np.nan), upper=np.full_like(v, np.nan),
+                        preset=preset)
