@@ -210,8 +210,8 @@ class CrosstalkCalibration:
 
 def quantize_codes(codes: np.ndarray, max_code: int):
     """float codes above black -> (uint16, qscale, qoffset) with ~1/16 DN resolution for 12-bit data."""
-    qoffset = 256.0
-    qscale = (max_code + 2 * qoffset) / 65535.0
+    qscale = (max_code + 512.0) / 65535.0
+    qoffset = round(256.0 / qscale) * qscale          # code 0 is represented exactly
     q = np.rint((np.nan_to_num(codes, nan=0.0) + qoffset) / qscale)
     return np.clip(q, 0, 65535).astype(np.uint16), float(qscale), float(qoffset)
 
