@@ -391,7 +391,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
             continue
         ua = unclipped[i][att_idx]
         frac_att[i] = ua.mean()
-        if ua.sum() >= max(min_rows, 10 * 9):
+        if ua.sum() >= min_rows:
             ya = d[i][att_idx][ua]
             Xs = Xa[ua]
             if np.all(Xs[:, 1:].sum(0) >= 5):
@@ -400,7 +400,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
             else:
                 h0[i] = float(np.median(ya[Xs[:, 1:].sum(1) == 0])) if np.any(Xs[:, 1:].sum(1) == 0) else np.nan
         ur = unclipped[i][reg_idx]
-        if ur.sum() >= max(min_rows, 90):
+        if ur.sum() >= min_rows:
             H0[i] = _robust_lstsq(Xr[ur], d[i][reg_idx][ur])[0]
         s = paper_att_sel & unclipped[i]
         if s.sum() >= 3:
@@ -408,6 +408,9 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         s = paper_reg_sel & unclipped[i]
         if s.sum() >= 3:
             paper_reg[i] = float(np.mean(d[i][s]))
+    # tiny sensors: where the regression is impossible, the paper's references
+    h0 = np.where(np.isfinite(h0), h0, paper_att)
+    H0 = np.where(np.isfinite(H0), H0, paper_reg)
     steps.update(1)
 
     # ---- ND from the two references' slopes over exposure -----------------------------------------
