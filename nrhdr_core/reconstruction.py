@@ -105,27 +105,37 @@ def _nearest(out, k):
 
 
 def _linear(out, k):
-    """Delaunay-linear on the known pixels; outside their convex hull, nearest known pixel."""
-    from scipy.interpolate import LinearNDInterpolator
-    from scipy.spatial import QhullError
+    """Delaunay-linear on the known pixels (the paper's "triangular interpolation", Fig. 10g); outside
+    their convex hull, nearest known pixel. Only known pixels within 2 px of a missing one are
+    triangulated (triangles of the full triangulation that cover a hole stay Delaunay in the subset), and a
+    fixed 1e-6 px jitter breaks the lattice's co-circular degeneracy, which makes Qhull ~2x faster."""
+    from scipy import ndimage
+    from scipy.spatial import Delaunay, QhullError
     if min(out.shape) == 1:
         return _linear_1d(out, k)
-    ky, kx = np.nonzero(k)
+    band = k & ndimage.binary_dilation(~k, np.ones((5, 5), bool))
+    ky, kx = np.nonzero(band)
     my, mx = np.nonzero(~k)
     if ky.size < 3:
         return _nearest(out, k)
+    pts = np.column_stack([ky, kx]).astype(np.float64)
+    jit = np.random.default_rng(0).uniform(-1e-6, 1e-6, pts.shape)
     try:
-        interp = LinearNDInterpolator(np.column_stack([ky, kx]).astype(np.float64),
-                                      out[ky, kx].astype(np.float64), fill_value=np.nan)
-        vals = interp(np.column_stack([my, mx]).astype(np.float64))
+        tri = Delaunay(pts + jit)
     except QhullError:  # all known pixels collinear: no triangle exists
         return _nearest(out, k)
+    q = np.column_stack([my, mx]).astype(np.float64)
+    simp = tri.find_simplex(q, tol=1e-5)  # pixels on the hull edge despite the jitter
+    inside = simp >= 0
+    T = tri.transform[simp[inside]]
+    b = np.einsum("nij,nj->ni", T[:, :2, :], q[inside] - T[:, 2, :])
+    bary = np.column_stack([b, 1.0 - b.sum(axis=1)])
+    vals = out[ky, kx].astype(np.float64)[tri.simplices[simp[inside]]]
     res = out.copy()
-    res[my, mx] = vals
-    hole = np.isnan(res)
-    if hole.any():
+    res[my[inside], mx[inside]] = (bary * vals).sum(axis=1)
+    if not inside.all():
         near = _nearest(out, k)
-        res[hole] = near[hole]
+        res[my[~inside], mx[~inside]] = near[my[~inside], mx[~inside]]
     return res
 
 
