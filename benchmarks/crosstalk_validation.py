@@ -13,7 +13,8 @@ TIFF + exposures.csv), runs the same code as `nrhdr calibrate`, and reports
   dynamic-range gain 2.1 / 2.4 stops at 40 % / 20 % known pixels.
 Sensors: `prototype` (the preset: non-uniform, signal-dependent, blooming, PRNU/DSNU), `linear` (uniform
 linear 1 % kernel), `none`, and `independent`: a plain scipy convolution with a different, non-conserving
-kernel and ND 8, written here without the project's sensor model (as an outside tester would).
+kernel and ND 8, written here without the project's sensor model (as an outside tester would), once
+conserving (centre 1 - sum of the kernel) and once not (`independent-nc`, centre 1).
 Writes docs/img/crosstalk_*.png and benchmarks/results/crosstalk_validation.json.
 """
 from __future__ import annotations
@@ -39,26 +40,28 @@ MIN_FLUX = 20.0
 
 
 class IndependentModel:
-    """An outside tester's sensor: every pixel gets K * (light after its ND filter) from its neighbours
-    (scipy convolution, centre 1: not conserving), K anisotropic, no per-pixel variation."""
+    """An outside tester's sensor: a plain scipy convolution of the light after the ND filters with a
+    3 x 3 kernel (edges 1.5 % along rows, 2 % along columns, corners 0.5 %). Centre 1 - sum (conserving, the
+    textbook model of docs/hdr-references.md) or 1 (`conserving=False`: every pixel gains light)."""
 
-    def __init__(self, edge_h=0.015, edge_v=0.02, corner=0.005):
+    def __init__(self, edge_h=0.015, edge_v=0.02, corner=0.005, conserving=True):
         self.kernel = crosstalk.make_kernel(edge_h, edge_v, corner)
+        self.conserving = conserving
 
     def apply(self, e, prof, rng=None):
         from scipy.ndimage import correlate
         k = self.kernel.copy()
-        k[1, 1] = 1.0
+        k[1, 1] = 1.0 - self.kernel.sum() if self.conserving else 1.0
         return correlate(np.asarray(e, np.float64), k, mode="constant", cval=0.0)
 
     def truth(self):
-        return {"name": "independent", "kernel": self.kernel.tolist(), "conserving": False}
+        return {"name": "independent", "kernel": self.kernel.tolist(), "conserving": self.conserving}
 
 
 def make_sensor(name, h, w, seed=0):
-    if name == "independent":
+    if name in ("independent", "independent-nc"):
         prof = profile.default(h, w, seed=seed + 11, nd=8.0)
-        return prof, IndependentModel()
+        return prof, IndependentModel(conserving=(name == "independent"))
     prof = profile.default(h, w, seed=seed + 1)
     return prof, crosstalk.sensor_model_preset(name, h, w, seed=seed + 2)
 
@@ -235,7 +238,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="96x128 sensors, 2 scenes")
     ap.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=(192, 256))
-    ap.add_argument("--sensors", nargs="+", default=["prototype", "linear", "independent", "none"])
+    ap.add_argument("--sensors", nargs="+", default=["prototype", "linear", "independent", "independent-nc", "none"])
     ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "crosstalk_validation.json"))
     ap.add_argument("--img", default=str(ROOT / "docs" / "img"))
     a = ap.parse_args(argv)

@@ -37,6 +37,7 @@ from . import profile as profiles
 
 IMAGE_EXTS = (".tif", ".tiff", ".png")
 MAX_KNOTS = 64
+CLIP_VARIANT = "quad"
 
 
 class CalibrationError(ValueError):
@@ -242,14 +243,22 @@ def _neighbour_indicators(mask: np.ndarray, want_regular: bool) -> np.ndarray:
     return out
 
 
-def _robust_lstsq(X: np.ndarray, y: np.ndarray):
-    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+def _lstsq(X, y):
+    try:
+        return np.linalg.solve(X.T @ X, X.T @ y)           # normal equations: fast for tall X
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(X, y, rcond=None)[0]
+
+
+def _robust_lstsq(X: np.ndarray, y: np.ndarray, reject: float = 8.0):
+    """Least squares with one pass of rejecting gross outliers (hot/dead pixels) beyond `reject` MADs."""
+    coef = _lstsq(X, y)
     r = y - X @ coef
     mad = 1.4826 * np.median(np.abs(r - np.median(r)))
     if mad > 0:
-        keep = np.abs(r) < 5 * mad
-        if keep.sum() > X.shape[1] * 3:
-            coef, *_ = np.linalg.lstsq(X[keep], y[keep], rcond=None)
+        keep = np.abs(r) < reject * mad
+        if keep.sum() > X.shape[1] * 3 and not keep.all():
+            coef = _lstsq(X[keep], y[keep])
     return coef
 
 
@@ -276,7 +285,8 @@ class CalibrationResult:
 
 def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = None, l_min: float = 100.0,
               clip_code: int | None = None, bit_depth: int | None = None, name: str = "calibrated",
-              mask_name: str = "mask", progress: bool = True, smooth_chi2: float = 4.0) -> CalibrationResult:
+              mask_name: str = "mask", progress: bool = True, smooth_chi2: float = 1.5,
+              smooth_taps: int = 5) -> CalibrationResult:
     """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep."""
     from tqdm import tqdm
     mask = np.asarray(mask, bool)
@@ -417,7 +427,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     lo_lim = max(20.0, 0.01 * top)
     ok_r = np.isfinite(H0) & (H0 > lo_lim) & (H0 < 0.7 * top)
     # (only where nearly all attenuated pixels are unclipped: the clipped ones would bias the regression)
-    ok_a = np.isfinite(h0) & (h0 > lo_lim / 2) & (h0 < 0.8 * top) & (frac_att >= 0.95)
+    ok_a = np.isfinite(h0) & (h0 > lo_lim / 2) & (h0 < 0.8 * top) & (frac_att >= 0.99)
     kappa_reg = _slope_through_origin(t, H0, ok_r)
     kappa_att = _slope_through_origin(t, h0, ok_a)
     if not (kappa_reg > 0 and kappa_att > 0):
@@ -461,7 +471,10 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
             b_model[i] = _spill_np(fe, sigma, flux[i]) - _spill_np(fe, sigma, flux[i] / nd)
     # per pixel: d_p = g * E_p + alpha * Y_p over its unclipped lit exposures (ridge towards alpha = 1);
     # g absorbs PRNU, alpha the pixel's crosstalk amplitude (non-uniform mask)
-    S = {k: np.zeros((H, W)) for k in ("ee", "ey", "yy", "ed", "yd")}
+    # basis per pixel: E_p (own signal), Y_p (population crosstalk for its neighbourhood), E_p^2 / top
+    # (mild per-pixel non-linearity); ridge: alpha towards 1, the quadratic term towards 0
+    A = np.zeros((H, W, 3, 3))
+    r = np.zeros((H, W, 3))
     Ys = np.zeros((E, H, W), np.float32)
     for i in range(E):
         if not lit[i]:
@@ -470,23 +483,31 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         Y = np.tensordot(b_model[i], ind_reg, axes=1) * mask - np.tensordot(b_model[i], ind_att, axes=1) * reg
         Ys[i] = Y
         Ep = np.where(mask, flux[i] / nd, flux[i])
-        dd = d[i]
-        S["ee"] += np.where(u, Ep * Ep, 0)
-        S["ey"] += np.where(u, Ep * Y, 0)
-        S["yy"] += np.where(u, Y * Y, 0)
-        S["ed"] += np.where(u, Ep * dd, 0)
-        S["yd"] += np.where(u, Y * dd, 0)
+        basis = (np.where(u, Ep, 0), np.where(u, Y, 0), np.where(u, Ep * Ep / top, 0))
+        for j in range(3):
+            r[:, :, j] += basis[j] * d[i]
+            for k in range(j, 3):
+                A[:, :, j, k] += basis[j] * basis[k]
+    for j in range(3):
+        for k in range(j):
+            A[:, :, j, k] = A[:, :, k, j]
     lam = 0.3
-    a11, a12, a22 = S["ee"], S["ey"], S["yy"] * (1 + lam)
-    r1, r2 = S["ed"], S["yd"] + lam * S["yy"]
-    det = a11 * a22 - a12 * a12
+    syy = A[:, :, 1, 1].copy()
+    A[:, :, 1, 1] += lam * syy
+    r[:, :, 1] += lam * syy
+    A[:, :, 2, 2] += 0.05 * A[:, :, 2, 2] + 1e-9
+    A[:, :, 1, 1] += (syy == 0)                     # no crosstalk term: alpha stays at the prior
+    r[:, :, 1] += (syy == 0)
+    A[:, :, 0, 0] += (A[:, :, 0, 0] == 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        alpha = (a11 * r2 - a12 * r1) / det
-        gfit = (r1 - a12 * alpha) / a11
-    alpha = np.where(np.isfinite(alpha) & (S["yy"] > 0), np.clip(alpha, 0.0, 5.0), 1.0)
-    gfit = np.where(S["yy"] > 0, (r1 - a12 * alpha) / np.maximum(a11, 1e-30), r1 / np.maximum(a11, 1e-30))
-    gfit = np.where(np.isfinite(gfit) & (a11 > 0), gfit, 1.0)
-    # smoothed curves: where the 2-parameter model explains a pixel's knots within the measurement noise,
+        try:
+            coef = np.linalg.solve(A, r[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            coef = np.stack([np.ones((H, W)), np.ones((H, W)), np.zeros((H, W))], -1)
+    coef = np.where(np.isfinite(coef), coef, np.array([1.0, 1.0, 0.0]))
+    gfit, alpha, qfit = coef[..., 0], np.clip(coef[..., 1], 0.0, 5.0), coef[..., 2]
+    del A, r
+    # smoothed curves: where the 3-parameter model explains a pixel's knots within the measurement noise,
     # its LUT uses the model (averages the flats' noise over all exposures); otherwise the raw means
     chi = np.zeros((H, W))
     cnt = np.zeros((H, W))
@@ -495,15 +516,28 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
             continue
         u = unclipped[i]
         Ep = np.where(mask, flux[i] / nd, flux[i])
-        fit = gfit * Ep + alpha * Ys[i]
-        var = tvar[i] / sweep.frames[i] + 0.25
+        fit = gfit * Ep + alpha * Ys[i] + qfit * Ep * Ep / top
+        # noise of the mean from the photon transfer curve (a few frames' own variance is too noisy)
+        var = (gain * np.maximum(fit, 0) + (read_noise * gain) ** 2 + 1.0 / 12) / sweep.frames[i] + 0.05
         chi += np.where(u, (d[i] - fit) ** 2 / var, 0)
         cnt += u
         Ys[i] = fit                                     # reuse: the model curve
     smooth_ok = (cnt >= 3) & (chi / np.maximum(cnt, 1) < smooth_chi2)
     alpha = alpha.astype(np.float32)
-    curve = np.where(smooth_ok[None], Ys, d).astype(np.float32)
+    # the model plus the pixel's residual averaged over neighbouring exposures (5 taps, valid knots only):
+    # keeps systematic deviations from the model, averages the flats' noise
+    res = np.where(unclipped & lit[:, None, None], d - Ys, 0).astype(np.float32)
+    wgt = (unclipped & lit[:, None, None]).astype(np.float32)
+    rs = np.zeros_like(res)
+    ws = np.zeros_like(wgt)
+    for sh in range(-smooth_taps // 2 + 1, smooth_taps // 2 + 1):
+        lo, hi = max(0, -sh), min(E, E - sh)
+        rs[lo:hi] += res[lo + sh:hi + sh]
+        ws[lo:hi] += wgt[lo + sh:hi + sh]
+    curve = np.where(smooth_ok[None], Ys, Ys + rs / np.maximum(ws, 1)).astype(np.float32)
+    curve = np.where(unclipped, curve, Ys)          # beyond clipping: the model (for the clip point)
     curve[~lit] = d[~lit]
+    del res, wgt, rs, ws
     del Ys
     steps.update(1)
 
@@ -537,11 +571,27 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     nextf = kflux[np.clip(nk, 0, Ek - 1)]
     slope = (lastf - prevf) / np.maximum(lastc - prevc, 1e-3)
     est = lastf + (top - lastc) * slope
-    # smoothed pixels: where the model curve crosses the clip code between the last knot and the next
-    model_next = np.take_along_axis(codes, np.clip(nk, 0, Ek - 1)[None], 0)[0]
-    use_model = smooth_ok & (model_next > lastc + 1e-3) & (model_next >= top)
-    est_m = lastf + (top - lastc) * (nextf - lastf) / np.maximum(model_next - lastc, 1e-3)
-    est = np.where(use_model, est_m, est)
+    if CLIP_VARIANT == "quad":
+        # parabola through the last three knots (the curve bends up near the neighbours' saturation)
+        pc = np.take_along_axis(codes, np.clip(nk - 3, 0, Ek - 1)[None], 0)[0]
+        pf = kflux[np.clip(nk - 3, 0, Ek - 1)]
+        s1 = (lastc - prevc) / np.maximum(lastf - prevf, 1e-9)
+        s0 = (prevc - pc) / np.maximum(prevf - pf, 1e-9)
+        curv = (s1 - s0) / np.maximum(lastf - pf, 1e-9)          # second divided difference
+        curv = np.where(nk >= 3, np.maximum(curv, 0.0), 0.0)     # only bending up; else linear
+        # c(F) = lastc + (F - lastf) * (s1 + curv * (F - prevf)) = top
+        a_ = curv
+        b_ = s1 + curv * (lastf - prevf)
+        c_ = lastc - top
+        disc = np.maximum(b_ * b_ - 4 * a_ * c_, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xq = np.where(a_ > 1e-15, (-b_ + np.sqrt(disc)) / (2 * a_), -c_ / np.maximum(b_, 1e-9))
+        est = np.where(np.isfinite(xq) & (xq >= 0), lastf + xq, est)
+    if CLIP_VARIANT == "model":
+        model_next = np.take_along_axis(codes, np.clip(nk, 0, Ek - 1)[None], 0)[0]
+        use_model = (model_next > lastc + 1e-3) & (model_next >= top)
+        est_m = lastf + (top - lastc) * (nextf - lastf) / np.maximum(model_next - lastc, 1e-3)
+        est = np.where(use_model, est_m, est)
     est = np.clip(est, lastf, nextf)
     good = ncl & (nk >= 2)
     clip_flux[good] = est[good]

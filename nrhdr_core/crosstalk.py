@@ -427,13 +427,17 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
             reason = state[y, x] & 0x0F
             v = lut[y, x]
             if reason == _CLIPPED:
-                b = v
-                for d in range(8):
-                    yy = y + dirs[d, 0]
-                    xx = x + dirs[d, 1]
-                    if 0 <= yy < h and 0 <= xx < w and ok[yy, xx] and lut[yy, xx] > b:
-                        b = lut[yy, xx]
-                v = b
+                acc = np.float32(0.0)
+                n = 0
+                for dy in range(-2, 3):
+                    for dx in range(-2, 3):
+                        yy = y + dy
+                        xx = x + dx
+                        if 0 <= yy < h and 0 <= xx < w and ok[yy, xx] and lut[yy, xx] > v:
+                            acc += lut[yy, xx]
+                            n += 1
+                if n > 0:
+                    v = acc / n
             est[y, x] = v
 
 
