@@ -346,6 +346,46 @@ def _spill(sig_e, sigma, d, e):
     return sigma[d, lo] + t * (sigma[d, hi] - sigma[d, lo])
 
 
+@njit(cache=True, nogil=True)
+def _spill_vec(sig_e, sigma, e, out):
+    """out[d] = sigma_d(e) for the 8 directions with a single table search (as _spill)."""
+    j = sig_e.shape[0]
+    if e <= sig_e[0]:
+        r = e / sig_e[0] if sig_e[0] > 0 else np.float32(0.0)
+        for d in range(8):
+            out[d] = sigma[d, 0] * r
+        return
+    if e >= sig_e[j - 1]:
+        dx = max(sig_e[j - 1] - sig_e[j - 2], np.float32(1e-6))
+        for d in range(8):
+            out[d] = sigma[d, j - 1] + (e - sig_e[j - 1]) * (sigma[d, j - 1] - sigma[d, j - 2]) / dx
+        return
+    lo = 0
+    hi = j - 1
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if sig_e[mid] <= e:
+            lo = mid
+        else:
+            hi = mid
+    t = (e - sig_e[lo]) / (sig_e[hi] - sig_e[lo])
+    for d in range(8):
+        out[d] = sigma[d, lo] + t * (sigma[d, hi] - sigma[d, lo])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _source_spill(est, state, nd, sig_e, sigma, out):
+    """out[d, y, x] = sigma_d(signal of (y, x) as a source): what it sends to the target at -d."""
+    h, w = est.shape
+    for y in prange(h):
+        buf = np.empty(8, np.float32)
+        for x in range(w):
+            t = np.float32(1.0) / np.float32(nd) if (state[y, x] & _ATT) != 0 else np.float32(1.0)
+            _spill_vec(sig_e, sigma, est[y, x] * t, buf)
+            for d in range(8):
+                out[d, y, x] = buf[d]
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, nd, lut_out, ok_out):
     """lut_out = LUT flux of every pixel's value (for VALID pixels; others keep their bound)."""
@@ -367,10 +407,12 @@ def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip
 
 @njit(cache=True, nogil=True, parallel=True)
 def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux,
-                    nd, mode, dirs, sig_e, sigma, alpha, iters):
+                    nd, mode, dirs, sig_e, sigma, alpha, iters, src_spill):
     h, w = values.shape
     ndf = np.float32(nd)
     for y in prange(h):
+        flat_att = np.empty(8, np.float32)
+        flat_reg = np.empty(8, np.float32)
         for x in range(w):
             st = state[y, x]
             reason = st & 0x0F
@@ -385,9 +427,11 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                     state[y, x] = (st & 0xF0) | _UNCAL
                     continue
                 if mode == 1:
-                    tp = np.float32(1.0) / s
                     a = alpha[y, x]
                     for _ in range(iters):
+                        # what flat neighbours at this pixel's flux would send (the LUT's assumption)
+                        _spill_vec(sig_e, sigma, f / ndf, flat_att)
+                        _spill_vec(sig_e, sigma, f, flat_reg)
                         delta = np.float32(0.0)
                         for d in range(8):
                             yy = y + dirs[d, 0]
@@ -395,11 +439,10 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                             if yy < 0 or yy >= h or xx < 0 or xx >= w:
                                 continue
                             stn = state[yy, xx]
-                            tn = np.float32(1.0) / ndf if (stn & _ATT) != 0 else np.float32(1.0)
-                            fn = est[yy, xx]
-                            if (stn & 0x0F) == _DARK and fn > f:
-                                fn = f          # an upper bound only: assume no brighter than this pixel
-                            delta += _spill(sig_e, sigma, d, fn * tn) - _spill(sig_e, sigma, d, f * tn)
+                            if (stn & 0x0F) == _DARK and est[yy, xx] > f:
+                                continue        # an upper bound only: assume no brighter than this pixel
+                            flat = flat_att[d] if (stn & _ATT) != 0 else flat_reg[d]
+                            delta += src_spill[d, yy, xx] - flat
                         f2, ok2 = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m - a * delta)
                         if not ok2:
                             break
@@ -465,21 +508,24 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
             calib.knot_flux, clip_rel, calib.clip_flux, nd)
     if mode == "lut":
-        _correct_kernel(values, state, src, src, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha, 0)
+        _correct_kernel(values, state, src, src, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha, 0,
+                        np.zeros((8, 1, 1), np.float32))
         return values, state
     # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
     state0 = state.copy()
     lut = np.empty_like(values)
     ok = np.empty(values.shape, np.bool_)
     est = np.empty_like(values)
+    spill = np.empty((8,) + values.shape, np.float32)
     _lut_pass(src, state0, *args, lut, ok)
     for p in range(max(1, int(passes))):
         _neighbour_estimate(src, state0, lut, ok, DIRS, est)
+        _source_spill(est, state0, nd, calib.sig_e, calib.sigma, spill)
         if p > 0:
             state[:] = state0
         values[:] = src
         _correct_kernel(values, state, src, est, *args, 1, DIRS, calib.sig_e, calib.sigma, calib.alpha,
-                        int(iterations))
+                        int(iterations), spill)
         lut[:] = values
         ok[:] = (state & 0x0F) == _VALID
     return values, state
