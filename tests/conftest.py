@@ -185,7 +185,7 @@ def sample_payload(sample):
     return a
 
 
-def run_appsrc(desc, caps, buffers, before_push=None, lockstep=False, timeout=20.0):
+def run_appsrc(desc, caps, buffers, before_push=None, lockstep=False, timeout=90.0):
     """appsrc (caps) ! <desc> ! appsink; push `buffers`, then EOS; collect every sample and bus message.
     `before_push(i, pipeline)` runs before buffer i is pushed; with lockstep the sample of buffer i is
     pulled before buffer i+1 is pushed (deterministic property changes while PLAYING)."""

@@ -79,14 +79,15 @@ def test_corrupt_profile(gst_subprocess_env, tiny_clip, tmp_path, case):
     assert_element_error(rc, out, "nrvalidity0", str(p), needle)
 
 
-def test_truncated_last_frame(gst_subprocess_env, tiny_clip, tmp_path):
+@pytest.mark.parametrize("between", [[], ["queue", "!"]])
+def test_truncated_last_frame(gst_subprocess_env, tiny_clip, tmp_path, between):
     """rawvideoparse drops a partial last frame silently (GST_DEBUG only); nrvalidity asks upstream for the
     byte size (filesrc answers) and refuses a file that is not a whole number of frames."""
     d, prof, _ = tiny_clip
     data = (d / "clip.raw").read_bytes()
     cut = tmp_path / "cut.raw"
     cut.write_bytes(data[:30000])
-    rc, out = launch(gst_subprocess_env, *src(tmp_path, raw="cut.raw"), "nrvalidity",
+    rc, out = launch(gst_subprocess_env, *src(tmp_path, raw="cut.raw"), *between, "nrvalidity",
                      f"profile={d / 'camera.json'}", "!", "fakesink")
     assert_element_error(rc, out, "nrvalidity0", f"{cut} is 30000 bytes",
                          "not a whole number of 6144-byte 64x48 GRAY16_LE frames (4 frames + 5424 bytes)",

@@ -132,3 +132,21 @@ def test_record_app_example(gst_subprocess_env, tiny_clip, tmp_path):
     rc, out = run([sys.executable, app, d, tmp_path / "bad", "--width", "32"], gst_subprocess_env)
     assert rc == 1, out
     assert "nrvalidity" in out and "but the stream is 32x" in out
+
+
+def test_loader_and_register_all_in_one_process(gst_subprocess_env):
+    """An app that sees the loader-registered elements (GST_PLUGIN_PATH) and also calls register_all():
+    one class per element, no 'could not create new GType', the element works."""
+    code = (
+        "import os; os.environ['GST_REGISTRY_FORK'] = 'no'\n"
+        "import gi; gi.require_version('Gst', '1.0')\n"
+        "from gi.repository import Gst; Gst.init(None)\n"
+        "f = Gst.ElementFactory.find('nrvalidity'); assert f is not None and f.get_plugin_name() == 'python'\n"
+        "import gst_plugins; gst_plugins.register_all(); gst_plugins.register_all()\n"
+        "e = Gst.ElementFactory.make('nrvalidity', None)\n"
+        "print(type(e).__module__, e.get_name())\n"
+    )
+    rc, out = run([sys.executable, "-c", code], gst_subprocess_env)
+    assert rc == 0, out
+    assert "gst_plugins.elements.nrvalidity nrvalidity0" in out
+    assert "GType" not in out and "Traceback" not in out

@@ -227,6 +227,23 @@ class ErrorPoster:
         self.message_full(Gst.MessageType.ERROR, domain, code, text, debug, f.f_code.co_filename,
                           f.f_code.co_name, f.f_lineno)
 
+    def set_choice(self, choice: "Choice", value) -> str | None:
+        """Validate a string-choice property value. Valid: store and return it. Invalid before start:
+        remembered, so do_start fails with a clear element error. Invalid while PAUSED/PLAYING: ignored
+        (the previous value stays) with a WARNING message on the bus. Returns None when not applied."""
+        err = choice.check(value)
+        if err is None:
+            choice.invalid = None
+            choice.value = str(value).strip().lower()
+            return choice.value
+        Gst.warning(f"{self.get_name()}: {err}")
+        if self.get_state(0)[1] in (Gst.State.PAUSED, Gst.State.PLAYING):
+            self.message_full(Gst.MessageType.WARNING, Gst.core_error_quark(), int(Gst.CoreError.FAILED),
+                              f"{err}; keeping {choice.value!r}", None, __file__, "set_property", 0)
+        else:
+            choice.invalid = err
+        return None
+
     def reset_errors(self) -> None:
         self.__dict__["_nr_posted"] = set()
 

@@ -56,13 +56,7 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
 
     @mode.setter
     def mode(self, value):
-        err = self._mode.check(value)
-        if err:
-            self._mode.invalid = err
-            Gst.warning(f"{self.get_name()}: {err}")
-            return
-        self._mode.invalid = None
-        self._mode.value = str(value).strip().lower()
+        self.set_choice(self._mode, value)
 
     def do_start(self):
         self.reset_errors()

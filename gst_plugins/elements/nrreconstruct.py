@@ -53,21 +53,6 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
         self.set_passthrough(False)
 
     # ---- properties (method/preset/use-bounds mutable while PLAYING) ---------------------------------
-    def _set_choice(self, choice: Choice, value) -> str | None:
-        err = choice.check(value)
-        if err:
-            choice.invalid = err
-            Gst.warning(f"{self.get_name()}: {err}")
-            if self.get_state(0)[1] in (Gst.State.PAUSED, Gst.State.PLAYING):
-                # while running an invalid value is ignored (kept: the previous one), with a warning
-                choice.invalid = None
-                self.message_full(Gst.MessageType.WARNING, Gst.core_error_quark(), int(Gst.CoreError.FAILED),
-                                  err + "; keeping " + repr(choice.value), None, __file__, "set_property", 0)
-            return None
-        choice.invalid = None
-        choice.value = str(value).strip().lower()
-        return choice.value
-
     @GObject.Property(type=str, default="fse", nick="Method",
                       blurb="Reconstruction method: 'fse' = Frequency Selective Extrapolation (paper, best), "
                             "'linear' = Delaunay-linear, 'nearest' = nearest known pixel, 'preview' = fast "
@@ -79,7 +64,7 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
 
     @method.setter
     def method(self, value):
-        v = self._set_choice(self._method, value)
+        v = self.set_choice(self._method, value)
         if v is not None:
             self._params = dataclasses.replace(self._params, method=v)
 
@@ -92,7 +77,7 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
 
     @preset.setter
     def preset(self, value):
-        v = self._set_choice(self._preset, value)
+        v = self.set_choice(self._preset, value)
         if v is not None:
             self._params = dataclasses.replace(self._params, preset=v)
 

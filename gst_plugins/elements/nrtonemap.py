@@ -68,18 +68,9 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
 
     @normalise.setter
     def normalise(self, value):
-        err = self._normalise.check(value)
-        if err:
-            Gst.warning(f"{self.get_name()}: {err}")
-            if self.get_state(0)[1] in (Gst.State.PAUSED, Gst.State.PLAYING):
-                self.message_full(Gst.MessageType.WARNING, Gst.core_error_quark(), int(Gst.CoreError.FAILED),
-                                  err + f"; keeping {self._params.normalise!r}", None, __file__,
-                                  "set_property", 0)
-            else:
-                self._normalise.invalid = err
-            return
-        self._normalise.invalid = None
-        self._update(normalise=str(value).strip().lower())
+        v = self.set_choice(self._normalise, value)
+        if v is not None:
+            self._update(normalise=v)
 
     @GObject.Property(type=float, default=0.0, minimum=0.0, maximum=1e12, nick="White",
                       blurb="Linear value mapped to full scale with normalise=fixed; 0 = the caps' white",

@@ -69,13 +69,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
 
     @mode.setter
     def mode(self, value):
-        err = self._mode.check(value)
-        if err:
-            self._mode.invalid = err
-            Gst.warning(f"{self.get_name()}: {err}")
-            return
-        self._mode.invalid = None
-        self._mode.value = str(value).strip().lower()
+        self.set_choice(self._mode, value)
 
     @GObject.Property(type=float, default=-1.0, minimum=-1.0, maximum=65535.0, nick="l_min",
                       blurb="Threshold mode: attenuated pixels whose signal (code - black level) is below "
@@ -187,12 +181,29 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         except Exception as e:  # noqa: BLE001
             return self.post_exception("prepare_output_buffer", e), None
 
+    def _raw_parser_upstream(self) -> bool:
+        """True when the frames come (through queues/capsfilters only) from rawvideoparse/videoparse, so
+        the upstream byte size is the raw file's and our buffer size its frame size."""
+        pad = self.sinkpad.get_peer()
+        for _ in range(16):
+            el = pad.get_parent_element() if pad is not None else None
+            f = el.get_factory() if el is not None else None
+            name = f.get_name() if f is not None else ""
+            if name in ("rawvideoparse", "videoparse"):
+                return True
+            if name not in ("queue", "queue2", "capsfilter", "identity") or len(el.sinkpads) != 1:
+                return False
+            pad = el.sinkpads[0].get_peer()
+        return False
+
     def _check_truncated(self, inbuf) -> bool:
         """rawvideoparse silently drops a partial last frame: ask upstream for the byte size of its input
         (filesrc answers) and refuse a file that is not a whole number of frames."""
         self._size_checked = True
         frame = inbuf.get_size()
         try:
+            if not self._raw_parser_upstream():
+                return True
             ok, total = self.sinkpad.peer_query_duration(Gst.Format.BYTES)
         except Exception:  # noqa: BLE001
             return True
