@@ -14,7 +14,7 @@ import math
 import warnings
 
 import numpy as np
-from numba import njit, prange, get_num_threads
+from numba import njit, prange, get_num_threads, set_num_threads
 
 __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
 
@@ -47,6 +47,7 @@ _BASE = dict(
     use_bounds=True,
     edge_penalty=1.0,
     order_levels=4,
+    order_slack=1,
 )
 
 FSE_PRESETS: dict[str, dict] = {
@@ -58,9 +59,9 @@ FSE_PRESETS: dict[str, dict] = {
     # balanced: quadtree 8/4 in a 16 x 16 window (measured as good as 32 x 32 on Kodak, 3x cheaper)
     "balanced": dict(_BASE, window=16, max_block=8, min_block=4, iter_c=1500.0, iter_min=20,
                      iter_max=150),
-    # best: quadtree 16/8/4/2 in a 32 x 32 window, many small-gamma iterations
-    "best": dict(_BASE, window=32, max_block=16, min_block=2, gamma=0.5, iter_c=2000.0, iter_min=40,
-                 iter_max=300),
+    # best: quadtree 16/8/4 in a 32 x 32 window, up to 200 iterations
+    "best": dict(_BASE, window=32, max_block=16, min_block=4, gamma=0.5, iter_c=2000.0, iter_min=40,
+                 iter_max=200),
 }
 
 
@@ -91,6 +92,22 @@ def resolve_params(preset: str = "balanced", **params) -> dict:
 # Tables
 # --------------------------------------------------------------------------------------------------
 def _tables(p):
+    key = (int(p["window"]), int(p["max_block"]), int(p["min_block"]), bool(p["prior"]),
+           tuple(sorted((int(a), float(b)) for a, b in p["rho"].items())),
+           tuple(sorted((int(a), float(b)) for a, b in p["split_sigma"].items())))
+    t = _TABLE_CACHE.get(key)
+    if t is None:
+        t = _make_tables(p)
+        if len(_TABLE_CACHE) > 32:
+            _TABLE_CACHE.clear()
+        _TABLE_CACHE[key] = t
+    return t
+
+
+_TABLE_CACHE: dict = {}
+
+
+def _make_tables(p):
     n = int(p["window"])
     h = n // 2 + 1
     nn = np.arange(n)
@@ -181,7 +198,7 @@ def _area_sigma(c, s1, s2, y, x, b, n, h, w, scale, local):
 
 
 @njit(cache=True, nogil=True)
-def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels):
+def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels, slack):
     """Quadtree leaves per tile (only leaves with missing pixels) and the round of every tile.
 
     Returns (tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_lvl, n_rounds)."""
@@ -319,7 +336,7 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels)
                 lmin = lv
         round_ptr[r] = k
         for t in range(nt):
-            if tile_round[t] != -2 or lvl[t] != lmin:
+            if tile_round[t] != -2 or lvl[t] > lmin + slack:
                 continue
             ty = t // tw
             tx = t % tw
@@ -349,7 +366,7 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels)
 # One block
 # --------------------------------------------------------------------------------------------------
 @njit(cache=True, nogil=True, fastmath=True)
-def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tile, tw_tiles, t_self, r_cur,
+def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
            by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
            delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
            wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i):
@@ -368,28 +385,47 @@ def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tile, tw_tiles, t_sel
     s2 = 0.0
     for i in range(n):
         y = ay + i
-        for j in range(n):
+        wrow = wbuf[i]
+        xrow = xbuf[i]
+        rrow = rho_tab[lvl, i]
+        if y < 0 or y >= h:
+            for j in range(n):
+                wrow[j] = 0.0
+                xrow[j] = 0.0
+            continue
+        j0 = max(0, -ax)
+        j1 = min(n, w - ax)
+        for j in range(j0):
+            wrow[j] = 0.0
+            xrow[j] = 0.0
+        for j in range(j1, n):
+            wrow[j] = 0.0
+            xrow[j] = 0.0
+        srow = state[y]
+        irow = img[y]
+        tbase = (y >> tshift) * tw_tiles
+        for j in range(j0, j1):
             x = ax + j
+            st = srow[x]
             wv = np.float32(0.0)
-            fv = np.float32(0.0)
-            if 0 <= y < h and 0 <= x < w:
-                st = state[y, x]
-                if st == 1:
-                    wv = rho_tab[lvl, i, j]
-                    fv = img[y, x]
-                elif st == 2:
-                    tt = (y // tile) * tw_tiles + x // tile
-                    if tt == t_self or tile_round[tt] < r_cur:
-                        wv = np.float32(delta) * rho_tab[lvl, i, j]
-                        fv = img[y, x]
-                if wv > 0.0:
-                    sw += wv
-                    swf += wv * fv
-                    cnt += 1.0
-                    s1 += fv
-                    s2 += fv * fv
-            wbuf[i, j] = wv
-            xbuf[i, j] = fv
+            if st == 1:
+                wv = rrow[j]
+            elif st == 2:
+                tt = tbase + (x >> tshift)
+                if tt == t_self or tile_round[tt] < r_cur:
+                    wv = np.float32(delta) * rrow[j]
+            if wv > 0.0:
+                fv = irow[x]
+                wrow[j] = wv
+                xrow[j] = fv
+                sw += wv
+                swf += wv * fv
+                cnt += 1.0
+                s1 += fv
+                s2 += fv * fv
+            else:
+                wrow[j] = 0.0
+                xrow[j] = 0.0
     if sw <= 0.0:
         return False
     mean = swf / sw
@@ -635,6 +671,9 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
          delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads):
     h, w = img.shape
     tw_tiles = (w + tile - 1) // tile
+    tshift = 0
+    while (1 << tshift) < tile:
+        tshift += 1
     hh = n // 2 + 1
     nsel = iter_max + 2
     # per-thread scratch, allocated once
@@ -663,7 +702,7 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
                 t = round_tiles[r0 + q]
                 for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
                     lv = leaf_l[li]
-                    _block(img, state, lo, hi, use_lo, use_hi, tile_round, tile, tw_tiles, t, r,
+                    _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
                            tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                            local, pair_exact, wbuf[th], xbuf[th], t1r[th], t1i[th], t2r[th], t2i[th], wr[th],
@@ -675,6 +714,8 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
 # Python wrapper
 # --------------------------------------------------------------------------------------------------
 def _dynamic_range_stops(v: np.ndarray) -> float:
+    if v.size > 40000:
+        v = v[:: v.size // 20000]   # a strided subsample is plenty for two percentiles
     pos = v[v > 0]
     if pos.size < 2:
         return 0.0
@@ -707,60 +748,122 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     if v.ndim != 2 or k.shape != v.shape:
         raise ValueError("values and known must be 2-D arrays of the same shape")
     v32 = np.ascontiguousarray(v, dtype=np.float32)
+    k = np.ascontiguousarray(k)
     out = v32.copy()
-    miss = ~k
-    if not miss.any():
+    nk, kmin, kmax, minpos = _stats(v32, k)
+    if nk == v32.size:
         return out
-    kv = v32[k]
-    if kv.size == 0:
+    if nk == 0:
         warnings.warn("fse_reconstruct: no known pixel; output is filled from the bounds or 0",
                       RuntimeWarning, stacklevel=2)
-        return _fill_without_data(out, miss, lower, upper)
-    domain = _choose_domain(p, kv)
-    # bounds
+        return _fill_without_data(out, ~k, lower, upper)
+    domain = p["domain"]
+    if domain == "auto":
+        domain = "linear"
+        if kmin > 0 and math.log2(kmax / kmin) >= float(p["hdr_threshold_stops"]):
+            if _dynamic_range_stops(v32[k]) >= float(p["hdr_threshold_stops"]):
+                domain = p["hdr_domain"]
     lo_arr, hi_arr, use_lo, use_hi = _bounds(lower, upper, v.shape, p["use_bounds"])
+    floor = 0.0
+    local = False
     if domain == "log":
-        floor = float(kv[kv > 0].min()) if np.any(kv > 0) else 1.0
-        floor = floor * 0.5 if floor > 0 else 1e-30
-        work = np.log2(np.maximum(v32, floor)).astype(np.float32)
+        floor = 0.5 * minpos if minpos > 0 else 1e-30
         if use_lo:
             lo_arr = np.log2(np.maximum(lo_arr, floor)).astype(np.float32)
         if use_hi:
             hi_arr = np.log2(np.maximum(hi_arr, floor)).astype(np.float32)
         scale = float(p["log_scale_stops"])
-        local = False
     elif domain == "local":
-        work = v32.copy()
         scale = 1.0 / 0.4   # std relative to 2.5x the local mean ~ std/255 for mid-grey 8-bit data
         local = True
     else:
-        work = v32.copy()
-        rng = float(kv.max() - kv.min())
+        rng = float(kmax - kmin)
         scale = rng if rng > 0 else 1.0
-        local = False
-    work[miss] = 0.0
-    state = k.astype(np.uint8)
+    work, state = _prep(v32, k, domain == "log", np.float32(floor))
     tables = _tables(p)
     cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, sizes = tables
     n = int(p["window"])
     tile = int(p["max_block"])
     plan = _plan(work, state, tile, n, sizes, split, scale, local, float(p["edge_penalty"]),
-                 int(p["order_levels"]))
+                 int(p["order_levels"]), int(p["order_slack"]))
     tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, _nr = plan
     nthreads = int(get_num_threads())
-    _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
-         leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
-         float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
-         int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
-    left = state == 0
-    if left.any():
+    # small jobs run on the calling thread only: fork/join per round would cost more than it gains
+    # (the result is the same for any thread count)
+    if leaf_y.shape[0] * n * n < 400_000:
+        nthreads = 1
+    old = get_num_threads()
+    set_num_threads(nthreads)
+    try:
+        _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
+             leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+             float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
+             int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
+    finally:
+        set_num_threads(old)
+    nleft = _finish(out, work, state, domain == "log")
+    if nleft:
+        # blocks whose support held no usable pixel: nearest reconstructed/known value
+        left = state == 0
         _nearest_fill(work, left)
-    if domain == "log":
-        rec = np.exp2(work[miss].astype(np.float64)).astype(np.float32)
-    else:
-        rec = work[miss]
-    out[miss] = rec
+        state[left] = 2
+        _finish(out, work, state, domain == "log")
     return out
+
+
+@njit(cache=True, nogil=True)
+def _stats(v, k):
+    nk = 0
+    kmin = np.inf
+    kmax = -np.inf
+    minpos = np.inf
+    h, w = v.shape
+    for y in range(h):
+        for x in range(w):
+            if k[y, x]:
+                a = np.float64(v[y, x])
+                nk += 1
+                kmin = min(kmin, a)
+                kmax = max(kmax, a)
+                if a > 0.0:
+                    minpos = min(minpos, a)
+    if minpos == np.inf:
+        minpos = 0.0
+    return nk, kmin, kmax, minpos
+
+
+@njit(cache=True, nogil=True)
+def _prep(v, k, logd, floor):
+    h, w = v.shape
+    work = np.zeros((h, w), np.float32)
+    state = np.zeros((h, w), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            if k[y, x]:
+                state[y, x] = 1
+                if logd:
+                    work[y, x] = np.float32(math.log2(max(v[y, x], floor)))
+                else:
+                    work[y, x] = v[y, x]
+    return work, state
+
+
+@njit(cache=True, nogil=True)
+def _finish(out, work, state, logd):
+    """Write reconstructed pixels (state 2) of the working image into out; count pixels left."""
+    h, w = out.shape
+    left = 0
+    for y in range(h):
+        for x in range(w):
+            s = state[y, x]
+            if s == 2:
+                if logd:
+                    out[y, x] = np.float32(2.0 ** np.float64(work[y, x]))
+                else:
+                    out[y, x] = work[y, x]
+            elif s == 0:
+                left += 1
+    return left
 
 
 def _bounds(lower, upper, shape, use):
