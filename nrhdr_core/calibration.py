@@ -661,7 +661,9 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         summary["nd_vs_nominal_pct"] = round(100 * (nd / nd_nominal - 1), 2)
     calib.info = {k: summary[k] for k in ("nd", "nd_eff_median", "dr_gain_stops_40", "dr_gain_stops_20",
                                           "exposures", "frames", "kernel_estimate")}
-    ref_att = np.where(np.isfinite(h0), h0, np.nan)
+    # for the plot: the paper's reference (pixels with only attenuated neighbours: no selection bias until
+    # they clip themselves)
+    ref_att = np.where(np.isfinite(paper_att), paper_att, h0)
     return CalibrationResult(prof, summary, flux, ref_att, H0, nd_eff, rf, ratio, meas, examples)
 
 
@@ -762,7 +764,7 @@ def write_plots(res: CalibrationResult, prefix) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6, 4), dpi=90)
     phi = res.flux / top
     ok = np.isfinite(res.ref_att)
-    ax.plot(phi[ok], res.ref_att[ok], "k-", lw=2, label="reference (attenuated, no regular nb.)")
+    ax.plot(phi[ok], res.ref_att[ok], "k-", lw=2, label="reference (attenuated pixels, attenuated nb.)")
     for n, (y, x) in enumerate(res.examples):
         kk = int(calib.n_knots[y, x])
         kf = calib.knot_flux[:kk] / top

@@ -37,6 +37,9 @@ import numpy as np
 from numba import njit, prange
 
 MODES = ("lut", "kernel", "off")
+# kernel mode, optional: a pixel whose code owes more than this share to clipped neighbours (whose flux is
+# only a lower bound) becomes UNCALIBRATED. None (default): off; see docs/CROSSTALK.md for the trade-off.
+CLIP_SHARE = None
 _MODE_ID = {"lut": 0, "kernel": 1}
 CALIB_FORMAT = "nrhdr-crosstalk"
 CALIB_VERSION = 1
@@ -407,7 +410,7 @@ def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip
 
 @njit(cache=True, nogil=True, parallel=True)
 def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux,
-                    nd, mode, dirs, sig_e, sigma, alpha, iters, src_spill):
+                    nd, mode, dirs, sig_e, sigma, alpha, iters, src_spill, clip_share):
     h, w = values.shape
     ndf = np.float32(nd)
     for y in prange(h):
@@ -428,11 +431,13 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                     continue
                 if mode == 1:
                     a = alpha[y, x]
+                    from_clipped = np.float32(0.0)
                     for _ in range(iters):
                         # what flat neighbours at this pixel's flux would send (the LUT's assumption)
                         _spill_vec(sig_e, sigma, f / ndf, flat_att)
                         _spill_vec(sig_e, sigma, f, flat_reg)
                         delta = np.float32(0.0)
+                        from_clipped = np.float32(0.0)
                         for d in range(8):
                             yy = y + dirs[d, 0]
                             xx = x + dirs[d, 1]
@@ -443,12 +448,20 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                                 continue        # an upper bound only: assume no brighter than this pixel
                             flat = flat_att[d] if (stn & _ATT) != 0 else flat_reg[d]
                             delta += src_spill[d, yy, xx] - flat
+                            if (stn & 0x0F) == _CLIPPED:
+                                from_clipped += src_spill[d, yy, xx]
                         f2, ok2 = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m - a * delta)
                         if not ok2:
                             break
                         f = f2
                     if f < 0:
                         f = np.float32(0.0)
+                    if a * from_clipped > clip_share * max(m, np.float32(1.0)):
+                        # most of the signal came from clipped neighbours, whose flux is only known as a
+                        # lower bound: the estimate is unreliable, leave it to reconstruction
+                        values[y, x] = f
+                        state[y, x] = (st & 0xF0) | _UNCAL
+                        continue
                 values[y, x] = f
             elif reason == _CLIPPED:
                 # the true flux is at least the flux at which this pixel clips
@@ -485,7 +498,7 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
 
 
 def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", iterations: int = 2,
-            passes: int = 2):
+            passes: int = 2, clip_share: float | None = CLIP_SHARE):
     """Correct crosstalk in place (paper 3.2). `values` float32 linear DN (attenuated pixels scaled by ND),
     `state` uint8 (docs/ARCHITECTURE.md). Identity without a calibration or with mode 'off'. VALID pixels
     whose code lies outside their calibrated range become UNCALIBRATED (value left as measured).
@@ -509,7 +522,7 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
             calib.knot_flux, clip_rel, calib.clip_flux, nd)
     if mode == "lut":
         _correct_kernel(values, state, src, src, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha, 0,
-                        np.zeros((8, 1, 1), np.float32))
+                        np.zeros((8, 1, 1), np.float32), np.float32(np.inf))
         return values, state
     # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
     state0 = state.copy()
@@ -525,7 +538,7 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
             state[:] = state0
         values[:] = src
         _correct_kernel(values, state, src, est, *args, 1, DIRS, calib.sig_e, calib.sigma, calib.alpha,
-                        int(iterations), spill)
+                        int(iterations), spill, np.float32(clip_share if clip_share is not None else np.inf))
         lut[:] = values
         ok[:] = (state & 0x0F) == _VALID
     return values, state
