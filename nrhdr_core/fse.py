@@ -42,7 +42,7 @@ _BASE = dict(
     pair_exact=False,
     domain="auto",
     hdr_domain="log",
-    hdr_threshold_stops=10.0,
+    hdr_threshold_stops=8.0,
     log_scale_stops=3.0,
     use_bounds=True,
     edge_penalty=1.0,
@@ -723,15 +723,6 @@ def _dynamic_range_stops(v: np.ndarray) -> float:
     return float(np.log2(hi_ / lo_)) if lo_ > 0 else 0.0
 
 
-def _choose_domain(p, kv):
-    d = p["domain"]
-    if d != "auto":
-        return d
-    if kv.size and kv.min() > 0 and _dynamic_range_stops(kv) >= float(p["hdr_threshold_stops"]):
-        return p["hdr_domain"]
-    return "linear"
-
-
 def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanced", **params):
     """Reconstruct the pixels where ``known`` is False with FSE; returns float32 (H, W).
 
@@ -760,7 +751,7 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     domain = p["domain"]
     if domain == "auto":
         domain = "linear"
-        if kmin > 0 and math.log2(kmax / kmin) >= float(p["hdr_threshold_stops"]):
+        if minpos > 0 and math.log2(kmax / minpos) >= float(p["hdr_threshold_stops"]):
             if _dynamic_range_stops(v32[k]) >= float(p["hdr_threshold_stops"]):
                 domain = p["hdr_domain"]
     lo_arr, hi_arr, use_lo, use_hi = _bounds(lower, upper, v.shape, p["use_bounds"])
