@@ -55,16 +55,22 @@ def copy_fields(src: Gst.Structure, dst: Gst.Structure, fields=("width", "height
             dst.set_value(f, src.get_value(f))
 
 
-def transform_caps_by_structure(caps: Gst.Caps, filt: Gst.Caps | None, make) -> Gst.Caps:
+def transform_caps_by_structure(caps: Gst.Caps, filt: Gst.Caps | None, make, element=None) -> Gst.Caps:
     """Map each structure of `caps` with `make(structure) -> list[Gst.Structure]`, then intersect with the
-    filter (first-caps order kept)."""
-    out = Gst.Caps.new_empty()
-    for i in range(caps.get_size()):
-        for s in make(caps.get_structure(i)):
-            out.append_structure(s)
-    if filt is not None:
-        out = filt.intersect_full(out, Gst.CapsIntersectMode.FIRST)
-    return out
+    filter (first-caps order kept). An exception becomes an element error (if `element`) and empty caps,
+    never a Python traceback with NULL caps."""
+    try:
+        out = Gst.Caps.new_empty()
+        for i in range(caps.get_size()):
+            for s in make(caps.get_structure(i)):
+                out.append_structure(s)
+        if filt is not None:
+            out = filt.intersect_full(out, Gst.CapsIntersectMode.FIRST)
+        return out
+    except Exception as e:  # noqa: BLE001
+        if element is not None:
+            element.post_exception("transform_caps", e)
+        return Gst.Caps.new_empty()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -158,7 +158,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
             return [n]
 
         return transform_caps_by_structure(caps, filt, to_raw if direction == Gst.PadDirection.SINK
-                                           else to_hdr)
+                                           else to_hdr, self)
 
     def do_transform_size(self, direction, caps, size, othercaps):
         try:

@@ -128,10 +128,19 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
             return [n]
 
         return transform_caps_by_structure(caps, filt, to_hdr if direction == Gst.PadDirection.SINK
-                                           else to_raw)
+                                           else to_raw, self)
 
     def do_accept_caps(self, direction, caps):
         ok = GstBase.BaseTransform.do_accept_caps(self, direction, caps)
+        try:
+            self._explain_refused_caps(ok, direction, caps)
+        except Exception:  # noqa: BLE001 - only an explanation; the answer stands
+            pass
+        return ok
+
+    def _explain_refused_caps(self, ok, direction, caps):
+        """A caps event nrvalidity refuses (e.g. GRAY8 from rawvideoparse format=gray8) would only give
+        upstream's 'not-negotiated': say what is wrong, once."""
         if not ok and direction == Gst.PadDirection.SINK and caps is not None and caps.is_fixed():
             s = caps.get_structure(0)
             fmt = s.get_string("format") if s.has_field("format") else None
