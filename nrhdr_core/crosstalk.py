@@ -483,6 +483,15 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
             reason = state[y, x] & 0x0F
             v = lut[y, x]
             if reason == _CLIPPED:
+                # a clipped neighbour's bound (e.g. an attenuated pixel's clipping flux) is a lower bound
+                # for this pixel too: the region is at least that bright
+                for dy in range(-1, 2):
+                    for dx in range(-1, 2):
+                        yy = y + dy
+                        xx = x + dx
+                        if 0 <= yy < h and 0 <= xx < w and (state[yy, xx] & 0x0F) == _CLIPPED \
+                                and lut[yy, xx] > v:
+                            v = lut[yy, xx]
                 acc = np.float32(0.0)
                 n = 0
                 for dy in range(-2, 3):
