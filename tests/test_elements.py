@@ -394,6 +394,35 @@ def test_tonemap_fixed_white_exposure_contrast_while_playing(gst):
     assert np.abs(imgs[2] - expected_log(v, 5000.0, exposure=1.0, q=10.0)).max() <= 1
 
 
+def test_tonemap_exposure_follows_a_controller_curve(gst):
+    """exposure is GST_PARAM_CONTROLLABLE: a GstController curve sets it per frame (by stream time)."""
+    import gi
+    try:
+        gi.require_version("GstController", "1.0")
+        from gi.repository import GstController
+    except (ValueError, ImportError):
+        pytest.skip("GstController introspection data missing")
+    h, w = 4, 16
+    v = np.geomspace(10.0, 20000.0, h * w).astype(np.float32).reshape(h, w)
+    s = np.zeros((h, w), np.uint8)
+    bufs = [hdr_buffer(v, s, pts=i * DUR, duration=DUR) for i in range(3)]
+    cs = GstController.InterpolationControlSource()
+    cs.set_property("mode", GstController.InterpolationMode.NONE)   # steps
+    cs.set(0, 0.0)
+    cs.set(DUR, 2.0)
+    cs.set(2 * DUR, -1.0)
+
+    def before(i, pipeline):
+        if i == 0:
+            el = pipeline.get_by_name("t")
+            el.add_control_binding(GstController.DirectControlBinding.new_absolute(el, "exposure", cs))
+
+    r = run_appsrc("nrtonemap name=t", hdr_caps(w, h, 26000.0), bufs, before_push=before, lockstep=True)
+    assert r.error is None, r.error_text
+    for img, ev in zip([smp[3].astype(np.int64) for smp in r.samples], (0.0, 2.0, -1.0)):
+        assert np.abs(img - expected_log(v, 26000.0, exposure=ev)).max() <= 1, ev
+
+
 def test_tonemap_smoothed_white_does_not_flicker(gst):
     h, w = 8, 8
     s = np.zeros((h, w), np.uint8)

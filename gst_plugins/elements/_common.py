@@ -27,7 +27,7 @@ if not Gst.is_initialized():
 
 __all__ = ["Gst", "GstBase", "GstVideo", "GObject", "np", "HDR_MEDIA_TYPE", "hdr_template_caps",
            "HdrInfo", "alloc_hdr_buffer", "map_hdr", "map_video", "ErrorPoster", "Choice", "load_profile",
-           "copy_timestamps", "MUTABLE_PLAYING", "MUTABLE_READY"]
+           "copy_timestamps", "MUTABLE_PLAYING", "MUTABLE_READY", "CONTROLLABLE"]
 
 HDR_MEDIA_TYPE = "other/x-nrhdr"
 _INT_RANGE = "(int)[1,2147483647]"
@@ -36,6 +36,7 @@ _FPS_RANGE = "(fraction)[0/1,2147483647/1]"
 RW = Gst.MapFlags.READ | Gst.MapFlags.WRITE
 MUTABLE_PLAYING = int(Gst.PARAM_MUTABLE_PLAYING)
 MUTABLE_READY = int(Gst.PARAM_MUTABLE_READY)
+CONTROLLABLE = int(Gst.PARAM_CONTROLLABLE)  # GstController curves (BaseTransform syncs them per frame)
 PROP_RW = GObject.ParamFlags.READWRITE
 
 
@@ -249,6 +250,16 @@ class ErrorPoster:
         else:
             choice.invalid = err
         return None
+
+    def sync_controlled(self, buf) -> None:
+        """Apply GstController curves of CONTROLLABLE properties at the buffer's stream time (BaseTransform
+        leaves this to subclasses: call from do_before_transform)."""
+        ts = buf.pts
+        if ts == Gst.CLOCK_TIME_NONE:
+            return
+        st = self.segment.to_stream_time(Gst.Format.TIME, ts)
+        if st != Gst.CLOCK_TIME_NONE:
+            self.sync_values(st)
 
     def reset_errors(self) -> None:
         self.__dict__["_nr_posted"] = set()

@@ -8,9 +8,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from ._common import (MUTABLE_PLAYING, Choice, ErrorPoster, GObject, Gst, GstBase, GstVideo, HDR_MEDIA_TYPE,
-                      HdrInfo, copy_fields, hdr_template_caps, map_hdr, map_video, np, raw_template_caps,
-                      transform_caps_by_structure)
+from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, Choice, ErrorPoster, GObject, Gst,
+                      GstBase, GstVideo, HdrInfo, copy_fields, hdr_template_caps, map_hdr, map_video, np,
+                      raw_template_caps, transform_caps_by_structure)
 
 NORMALISE = ("caps", "fixed", "smoothed")
 DEFAULT_CONTRAST = 1000.0  # = nrhdr_core.tonemap.DEFAULT_CONTRAST (not imported here: keeps import light)
@@ -74,7 +74,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
 
     @GObject.Property(type=float, default=0.0, minimum=0.0, maximum=1e12, nick="White",
                       blurb="Linear value mapped to full scale with normalise=fixed; 0 = the caps' white",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
     def white(self):
         return self._params.white
 
@@ -84,7 +84,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
 
     @GObject.Property(type=float, default=0.0, minimum=-20.0, maximum=20.0, nick="Exposure",
                       blurb="Exposure correction in stops (x 2^exposure before tone mapping)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
     def exposure(self):
         return self._params.exposure
 
@@ -95,7 +95,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
     @GObject.Property(type=float, default=DEFAULT_CONTRAST, minimum=1e-3, maximum=1e9, nick="Contrast",
                       blurb="Contrast q of the logarithmic curve y = log(1 + q x) / log(1 + q): larger = "
                             "more shadow detail",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
     def contrast(self):
         return self._params.contrast
 
@@ -106,7 +106,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
     @GObject.Property(type=float, default=0.1, minimum=0.001, maximum=1.0, nick="Smoothing speed",
                       blurb="normalise=smoothed: weight of the current frame in the running white, "
                             "white = speed * frame + (1 - speed) * previous (1 = no smoothing)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
     def smoothing(self):
         return self._params.smoothing
 
@@ -211,6 +211,12 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
             raise ValueError("the input caps have no 'white' field (put nrvalidity upstream, or use "
                              "normalise=fixed white=... or normalise=smoothed)")
         return w
+
+    def do_before_transform(self, buf):
+        try:
+            self.sync_controlled(buf)
+        except Exception as e:  # noqa: BLE001
+            Gst.warning(f"{self.get_name()}: controller sync failed: {e}")
 
     def do_transform(self, inbuf, outbuf):
         p = self._params

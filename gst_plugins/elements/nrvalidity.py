@@ -9,10 +9,10 @@ from __future__ import annotations
 import os
 import urllib.parse
 
-from ._common import (MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster, GObject, Gst, GstBase,
-                      GstVideo, HDR_MEDIA_TYPE, alloc_hdr_buffer, copy_fields, copy_timestamps,
-                      hdr_template_caps, load_profile, map_hdr, map_video, raw_template_caps,
-                      transform_caps_by_structure, HdrInfo)
+from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster,
+                      GObject, Gst, GstBase, GstVideo, HdrInfo, alloc_hdr_buffer, copy_fields,
+                      copy_timestamps, hdr_template_caps, load_profile, map_hdr, map_video,
+                      raw_template_caps, transform_caps_by_structure)
 
 MODES = ("all", "best", "threshold")
 
@@ -74,7 +74,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
     @GObject.Property(type=float, default=-1.0, minimum=-1.0, maximum=65535.0, nick="l_min",
                       blurb="Threshold mode: attenuated pixels whose signal (code - black level) is below "
                             "this are too dark (paper 2.3). -1 = the profile's l_min",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
     def l_min(self):
         return self._l_min
 
@@ -234,6 +234,12 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
                         f"GRAY16_LE frames ({total // frame} frames + {total % frame} bytes): the last frame "
                         f"is truncated", kind="format")
         return False
+
+    def do_before_transform(self, buf):
+        try:
+            self.sync_controlled(buf)
+        except Exception as e:  # noqa: BLE001
+            Gst.warning(f"{self.get_name()}: controller sync failed: {e}")
 
     def do_transform(self, inbuf, outbuf):
         try:
