@@ -111,7 +111,8 @@ def _make_tables(p):
     n = int(p["window"])
     h = n // 2 + 1
     nn = np.arange(n)
-    ang = 2.0 * np.pi * np.outer(nn, np.arange(h)) / n
+    hp = ((h + 7) // 8) * 8
+    ang = 2.0 * np.pi * np.outer(nn, np.arange(hp)) / n
     cos_t = np.cos(ang).astype(np.float32)          # (n, h): cos(2 pi n v / N)
     sin_t = np.sin(ang).astype(np.float32)
     tw_c = np.cos(2.0 * np.pi * nn / n).astype(np.float32)   # e^{-i 2 pi t/N} = (c, -s)
@@ -374,6 +375,7 @@ def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_s
     area has no usable pixel (left for the fallback)."""
     h, w = img.shape
     hh = n // 2 + 1
+    hp = cos_t.shape[1]   # hh padded to a multiple of 8: full vectors in the DFT loops
     o = (n - b) // 2
     ay = by - o
     ax = bx - o
@@ -404,28 +406,36 @@ def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_s
         srow = state[y]
         irow = img[y]
         tbase = (y >> tshift) * tw_tiles
-        for j in range(j0, j1):
+        tsz = 1 << tshift
+        j = j0
+        while j < j1:
+            # one segment per tile column: the same-round rule is decided once per segment
             x = ax + j
-            st = srow[x]
-            wv = np.float32(0.0)
-            if st == 1:
-                wv = rrow[j]
-            elif st == 2:
-                tt = tbase + (x >> tshift)
-                if tt == t_self or tile_round[tt] < r_cur:
-                    wv = np.float32(delta) * rrow[j]
-            if wv > 0.0:
-                fv = irow[x]
-                wrow[j] = wv
-                xrow[j] = fv
-                sw += wv
-                swf += wv * fv
-                cnt += 1.0
-                s1 += fv
-                s2 += fv * fv
-            else:
-                wrow[j] = 0.0
-                xrow[j] = 0.0
+            tt = tbase + (x >> tshift)
+            allowed = tt == t_self or tile_round[tt] < r_cur
+            dwt = np.float32(delta) if allowed else np.float32(0.0)
+            je = min(j1, j + tsz - (x & (tsz - 1)))
+            for jj in range(j, je):
+                xx = ax + jj
+                st = srow[xx]
+                wv = np.float32(0.0)
+                if st == 1:
+                    wv = rrow[jj]
+                elif st == 2:
+                    wv = dwt * rrow[jj]
+                if wv > 0.0:
+                    fv = irow[xx]
+                    wrow[jj] = wv
+                    xrow[jj] = fv
+                    sw += wv
+                    swf += wv * fv
+                    cnt += 1.0
+                    s1 += fv
+                    s2 += fv * fv
+                else:
+                    wrow[jj] = 0.0
+                    xrow[jj] = 0.0
+            j = je
     if sw <= 0.0:
         return False
     mean = swf / sw
@@ -458,7 +468,7 @@ def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_s
         a1i = t1i[m]
         a2r = t2r[m]
         a2i = t2i[m]
-        for v in range(hh):
+        for v in range(hp):
             a1r[v] = 0.0
             a1i[v] = 0.0
             a2r[v] = 0.0
@@ -472,7 +482,7 @@ def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_s
             bb = xrow[j]
             crow = cos_t[j]
             srow = sin_t[j]
-            for v in range(hh):
+            for v in range(hp):
                 a1r[v] += a * crow[v]
                 a1i[v] -= a * srow[v]
                 a2r[v] += bb * crow[v]
@@ -495,7 +505,7 @@ def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_s
                 p2i = t2i[a0]
                 q2r = t2r[b0]
                 q2i = t2i[b0]
-                for v in range(hh):
+                for v in range(hp):
                     xr = q1r[v] * c - q1i[v] * sn
                     xi = q1r[v] * sn + q1i[v] * c
                     q1r[v] = p1r[v] - xr
@@ -679,10 +689,11 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
     # per-thread scratch, allocated once
     wbuf = np.zeros((nthreads, n, n), np.float32)
     xbuf = np.zeros((nthreads, n, n), np.float32)
-    t1r = np.zeros((nthreads, n, hh), np.float32)
-    t1i = np.zeros((nthreads, n, hh), np.float32)
-    t2r = np.zeros((nthreads, n, hh), np.float32)
-    t2i = np.zeros((nthreads, n, hh), np.float32)
+    hp = cos_t.shape[1]
+    t1r = np.zeros((nthreads, n, hp), np.float32)
+    t1i = np.zeros((nthreads, n, hp), np.float32)
+    t2r = np.zeros((nthreads, n, hp), np.float32)
+    t2i = np.zeros((nthreads, n, hp), np.float32)
     wr = np.zeros((nthreads, 2 * n, 2 * n), np.float32)
     wi = np.zeros((nthreads, 2 * n, 2 * n), np.float32)
     rr = np.zeros((nthreads, hh, n), np.float32)
