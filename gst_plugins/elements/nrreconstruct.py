@@ -153,8 +153,8 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
                                                      lower=lower, upper=upper)
                     if out.shape != values.shape:
                         raise ValueError(f"reconstruction returned shape {out.shape}, expected {values.shape}")
-                    values[missing] = out[missing]
-                    state[missing] |= np.uint8(validity.RECONSTRUCTED)
+                    np.copyto(values, out, where=missing)          # measured pixels untouched
+                    np.bitwise_or(state, np.uint8(validity.RECONSTRUCTED), out=state, where=missing)
             dt = time.perf_counter() - t0
             if self._post_stats:
                 self._post_frame_stats(n_miss / float(self._info.pixels), p.method, dt)
