@@ -558,6 +558,9 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         unc = unclipped[idx].copy()
         unc[0] = True
     n_knots = unc.sum(0).astype(np.int32)                                  # leading unclipped knots
+    # defective pixels (dead, stuck, or a response far from their kind's): no calibration -> UNCALIBRATED
+    defective = ~np.isfinite(gfit) | (gfit < 0.25) | (gfit > 4.0)
+    n_knots[defective] = 0
     # strictly increasing codes
     codes = np.maximum.accumulate(codes, axis=0) + (np.arange(Ek, dtype=np.float32) * 1e-3)[:, None, None]
     # clipping point: extrapolate the last segment, bounded by the first clipped exposure
@@ -593,7 +596,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         est_m = lastf + (top - lastc) * (nextf - lastf) / np.maximum(model_next - lastc, 1e-3)
         est = np.where(use_model, est_m, est)
     est = np.clip(est, lastf, nextf)
-    good = ncl & (nk >= 2)
+    good = ncl & (nk >= 2) & ~defective
     clip_flux[good] = est[good]
     codes_t = np.ascontiguousarray(np.moveaxis(codes, 0, -1))              # (H, W, K)
     q, qs, qo = crosstalk.quantize_codes(codes_t, max_code)
@@ -654,6 +657,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         "reference_paper_rule": "only attenuated neighbours" if sel0.sum() >= 10 else "at most one regular neighbour",
         "kernel_estimate": k_eff,
         "pixels_without_calibration": uncal,
+        "defective_pixels": int(defective.sum()),
         "lut_knots": int(Ek),
         "lut_smoothed_pct": round(float(np.mean(smooth_ok)) * 100, 2),
     }

@@ -284,3 +284,27 @@ def test_error_mask_wrong_size(small_flats, tmp_path, capsys):
 def test_error_mask_missing(small_flats, tmp_path, capsys):
     rc, err = _cli_error(small_flats, tmp_path / "nope.png", tmp_path, capsys)
     assert rc == 2 and "nope.png" in err
+
+
+def test_defective_pixels_become_uncalibrated(tmp_path):
+    """A dead pixel (always 0) and a stuck one (always at the clip code) get no calibration: their codes are
+    UNCALIBRATED (missing), never mapped to a made-up flux."""
+    prof = profile.default(24, 32, seed=4)
+    flats = tmp_path / "f"
+    calibration.simulate_flats(flats, prof, None, exposures=calibration.default_exposures(20, nd=prof.nd),
+                               frames_per_exposure=2, progress=False)
+    dead, stuck = (5, 7), (10, 20)
+    for f in flats.glob("flat_*.tif"):
+        a = io.read_image(f, np.uint16)[:, :, 0].copy()
+        a[dead] = 0
+        a[stuck] = 4095
+        io.write_image(f, a, np.uint16)
+    s = calibration.run_calibrate(flats, flats / "mask.png", tmp_path / "c.json", plots=False, progress=False)
+    assert s["defective_pixels"] >= 1 and s["nd"] == pytest.approx(prof.nd, rel=0.02)
+    cal = profile.load(tmp_path / "c.json")
+    v = np.full((24, 32), 50.0, np.float32) * np.where(prof.mask, prof.nd, 1.0).astype(np.float32)
+    st = np.where(prof.mask, validity.ATTENUATED, 0).astype(np.uint8)
+    crosstalk.correct(v, st, cal, mode="lut")
+    for y, x in (dead, stuck):
+        assert st[y, x] & validity.REASON_MASK == validity.UNCALIBRATED
+    assert np.mean((st & validity.REASON_MASK) == validity.VALID) > 0.95
