@@ -37,7 +37,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         super().__init__()
         self._profile_path = ""
         self._mode = Choice("mode", MODES, "threshold")
-        self._l_min = -1.0
+        self._params = ("threshold", -1.0)   # (mode, l_min): swapped whole, read once per frame
         self._profile = None
         self._in_info = None
         self._out_info = None
@@ -65,22 +65,24 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
                             "(one of: all, best, threshold)",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
     def mode(self):
-        return self._mode.value
+        return self._params[0]
 
     @mode.setter
     def mode(self, value):
-        self.set_choice(self._mode, value)
+        v = self.set_choice(self._mode, value)
+        if v is not None:
+            self._params = (v, self._params[1])
 
     @GObject.Property(type=float, default=-1.0, minimum=-1.0, maximum=65535.0, nick="l_min",
                       blurb="Threshold mode: attenuated pixels whose signal (code - black level) is below "
                             "this are too dark (paper 2.3). -1 = the profile's l_min",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
     def l_min(self):
-        return self._l_min
+        return self._params[1]
 
     @l_min.setter
     def l_min(self, value):
-        self._l_min = float(value)
+        self._params = (self._params[0], float(value))
 
     # ---- state --------------------------------------------------------------------------------------
     def do_start(self):
@@ -246,8 +248,8 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
             if not self._size_checked and not self._check_truncated(inbuf):
                 return Gst.FlowReturn.ERROR
             from nrhdr_core import validity
-            lm = None if self._l_min < 0 else self._l_min
-            mode = self._mode.value
+            mode, lm = self._params
+            lm = None if lm < 0 else lm
             with map_video(inbuf, self._in_info, "<u2", write=False) as raw, \
                     map_hdr(outbuf, self._out_info, write=True) as (values, state):
                 validity.classify(raw, self._profile, mode=mode, l_min=lm, values=values, state=state)
