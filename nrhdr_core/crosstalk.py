@@ -311,15 +311,24 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
         # below the pixel's dark level: follow the first segment (dark subtraction)
         return np.float32(knot_flux[0]) + (m - c0) * (np.float32(knot_flux[1]) - np.float32(knot_flux[0])) \
             / max(c1 - c0, np.float32(1e-3)), True
-    prev_c = c0
-    prev_f = np.float32(knot_flux[0])
-    for k in range(1, n):
-        c = np.float32(codes_q[y, x, k]) * qs - qo
-        f = np.float32(knot_flux[k])
-        if m <= c:
-            return prev_f + (m - prev_c) * (f - prev_f) / max(c - prev_c, np.float32(1e-3)), True
-        prev_c = c
-        prev_f = f
+    last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
+    if m <= last_c:
+        # binary search: first knot k >= 1 with code >= m
+        lo = 1
+        hi = n - 1
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if np.float32(codes_q[y, x, mid]) * qs - qo >= m:
+                hi = mid
+            else:
+                lo = mid + 1
+        c = np.float32(codes_q[y, x, lo]) * qs - qo
+        pc = np.float32(codes_q[y, x, lo - 1]) * qs - qo
+        f = np.float32(knot_flux[lo])
+        pf = np.float32(knot_flux[lo - 1])
+        return pf + (m - pc) * (f - pf) / max(c - pc, np.float32(1e-3)), True
+    prev_c = last_c
+    prev_f = np.float32(knot_flux[n - 1])
     # between the last knot and the clipping point (measured: the pixel clipped before the next knot)
     if cflux == cflux and clip_rel > prev_c and m <= clip_rel:
         return prev_f + (m - prev_c) * (cflux - prev_f) / (clip_rel - prev_c), True
