@@ -150,3 +150,20 @@ def test_loader_and_register_all_in_one_process(gst_subprocess_env):
     assert rc == 0, out
     assert "gst_plugins.elements.nrvalidity nrvalidity0" in out
     assert "GType" not in out and "Traceback" not in out
+
+
+def test_runtime_launch_and_inspect_exit_codes(gst_subprocess_env, tiny_clip, monkeypatch, capfd):
+    """runtime.launch / runtime.inspect (behind `nrhdr launch` / `nrhdr inspect`) return the tools' exit
+    codes: 0 for a good pipeline, non-zero for a failing one or an unknown element."""
+    from gst_plugins import runtime
+    d, prof, raws = tiny_clip
+    monkeypatch.setenv("GST_REGISTRY", gst_subprocess_env["GST_REGISTRY"])
+    good = ["filesrc", f"location={d / 'clip.raw'}", "!", "rawvideoparse", "format=gray16-le", "width=64",
+            "height=48", "framerate=5/1", "!", "nrvalidity", f"profile={d / 'camera.json'}", "!", "fakesink"]
+    assert runtime.launch(good) == 0
+    bad = [a.replace("width=64", "width=32") for a in good]
+    assert runtime.launch(bad) != 0
+    assert runtime.inspect(["nrexrsink"]) == 0
+    assert runtime.inspect(["nrnosuchelement"]) != 0
+    out = capfd.readouterr()
+    assert "but the stream is 32x48" in out.err and "write-state" in out.out
