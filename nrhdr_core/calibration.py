@@ -264,7 +264,7 @@ def _robust_lstsq(X: np.ndarray, y: np.ndarray, reject: float = 8.0):
 
 def _slope_through_origin(t, y, ok):
     t, y = t[ok], y[ok]
-    if t.size < 2 or not np.any(t > 0):
+    if t.size < 1 or not np.any(t > 0):
         return float("nan")
     return float(np.sum(t * y) / np.sum(t * t))
 
@@ -388,6 +388,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     H0 = np.full(E, np.nan)
     b = np.full((E, 8), np.nan)
     frac_att = np.zeros(E)
+    frac_reg = np.zeros(E)
     paper_att = np.full(E, np.nan)
     paper_reg = np.full(E, np.nan)
     sel0 = mask & border & (n_regnb == 0)
@@ -410,6 +411,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
             else:
                 h0[i] = float(np.median(ya[Xs[:, 1:].sum(1) == 0])) if np.any(Xs[:, 1:].sum(1) == 0) else np.nan
         ur = unclipped[i][reg_idx]
+        frac_reg[i] = ur.mean()
         if ur.sum() >= min_rows:
             H0[i] = _robust_lstsq(Xr[ur], d[i][reg_idx][ur])[0]
         s = paper_att_sel & unclipped[i]
@@ -425,16 +427,16 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
 
     # ---- ND from the two references' slopes over exposure -----------------------------------------
     lo_lim = max(20.0, 0.01 * top)
-    ok_r = np.isfinite(H0) & (H0 > lo_lim) & (H0 < 0.7 * top)
-    # (only where nearly all attenuated pixels are unclipped: the clipped ones would bias the regression)
+    # (only where nearly all pixels of the kind are unclipped: the clipped ones would bias the regression)
+    ok_r = np.isfinite(H0) & (H0 > lo_lim) & (H0 < 0.7 * top) & (frac_reg >= 0.99)
     ok_a = np.isfinite(h0) & (h0 > lo_lim / 2) & (h0 < 0.8 * top) & (frac_att >= 0.99)
     kappa_reg = _slope_through_origin(t, H0, ok_r)
     kappa_att = _slope_through_origin(t, h0, ok_a)
     if not (kappa_reg > 0 and kappa_att > 0):
-        raise CalibrationError(f"{where}: cannot measure the ND factor: need at least two exposures where the "
-                               f"regular pixels are between {lo_lim:.0f} and {0.7 * top:.0f} DN and two where "
-                               f"the attenuated reference is unclipped (found {int(ok_r.sum())} and "
-                               f"{int(ok_a.sum())}); use a denser sweep")
+        raise CalibrationError(f"{where}: cannot measure the ND factor: need an exposure where the regular "
+                               f"pixels are between {lo_lim:.0f} and {0.7 * top:.0f} DN and one where the "
+                               f"attenuated pixels are between {lo_lim / 2:.0f} and {0.8 * top:.0f} DN, all "
+                               f"unclipped (found {int(ok_r.sum())} and {int(ok_a.sum())}); use a denser sweep")
     nd = kappa_reg / kappa_att
     pr = np.isfinite(paper_reg) & (paper_reg > lo_lim) & (paper_reg < 0.7 * top)
     pa = np.isfinite(paper_att) & (paper_att > lo_lim / 2) & (paper_att < 0.8 * top)

@@ -308,3 +308,23 @@ def test_defective_pixels_become_uncalibrated(tmp_path):
     for y, x in (dead, stuck):
         assert st[y, x] & validity.REASON_MASK == validity.UNCALIBRATED
     assert np.mean((st & validity.REASON_MASK) == validity.VALID) > 0.95
+
+
+def test_linear_sweep_without_dark_frame(tmp_path):
+    """A user's sweep may be linearly spaced, start above zero exposure and have a black level: ND and the
+    correction still come out right (one usable exposure for the regular pixels is enough)."""
+    prof = profile.default(H, W, seed=6, black_level=64.0)
+    model = crosstalk.sensor_model_preset("linear", H, W)
+    exp = np.linspace(0.001, 0.01 * ND * 1.6, 20)                  # regular pixels saturate at 0.01 s
+    calibration.simulate_flats(tmp_path / "f", prof, model, exposures=exp, frames_per_exposure=4,
+                               progress=False)
+    s = calibration.run_calibrate(tmp_path / "f", tmp_path / "f" / "mask.png", tmp_path / "c.json",
+                                  plots=False, progress=False)
+    assert s["nd"] == pytest.approx(ND, rel=0.01)
+    assert s["black_level"] == pytest.approx(64.0, abs=1.5)
+    cal = profile.load(tmp_path / "c.json")
+    flux = np.full((H, W), 2.0 * (prof.clip_code - prof.black_level))
+    raw = _clean_capture(prof, model, flux)
+    before, _ = _rel_err(cal, raw, flux, "off", prof.mask)
+    after, n = _rel_err(cal, raw, flux, "lut", prof.mask)
+    assert n > 100 and before > 0.05 and after < 0.015
