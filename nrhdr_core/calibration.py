@@ -37,7 +37,6 @@ from . import profile as profiles
 
 IMAGE_EXTS = (".tif", ".tiff", ".png")
 MAX_KNOTS = 64
-CLIP_VARIANT = "quad"
 
 
 class CalibrationError(ValueError):
@@ -565,7 +564,8 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     n_knots[defective] = 0
     # strictly increasing codes
     codes = np.maximum.accumulate(codes, axis=0) + (np.arange(Ek, dtype=np.float32) * 1e-3)[:, None, None]
-    # clipping point: extrapolate the last segment, bounded by the first clipped exposure
+    # clipping point: extrapolate the last knots (straight line, or a parabola through the last three where
+    # the curve bends up), bounded by the last unclipped and the first clipped exposure
     clip_flux = np.full((H, W), np.nan, np.float32)
     ncl = n_knots < Ek
     nk = n_knots
@@ -576,27 +576,21 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     nextf = kflux[np.clip(nk, 0, Ek - 1)]
     slope = (lastf - prevf) / np.maximum(lastc - prevc, 1e-3)
     est = lastf + (top - lastc) * slope
-    if CLIP_VARIANT == "quad":
-        # parabola through the last three knots (the curve bends up near the neighbours' saturation)
-        pc = np.take_along_axis(codes, np.clip(nk - 3, 0, Ek - 1)[None], 0)[0]
-        pf = kflux[np.clip(nk - 3, 0, Ek - 1)]
-        s1 = (lastc - prevc) / np.maximum(lastf - prevf, 1e-9)
-        s0 = (prevc - pc) / np.maximum(prevf - pf, 1e-9)
-        curv = (s1 - s0) / np.maximum(lastf - pf, 1e-9)          # second divided difference
-        curv = np.where(nk >= 3, np.maximum(curv, 0.0), 0.0)     # only bending up; else linear
-        # c(F) = lastc + (F - lastf) * (s1 + curv * (F - prevf)) = top
-        a_ = curv
-        b_ = s1 + curv * (lastf - prevf)
-        c_ = lastc - top
-        disc = np.maximum(b_ * b_ - 4 * a_ * c_, 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xq = np.where(a_ > 1e-15, (-b_ + np.sqrt(disc)) / (2 * a_), -c_ / np.maximum(b_, 1e-9))
-        est = np.where(np.isfinite(xq) & (xq >= 0), lastf + xq, est)
-    if CLIP_VARIANT == "model":
-        model_next = np.take_along_axis(codes, np.clip(nk, 0, Ek - 1)[None], 0)[0]
-        use_model = (model_next > lastc + 1e-3) & (model_next >= top)
-        est_m = lastf + (top - lastc) * (nextf - lastf) / np.maximum(model_next - lastc, 1e-3)
-        est = np.where(use_model, est_m, est)
+    # parabola through the last three knots (the curve bends up near the neighbours' saturation)
+    pc = np.take_along_axis(codes, np.clip(nk - 3, 0, Ek - 1)[None], 0)[0]
+    pf = kflux[np.clip(nk - 3, 0, Ek - 1)]
+    s1 = (lastc - prevc) / np.maximum(lastf - prevf, 1e-9)
+    s0 = (prevc - pc) / np.maximum(prevf - pf, 1e-9)
+    curv = (s1 - s0) / np.maximum(lastf - pf, 1e-9)          # second divided difference
+    curv = np.where(nk >= 3, np.maximum(curv, 0.0), 0.0)     # only bending up; else linear
+    # c(F) = lastc + (F - lastf) * (s1 + curv * (F - prevf)) = top
+    a_ = curv
+    b_ = s1 + curv * (lastf - prevf)
+    c_ = lastc - top
+    disc = np.maximum(b_ * b_ - 4 * a_ * c_, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xq = np.where(a_ > 1e-15, (-b_ + np.sqrt(disc)) / (2 * a_), -c_ / np.maximum(b_, 1e-9))
+    est = np.where(np.isfinite(xq) & (xq >= 0), lastf + xq, est)
     est = np.clip(est, lastf, nextf)
     good = ncl & (nk >= 2) & ~defective
     clip_flux[good] = est[good]
