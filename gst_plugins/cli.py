@@ -38,8 +38,8 @@ def cmd_simulate(a) -> int:
     out = Path(a.output)
     print(f"wrote {info['frames']} frames {info['width']}x{info['height']} GRAY16_LE to {out / 'clip.raw'}")
     print(f"profile {out / 'camera.json'}, ground truth {out / 'truth'}/")
-    print(f"run it: nrhdr launch filesrc location={out / 'clip.raw'} ! rawvideoparse format=gray16-le "
-          f"width={info['width']} height={info['height']} framerate={info['fps']}/1 ! "
+    print(f"run it: pipelines/raw_to_display.sh {out}   or\n"
+          f"  nrhdr launch filesrc location={out / 'clip.raw'} ! {rawvideoparse(info)} ! "
           f"nrvalidity profile={out / 'camera.json'} ! nrreconstruct ! nrtonemap ! autovideosink")
     return 0
 
@@ -63,13 +63,19 @@ def cmd_inspect(a) -> int:
     return runtime.inspect(a.args)
 
 
+def rawvideoparse(clip: dict) -> str:
+    """rawvideoparse for a clip's GRAY16_LE file: rows are unpadded (GStreamer's default stride would
+    round odd widths up to 4 bytes)."""
+    return (f"rawvideoparse format=gray16-le width={clip['width']} height={clip['height']} "
+            f"framerate={clip['fps']}/1 plane-strides=<{2 * clip['width']}>")
+
+
 def demo_pipeline(clip: dict, out: Path, method: str, preset: str) -> str:
     d = Path(clip["dir"])
     prof = d / clip["profile"]
-    return (f"filesrc location={d / clip['raw']} ! rawvideoparse format=gray16-le width={clip['width']} "
-            f"height={clip['height']} framerate={clip['fps']}/1 ! nrvalidity profile={prof} ! "
+    return (f"filesrc location={d / clip['raw']} ! {rawvideoparse(clip)} ! nrvalidity profile={prof} ! "
             f"nrcrosstalk profile={prof} ! nrreconstruct method={method} preset={preset} ! tee name=t "
-            f"t. ! queue ! nrexrsink location={out / 'exr' / 'frame_%05d.exr'} "
+            f"t. ! queue ! nrexrsink write-state=true location={out / 'exr' / 'frame_%05d.exr'} "
             f"t. ! queue ! nrtonemap ! pngenc ! multifilesink location={out / 'png' / 'frame_%05d.png'}")
 
 

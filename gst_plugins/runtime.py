@@ -110,6 +110,44 @@ def _tool(name: str) -> str:
     return exe
 
 
+# PyGObject 3.42 makes GStreamer print this CRITICAL for every Python element it creates; it is harmless
+# (shared docs, gstreamer-python.md) but alarming, so the nrhdr commands drop exactly this message.
+FLOATING_NOISE = "The created element should be floating, this is probably caused by faulty bindings"
+
+
+def _call_filtered(cmd: list[str], env: dict) -> int:
+    """Run `cmd`, passing its stderr through except the harmless FLOATING_NOISE lines."""
+    import threading
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, bufsize=0)
+
+    def pump():
+        pending_blank = False
+        for raw in iter(proc.stderr.readline, b""):
+            line = raw.decode(errors="replace")
+            if FLOATING_NOISE in line:
+                pending_blank = False
+                continue
+            if line.strip() == "":
+                if pending_blank:
+                    sys.stderr.write("\n")
+                pending_blank = True  # GLib puts a blank line before each critical: hold it back
+                continue
+            if pending_blank:
+                sys.stderr.write("\n")
+                pending_blank = False
+            sys.stderr.write(line)
+            sys.stderr.flush()
+
+    t = threading.Thread(target=pump, daemon=True)
+    t.start()
+    try:
+        rc = proc.wait()
+    except KeyboardInterrupt:  # gst-launch -e got the same SIGINT: let it finish its files
+        rc = proc.wait()
+    t.join(timeout=5)
+    return rc
+
+
 def launch(args: list[str]) -> int:
     """Run `gst-launch-1.0 -e <args>` with gst_env(); returns its exit code (non-zero on error)."""
     try:
@@ -120,7 +158,7 @@ def launch(args: list[str]) -> int:
     args = list(args)
     if "-e" not in args and "--eos-on-shutdown" not in args:
         args = ["-e"] + args
-    return subprocess.call([exe] + args, env=gst_env())
+    return _call_filtered([exe] + args, gst_env())
 
 
 def inspect(args: list[str]) -> int:
@@ -130,7 +168,18 @@ def inspect(args: list[str]) -> int:
     except FileNotFoundError as e:
         print(f"nrhdr: {e}", file=sys.stderr)
         return 127
-    return subprocess.call([exe] + list(args), env=gst_env())
+    return _call_filtered([exe] + list(args), gst_env())
+
+
+def quiet_floating_noise() -> None:
+    """In-process: drop the harmless FLOATING_NOISE criticals, keep every other GStreamer message."""
+    from gi.repository import GLib
+
+    def handler(domain, level, message, *user):
+        if FLOATING_NOISE not in (message or ""):
+            GLib.log_default_handler(domain, level, message, None)
+
+    GLib.log_set_handler("GStreamer", GLib.LogLevelFlags.LEVEL_CRITICAL, handler, None)
 
 
 def run_pipeline(description: str, on_message=None) -> int:
@@ -142,6 +191,7 @@ def run_pipeline(description: str, on_message=None) -> int:
     import gst_plugins
     gst_plugins.register_all()
     from gi.repository import GLib, Gst
+    quiet_floating_noise()
 
     try:
         pipeline = Gst.parse_launch(description)

@@ -237,15 +237,14 @@ def _preview(out, k):
     return res
 
 
-def warmup() -> None:
-    """Compile the numba methods on a tiny image (called from element start, never at import)."""
+def warmup(method: str | None = None) -> None:
+    """Compile the numba code of `method` (all methods when None) on a tiny image; called from element
+    start, never at import. numba's on-disk cache makes later processes load instead of compile."""
     v = np.zeros((4, 4), np.float32)
     k = np.ones((4, 4), bool)
     k[1, 1] = False
-    reconstruct(v, k, method="preview")
-    try:
+    if method in (None, "preview"):
+        reconstruct(v, k, method="preview")
+    if method in (None, "fse"):
         from . import fse
-        if hasattr(fse, "warmup"):
-            fse.warmup()
-    except ImportError:
-        pass
+        fse.warmup()

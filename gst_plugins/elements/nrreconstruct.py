@@ -112,8 +112,7 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
                     self.post_error(c.invalid, kind="settings")
                     return False
             from nrhdr_core import reconstruction
-            if hasattr(reconstruction, "warmup"):
-                reconstruction.warmup()
+            reconstruction.warmup(self._params.method)  # others compile on first use after a switch
             self._frames = 0
             return True
         except Exception as e:  # noqa: BLE001
