@@ -285,7 +285,8 @@ class CalibrationResult:
 def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = None, l_min: float = 100.0,
               clip_code: int | None = None, bit_depth: int | None = None, name: str = "calibrated",
               mask_name: str = "mask", progress: bool = True, smooth_chi2: float = 1.5,
-              smooth_taps: int = 5) -> CalibrationResult:
+              smooth_taps: int = 5, prior_g: float = 0.02, prior_alpha: float = 0.5,
+              prior_c: float = 0.0002) -> CalibrationResult:
     """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep."""
     from tqdm import tqdm
     mask = np.asarray(mask, bool)
@@ -447,7 +448,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     steps.update(1)
 
     # ---- kernel mode: per-direction spill sigma_d(e), per-pixel amplitude alpha ---------------------
-    okb = lit & np.all(np.isfinite(b), axis=1) & (frac_att >= 0.8)
+    okb = lit & np.all(np.isfinite(b), axis=1) & (frac_att >= 0.9)
     fe = flux[okb]
     bb = b[okb]
     order = np.argsort(fe)
@@ -465,6 +466,18 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     if fe.size < 2:
         fe = np.array([0.0, 1.0])
         sigma = np.zeros((8, 2))
+    else:
+        # a brighter source never spills less; beyond the table (where the regression would be biased by
+        # the pixels that clip first) continue with the slope of its last quarter (optical spill and
+        # blooming are both linear in the source signal far above the knee)
+        sigma = np.maximum.accumulate(sigma, axis=1)
+        kk = max(3, fe.size // 4) if fe.size >= 3 else fe.size
+        xs = fe[-kk:] - fe[-kk:].mean()
+        slope_end = np.maximum((sigma[:, -kk:] - sigma[:, -kk:].mean(1, keepdims=True)) @ xs
+                               / max(float(xs @ xs), 1e-12), 0.0)
+        f_far = fe[-1] * 100.0
+        fe = np.append(fe, f_far)
+        sigma = np.concatenate([sigma, (sigma[:, -1] + slope_end * (f_far - fe[-2]))[:, None]], axis=1)
     # population model of every pixel's curve: b_d at every exposure from the spill table
     b_model = np.zeros((E, 8))
     for i in range(E):
@@ -473,7 +486,10 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     # per pixel: d_p = g * E_p + alpha * Y_p over its unclipped lit exposures (ridge towards alpha = 1);
     # g absorbs PRNU, alpha the pixel's crosstalk amplitude (non-uniform mask)
     # basis per pixel: E_p (own signal), Y_p (population crosstalk for its neighbourhood), E_p^2 / top
-    # (mild per-pixel non-linearity); ridge: alpha towards 1, the quadratic term towards 0
+    # (mild per-pixel non-linearity). Weighted by the inverse noise of each mean (photon transfer curve),
+    # with Gaussian priors: gain g ~ 1 +- prior_g (PRNU, flat-field non-uniformity), alpha ~ 1 +- prior_alpha
+    # (a glued mask varies a lot), c ~ 0 +- prior_c. In the linear range Y is proportional to E, so the prior
+    # decides how a pixel's excess splits between PRNU and crosstalk: mostly crosstalk, as it should.
     A = np.zeros((H, W, 3, 3))
     r = np.zeros((H, W, 3))
     Ys = np.zeros((E, H, W), np.float32)
@@ -484,22 +500,21 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         Y = np.tensordot(b_model[i], ind_reg, axes=1) * mask - np.tensordot(b_model[i], ind_att, axes=1) * reg
         Ys[i] = Y
         Ep = np.where(mask, flux[i] / nd, flux[i])
-        basis = (np.where(u, Ep, 0), np.where(u, Y, 0), np.where(u, Ep * Ep / top, 0))
+        wgt = np.where(u, sweep.frames[i] / (gain * np.maximum(Ep, 0) + (read_noise * gain) ** 2 + 1.0 / 12), 0)
+        basis = (Ep, Y, Ep * Ep / top)
         for j in range(3):
-            r[:, :, j] += basis[j] * d[i]
+            r[:, :, j] += wgt * basis[j] * d[i]
             for k in range(j, 3):
-                A[:, :, j, k] += basis[j] * basis[k]
+                A[:, :, j, k] += wgt * basis[j] * basis[k]
     for j in range(3):
         for k in range(j):
             A[:, :, j, k] = A[:, :, k, j]
-    lam = 0.3
-    syy = A[:, :, 1, 1].copy()
-    A[:, :, 1, 1] += lam * syy
-    r[:, :, 1] += lam * syy
-    A[:, :, 2, 2] += 0.05 * A[:, :, 2, 2] + 1e-9
-    A[:, :, 1, 1] += (syy == 0)                     # no crosstalk term: alpha stays at the prior
-    r[:, :, 1] += (syy == 0)
-    A[:, :, 0, 0] += (A[:, :, 0, 0] == 0)
+    # priors, in units of the parameters: the data term is in DN^2 / variance
+    A[:, :, 0, 0] += 1.0 / prior_g ** 2
+    r[:, :, 0] += 1.0 / prior_g ** 2
+    A[:, :, 1, 1] += 1.0 / prior_alpha ** 2
+    r[:, :, 1] += 1.0 / prior_alpha ** 2
+    A[:, :, 2, 2] += 1.0 / prior_c ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         try:
             coef = np.linalg.solve(A, r[..., None])[..., 0]
