@@ -1,6 +1,6 @@
 """Crosstalk validation (issue 4, docs/CROSSTALK.md): one command,
 
-    .venv/bin/python benchmarks/crosstalk_validation.py            # ~2-4 min on 2 cores
+    .venv/bin/python benchmarks/crosstalk_validation.py            # ~30 s on 2 cores
     .venv/bin/python benchmarks/crosstalk_validation.py --quick    # smaller sensors, 2 scenes
 
 For simulated sensors with known crosstalk it writes a flat-field sweep as a user would capture it (16-bit
