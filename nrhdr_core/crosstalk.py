@@ -37,9 +37,10 @@ import numpy as np
 from numba import njit, prange
 
 MODES = ("lut", "kernel", "off")
-# kernel mode, optional: a pixel whose code owes more than this share to clipped neighbours (whose flux is
-# only a lower bound) becomes UNCALIBRATED. None (default): off; see docs/CROSSTALK.md for the trade-off.
-CLIP_SHARE = None
+# kernel mode: a pixel that received more spill from clipped neighbours (whose flux is only estimated) than
+# its own signal (CLIP_SHARE x its corrected code) is unreliable and becomes UNCALIBRATED (value: the kernel
+# estimate); None disables it. See docs/CROSSTALK.md for the trade-off.
+CLIP_SHARE = 1.0
 _MODE_ID = {"lut": 0, "kernel": 1}
 CALIB_FORMAT = "nrhdr-crosstalk"
 CALIB_VERSION = 1
@@ -465,9 +466,9 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                         f = f2
                     if f < 0:
                         f = np.float32(0.0)
-                    if a * from_clipped > clip_share * max(m, np.float32(1.0)):
-                        # most of the signal came from clipped neighbours, whose flux is only known as a
-                        # lower bound: the estimate is unreliable, leave it to reconstruction
+                    if a * from_clipped > clip_share * max(f / s, np.float32(1.0)):
+                        # more spill from clipped neighbours than own signal: their flux is only an
+                        # estimate (>= their bound), so this pixel is unreliable; leave it to reconstruction
                         values[y, x] = f
                         state[y, x] = (st & 0xF0) | _UNCAL
                         continue

@@ -269,3 +269,33 @@ def test_load_rejects_corrupt_and_mismatched(tmp_path):
 
 def test_warmup_runs():
     crosstalk.warmup()
+
+
+def test_kernel_mode_drops_pixels_dominated_by_clipped_neighbours():
+    """A dark pixel next to clipped bright pixels: their flux is only known as a lower bound, and when their
+    estimated spill exceeds the pixel's own signal the pixel becomes UNCALIBRATED (missing) instead of
+    carrying a guess; with clip_share=None it is kept (and corrected with the bound)."""
+    h, w = 5, 5
+    mask = np.zeros((h, w), bool)
+    p = profile.make(mask, nd=1.0, clip_code=4094, l_min=10.0, full_well=1e6, gain=4094 / 1e5)
+    k = 0.01
+    cal = crosstalk.identity_calibration(mask, nd=1.0, clip_code=4094)
+    cal.sig_e = np.array([0.0, 1e5], np.float32)
+    cal.sigma = np.zeros((8, 2), np.float32)
+    cal.sigma[:, 1] = k * 1e5
+    p = p.replace(crosstalk=cal)
+    truth = np.full((h, w), 20.0)
+    truth[:, 3:] = 4600.0                                   # just above clipping
+    model = crosstalk.SensorModel(kernel=crosstalk.make_kernel(k, k, k))
+    from nrhdr_core import sensor
+    raw = sensor.capture(truth, p.replace(read_noise=0.0), np.random.default_rng(0), sensor_model=model,
+                         shot_noise=False)
+    v, s = validity.classify(raw, p)
+    assert s[2, 3] & validity.REASON_MASK == validity.CLIPPED and s[2, 2] == validity.VALID
+    v1, s1 = v.copy(), s.copy()
+    crosstalk.correct(v1, s1, p, mode="kernel")
+    assert s1[2, 2] & validity.REASON_MASK == validity.UNCALIBRATED
+    assert s1[2, 0] == validity.VALID                         # far from the clipped pixels: kept
+    v2, s2 = v.copy(), s.copy()
+    crosstalk.correct(v2, s2, p, mode="kernel", clip_share=None)
+    assert s2[2, 2] == validity.VALID and abs(v2[2, 2] - 20.0) < abs(v[2, 2] - 20.0)
