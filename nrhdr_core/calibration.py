@@ -71,7 +71,7 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
         raise CalibrationError(f"{csv_path}: missing (a flat-field folder needs exposures.csv with columns "
                                f"file,exposure_s)")
     try:
-        with open(csv_path, newline="") as f:
+        with open(csv_path, newline="", encoding="utf-8-sig") as f:     # tolerate a BOM (spreadsheets)
             rd = csv.DictReader(f)
             rows = list(rd)
             fields = [c.strip() for c in (rd.fieldnames or [])]
