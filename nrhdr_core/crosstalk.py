@@ -337,31 +337,9 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
 
 
 @njit(cache=True, nogil=True)
-def _spill(sig_e, sigma, d, e):
-    """sigma_d(e): piecewise linear in the table, linear through 0 below it, last slope above it."""
-    j = sig_e.shape[0]
-    if e <= sig_e[0]:
-        if sig_e[0] <= 0:
-            return np.float32(0.0)
-        return sigma[d, 0] * e / sig_e[0]
-    if e >= sig_e[j - 1]:
-        sl = (sigma[d, j - 1] - sigma[d, j - 2]) / max(sig_e[j - 1] - sig_e[j - 2], np.float32(1e-6))
-        return sigma[d, j - 1] + (e - sig_e[j - 1]) * sl
-    lo = 0
-    hi = j - 1
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if sig_e[mid] <= e:
-            lo = mid
-        else:
-            hi = mid
-    t = (e - sig_e[lo]) / (sig_e[hi] - sig_e[lo])
-    return sigma[d, lo] + t * (sigma[d, hi] - sigma[d, lo])
-
-
-@njit(cache=True, nogil=True)
 def _spill_vec(sig_e, sigma, e, out):
-    """out[d] = sigma_d(e) for the 8 directions with a single table search (as _spill)."""
+    """out[d] = sigma_d(e) for the 8 directions with a single table search: piecewise linear in the table,
+    linear through 0 below it, its last slope above it."""
     j = sig_e.shape[0]
     if e <= sig_e[0]:
         r = e / sig_e[0] if sig_e[0] > 0 else np.float32(0.0)
