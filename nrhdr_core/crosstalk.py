@@ -17,6 +17,8 @@ flat-field sweeps:
   pixel's *actual* neighbours send and what flat neighbours would have sent: per-direction spill functions
   sigma_d(e) of the source signal e (calibrated from the flats, non-linear near saturation), scaled by the
   pixel's own crosstalk amplitude alpha. On flats it equals ``lut``; at edges it follows the neighbours.
+  A pixel that got more spill from clipped neighbours (whose flux is only estimated) than its own signal
+  becomes UNCALIBRATED (`CLIP_SHARE`).
 - ``off``: identity.
 
 Values are linear DN (attenuated pixels scaled by ND, docs/ARCHITECTURE.md); the correction returns flux in
