@@ -607,6 +607,25 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         xq = np.where(a_ > 1e-15, (-b_ + np.sqrt(disc)) / (2 * a_), -c_ / np.maximum(b_, 1e-9))
     est = np.where(np.isfinite(xq) & (xq >= 0), lastf + xq, est)
     est = np.clip(est, lastf, nextf)
+    # better, where the first clipped exposure is only partly clipped: its mean code is the mean of a
+    # Gaussian censored at the saturation code S; un-censor it (photon-transfer noise) and interpolate
+    # between the last unclipped knot and that point
+    jf = np.clip(unclipped.sum(0), 0, E - 1)                               # first clipped exposure
+    f_j = flux[jf]
+    f_next = flux[np.clip(jf + 1, 0, E - 1)]
+    m_j = np.take_along_axis(mean, jf[None], 0)[0].astype(np.float64) - black
+    s_rel = float(np.median(mean[-1][reg])) - black
+    sig = np.sqrt(gain * max(s_rel, 1.0) + (read_noise * gain) ** 2 + 1.0 / 12)
+    partial = ncl & (nk >= 2) & ~defective & (m_j < s_rel - 0.05 * sig) & (m_j > lastc)
+    if partial.any():
+        mu = _uncensor_mean(m_j[partial], s_rel, sig)
+        lc, lf = lastc[partial], lastf[partial]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            e2 = lf + (top - lc) * (f_j[partial] - lf) / (mu - lc)
+        ok2 = np.isfinite(e2) & (mu > lc + 1e-3)
+        est_p = est[partial]
+        est_p[ok2] = np.clip(e2[ok2], lf[ok2], f_next[partial][ok2])
+        est[partial] = est_p
     good = ncl & (nk >= 2) & ~defective
     clip_flux[good] = est[good]
     codes_t = np.ascontiguousarray(np.moveaxis(codes, 0, -1))              # (H, W, K)
@@ -680,6 +699,25 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     # they clip themselves)
     ref_att = np.where(np.isfinite(paper_att), paper_att, h0)
     return CalibrationResult(prof, summary, flux, ref_att, H0, nd_eff, rf, ratio, meas, examples)
+
+
+def _uncensor_mean(m, s, sig, iters: int = 40):
+    """Mean mu of a Gaussian (sd `sig`) whose samples are clipped at `s`, from the clipped samples' mean `m`
+    (E[min(X, s)] = mu Phi(z) - sig phi(z) + s (1 - Phi(z)), z = (s - mu) / sig; monotonic in mu)."""
+    from math import sqrt
+    from scipy.special import ndtr
+
+    def cmean(mu):
+        z = (s - mu) / sig
+        return mu * ndtr(z) - sig * np.exp(-0.5 * z * z) / sqrt(2 * np.pi) + s * (1 - ndtr(z))
+    lo = np.asarray(m, float) - 1.0
+    hi = np.full_like(lo, s + 6 * sig)
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        below = cmean(mid) < m
+        lo = np.where(below, mid, lo)
+        hi = np.where(below, hi, mid)
+    return 0.5 * (lo + hi)
 
 
 def _spill_np(fe, sigma, e):
