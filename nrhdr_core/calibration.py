@@ -428,8 +428,15 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     # ---- ND from the two references' slopes over exposure -----------------------------------------
     lo_lim = max(20.0, 0.01 * top)
     # (only where nearly all pixels of the kind are unclipped: the clipped ones would bias the regression)
-    ok_r = np.isfinite(H0) & (H0 > lo_lim) & (H0 < 0.7 * top) & (frac_reg >= 0.99)
-    ok_a = np.isfinite(h0) & (h0 > lo_lim / 2) & (h0 < 0.8 * top) & (frac_att >= 0.99)
+    # (progressively relaxed for sweeps too coarse to have such exposures)
+    for need in (0.99, 0.95, 0.8, 0.0):
+        ok_r = np.isfinite(H0) & (H0 > lo_lim) & (H0 < 0.7 * top) & (frac_reg >= need)
+        if ok_r.any():
+            break
+    for need in (0.99, 0.95, 0.8, 0.0):
+        ok_a = np.isfinite(h0) & (h0 > lo_lim / 2) & (h0 < 0.8 * top) & (frac_att >= need)
+        if ok_a.any():
+            break
     kappa_reg = _slope_through_origin(t, H0, ok_r)
     kappa_att = _slope_through_origin(t, h0, ok_a)
     if not (kappa_reg > 0 and kappa_att > 0):
