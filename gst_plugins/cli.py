@@ -29,7 +29,8 @@ def cmd_simulate(a) -> int:
     model = None
     if a.sensor_model and a.sensor_model != "none":
         from nrhdr_core import crosstalk
-        model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.seed)
+        model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width,
+                                                 seed=a.sensor_seed)
     scene, name = _scene(a.scene)
     motion = simulate.Motion(pan=a.pan, tilt=a.tilt, zoom=a.zoom, fov=a.fov)
     info = simulate.simulate_clip(scene, a.output, prof, frames=a.frames, fps=a.fps,
@@ -166,6 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fov", type=float, default=0.8, help="first view's share of the scene")
     p.add_argument("--sensor-model", default="none",
                    help="crosstalk/PRNU/DSNU preset: none or prototype (paper section 3)")
+    p.add_argument("--sensor-seed", type=int, default=0,
+                   help="seed of the sensor model's pixel-to-pixel variation (same as simulate-flats')")
     p.add_argument("--sequence", choices=("png", "tiff"), help="also write 16-bit raw frames")
     _add_sensor_args(p)
     p.set_defaults(func=cmd_simulate)

@@ -931,7 +931,7 @@ def _cmd_simulate_flats(a) -> int:
             prof = profiles.load(a.profile)
         else:
             prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd)
-        model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.seed)
+        model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.sensor_seed)
     except (ValueError, profiles.ProfileError) as e:
         print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
         return 2
@@ -972,6 +972,9 @@ def register_cli(sub) -> None:
     p.add_argument("--exposures", type=int, default=40, help="number of exposures (incl. dark)")
     p.add_argument("--frames", type=int, default=4, help="frames per exposure")
     p.add_argument("--format", choices=("tiff", "png"), default="tiff")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="noise seed")
+    p.add_argument("--sensor-seed", type=int, default=0,
+                   help="seed of the sensor's pixel-to-pixel variation: use the same value with "
+                        "'nrhdr simulate --sensor-seed' to calibrate the sensor that recorded a clip")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_simulate_flats)
