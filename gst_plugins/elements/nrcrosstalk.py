@@ -29,7 +29,7 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
     def __init__(self):
         super().__init__()
         self._profile_path = ""
-        self._mode = Choice("mode", MODES, "lut")
+        self._mode = Choice("mode", MODES, "kernel")
         self._profile = None
         self._info = None
         self._frames = 0
@@ -47,9 +47,13 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
     def profile(self, value):
         self._profile_path = value or ""
 
-    @GObject.Property(type=str, default="lut", nick="Correction mode",
-                      blurb="'lut' = per-code look-up table, 'kernel' = neighbour kernel, 'off' = pass "
-                            "frames through (one of: lut, kernel, off)",
+    @GObject.Property(type=str, default="kernel", nick="Correction mode",
+                      blurb="'kernel' = each pixel's calibrated neighbour kernel applied to its actual "
+                            "neighbours (accurate: ~3x less residual crosstalk on natural scenes, ~110 ms "
+                            "per 640x480 frame); 'lut' = the paper's per-code look-up table (fast, ~6 ms, "
+                            "assumes neighbours as bright as the pixel); 'off' = pass frames through "
+                            "(one of: kernel, lut, off). Without a calibration in the profile every mode "
+                            "passes frames through",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
     def mode(self):
         return self._mode.value
