@@ -387,7 +387,7 @@ def report(rows, meta):
             L.append(f"\n### Kodak grayscale, {int(known * 100)} % known ({n} images, 768 x 512, means)\n")
             L.append(summary_table(rows, "kodak", known))
     if agg(rows, case="crops"):
-        L.append("\n### 128 x 128 centre crops, 50 % known (FSR_BEST only finishes on crops)\n")
+        L.append("\n### 128 x 128 centre crops of kodim01/03/05/07, 50 % known (FSR_BEST only on crops)\n")
         L.append(summary_table(rows, "crops", 0.5))
     if agg(rows, case="hdr"):
         hr = [r for r in rows if r["case"] == "hdr"]
@@ -415,7 +415,7 @@ def report(rows, meta):
                 for x in ms) + " |")
     pv = [r for r in rows if r["case"] == "preview640"]
     if pv:
-        L.append("\n### 640 x 480, 50 % missing (best of 15)\n")
+        L.append("\n### 640 x 480, 50 % missing (best of 15, measured at the start and the end of the run)\n")
         L.append("| method | ms | fps | PSNR dB |\n|---|---|---|---|")
         for r in pv:
             L.append(f"| {r['method']} | {1000 * r['seconds']:.1f} | {r['fps']:.1f} | {r['psnr']:.2f} |")
@@ -540,6 +540,11 @@ def main(argv=None):
         scenes = scenes[:2]
     rows += bench_hdr(hdr_methods, scenes, fsr_fast, log)
     rows += bench_scaling([3], [0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5], ["fast", "balanced"], log)
+    # the 640 x 480 frame rate again at the end (shared machines are noisy): keep the faster pass
+    again = {r["method"]: r for r in bench_preview(log)}
+    for r in rows:
+        if r["case"] == "preview640" and again[r["method"]]["seconds"] < r["seconds"]:
+            r.update(again[r["method"]])
     import cv2
     import numba
     meta = dict(command="python benchmarks/reconstruction.py" + (" --quick" if args.quick else ""),
