@@ -56,8 +56,8 @@ _BASE = dict(
 _RHO_PUBLISHED = {16: 0.80, 8: 0.70, 4: 0.66, 2: 0.64}
 
 FSE_PRESETS: dict[str, dict] = {
-    # live preview: fixed 8 x 8 blocks in a 16 x 16 window, 6 iterations
-    "preview": dict(_BASE, window=16, max_block=8, min_block=8, iter_c=0.0, iter_min=6, iter_max=6,
+    # live preview: fixed 8 x 8 blocks in a 16 x 16 window, 16 iterations (8 conjugate pairs)
+    "preview": dict(_BASE, window=16, max_block=8, min_block=8, iter_c=0.0, iter_min=16, iter_max=16,
                     gamma=0.7),
     # fast: 8 x 8 blocks, few iterations
     "fast": dict(_BASE, window=16, max_block=8, min_block=8, iter_c=1000.0, iter_min=10, iter_max=60,
