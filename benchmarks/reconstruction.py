@@ -1,8 +1,8 @@
 """Reconstruction benchmark (issue 3): every method and FSE preset against OpenCV contrib's FSR
 (INPAINT_FSR_FAST, INPAINT_FSR_BEST) and scipy's Delaunay-linear griddata, in one run on the same inputs.
 
-    .venv/bin/python benchmarks/reconstruction.py            # full run, ~20 min on 2 cores
-    .venv/bin/python benchmarks/reconstruction.py --quick    # 2 images, 50 % only, ~2 min
+    .venv/bin/python benchmarks/reconstruction.py            # full run, ~25 min on 2 cores
+    .venv/bin/python benchmarks/reconstruction.py --quick    # 2 images, 50 % only, ~4 min
     .venv/bin/python benchmarks/reconstruction.py --docs     # also rewrite docs/BENCHMARKS.md + plot
 
 Cases:
@@ -339,10 +339,14 @@ def plot(rows, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     panels = [("kodak", 0.5, "Kodak 768x512, 50 % known"), ("kodak", 0.25, "Kodak, 25 % known"),
-              ("crops", 0.5, "128x128 crops, 50 % known (with FSR_BEST)")]
+              ("kodak", 0.1, "Kodak, 10 % known"), ("crops", 0.5, "128x128 crops, 50 % known (with FSR_BEST)")]
     panels = [p for p in panels if agg(rows, case=p[0], known=p[1])]
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.8), squeeze=False)
-    for ax, (case, known, title) in zip(axes[0], panels):
+    ncol = 2 if len(panels) > 1 else 1
+    nrow = (len(panels) + ncol - 1) // ncol
+    fig, axes = plt.subplots(nrow, ncol, figsize=(6.4 * ncol, 4.6 * nrow), squeeze=False)
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_visible(False)
+    for ax, (case, known, title) in zip(axes.ravel(), panels):
         pts = pareto_points(rows, case, known)
         for group, color in ((True, "tab:blue"), (False, "tab:red")):
             sel = sorted([(t, p, m) for m, (t, p) in pts.items() if is_ours(m) == group])
@@ -365,7 +369,9 @@ def plot(rows, path):
         ax.set_ylabel("mean PSNR (dB)")
         ax.set_title(title, fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        ax.legend(fontsize=8, loc="upper left")
+        ys = [p for _, p in pts.values()]
+        ax.set_ylim(min(ys) - 0.5, max(ys) + 0.6)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -501,8 +507,8 @@ def write_docs(md, png):
     else:
         if "## Reconstruction" not in text:
             text = text.rstrip() + "\n\n## Reconstruction\n\n"
-            text += ("Reproduce: `.venv/bin/python benchmarks/reconstruction.py` (full, ~15 min on 2 cores; "
-                     "`--quick` for a 2-minute subset). See docs/FSE.md for the algorithm and presets.\n\n")
+            text += ("Reproduce: `.venv/bin/python benchmarks/reconstruction.py` (full run: about 25 min on this project's shared 2-core machine, most of it OpenCV FSR; "
+                     "`--quick` for a ~4-minute subset). See docs/FSE.md for the algorithm and presets.\n\n")
             text += body + "\n"
         else:
             a = text.index("## Reconstruction")
