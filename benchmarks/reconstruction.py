@@ -507,7 +507,8 @@ def write_docs(md, png):
     else:
         if "## Reconstruction" not in text:
             text = text.rstrip() + "\n\n## Reconstruction\n\n"
-            text += ("Reproduce: `.venv/bin/python benchmarks/reconstruction.py` (full run: about 25 min on this project's shared 2-core machine, most of it OpenCV FSR; "
+            text += ("Reproduce: `.venv/bin/python benchmarks/reconstruction.py` (full run: about 25 min "
+                     "on this project's shared 2-core machine, most of it OpenCV FSR; "
                      "`--quick` for a ~4-minute subset). See docs/FSE.md for the algorithm and presets.\n\n")
             text += body + "\n"
         else:

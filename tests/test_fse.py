@@ -114,7 +114,8 @@ def test_presets_are_explicit_and_overridable(mask50):
 def test_deterministic_across_runs_and_threads():
     numba = pytest.importorskip("numba")
     rng = np.random.default_rng(3)
-    img = (sinusoids(96, 112) + rng.normal(0, 5, (96, 112))).astype(np.float32)
+    # large enough (thousands of 4 x 4 leaves) for the parallel path to be taken with > 1 thread
+    img = (sinusoids(320, 288) + rng.normal(0, 5, (320, 288))).astype(np.float32)
     known = rng.random(img.shape) < 0.4
     old = numba.get_num_threads()
     try:
