@@ -4,7 +4,14 @@ One module per stage (docs/ARCHITECTURE.md): mask, profile, sensor, simulate, va
 calibration, reconstruction (+ fse), tonemap, metrics, analysis, io. Importing this package compiles
 nothing; numba kernels compile (and are cached) on first use.
 """
+import os as _os
+
 __version__ = "0.1.0"
+
+# GStreamer runs elements in several streaming threads that may call parallel kernels at once; numba's
+# fallback "workqueue" threading layer is not safe for that, so require a thread-safe one (OpenMP via
+# libgomp1, or TBB). Set NUMBA_THREADING_LAYER yourself to override.
+_os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
 
 
 def reconstruct(values, known, method="fse", preset="balanced", lower=None, upper=None, **params):

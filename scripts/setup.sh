@@ -7,7 +7,7 @@ cd "$(dirname "$0")/.."
 
 PKGS=(gstreamer1.0-tools gstreamer1.0-python3-plugin-loader python3-gst-1.0 python3-gi
       gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base
-      gstreamer1.0-plugins-good python3-venv python3-dev)
+      gstreamer1.0-plugins-good python3-venv python3-dev libgomp1)
 missing=()
 for p in "${PKGS[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
