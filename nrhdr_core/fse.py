@@ -232,9 +232,12 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels,
     nt = th * tw
     miss = np.zeros(nt, np.int64)
     for y in range(h):
-        for x in range(w):
-            if state[y, x] == 0:
-                miss[(y // tile) * tw + x // tile] += 1
+        base = (y // tile) * tw
+        for tx in range(tw):
+            c = 0
+            for x in range(tx * tile, min(tx * tile + tile, w)):
+                c += 1 if state[y, x] == 0 else 0
+            miss[base + tx] += c
     need_sigma = False
     for i in range(sizes.shape[0] - 1):
         if split[i] > 0.0:
@@ -1145,13 +1148,13 @@ def _stats(v, k):
     h, w = v.shape
     for y in range(h):
         for x in range(w):
-            if k[y, x]:
-                a = np.float64(v[y, x])
-                nk += 1
-                kmin = min(kmin, a)
-                kmax = max(kmax, a)
-                if a > 0.0:
-                    minpos = min(minpos, a)
+            # branch-free (random masks): selects
+            kk = k[y, x]
+            a = np.float64(v[y, x])
+            nk += 1 if kk else 0
+            kmin = min(kmin, a if kk else np.inf)
+            kmax = max(kmax, a if kk else -np.inf)
+            minpos = min(minpos, a if (kk and a > 0.0) else np.inf)
     if minpos == np.inf:
         minpos = 0.0
     return nk, kmin, kmax, minpos
