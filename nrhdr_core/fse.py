@@ -430,6 +430,31 @@ def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_s
             xbuf[i, j] = 0.0
         tbase = (y >> tshift) * tw_tiles
         tsz = 1 << tshift
+        tc0 = (ax + j0) >> tshift
+        if ((ax + j1 - 1) >> tshift) - tc0 <= 2:
+            # common case (window spans <= 3 tile columns): the same-round rule of the three columns
+            # as selects, one branch-free pass over the row that vectorises
+            d0 = np.float32(0.0)
+            d1 = np.float32(0.0)
+            d2 = np.float32(0.0)
+            tt = tbase + tc0
+            if tt == t_self or tile_round[tt] < r_cur:
+                d0 = np.float32(delta)
+            if tc0 + 1 < tw_tiles and (tt + 1 == t_self or tile_round[tt + 1] < r_cur):
+                d1 = np.float32(delta)
+            if tc0 + 2 < tw_tiles and (tt + 2 == t_self or tile_round[tt + 2] < r_cur):
+                d2 = np.float32(delta)
+            e0 = ((tc0 + 1) << tshift) - ax
+            e1 = e0 + (1 << tshift)
+            for jj in range(j0, j1):
+                xx = ax + jj
+                dwt = d0 if jj < e0 else (d1 if jj < e1 else d2)
+                st = state[y, xx]
+                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
+                wv = fs * rho_tab[lvl, i, jj]
+                wbuf[i, jj] = wv
+                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
+            continue
         j = j0
         while j < j1:
             # one segment per tile column: the same-round rule is decided once per segment
@@ -721,6 +746,31 @@ def _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t
             xbuf[i, j] = 0.0
         tbase = (y >> tshift) * tw_tiles
         tsz = 1 << tshift
+        tc0 = (ax + j0) >> tshift
+        if ((ax + j1 - 1) >> tshift) - tc0 <= 2:
+            # common case (window spans <= 3 tile columns): the same-round rule of the three columns
+            # as selects, one branch-free pass over the row that vectorises
+            d0 = np.float32(0.0)
+            d1 = np.float32(0.0)
+            d2 = np.float32(0.0)
+            tt = tbase + tc0
+            if tt == t_self or tile_round[tt] < r_cur:
+                d0 = np.float32(delta)
+            if tc0 + 1 < tw_tiles and (tt + 1 == t_self or tile_round[tt + 1] < r_cur):
+                d1 = np.float32(delta)
+            if tc0 + 2 < tw_tiles and (tt + 2 == t_self or tile_round[tt + 2] < r_cur):
+                d2 = np.float32(delta)
+            e0 = ((tc0 + 1) << tshift) - ax
+            e1 = e0 + (1 << tshift)
+            for jj in range(j0, j1):
+                xx = ax + jj
+                dwt = d0 if jj < e0 else (d1 if jj < e1 else d2)
+                st = state[y, xx]
+                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
+                wv = fs * rho_tab[lvl, i, jj]
+                wbuf[i, jj] = wv
+                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
+            continue
         j = j0
         while j < j1:
             # one segment per tile column: the same-round rule is decided once per segment
