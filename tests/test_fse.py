@@ -3,28 +3,13 @@ invariance, bounds, presets, determinism, and real images against Delaunay-linea
 Small images and the fast presets only; no timing assertions (speed is the benchmark's job)."""
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import shared_data
 from nrhdr_core import reconstruct
 from nrhdr_core import fse
-
-SHARED = Path(os.environ.get("NRHDR_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-
-
-def shared_data(*parts) -> Path:
-    """Path under ../shared/data; skip when missing, fail when CI=true."""
-    p = SHARED.joinpath(*parts)
-    if not p.exists():
-        msg = f"shared test data missing: {p}"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg + " (CI=true: shared data is required)")
-        pytest.skip(msg)
-    return p
-
 
 def psnr(ref, test, peak):
     mse = np.mean((np.asarray(ref, np.float64) - np.asarray(test, np.float64)) ** 2)
