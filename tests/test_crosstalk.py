@@ -206,19 +206,23 @@ def test_kernel_mode_equals_lut_on_flat_field():
     np.testing.assert_allclose(a, b, rtol=5e-4)     # code rounding differs between neighbours
 
 
-def test_kernel_mode_removes_spill_from_a_bright_neighbour():
-    """Known truth: a hand-made calibration with spill sigma(e) = 1 % e per neighbour and an exact LUT for a
-    flat field; a pixel whose right neighbour is 10x brighter must get the extra spill removed."""
-    h, w = 5, 5
+def _linear_spill_profile(h, w, k):
+    """Hand-made calibration, all regular pixels, ND 1: a flat field at flux F reads F (conserving
+    kernel), so the LUT is the identity; spill sigma(e) = k * e per neighbour."""
     mask = np.zeros((h, w), bool)
     p = profile.make(mask, nd=1.0, clip_code=4094, l_min=10.0, full_well=1e6, gain=4094 / 1e5)
-    k = 0.01
-    # a flat field at flux F reads F (conserving kernel): identity LUT over the range
     cal = crosstalk.identity_calibration(mask, nd=1.0, clip_code=4094)
     cal.sig_e = np.array([0.0, 1e5], np.float32)
     cal.sigma = np.zeros((8, 2), np.float32)
     cal.sigma[:, 1] = k * 1e5
-    p = p.replace(crosstalk=cal)
+    return p.replace(crosstalk=cal)
+
+
+def test_kernel_mode_removes_spill_from_a_bright_neighbour():
+    """Known truth: a hand-made calibration with spill sigma(e) = 1 % e per neighbour and an exact LUT for a
+    flat field; a pixel whose right neighbour is 10x brighter must get the extra spill removed."""
+    h, w, k = 5, 5, 0.01
+    p = _linear_spill_profile(h, w, k)
     truth = np.full((h, w), 200.0)
     truth[:, 3:] = 2000.0
     model = crosstalk.SensorModel(kernel=crosstalk.make_kernel(k, k, k))
@@ -275,15 +279,8 @@ def test_kernel_mode_drops_pixels_dominated_by_clipped_neighbours():
     """A dark pixel next to clipped bright pixels: their flux is only known as a lower bound, and when their
     estimated spill exceeds the pixel's own signal the pixel becomes UNCALIBRATED (missing) instead of
     carrying a guess; with clip_share=None it is kept (and corrected with the bound)."""
-    h, w = 5, 5
-    mask = np.zeros((h, w), bool)
-    p = profile.make(mask, nd=1.0, clip_code=4094, l_min=10.0, full_well=1e6, gain=4094 / 1e5)
-    k = 0.01
-    cal = crosstalk.identity_calibration(mask, nd=1.0, clip_code=4094)
-    cal.sig_e = np.array([0.0, 1e5], np.float32)
-    cal.sigma = np.zeros((8, 2), np.float32)
-    cal.sigma[:, 1] = k * 1e5
-    p = p.replace(crosstalk=cal)
+    h, w, k = 5, 5, 0.01
+    p = _linear_spill_profile(h, w, k)
     truth = np.full((h, w), 20.0)
     truth[:, 3:] = 4600.0                                   # just above clipping
     model = crosstalk.SensorModel(kernel=crosstalk.make_kernel(k, k, k))
