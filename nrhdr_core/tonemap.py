@@ -4,6 +4,11 @@ y = log(1 + q x) / log(1 + q), x = clip(L 2^e / white, 0, 1): the standard logar
 (HDR Toolbox LogarithmicTMO) with contrast q and exposure e in stops. The normaliser `white` is fixed
 (the sensor's largest scaled value, (clip - black) * ND) or smoothed over time (`WhiteTracker`), never a
 per-frame min/max: video must not flicker.
+
+HDR display output (beyond the paper): the SMPTE ST 2084 (PQ) inverse EOTF and the ARIB STD-B67 / ITU-R
+BT.2100 HLG OETF, named and written as in colour-science (colour/models/rgb/transfer_functions/st_2084.py,
+arib_std_b67.py), and `hdr_encode`, which maps linear frames to 10-bit BT.2100 codes (narrow range 64..940,
+ITU-R BT.2100 Table 9) in uint16 words, MSB-aligned (code << 6) as GRAY16_LE wants them.
 """
 from __future__ import annotations
 
@@ -78,3 +83,119 @@ class WhiteTracker:
 def warmup() -> None:
     log_tonemap(np.ones((2, 2), np.float32), 1.0)
     log_tonemap(np.ones((2, 2), np.float32), 1.0, dtype=np.uint16)
+
+
+# ---- HDR transfer functions (ITU-R BT.2100) --------------------------------------------------------------
+
+# SMPTE ST 2084:2014, section 5 (as published: exact rationals)
+M_1 = 2610 / 4096 / 4          # 0.1593017578125
+M_2 = 2523 / 4096 * 128        # 78.84375
+C_1 = 3424 / 4096              # 0.8359375 = C_3 - C_2 + 1
+C_2 = 2413 / 4096 * 32         # 18.8515625
+C_3 = 2392 / 4096 * 32         # 18.6875
+L_P = 10000.0                  # cd/m^2 of PQ's full signal
+
+# ARIB STD-B67 / ITU-R BT.2100 Table 5 (HLG)
+HLG_A = 0.17883277
+HLG_B = 1 - 4 * HLG_A          # 0.28466892
+HLG_C = 0.5 - HLG_A * math.log(4 * HLG_A)   # 0.55991073
+
+# ITU-R BT.2408: diffuse (graphics) white of HDR programmes
+REFERENCE_WHITE_NITS = 203.0
+HLG_NOMINAL_PEAK = 1000.0      # cd/m^2 of the HLG reference display (BT.2100 Note 5f: system gamma 1.2)
+HLG_SYSTEM_GAMMA = 1.2
+
+
+def eotf_inverse_ST2084(C, L_p: float = L_P):
+    """SMPTE ST 2084 inverse EOTF: display luminance C (cd/m^2) -> non-linear signal N in [0, 1].
+    N = ((c1 + c2 Y^m1) / (1 + c3 Y^m1))^m2, Y = C / L_p (colour-science `eotf_inverse_ST2084`)."""
+    Y = np.clip(np.asarray(C, dtype=np.float64) / L_p, 0.0, 1.0)
+    Y_m1 = Y ** M_1
+    return ((C_1 + C_2 * Y_m1) / (C_3 * Y_m1 + 1)) ** M_2
+
+
+def eotf_ST2084(N, L_p: float = L_P):
+    """SMPTE ST 2084 EOTF: signal N in [0, 1] -> luminance in cd/m^2 (inverse of eotf_inverse_ST2084)."""
+    V_p = np.clip(np.asarray(N, dtype=np.float64), 0.0, 1.0) ** (1 / M_2)
+    n = np.maximum(V_p - C_1, 0.0)
+    return L_p * (n / (C_2 - C_3 * V_p)) ** (1 / M_1)
+
+
+def oetf_HLG(E):
+    """ARIB STD-B67 / BT.2100 HLG OETF: scene linear E in [0, 1] -> signal E' in [0, 1].
+    E' = sqrt(3 E) for E <= 1/12, else a ln(12 E - b) + c (colour-science `oetf_ARIB_STD_B67` form)."""
+    E = np.clip(np.asarray(E, dtype=np.float64), 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(E <= 1 / 12, np.sqrt(3 * E), HLG_A * np.log(np.maximum(12 * E - HLG_B, 1e-12)) + HLG_C)
+
+
+def oetf_inverse_HLG(E_p):
+    """Inverse HLG OETF: signal E' in [0, 1] -> scene linear E in [0, 1]."""
+    E_p = np.clip(np.asarray(E_p, dtype=np.float64), 0.0, 1.0)
+    return np.where(E_p <= 0.5, E_p ** 2 / 3, (np.exp((E_p - HLG_C) / HLG_A) + HLG_B) / 12)
+
+
+def hlg_reference_E(reference_white: float = REFERENCE_WHITE_NITS) -> float:
+    """Scene light E that the BT.2100 HLG reference OOTF (gray: L = L_W E^gamma, L_W = 1000 cd/m^2,
+    gamma 1.2) shows at `reference_white` cd/m^2: E = (L / L_W)^(1/gamma); 203 cd/m^2 -> E' = 0.75 (BT.2408)."""
+    return float((reference_white / HLG_NOMINAL_PEAK) ** (1 / HLG_SYSTEM_GAMMA))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _hdr_kernel(values, scale, transfer, out):
+    """values * scale -> PQ (transfer 0: scale gives cd/m^2 / L_p) or HLG (1: scale gives E) -> 10-bit
+    narrow-range code << 6. Same formulas as eotf_inverse_ST2084 / oetf_HLG, in float64."""
+    h, w = values.shape
+    for y in prange(h):
+        for x in range(w):
+            v = values[y, x] * scale
+            if not (v > 0.0):             # NaN and negatives -> black
+                v = 0.0
+            elif v > 1.0:
+                v = 1.0
+            if transfer == 0:
+                ym = v ** M_1
+                e = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2
+            elif v <= 1.0 / 12.0:
+                e = math.sqrt(3.0 * v)
+            else:
+                e = HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
+            code = int(64.0 + 876.0 * e + 0.5)
+            if code > 940:
+                code = 940
+            out[y, x] = np.uint16(code << 6)
+
+
+TRANSFERS = ("pq", "hlg")
+
+
+def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
+               reference_white: float = REFERENCE_WHITE_NITS, exposure_stops: float = 0.0,
+               out: np.ndarray | None = None) -> np.ndarray:
+    """Linear frame (H, W) -> BT.2100 10-bit narrow-range codes (64..940) << 6 in uint16.
+
+    The linear value `diffuse_white` (x 2^-exposure) is shown at `reference_white` cd/m^2 (BT.2408 diffuse
+    white, 203 by default); brighter values keep their ratio up to PQ's 10000 cd/m^2 or HLG's E = 1.
+    pq: C = v / diffuse_white * 2^exposure * reference_white, code of eotf_inverse_ST2084(C).
+    hlg: E = v / diffuse_white * 2^exposure * hlg_reference_E(reference_white), code of oetf_HLG(E)."""
+    if transfer not in TRANSFERS:
+        raise ValueError(f"HDR transfer must be one of {', '.join(TRANSFERS)}, got {transfer!r}")
+    if not (diffuse_white > 0 and math.isfinite(diffuse_white)):
+        raise ValueError(f"HDR diffuse white must be a finite number > 0, got {diffuse_white}")
+    if not (reference_white > 0 and math.isfinite(reference_white)):
+        raise ValueError(f"reference white must be > 0 cd/m^2, got {reference_white}")
+    v = np.asarray(values, dtype=np.float32)
+    if out is None:
+        out = np.empty(v.shape, np.uint16)
+    if out.dtype != np.uint16:
+        raise ValueError(f"HDR output must be uint16, got {out.dtype}")
+    gain = 2.0 ** exposure_stops / diffuse_white
+    if transfer == "pq":
+        _hdr_kernel(v, gain * reference_white / L_P, 0, out)
+    else:
+        _hdr_kernel(v, gain * hlg_reference_E(reference_white), 1, out)
+    return out
+
+
+def warmup_hdr() -> None:
+    hdr_encode(np.ones((2, 2), np.float32), 1.0, "pq")

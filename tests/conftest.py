@@ -130,19 +130,25 @@ class GstRun:
                 and m.get_structure().get_name() == name]
 
 
-def hdr_buffer(values, state, pts=None, duration=None):
-    """An HDR frame buffer (two memory blocks) holding copies of `values` and `state`."""
-    from gst_plugins.elements._common import alloc_hdr_buffer
-    v = np.ascontiguousarray(values, np.float32)
+def hdr_bytes(values, state) -> bytes:
+    """The f32-u8-planar frame layout (docs/ARCHITECTURE.md), written out here so tests check the contract:
+    float32 values (row-major, native little-endian) then uint8 state, nothing else."""
+    v = np.ascontiguousarray(values, "<f4")
     s = np.ascontiguousarray(state, np.uint8)
-    h, w = v.shape
-    buf = alloc_hdr_buffer(w, h)
-    for i, a in enumerate((v, s)):
-        from gi.repository import Gst
-        ok, mi = buf.map_range(i, 1, Gst.MapFlags.WRITE)
-        assert ok
-        np.ndarray(a.shape, a.dtype, buffer=mi.data)[...] = a
-        buf.unmap(mi)
+    assert v.shape == s.shape
+    return v.tobytes() + s.tobytes()
+
+
+def hdr_buffer(values, state, pts=None, duration=None, two_blocks=False):
+    """An HDR frame buffer (one memory block, f32-u8-planar) holding copies of `values` and `state`;
+    `two_blocks`: the older layout of two memory blocks (values, state)."""
+    from gi.repository import Gst
+    if two_blocks:
+        buf = Gst.Buffer.new()
+        buf.append_memory(Gst.Buffer.new_wrapped(np.ascontiguousarray(values, "<f4").tobytes()).get_memory(0))
+        buf.append_memory(Gst.Buffer.new_wrapped(np.ascontiguousarray(state, np.uint8).tobytes()).get_memory(0))
+    else:
+        buf = Gst.Buffer.new_wrapped(hdr_bytes(values, state))
     if pts is not None:
         buf.pts = pts
     if duration is not None:
@@ -168,13 +174,14 @@ def sample_payload(sample):
     s = caps.get_structure(0)
     if s.get_name() == "other/x-nrhdr":
         w, h = s.get_int("width")[1], s.get_int("height")[1]
-        out = []
-        for i, dt in ((0, np.float32), (1, np.uint8)):
-            ok, mi = buf.map_range(i, 1, Gst.MapFlags.READ)
-            assert ok
-            out.append(np.ndarray((h, w), dt, buffer=mi.data).copy())
-            buf.unmap(mi)
-        return tuple(out)
+        assert buf.get_size() == 5 * w * h, f"HDR frame of {buf.get_size()} bytes, {w}x{h} needs {5 * w * h}"
+        ok, mi = buf.map(Gst.MapFlags.READ)
+        assert ok
+        raw = bytes(mi.data)
+        buf.unmap(mi)
+        values = np.frombuffer(raw, "<f4", count=w * h).reshape(h, w).copy()
+        state = np.frombuffer(raw, np.uint8, offset=4 * w * h).reshape(h, w).copy()
+        return values, state
     vi = GstVideo.VideoInfo.new_from_caps(caps)
     dt = np.uint8 if vi.finfo.name == "GRAY8" else np.dtype("<u2")
     ok, mi = buf.map(Gst.MapFlags.READ)

@@ -164,10 +164,20 @@ def test_crosstalk_without_any_profile(gst):
 
 
 def test_hdr_buffer_with_wrong_layout(gst):
-    """A buffer that is not two memory blocks of the caps' size is refused, not misread."""
+    """A buffer that is not 5*W*H bytes (f32-u8-planar) for the caps' size is refused, not misread."""
     from gi.repository import Gst
-    buf = Gst.Buffer.new_wrapped(bytes(4 * 16 + 16))           # one block
+    buf = Gst.Buffer.new_wrapped(bytes(4 * 16 + 15))           # one byte short
     buf.pts, buf.duration = 0, 1
     r = run_appsrc("nrreconstruct method=preview", "other/x-nrhdr,width=4,height=4,framerate=5/1", [buf])
     assert r.error is not None and r.error[0].startswith("nrreconstruct")
-    assert "not an nrhdr HDR frame" in r.error[1]
+    assert "not an nrhdr HDR frame" in r.error[1] and "79 bytes" in r.error[1] and "80 bytes" in r.error[1]
+
+
+def test_hdr_caps_with_an_unknown_layout(gst):
+    v = np.ones((4, 4), np.float32)
+    s = np.zeros((4, 4), np.uint8)
+    r = run_appsrc("nrreconstruct method=preview",
+                   "other/x-nrhdr,layout=(string)f16-packed,width=4,height=4,framerate=5/1",
+                   [hdr_buffer(v, s, pts=0, duration=1)])
+    assert r.error is not None and r.error[0].startswith("nrreconstruct")
+    assert "layout 'f16-packed' is not supported" in r.error[1]

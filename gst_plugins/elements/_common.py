@@ -1,5 +1,6 @@
-"""Shared helpers of the nrhdr GStreamer elements: the HDR frame (`other/x-nrhdr`, docs/ARCHITECTURE.md),
-error posting, string "enum" properties and profile loading.
+"""Shared helpers of the nrhdr GStreamer elements: the HDR frame (`other/x-nrhdr`, one contiguous block,
+docs/ARCHITECTURE.md), its buffer pool, error posting, GStreamer debug categories, Python warnings as bus
+WARNING messages, string "enum" properties and profile loading.
 
 Importing this module initialises GStreamer (idempotent) but compiles nothing: numba kernels are warmed up
 in the elements' `do_start`.
@@ -7,11 +8,13 @@ in the elements' `do_start`.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import os
 import sys
 import threading
 import traceback
+import warnings
 
 import gi
 
@@ -25,11 +28,17 @@ import numpy as np  # noqa: E402
 if not Gst.is_initialized():
     Gst.init(None)
 
-__all__ = ["Gst", "GstBase", "GstVideo", "GObject", "np", "HDR_MEDIA_TYPE", "hdr_template_caps",
-           "HdrInfo", "alloc_hdr_buffer", "map_hdr", "map_video", "ErrorPoster", "Choice", "load_profile",
-           "copy_timestamps", "MUTABLE_PLAYING", "MUTABLE_READY", "CONTROLLABLE"]
+__all__ = ["Gst", "GstBase", "GstVideo", "GObject", "np", "HDR_MEDIA_TYPE", "HDR_LAYOUT", "hdr_template_caps",
+           "HdrInfo", "HdrPool", "alloc_hdr_buffer", "map_hdr", "map_video", "ErrorPoster", "Choice",
+           "load_profile", "copy_timestamps", "debug_category", "MUTABLE_PLAYING", "MUTABLE_READY",
+           "CONTROLLABLE"]
 
 HDR_MEDIA_TYPE = "other/x-nrhdr"
+# The one frame layout: float32 values (4*W*H bytes, row-major, no padding) then uint8 state (W*H bytes),
+# in one contiguous buffer of 5*W*H bytes. Caps without a `layout` field mean this layout too.
+HDR_LAYOUT = "f32-u8-planar"
+# Fields a video stream keeps through the chain (raw -> HDR -> display).
+STREAM_FIELDS = ("width", "height", "framerate", "pixel-aspect-ratio", "interlace-mode")
 _INT_RANGE = "(int)[1,2147483647]"
 _FPS_RANGE = "(fraction)[0/1,2147483647/1]"
 
@@ -40,9 +49,14 @@ CONTROLLABLE = int(Gst.PARAM_CONTROLLABLE)  # GstController curves (BaseTransfor
 PROP_RW = GObject.ParamFlags.READWRITE
 
 
-def hdr_template_caps() -> Gst.Caps:
-    return Gst.Caps.from_string(f"{HDR_MEDIA_TYPE}, width={_INT_RANGE}, height={_INT_RANGE}, "
-                                f"framerate={_FPS_RANGE}")
+def hdr_template_caps(strict: bool = False) -> Gst.Caps:
+    """`other/x-nrhdr, layout=(string)f32-u8-planar, width, height, framerate`. Unless `strict`, a second
+    structure without `layout` accepts older caps (same layout: the field's absence means f32-u8-planar)."""
+    body = f"width={_INT_RANGE}, height={_INT_RANGE}, framerate={_FPS_RANGE}"
+    text = f"{HDR_MEDIA_TYPE}, layout=(string){HDR_LAYOUT}, {body}"
+    if not strict:
+        text += f"; {HDR_MEDIA_TYPE}, {body}"
+    return Gst.Caps.from_string(text)
 
 
 def raw_template_caps(formats: str) -> Gst.Caps:
@@ -50,7 +64,7 @@ def raw_template_caps(formats: str) -> Gst.Caps:
                                 f"height={_INT_RANGE}, framerate={_FPS_RANGE}")
 
 
-def copy_fields(src: Gst.Structure, dst: Gst.Structure, fields=("width", "height", "framerate")) -> None:
+def copy_fields(src: Gst.Structure, dst: Gst.Structure, fields=STREAM_FIELDS) -> None:
     for f in fields:
         if src.has_field(f):
             dst.set_value(f, src.get_value(f))
@@ -83,6 +97,8 @@ class HdrInfo:
     fps_d: int
     white: float | None
     profile: str | None
+    diffuse_white: float | None = None   # regular pixels' white (caps field diffuse-white), nrvalidity
+    layout: str = HDR_LAYOUT
 
     @property
     def pixels(self) -> int:
@@ -90,7 +106,12 @@ class HdrInfo:
 
     @property
     def size(self) -> int:
+        """Bytes of one frame: 4*W*H float32 values then W*H state bytes."""
         return 5 * self.pixels
+
+    @property
+    def state_offset(self) -> int:
+        return 4 * self.pixels
 
     @classmethod
     def from_caps(cls, caps: Gst.Caps) -> "HdrInfo":
@@ -106,19 +127,27 @@ class HdrInfo:
         okf, fn, fd = s.get_fraction("framerate")
         if not okf:
             fn, fd = 0, 1
-        white = None
-        if s.has_field("white"):
-            okwh, wv = s.get_double("white")
-            if okwh and np.isfinite(wv) and wv > 0:
-                white = float(wv)
+        if s.has_field("layout"):
+            layout = s.get_string("layout")
+            if layout != HDR_LAYOUT:
+                raise ValueError(f"{HDR_MEDIA_TYPE} layout {layout!r} is not supported (only {HDR_LAYOUT}: "
+                                 f"float32 values then uint8 state, one block)")
+
+        def positive(field):
+            if s.has_field(field):
+                ok, v = s.get_double(field)
+                if ok and np.isfinite(v) and v > 0:
+                    return float(v)
+            return None
+
         prof = s.get_string("profile") if s.has_field("profile") else None
-        return cls(w, h, fn, fd, white, prof or None)
+        return cls(w, h, fn, fd, positive("white"), prof or None, positive("diffuse-white"))
 
 
 def _alloc_params():
     try:
         p = Gst.AllocationParams()
-        p.align = 63
+        p.align = 63                     # 64-byte aligned: the float32 plane starts on a cache line
         return p
     except Exception:  # pragma: no cover - binding differences
         return None
@@ -127,51 +156,93 @@ def _alloc_params():
 _PARAMS = None
 
 
-def alloc_hdr_buffer(width: int, height: int) -> Gst.Buffer:
-    """A new HDR frame: block 0 float32 values (4*W*H bytes), block 1 uint8 state (W*H bytes)."""
+def _params():
     global _PARAMS
     if _PARAMS is None:
         _PARAMS = _alloc_params()
-    n = width * height
-    alloc = Gst.Allocator.find(None)
-    buf = Gst.Buffer.new()
-    buf.append_memory(alloc.alloc(4 * n, _PARAMS))
-    buf.append_memory(alloc.alloc(n, _PARAMS))
-    return buf
+    return _PARAMS
+
+
+def alloc_hdr_buffer(width: int, height: int) -> Gst.Buffer:
+    """A new HDR frame: ONE memory block of 5*W*H bytes (float32 values, then uint8 state). Elements use
+    `HdrPool` instead (allocated once per size); this is for apps and tests."""
+    return Gst.Buffer.new_allocate(Gst.Allocator.find(None), 5 * width * height, _params())
+
+
+class HdrPool:
+    """A Gst.BufferPool of one-block HDR frames of one size: buffers are allocated once and come back to
+    the pool when downstream releases them (no allocation per frame). Rebuilt by `for_info` when the size
+    changes (renegotiation)."""
+
+    def __init__(self, info: "HdrInfo", min_buffers: int = 2):
+        self.size = info.size
+        self.pool = Gst.BufferPool.new()
+        cfg = self.pool.get_config()
+        caps = Gst.Caps.from_string(f"{HDR_MEDIA_TYPE}, layout=(string){HDR_LAYOUT}, width=(int){info.width}, "
+                                    f"height=(int){info.height}")
+        Gst.BufferPool.config_set_params(cfg, caps, self.size, min_buffers, 0)
+        p = _params()
+        if p is not None:
+            Gst.BufferPool.config_set_allocator(cfg, None, p)
+        if not self.pool.set_config(cfg) or not self.pool.set_active(True):
+            raise RuntimeError(f"cannot set up a buffer pool of {self.size}-byte HDR frames")
+
+    @classmethod
+    def for_info(cls, old: "HdrPool | None", info: "HdrInfo") -> "HdrPool":
+        if old is not None and old.size == info.size:
+            return old
+        if old is not None:
+            old.close()
+        return cls(info)
+
+    def acquire(self) -> Gst.Buffer:
+        ret, buf = self.pool.acquire_buffer(None)
+        if ret != Gst.FlowReturn.OK or buf is None:
+            raise RuntimeError(f"buffer pool gave no HDR frame ({ret.value_nick if ret else ret})")
+        return buf
+
+    def close(self) -> None:
+        try:
+            self.pool.set_active(False)
+        except Exception:  # noqa: BLE001
+            pass
 
 
 def check_hdr_buffer(buf: Gst.Buffer, info: HdrInfo) -> None:
-    n = info.pixels
-    if buf.n_memory() != 2:
-        raise ValueError(f"buffer is not an nrhdr HDR frame: {buf.n_memory()} memory blocks, expected 2 "
-                         f"(float32 values, uint8 state)")
-    s0 = buf.peek_memory(0).get_sizes()[0]
-    s1 = buf.peek_memory(1).get_sizes()[0]
-    if s0 != 4 * n or s1 != n:
-        raise ValueError(f"HDR frame blocks are {s0} and {s1} bytes; {info.width}x{info.height} needs "
-                         f"{4 * n} and {n}")
+    size = buf.get_size()
+    if size != info.size:
+        raise ValueError(
+            f"buffer is not an nrhdr HDR frame: {size} bytes in {buf.n_memory()} memory block(s); a "
+            f"{info.width}x{info.height} {HDR_LAYOUT} frame is {info.size} bytes (4*W*H float32 values then "
+            f"W*H state bytes). Reading a raw HDR recording? Use filesrc blocksize={info.size}")
 
 
 @contextlib.contextmanager
 def map_hdr(buf: Gst.Buffer, info: HdrInfo, write: bool):
-    """Yield (values float32 (H, W), state uint8 (H, W)) views of an HDR frame's two memory blocks. The views
-    are only valid inside the `with` block."""
+    """Yield (values float32 (H, W), state uint8 (H, W)): numpy views into the mapped frame, no copy
+    (read-only arrays unless `write`). Valid only inside the `with` block.
+
+    Frames made by the nrhdr elements are one contiguous block, mapped in place. A buffer of several
+    blocks (the older two-block frames, or a depayloader's output) is merged by GStreamer's map into one
+    block of the same layout (a copy, made once). A frame whose float plane is not 4-byte aligned (bytes
+    from a file or network) is read through an aligned copy (written back when `write`)."""
     check_hdr_buffer(buf, info)
-    flags = RW if write else Gst.MapFlags.READ
-    shape = (info.height, info.width)
-    ok0, m0 = buf.map_range(0, 1, flags)
-    if not ok0:
-        raise RuntimeError("cannot map the HDR values block" + (" for writing" if write else ""))
+    ok, mi = buf.map(RW if write else Gst.MapFlags.READ)
+    if not ok:
+        raise RuntimeError("cannot map the HDR frame" + (" for writing (buffer not writable)" if write else ""))
     try:
-        ok1, m1 = buf.map_range(1, 1, flags)
-        if not ok1:
-            raise RuntimeError("cannot map the HDR state block" + (" for writing" if write else ""))
-        try:
-            yield (np.ndarray(shape, np.float32, buffer=m0.data), np.ndarray(shape, np.uint8, buffer=m1.data))
-        finally:
-            buf.unmap(m1)
+        shape = (info.height, info.width)
+        raw = np.frombuffer(mi.data, np.uint8, count=info.size)
+        state = raw[info.state_offset:].reshape(shape)
+        if raw.ctypes.data % 4 == 0:
+            yield raw[:info.state_offset].view(np.float32).reshape(shape), state
+        else:
+            values = raw[:info.state_offset].copy().view(np.float32).reshape(shape)
+            yield values, state
+            if write:
+                raw[:info.state_offset] = values.reshape(-1).view(np.uint8)
     finally:
-        buf.unmap(m0)
+        buf.unmap(mi)
 
 
 @contextlib.contextmanager
@@ -207,9 +278,166 @@ def copy_timestamps(src: Gst.Buffer, dst: Gst.Buffer) -> None:
         dst.set_flags(Gst.BufferFlags.DISCONT)
 
 
+# ---- GStreamer debug categories ------------------------------------------------------------------------
+# PyGObject 3.42 / gst-python 1.22 expose Gst.debug_log_literal (takes a Gst.DebugCategory) but no way to
+# create a category (Gst.DebugCategory has no constructor, GST_DEBUG_CATEGORY_INIT is a C macro); the
+# gst-python helpers Gst.debug()/Gst.log() all log to the single category "python". So the category is
+# created with `_gst_debug_category_new` (the public ABI symbol behind GST_DEBUG_CATEGORY_INIT) through
+# ctypes and then looked up as a Gst.DebugCategory. `GST_DEBUG=nrreconstruct:6` then works as for C
+# elements; without libgstreamer reachable by ctypes, lines go to the "python" category.
+
+_cat_lock = threading.Lock()
+_categories: dict = {}
+
+
+def debug_category(name: str, description: str):
+    """The Gst.DebugCategory `name` (created once, thresholds from GST_DEBUG applied), or None."""
+    with _cat_lock:
+        if name in _categories:
+            return _categories[name]
+        cat = None
+        try:
+            for c in Gst.debug_get_all_categories():
+                if c.get_name() == name:
+                    cat = c
+                    break
+            if cat is None:
+                lib = ctypes.CDLL("libgstreamer-1.0.so.0")
+                new = lib._gst_debug_category_new
+                new.restype = ctypes.c_void_p
+                new.argtypes = [ctypes.c_char_p, ctypes.c_uint, ctypes.c_char_p]
+                new(name.encode(), 0, description.encode())
+                cat = next((c for c in Gst.debug_get_all_categories() if c.get_name() == name), None)
+        except Exception:  # noqa: BLE001 - fall back to Gst.debug() & co. (category "python")
+            cat = None
+        _categories[name] = cat
+        return cat
+
+
+_PY_LOGGERS = {}
+
+
+def _py_logger(level):
+    if not _PY_LOGGERS:
+        _PY_LOGGERS.update({Gst.DebugLevel.ERROR: Gst.error, Gst.DebugLevel.WARNING: Gst.warning,
+                            Gst.DebugLevel.FIXME: Gst.fixme, Gst.DebugLevel.INFO: Gst.info,
+                            Gst.DebugLevel.DEBUG: Gst.debug, Gst.DebugLevel.LOG: Gst.log,
+                            Gst.DebugLevel.TRACE: Gst.trace})
+    return _PY_LOGGERS.get(level, Gst.debug)
+
+
+# ---- Python warnings raised inside an element -> bus WARNING messages -------------------------------------
+# warnings.catch_warnings() is process-global, not per thread (elements run in several streaming threads),
+# so a hook on warnings._showwarnmsg (which catch_warnings, pytest included, does not replace) looks up the
+# element running in the current thread; outside an element the usual display happens, once per location.
+
+_tls = threading.local()
+_HOOK_MARK = "_nrhdr_bus_hook"
+_WARN_MODULES = r"(nrhdr_core|gst_plugins)(\..*)?$"
+_warn_filter = []
+
+
+def _install_warning_hook() -> None:
+    prev = getattr(warnings, "_showwarnmsg", None)
+    if prev is None or getattr(prev, _HOOK_MARK, False):
+        return
+    seen = set()
+
+    def hook(msg):
+        el = getattr(_tls, "element", None)
+        if el is not None:
+            try:
+                el.post_python_warning(msg)
+                return
+            except Exception:  # noqa: BLE001 - never lose the warning
+                pass
+        key = (str(msg.message), msg.category, msg.filename, msg.lineno)
+        if key not in seen:          # "default" action: once per location and text
+            seen.add(key)
+            prev(msg)
+
+    setattr(hook, _HOOK_MARK, True)
+    warnings._showwarnmsg = hook
+
+
+@contextlib.contextmanager
+def _warnings_to(element):
+    """Within the block, warnings raised in this thread become bus WARNING messages of `element`."""
+    _install_warning_hook()
+    # every occurrence of a warning attributed to nrhdr's own modules reaches the hook (which
+    # deduplicates); the filter is re-added if something (pytest, catch_warnings) reset the list
+    if not _warn_filter or _warn_filter[0] not in warnings.filters:
+        warnings.filterwarnings("always", module=_WARN_MODULES)
+        _warn_filter[:] = [warnings.filters[0]]
+    old = getattr(_tls, "element", None)
+    _tls.element = element
+    try:
+        yield
+    finally:
+        _tls.element = old
+
+
 class ErrorPoster:
     """Mixin (plain Python, no vfuncs) for posting element errors that name the element and the problem.
-    gst-launch prints them as `ERROR: from element /GstPipeline:pipeline0/GstNrValidity:nrvalidity0: <text>`."""
+    gst-launch prints them as `ERROR: from element /GstPipeline:pipeline0/GstNrValidity:nrvalidity0: <text>`.
+
+    Also GStreamer debug logging in the element's own category (class attribute DEBUG_CATEGORY, made with
+    `debug_category(factory, description)`): `self.gst_debug(text)`, `gst_log`, `gst_info`, `gst_warn`,
+    `gst_trace`, `gst_debug_enabled(level)`; and `with self.warnings_to_bus():` around core calls."""
+
+    DEBUG_CATEGORY = None
+
+    def gst_debug_enabled(self, level=Gst.DebugLevel.LOG) -> bool:
+        cat = type(self).DEBUG_CATEGORY
+        if cat is None:
+            return Gst.debug_is_active()
+        return int(cat.get_threshold()) >= int(level)
+
+    def _gst_log_at(self, level, text: str) -> None:
+        cat = type(self).DEBUG_CATEGORY
+        try:
+            if cat is None:
+                _py_logger(level)(f"{self.get_name()}: {text}")
+                return
+            if int(cat.get_threshold()) < int(level):
+                return
+            f = sys._getframe(2)
+            Gst.debug_log_literal(cat, level, f.f_code.co_filename, f.f_code.co_name, f.f_lineno, self, text)
+        except Exception:  # noqa: BLE001 - logging never breaks the stream
+            pass
+
+    def gst_warn(self, text: str) -> None:
+        self._gst_log_at(Gst.DebugLevel.WARNING, text)
+
+    def gst_info(self, text: str) -> None:
+        self._gst_log_at(Gst.DebugLevel.INFO, text)
+
+    def gst_debug(self, text: str) -> None:
+        self._gst_log_at(Gst.DebugLevel.DEBUG, text)
+
+    def gst_log(self, text: str) -> None:
+        self._gst_log_at(Gst.DebugLevel.LOG, text)
+
+    def gst_trace(self, text: str) -> None:
+        self._gst_log_at(Gst.DebugLevel.TRACE, text)
+
+    def warnings_to_bus(self):
+        """Context manager: Python warnings raised in this thread inside the block (e.g. 'no pixel is
+        known' from nrhdr_core) become bus WARNING messages from this element, each distinct text once
+        per run (later repeats: DEBUG lines)."""
+        return _warnings_to(self)
+
+    def post_python_warning(self, msg) -> None:
+        text = f"{msg.category.__name__}: {msg.message}"
+        seen = self.__dict__.setdefault("_nr_warned", {})
+        seen[text] = seen.get(text, 0) + 1
+        if seen[text] > 1:
+            self.gst_debug(f"warning repeated ({seen[text]} times): {text}")
+            return
+        self.gst_warn(text)
+        self.message_full(Gst.MessageType.WARNING, Gst.stream_error_quark(), int(Gst.StreamError.FAILED),
+                          text, f"{msg.filename}:{msg.lineno}", msg.filename or "", "warning",
+                          int(msg.lineno or 0))
 
     def post_error(self, text: str, debug: str | None = None, kind: str = "stream") -> None:
         """Post an element error; the same text is posted once per run (upstream may retry a refused
@@ -243,7 +471,7 @@ class ErrorPoster:
             choice.invalid = None
             choice.value = str(value).strip().lower()
             return choice.value
-        Gst.warning(f"{self.get_name()}: {err}")
+        self.gst_warn(err)
         if self.get_state(0)[1] in (Gst.State.PAUSED, Gst.State.PLAYING):
             self.message_full(Gst.MessageType.WARNING, Gst.core_error_quark(), int(Gst.CoreError.FAILED),
                               f"{err}; keeping {choice.value!r}", None, __file__, "set_property", 0)
@@ -263,16 +491,21 @@ class ErrorPoster:
 
     def reset_errors(self) -> None:
         self.__dict__["_nr_posted"] = set()
+        self.__dict__["_nr_warned"] = {}
 
     def post_exception(self, where: str, exc: BaseException) -> Gst.FlowReturn:
         """Post an element error for an exception raised in a vfunc and return FlowReturn.ERROR."""
         tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+        self.gst_debug(f"{where}: {type(exc).__name__}: {exc}")
         self.post_error(f"{where}: {type(exc).__name__}: {exc}", tb)
         return Gst.FlowReturn.ERROR
 
 
 class Choice:
-    """A string property restricted to a set of words (PyGObject 3.42 cannot register new GEnum types).
+    """A string property restricted to a set of words. PyGObject 3.42 does not register GEnum types from
+    Python: a `class Mode(GObject.GEnum)` subclass keeps the abstract GType `GEnum`, and
+    `GObject.Property(type=Mode)` fails with "could not get typecode from object" (checked on this
+    platform, docs/ELEMENTS.md), so choices are strings validated here.
     `set(value)` returns None when valid, else an error text; an invalid value set before start is
     remembered so `do_start` fails with a clear element error instead of silently using a default."""
 

@@ -6,14 +6,17 @@ returns the frame unchanged, so frames pass through untouched.
 """
 from __future__ import annotations
 
+import time
+
 from ._common import (MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster, GObject, Gst, GstBase, HdrInfo,
-                      hdr_template_caps, load_profile, map_hdr)
+                      debug_category, hdr_template_caps, load_profile, map_hdr)
 
 MODES = ("lut", "kernel", "off")
 
 
 class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
     __gtype_name__ = "GstNrCrosstalk"
+    DEBUG_CATEGORY = debug_category("nrcrosstalk", "nrhdr crosstalk correction")
     __gstmetadata__ = (
         "nrhdr crosstalk correction",
         "Filter/Effect/Video",
@@ -49,9 +52,9 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
 
     @GObject.Property(type=str, default="kernel", nick="Correction mode",
                       blurb="'kernel' = each pixel's calibrated neighbour kernel applied to its actual "
-                            "neighbours (accurate: ~3x less residual crosstalk on natural scenes, ~110 ms "
-                            "per 640x480 frame); 'lut' = the paper's per-code look-up table (fast, ~6 ms, "
-                            "assumes neighbours as bright as the pixel); 'off' = pass frames through "
+                            "neighbours (accurate, slower: docs/CROSSTALK.md); 'lut' = the paper's "
+                            "per-code look-up table (fast, assumes neighbours as bright as the pixel); "
+                            "'off' = pass frames through "
                             "(one of: kernel, lut, off). Without a calibration in the profile every mode "
                             "passes frames through",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
@@ -107,6 +110,9 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
                                 f"{info.width}x{info.height}", kind="format")
                 return False
             self._info = info
+            calibrated = getattr(self._profile, "crosstalk", None) is not None
+            self.gst_debug(f"caps {incaps.to_string()}; profile {self._profile.path}"
+                           f"{'' if calibrated else ' has no crosstalk calibration: frames pass unchanged'}")
             return True
         except Exception as e:  # noqa: BLE001
             self.post_exception("set_caps", e)
@@ -120,12 +126,20 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
                 return Gst.FlowReturn.NOT_NEGOTIATED
             if mode != "off":
                 from nrhdr_core import crosstalk
-                with map_hdr(buf, self._info, write=True) as (values, state):
+                t0 = time.perf_counter()
+                with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
                     v2, s2 = crosstalk.correct(values, state, self._profile, mode)
+                    copied = v2 is not values or s2 is not state
                     if v2 is not values:
                         values[...] = v2
                     if s2 is not state:
                         state[...] = s2
+                if self.gst_debug_enabled(Gst.DebugLevel.LOG):
+                    self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: mode={mode} in "
+                                 f"{(time.perf_counter() - t0) * 1e3:.2f} ms"
+                                 f"{' (result copied back: core returned new arrays)' if copied else ''}")
+            elif self.gst_debug_enabled(Gst.DebugLevel.LOG):
+                self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: skipped (mode=off)")
             self._frames += 1
             return Gst.FlowReturn.OK
         except Exception as e:  # noqa: BLE001

@@ -8,6 +8,7 @@ import os
 
 from ._common import (MUTABLE_READY, ErrorPoster, GObject, Gst, GstBase, HdrInfo, hdr_template_caps,
                       map_hdr)
+from ._common import debug_category  # noqa: E402  (issue 11: GST_DEBUG=nrexrsink:6)
 
 
 def format_location(pattern: str, index: int) -> str:
@@ -25,6 +26,7 @@ def format_location(pattern: str, index: int) -> str:
 
 class NrExrSink(ErrorPoster, GstBase.BaseSink):
     __gtype_name__ = "GstNrExrSink"
+    DEBUG_CATEGORY = debug_category("nrexrsink", "nrhdr OpenEXR sequence sink")
     __gstmetadata__ = (
         "nrhdr OpenEXR sequence sink",
         "Sink/Video",
@@ -122,6 +124,7 @@ class NrExrSink(ErrorPoster, GstBase.BaseSink):
             path = format_location(self._location, self._index)
             with map_hdr(buf, self._info, write=False) as (values, state):
                 io.write_exr(path, values, state if self._write_state else None)
+            self.gst_log(f"frame pts {Gst.TIME_ARGS(buf.pts)} -> {path}")  # issue 11: per-frame debug line
             self._index += 1
             return Gst.FlowReturn.OK
         except Exception as e:  # noqa: BLE001

@@ -13,6 +13,7 @@ import time
 
 from ._common import (MUTABLE_PLAYING, Choice, ErrorPoster, GObject, Gst, GstBase, HdrInfo,
                       hdr_template_caps, map_hdr, np)
+from ._common import debug_category  # noqa: E402  (issue 11: GST_DEBUG=nrreconstruct:6)
 
 METHODS = ("fse", "linear", "nearest", "preview")
 PRESETS = ("preview", "fast", "balanced", "best")
@@ -28,6 +29,7 @@ class ReconParams:
 
 class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
     __gtype_name__ = "GstNrReconstruct"
+    DEBUG_CATEGORY = debug_category("nrreconstruct", "nrhdr missing-pixel reconstruction")
     __gstmetadata__ = (
         "nrhdr missing-pixel reconstruction",
         "Filter/Effect/Video",
@@ -126,6 +128,7 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
     def do_set_caps(self, incaps, outcaps):
         try:
             self._info = HdrInfo.from_caps(incaps)
+            self.gst_debug(f"caps {incaps.to_string()}")
             return True
         except Exception as e:  # noqa: BLE001
             self.post_exception("set_caps", e)
@@ -140,7 +143,7 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
                 return Gst.FlowReturn.NOT_NEGOTIATED
             from nrhdr_core import reconstruction, validity
             t0 = time.perf_counter()
-            with map_hdr(buf, self._info, write=True) as (values, state):
+            with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
                 missing = validity.missing_mask(state)
                 n_miss = int(np.count_nonzero(missing))
                 if n_miss:
@@ -148,6 +151,7 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
                     lower = upper = None
                     if p.use_bounds:
                         lower, upper = validity.bounds(values, state)
+                    # hook (issue 11): once reconstruct() takes out=, pass out=values and drop the copy
                     out = reconstruction.reconstruct(values, known, method=p.method, preset=p.preset,
                                                      lower=lower, upper=upper)
                     if out.shape != values.shape:
@@ -155,6 +159,11 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
                     np.copyto(values, out, where=missing)          # measured pixels untouched
                     np.bitwise_or(state, np.uint8(validity.RECONSTRUCTED), out=state, where=missing)
             dt = time.perf_counter() - t0
+            if self.gst_debug_enabled(Gst.DebugLevel.LOG):  # per-frame line (GST_DEBUG=nrreconstruct:6)
+                self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: " + (
+                    f"{n_miss} missing pixels ({100.0 * n_miss / self._info.pixels:.2f} %) filled by "
+                    f"method={p.method} preset={p.preset} in {dt * 1e3:.2f} ms" if n_miss else
+                    f"skipped: no pixel missing ({dt * 1e3:.2f} ms)"))
             if self._post_stats:
                 self._post_frame_stats(n_miss / float(self._info.pixels), p.method, dt)
             self._frames += 1

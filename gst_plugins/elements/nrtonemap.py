@@ -1,19 +1,39 @@
-"""nrtonemap: logarithmic tone mapping of HDR frames (paper section 5) to GRAY8 or GRAY16_LE for any stock
-sink (format negotiated with downstream). The normaliser is fixed (the caps' `white`, set by nrvalidity
-from the profile, or the `white` property) or smoothed over time (`nrhdr_core.tonemap.WhiteTracker`),
-never a per-frame min/max, so video does not flicker.
+"""nrtonemap: HDR frames to display video. transfer=log (default): logarithmic tone mapping (paper section 5)
+to GRAY8 or GRAY16_LE for any stock sink (format negotiated with downstream). transfer=pq / hlg (beyond the
+paper): 10-bit BT.2100 PQ (SMPTE ST 2084) or HLG (ARIB STD-B67) codes, narrow range, in GRAY16_LE/BE words
+(code << 6) with colorimetry=bt2100-pq / bt2100-hlg in the caps, for HDR monitors and 10-bit encoders
+(`videoconvert ! video/x-raw,format=I420_10LE ! vp9enc`).
+
+The normaliser is fixed (the caps' `white` / `diffuse-white`, set by nrvalidity from the profile, or the
+`white` property) or smoothed over time (`nrhdr_core.tonemap.WhiteTracker`), never a per-frame min/max, so
+video does not flicker. pixel-aspect-ratio and interlace-mode pass through.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
-from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, Choice, ErrorPoster, GObject, Gst,
-                      GstBase, GstVideo, HdrInfo, copy_fields, hdr_template_caps, map_hdr, map_video, np,
-                      raw_template_caps, transform_caps_by_structure)
+from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster,
+                      GObject, Gst, GstBase, GstVideo, HdrInfo, copy_fields, debug_category, hdr_template_caps,
+                      map_hdr, map_video, np, transform_caps_by_structure)
 
 NORMALISE = ("caps", "fixed", "smoothed")
+TRANSFERS = ("log", "pq", "hlg")
+COLORIMETRY = {"pq": "bt2100-pq", "hlg": "bt2100-hlg"}
+LOG_FORMATS = ("GRAY8", "GRAY16_LE")
+HDR_FORMATS = ("GRAY16_LE", "GRAY16_BE")   # BE: pngenc writes 16-bit PNG from it directly
 DEFAULT_CONTRAST = 1000.0  # = nrhdr_core.tonemap.DEFAULT_CONTRAST (not imported here: keeps import light)
+DEFAULT_REFERENCE_WHITE = 203.0  # = nrhdr_core.tonemap.REFERENCE_WHITE_NITS (ITU-R BT.2408)
+_INT = "(int)[1,2147483647]"
+_FPS = "(fraction)[0/1,2147483647/1]"
+
+
+def _src_template() -> Gst.Caps:
+    return Gst.Caps.from_string(
+        f"video/x-raw, format=(string){{ GRAY8, GRAY16_LE }}, width={_INT}, height={_INT}, framerate={_FPS}; "
+        f"video/x-raw, format=(string){{ GRAY16_LE, GRAY16_BE }}, width={_INT}, height={_INT}, "
+        f"framerate={_FPS}, colorimetry=(string){{ bt2100-pq, bt2100-hlg }}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -23,27 +43,32 @@ class ToneParams:
     exposure: float = 0.0
     contrast: float = DEFAULT_CONTRAST
     smoothing: float = 0.1
+    reference_white: float = DEFAULT_REFERENCE_WHITE
 
 
 class NrTonemap(ErrorPoster, GstBase.BaseTransform):
     __gtype_name__ = "GstNrTonemap"
+    DEBUG_CATEGORY = debug_category("nrtonemap", "nrhdr tone mapping and HDR (PQ/HLG) output")
     __gstmetadata__ = (
-        "nrhdr logarithmic tone mapping",
+        "nrhdr tone mapping and HDR output",
         "Filter/Converter/Video",
-        "Logarithmic tone mapping (paper section 5) of linear HDR frames (other/x-nrhdr) to GRAY8 or "
-        "GRAY16_LE video, normalised by a fixed or temporally smoothed white (no flicker)",
+        "Linear HDR frames (other/x-nrhdr) to display video: logarithmic tone mapping (paper section 5) to "
+        "GRAY8/GRAY16_LE normalised by a fixed or temporally smoothed white (no flicker), or 10-bit BT.2100 "
+        "PQ / HLG (transfer=pq|hlg) with bt2100 colorimetry",
         "nrhdr project",
     )
     __gsttemplates__ = (
         Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, hdr_template_caps()),
-        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS,
-                            raw_template_caps("{ GRAY8, GRAY16_LE }")),
+        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, _src_template()),
     )
 
     def __init__(self):
         super().__init__()
         self._params = ToneParams()
         self._normalise = Choice("normalise", NORMALISE, "caps")
+        self._transfer = Choice("transfer", TRANSFERS, "log")
+        self._out_transfer = "log"
+        self._byteswap = False
         self._in_info = None
         self._out_info = None
         self._out_dtype = np.uint8
@@ -72,8 +97,35 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
         if v is not None:
             self._update(normalise=v)
 
+    @GObject.Property(type=str, default="log", nick="Transfer function",
+                      blurb="Output: 'log' = the paper's logarithmic tone mapping to SDR GRAY8/GRAY16_LE; "
+                            "'pq' = SMPTE ST 2084, 'hlg' = ARIB STD-B67: 10-bit BT.2100 narrow-range codes "
+                            "(64..940) << 6 in GRAY16_LE/BE, colorimetry bt2100-pq / bt2100-hlg "
+                            "(one of: log, pq, hlg)",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_READY)
+    def transfer(self):
+        return self._transfer.value
+
+    @transfer.setter
+    def transfer(self, value):
+        self.set_choice(self._transfer, value)
+
+    @GObject.Property(type=float, default=DEFAULT_REFERENCE_WHITE, minimum=1.0, maximum=10000.0,
+                      nick="Reference white (cd/m2)",
+                      blurb="transfer=pq/hlg: display luminance of the scene's diffuse white (the caps' "
+                            "diffuse-white = the regular pixels' white; with normalise=fixed/smoothed the "
+                            "white); brighter values keep their ratio (ITU-R BT.2408: 203)",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
+    def reference_white(self):
+        return self._params.reference_white
+
+    @reference_white.setter
+    def reference_white(self, value):
+        self._update(reference_white=float(value))
+
     @GObject.Property(type=float, default=0.0, minimum=0.0, maximum=1e12, nick="White",
-                      blurb="Linear value mapped to full scale with normalise=fixed; 0 = the caps' white",
+                      blurb="Linear value mapped to full scale (log) or to reference-white (pq/hlg) with "
+                            "normalise=fixed; 0 = the caps' white",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
     def white(self):
         return self._params.white
@@ -118,12 +170,15 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
     def do_start(self):
         self.reset_errors()
         try:
-            if self._normalise.invalid:
-                self.post_error(self._normalise.invalid, kind="settings")
-                return False
+            for c in (self._normalise, self._transfer):
+                if c.invalid:
+                    self.post_error(c.invalid, kind="settings")
+                    return False
             from nrhdr_core import tonemap
-            if hasattr(tonemap, "warmup"):
+            if self._transfer.value == "log":
                 tonemap.warmup()
+            else:
+                tonemap.warmup_hdr()
             self._tracker = None
             self._frames = 0
             return True
@@ -143,12 +198,16 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
 
     # ---- caps ---------------------------------------------------------------------------------------
     def do_transform_caps(self, direction, caps, filt):
+        transfer = self._transfer.value
+
         def to_raw(s):
             out = []
-            for fmt in ("GRAY8", "GRAY16_LE"):
+            for fmt in (LOG_FORMATS if transfer == "log" else HDR_FORMATS):
                 n = Gst.Structure.new_empty("video/x-raw")
                 n.set_value("format", fmt)
                 copy_fields(s, n)
+                if transfer != "log":
+                    n.set_value("colorimetry", COLORIMETRY[transfer])
                 out.append(n)
             return out
 
@@ -178,22 +237,26 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
                 self.post_error(f"cannot parse output caps {outcaps.to_string()}", kind="format")
                 return False
             fmt = vi.finfo.format
-            if fmt == GstVideo.VideoFormat.GRAY8:
-                self._out_dtype = np.uint8
-            elif fmt == GstVideo.VideoFormat.GRAY16_LE:
-                self._out_dtype = np.dtype("<u2")
-            else:
-                self.post_error(f"unsupported output format {vi.finfo.name}", kind="format")
+            transfer = self._transfer.value
+            formats = LOG_FORMATS if transfer == "log" else HDR_FORMATS
+            if vi.finfo.name not in formats:
+                self.post_error(f"output format {vi.finfo.name} does not fit transfer={transfer} (needs "
+                                f"{' or '.join(formats)})", kind="format")
                 return False
+            self._out_dtype = np.uint8 if fmt == GstVideo.VideoFormat.GRAY8 else np.dtype("<u2")
+            self._byteswap = fmt == GstVideo.VideoFormat.GRAY16_BE
+            self._out_transfer = transfer
             self._out_info = vi
             self._tracker = None
+            self.gst_debug(f"caps: {incaps.to_string()} -> {outcaps.to_string()} (transfer={transfer})")
             return True
         except Exception as e:  # noqa: BLE001
             self.post_exception("set_caps", e)
             return False
 
     # ---- data ---------------------------------------------------------------------------------------
-    def _white(self, p: ToneParams, values) -> float:
+    def _white(self, p: ToneParams, values, hdr: bool = False) -> float:
+        """The normaliser: full scale of the log curve, or (hdr) the value shown at reference white."""
         from nrhdr_core import tonemap
         if p.normalise == "smoothed":
             if self._tracker is None or self._tracker_speed != p.smoothing:
@@ -204,6 +267,8 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
             return float(self._tracker.update(values))
         if p.normalise == "fixed" and p.white > 0:
             return p.white
+        if hdr and p.normalise == "caps" and self._in_info.diffuse_white is not None:
+            return self._in_info.diffuse_white
         w = self._in_info.white
         if w is None:
             if p.normalise == "fixed":
@@ -216,7 +281,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
         try:
             self.sync_controlled(buf)
         except Exception as e:  # noqa: BLE001
-            Gst.warning(f"{self.get_name()}: controller sync failed: {e}")
+            self.gst_warn(f"controller sync failed: {e}")
 
     def do_transform(self, inbuf, outbuf):
         p = self._params
@@ -225,17 +290,25 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
                 self.post_error("no caps negotiated before the first buffer", kind="negotiation")
                 return Gst.FlowReturn.NOT_NEGOTIATED
             from nrhdr_core import tonemap
-            with map_hdr(inbuf, self._in_info, write=False) as (values, _state), \
+            transfer = self._out_transfer
+            t0 = time.perf_counter()
+            with self.warnings_to_bus(), map_hdr(inbuf, self._in_info, write=False) as (values, _state), \
                     map_video(outbuf, self._out_info, self._out_dtype, write=True) as out:
-                white = self._white(p, values)
+                white = self._white(p, values, hdr=transfer != "log")
                 if not (math.isfinite(white) and white > 0):
                     raise ValueError(f"tone mapping white is {white}")
-                if out.flags.c_contiguous:
+                # kernels write straight into the mapped output (strided rows are fine for numba)
+                if transfer == "log":
                     tonemap.log_tonemap(values, white, exposure_stops=p.exposure, contrast=p.contrast, out=out)
                 else:
-                    tmp = np.empty(out.shape, out.dtype)
-                    tonemap.log_tonemap(values, white, exposure_stops=p.exposure, contrast=p.contrast, out=tmp)
-                    out[...] = tmp
+                    tonemap.hdr_encode(values, white, transfer, reference_white=p.reference_white,
+                                       exposure_stops=p.exposure, out=out)
+                    if self._byteswap:
+                        out.byteswap(inplace=True)
+            if self.gst_debug_enabled(Gst.DebugLevel.LOG):
+                self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(inbuf.pts)}: {transfer} "
+                             f"white={white:.6g} exposure={p.exposure:+.2f} in "
+                             f"{(time.perf_counter() - t0) * 1e3:.2f} ms")
             self._frames += 1
             return Gst.FlowReturn.OK
         except Exception as e:  # noqa: BLE001

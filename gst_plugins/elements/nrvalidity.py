@@ -1,17 +1,23 @@
 """nrvalidity: raw GRAY16_LE sensor frames in, HDR frames (`other/x-nrhdr`) out (paper section 2.3, Eq. 3).
 
 Clipped pixels and attenuated pixels below l_min become missing, attenuated pixels are scaled by ND, and a
-per-pixel state byte (valid / clipped / too dark / discarded, + attenuated bit) travels in the frame's
-second memory block (docs/ARCHITECTURE.md). Core: `nrhdr_core.validity.classify`.
+per-pixel state byte (valid / clipped / too dark / discarded, + attenuated bit) travels after the float
+plane in the frame's one block (docs/ARCHITECTURE.md). Core: `nrhdr_core.validity.classify`, writing straight
+into the mapped output frame, which comes from a buffer pool (allocated once per size).
+
+Caps follow the profile: once the profile is known, the sink pad advertises only the mask's width and
+height upstream (so `videotestsrc ! video/x-raw,format=GRAY16_LE ! nrvalidity profile=...` or `videoscale !
+nrvalidity` negotiate that size); pixel-aspect-ratio and interlace-mode pass through.
 """
 from __future__ import annotations
 
 import os
+import time
 import urllib.parse
 
-from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster,
-                      GObject, Gst, GstBase, GstVideo, HdrInfo, alloc_hdr_buffer, copy_fields,
-                      copy_timestamps, hdr_template_caps, load_profile, map_hdr, map_video,
+from ._common import (CONTROLLABLE, HDR_LAYOUT, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice,
+                      ErrorPoster, GObject, Gst, GstBase, GstVideo, HdrInfo, HdrPool, copy_fields,
+                      copy_timestamps, debug_category, hdr_template_caps, load_profile, map_hdr, map_video,
                       raw_template_caps, transform_caps_by_structure)
 
 MODES = ("all", "best", "threshold")
@@ -19,6 +25,7 @@ MODES = ("all", "best", "threshold")
 
 class NrValidity(ErrorPoster, GstBase.BaseTransform):
     __gtype_name__ = "GstNrValidity"
+    DEBUG_CATEGORY = debug_category("nrvalidity", "nrhdr validity and ND scaling")
     __gstmetadata__ = (
         "nrhdr validity and ND scaling",
         "Filter/Converter/Video",
@@ -30,11 +37,13 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
     __gsttemplates__ = (
         Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS,
                             raw_template_caps("GRAY16_LE")),
-        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
+        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS,
+                            hdr_template_caps(strict=True)),
     )
 
     def __init__(self):
         super().__init__()
+        self._pool = None
         self._profile_path = ""
         self._mode = Choice("mode", MODES, "threshold")
         self._params = ("threshold", -1.0)   # (mode, l_min): swapped whole, read once per frame
@@ -108,17 +117,34 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
     def do_stop(self):
         self._profile = None
         self._in_info = self._out_info = None
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
         return True
 
     # ---- caps ---------------------------------------------------------------------------------------
+    def _known_profile(self):
+        """The loaded profile, or (before start, e.g. caps queries while linking) the one the property
+        names if it loads; None when unknown. Errors are reported by do_start, not here."""
+        if self._profile is not None:
+            return self._profile
+        if not self._profile_path:
+            return None
+        try:
+            return load_profile(self._profile_path)
+        except Exception:  # noqa: BLE001
+            return None
+
     def do_transform_caps(self, direction, caps, filt):
-        prof = self._profile
+        prof = self._known_profile()
 
         def to_hdr(s):
             n = Gst.Structure.new_empty(HDR_MEDIA_TYPE)
+            n.set_value("layout", HDR_LAYOUT)
             copy_fields(s, n)
             if prof is not None:
                 n.set_value("white", float(prof.white))
+                n.set_value("diffuse-white", float(prof.regular_white))
                 if prof.path is not None:
                     n.set_value("profile", str(prof.path))
             return [n]
@@ -129,8 +155,16 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
             copy_fields(s, n)
             return [n]
 
-        return transform_caps_by_structure(caps, filt, to_hdr if direction == Gst.PadDirection.SINK
-                                           else to_raw, self)
+        sink = direction == Gst.PadDirection.SINK
+        out = transform_caps_by_structure(caps, None, to_hdr if sink else to_raw, self)
+        if prof is not None:  # the mask's size only, both ways (empty caps if the other side cannot have it)
+            media = HDR_MEDIA_TYPE if sink else "video/x-raw"
+            out = out.intersect(Gst.Caps.from_string(f"{media}, width=(int){prof.width}, "
+                                                     f"height=(int){prof.height}"))
+        if filt is not None:
+            out = filt.intersect_full(out, Gst.CapsIntersectMode.FIRST)
+        self.gst_log(f"transform_caps {direction.value_nick}: {caps.to_string()} -> {out.to_string()}")
+        return out
 
     def do_accept_caps(self, direction, caps):
         ok = GstBase.BaseTransform.do_accept_caps(self, direction, caps)
@@ -146,7 +180,13 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         if not ok and direction == Gst.PadDirection.SINK and caps is not None and caps.is_fixed():
             s = caps.get_structure(0)
             fmt = s.get_string("format") if s.has_field("format") else None
-            if s.get_name() == "video/x-raw" and fmt and fmt != "GRAY16_LE":
+            prof = self._known_profile()
+            okw, w = s.get_int("width")
+            okh, h = s.get_int("height")
+            if (s.get_name() == "video/x-raw" and fmt == "GRAY16_LE" and prof is not None and okw and okh
+                    and (w, h) != (prof.width, prof.height)):
+                self.post_error(self._size_mismatch(prof, w, h), kind="format")
+            elif s.get_name() == "video/x-raw" and fmt and fmt != "GRAY16_LE":
                 okw, w = s.get_int("width")
                 okh, h = s.get_int("height")
                 size = f" {w}x{h}" if okw and okh else ""
@@ -168,25 +208,30 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
                 self.post_error("no camera profile loaded", kind="settings")
                 return False
             if (vi.width, vi.height) != (prof.width, prof.height):
-                name = os.path.basename(str(prof.path)) if prof.path else self._profile_path
-                self.post_error(f"profile {name} has a {prof.width}x{prof.height} mask but the stream is "
-                                f"{vi.width}x{vi.height}", kind="format")
+                self.post_error(self._size_mismatch(prof, vi.width, vi.height), kind="format")
                 return False
             self._in_info = vi
             self._out_info = HdrInfo.from_caps(outcaps)
+            self._pool = HdrPool.for_info(self._pool, self._out_info)
+            self.gst_debug(f"caps: {incaps.to_string()} -> {outcaps.to_string()}; pool of "
+                           f"{self._out_info.size}-byte frames")
             return True
         except Exception as e:  # noqa: BLE001
             self.post_exception("set_caps", e)
             return False
 
+    def _size_mismatch(self, prof, w, h) -> str:
+        name = os.path.basename(str(prof.path)) if prof.path else self._profile_path
+        return f"profile {name} has a {prof.width}x{prof.height} mask but the stream is {w}x{h}"
+
     # ---- data ---------------------------------------------------------------------------------------
     def do_prepare_output_buffer(self, inbuf):
         try:
             oi = self._out_info
-            if oi is None:
+            if oi is None or self._pool is None:
                 self.post_error("no caps negotiated before the first buffer", kind="negotiation")
                 return Gst.FlowReturn.NOT_NEGOTIATED, None
-            out = alloc_hdr_buffer(oi.width, oi.height)
+            out = self._pool.acquire()
             copy_timestamps(inbuf, out)
             return Gst.FlowReturn.OK, out
         except Exception as e:  # noqa: BLE001
@@ -241,7 +286,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         try:
             self.sync_controlled(buf)
         except Exception as e:  # noqa: BLE001
-            Gst.warning(f"{self.get_name()}: controller sync failed: {e}")
+            self.gst_warn(f"controller sync failed: {e}")
 
     def do_transform(self, inbuf, outbuf):
         try:
@@ -250,9 +295,14 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
             from nrhdr_core import validity
             mode, lm = self._params
             lm = None if lm < 0 else lm
-            with map_video(inbuf, self._in_info, "<u2", write=False) as raw, \
+            t0 = time.perf_counter()
+            with self.warnings_to_bus(), map_video(inbuf, self._in_info, "<u2", write=False) as raw, \
                     map_hdr(outbuf, self._out_info, write=True) as (values, state):
                 validity.classify(raw, self._profile, mode=mode, l_min=lm, values=values, state=state)
+            if self.gst_debug_enabled(Gst.DebugLevel.LOG):
+                self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(inbuf.pts)}: classified "
+                             f"{self._in_info.width}x{self._in_info.height} (mode={mode}, l_min="
+                             f"{'profile' if lm is None else lm}) in {(time.perf_counter() - t0) * 1e3:.2f} ms")
             self._frames += 1
             return Gst.FlowReturn.OK
         except Exception as e:  # noqa: BLE001
