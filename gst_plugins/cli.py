@@ -41,7 +41,7 @@ def cmd_simulate(a) -> int:
     print(f"profile {out / 'camera.json'}, ground truth {out / 'truth'}/")
     print(f"run it: pipelines/raw_to_display.sh {out}   or\n"
           f"  nrhdr launch filesrc location={out / 'clip.raw'} ! {rawvideoparse(info)} ! "
-          f"nrvalidity profile={out / 'camera.json'} ! nrreconstruct ! nrtonemap ! autovideosink")
+          f"nrvalidity profile={out / 'camera.json'} ! nrreconstruct ! nrtonemap ! videoconvert ! autovideosink")
     return 0
 
 
@@ -202,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_snr)
 
+    from . import cli_env; cli_env.register_cli(sub)  # noqa: E702  (issue 11: `nrhdr env`)
     try:
         from nrhdr_core import calibration
         if hasattr(calibration, "register_cli"):
