@@ -1,0 +1,202 @@
+"""HDR display output (issue 11 item 6): SMPTE ST 2084 (PQ) and ARIB STD-B67 / BT.2100 HLG against the
+published formulas and constants (written out here, independently of nrhdr_core.tonemap), nrtonemap
+transfer=pq|hlg with BT.2100 colorimetry, and the shipped HDR pipelines."""
+from __future__ import annotations
+
+import math
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import hdr_buffer, run_appsrc
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# SMPTE ST 2084 as published (ITU-R BT.2100 Table 4)
+m1, m2 = 2610 / 16384, 2523 / 4096 * 128
+c1, c2, c3 = 3424 / 4096, 2413 / 4096 * 32, 2392 / 4096 * 32
+# ARIB STD-B67 (BT.2100 Table 5)
+a, b, c = 0.17883277, 0.28466892, 0.55991073
+
+
+def pq(nits):
+    y = min(max(nits / 10000.0, 0.0), 1.0)
+    return ((c1 + c2 * y ** m1) / (1 + c3 * y ** m1)) ** m2
+
+
+def hlg(e):
+    e = min(max(e, 0.0), 1.0)
+    return math.sqrt(3 * e) if e <= 1 / 12 else a * math.log(12 * e - b) + c
+
+
+def narrow10(sig):
+    return int(math.floor(64 + 876 * sig + 0.5))
+
+
+# ---- core ------------------------------------------------------------------------------------------------
+
+def test_constants_as_published():
+    from nrhdr_core import tonemap as t
+    assert (t.M_1, t.M_2, t.C_1, t.C_2, t.C_3) == (0.1593017578125, 78.84375, 0.8359375, 18.8515625, 18.6875)
+    assert t.HLG_A == a and abs(t.HLG_B - b) < 1e-8 and abs(t.HLG_C - c) < 1e-8
+
+
+def test_pq_known_points():
+    from nrhdr_core.tonemap import eotf_ST2084, eotf_inverse_ST2084
+    # hand-computed / tabulated: 0 -> c1^m2, 100 cd/m2 -> 0.5081, 1000 -> 0.7518, 10000 -> 1
+    pts = {0.0: c1 ** m2, 100.0: 0.508078, 203.0: 0.580689, 1000.0: 0.751827, 10000.0: 1.0}
+    for nits, sig in pts.items():
+        assert eotf_inverse_ST2084(nits) == pytest.approx(sig, abs=2e-6), nits
+        assert eotf_inverse_ST2084(nits) == pytest.approx(pq(nits), rel=1e-12), nits
+    x = np.geomspace(0.01, 10000, 50)
+    np.testing.assert_allclose(eotf_ST2084(eotf_inverse_ST2084(x)), x, rtol=1e-9)
+    assert eotf_inverse_ST2084(20000.0) == 1.0
+
+
+def test_hlg_known_points():
+    from nrhdr_core.tonemap import hlg_reference_E, oetf_HLG, oetf_inverse_HLG
+    assert oetf_HLG(0.0) == 0.0
+    assert oetf_HLG(1 / 12) == pytest.approx(0.5, abs=1e-12)       # the two segments meet at E' = 0.5
+    assert oetf_HLG(1.0) == pytest.approx(1.0, abs=1e-7)
+    for e in (0.001, 0.05, 0.2, 0.5, 0.9):
+        assert oetf_HLG(e) == pytest.approx(hlg(e), abs=1e-8)
+    np.testing.assert_allclose(oetf_inverse_HLG(oetf_HLG(np.linspace(0, 1, 41))), np.linspace(0, 1, 41),
+                               atol=1e-12)
+    # ITU-R BT.2408: HDR reference white 203 cd/m2 sits at 75 % HLG signal
+    assert oetf_HLG(hlg_reference_E(203.0)) == pytest.approx(0.75, abs=0.002)
+
+
+def test_hdr_encode_codes():
+    from nrhdr_core.tonemap import hdr_encode, hlg_reference_E
+    diffuse = 4094.0
+    v = np.array([[-1.0, 0.0, diffuse / 2, diffuse, 4 * diffuse, 1e9, np.nan]], np.float32)
+    out = hdr_encode(v, diffuse, "pq", reference_white=203.0)
+    assert out.dtype == np.uint16 and (out % 64 == 0).all()
+    exp = [narrow10(pq(max(x, 0.0) / diffuse * 203.0)) if np.isfinite(x) else 64 for x in v[0].astype(float)]
+    assert list(out[0] >> 6) == exp
+    assert exp[0] == 64 and exp[3] == 573 and exp[5] == 940       # black, 203 cd/m2, 10000 cd/m2
+    e_ref = hlg_reference_E(100.0)
+    out = hdr_encode(v, diffuse, "hlg", reference_white=100.0, exposure_stops=1.0)
+    exp = [narrow10(hlg(max(x, 0.0) * 2 / diffuse * e_ref)) if np.isfinite(x) else 64 for x in v[0].astype(float)]
+    assert list(out[0] >> 6) == exp
+    with pytest.raises(ValueError, match="transfer"):
+        hdr_encode(v, diffuse, "sdr")
+
+
+# ---- element ---------------------------------------------------------------------------------------------
+
+def hdr_caps(w, h, white, diffuse):
+    return (f"other/x-nrhdr,layout=f32-u8-planar,width={w},height={h},framerate=5/1,white=(double){white},"
+            f"diffuse-white=(double){diffuse}")
+
+
+@pytest.mark.gst
+@pytest.mark.parametrize("transfer,fmt", [("pq", "GRAY16_LE"), ("hlg", "GRAY16_LE"), ("pq", "GRAY16_BE")])
+def test_nrtonemap_hdr_output(gst, transfer, fmt):
+    from nrhdr_core.tonemap import hlg_reference_E
+    h, w = 5, 30
+    diffuse, white = 4094.0, 4094.0 * 6.35
+    v = np.geomspace(0.5, white, h * w).astype(np.float32).reshape(h, w)
+    s = np.zeros((h, w), np.uint8)
+    r = run_appsrc(f"nrtonemap transfer={transfer} reference-white=300 ! video/x-raw,format={fmt}",
+                   hdr_caps(w, h, white, diffuse), [hdr_buffer(v, s, pts=i, duration=1) for i in range(2)])
+    assert r.error is None, r.error_text
+    assert len(r.samples) == 2
+    caps, _, _, img = r.samples[0]
+    assert f"colorimetry=(string)bt2100-{transfer}" in caps and f"format=(string){fmt}" in caps
+    if fmt == "GRAY16_BE":   # sample_payload reads native little-endian words
+        img = img.byteswap()
+    if transfer == "pq":
+        exp = [narrow10(pq(x / diffuse * 300.0)) for x in v.ravel().astype(float)]
+    else:
+        exp = [narrow10(hlg(x / diffuse * hlg_reference_E(300.0))) for x in v.ravel().astype(float)]
+    assert (img % 64 == 0).all()
+    assert np.abs((img.ravel() >> 6).astype(int) - np.array(exp)).max() <= 1     # float32 input
+
+
+@pytest.mark.gst
+def test_nrtonemap_pq_negotiates_10bit_yuv_through_videoconvert(gst):
+    h, w = 8, 16
+    v = np.full((h, w), 4094.0, np.float32)       # diffuse white -> 203 cd/m2 -> PQ code 573
+    r = run_appsrc("nrtonemap transfer=pq ! videoconvert ! video/x-raw,format=I420_10LE,colorimetry=bt2100-pq",
+                   hdr_caps(w, h, 26000.0, 4094.0), [hdr_buffer(v, np.zeros((h, w), np.uint8), pts=0, duration=1)])
+    assert r.error is None, r.error_text
+    caps, _, _, y = r.samples[0]       # sample_payload: the Y plane (10-bit words)
+    assert "I420_10LE" in caps and "colorimetry=(string)bt2100-pq" in caps
+    assert (np.abs(y.astype(int) - narrow10(pq(203.0))) <= 1).all(), np.unique(y)
+
+
+@pytest.mark.gst
+def test_reference_white_while_playing(gst):
+    h, w = 2, 4
+    v = np.full((h, w), 4094.0, np.float32)
+    bufs = [hdr_buffer(v, np.zeros((h, w), np.uint8), pts=i, duration=1) for i in range(2)]
+
+    def before(i, pipeline):
+        if i == 1:
+            pipeline.get_by_name("t").set_property("reference-white", 1000.0)
+
+    r = run_appsrc("nrtonemap name=t transfer=pq ! video/x-raw,format=GRAY16_LE", hdr_caps(w, h, 26000.0, 4094.0),
+                   bufs, before_push=before, lockstep=True)
+    assert r.error is None, r.error_text
+    assert (r.samples[0][3] >> 6 == narrow10(pq(203.0))).all()
+    assert (r.samples[1][3] >> 6 == narrow10(pq(1000.0))).all()
+
+
+# ---- pipelines -------------------------------------------------------------------------------------------
+
+def run(cmd, env, timeout=180):
+    p = subprocess.run([str(x) for x in cmd], env=env, capture_output=True, text=True, timeout=timeout)
+    return p.returncode, p.stdout + p.stderr
+
+
+@pytest.mark.gst
+def test_raw_to_hdr10_png(gst_subprocess_env, tiny_clip, tmp_path):
+    from nrhdr_core import io
+    d, prof, raws = tiny_clip
+    env = dict(gst_subprocess_env, FORMAT="png", METHOD="nearest")
+    rc, out = run(["bash", ROOT / "pipelines" / "raw_to_hdr10.sh", d, tmp_path / "hdr10"], env)
+    assert rc == 0, out
+    files = sorted((tmp_path / "hdr10").glob("frame_*.png"))
+    assert len(files) == len(raws)
+    img = io.read_image(files[0], np.uint16)
+    assert img.shape[:2] == (prof.height, prof.width)
+    assert (img % 64 == 0).all() and img.min() >= 64 << 6 and img.max() <= 940 << 6
+    assert img.max() > img.min()
+
+
+@pytest.mark.gst
+def test_raw_to_hdr10_encoded(gst_subprocess_env, tiny_clip, tmp_path):
+    if shutil.which("gst-inspect-1.0") is None or subprocess.run(
+            ["gst-inspect-1.0", "--exists", "vp9enc"]).returncode != 0:
+        pytest.skip("no vp9enc: the pipeline writes PNG frames instead (test_raw_to_hdr10_png)")
+    d, prof, raws = tiny_clip
+    env = dict(gst_subprocess_env, METHOD="nearest", TRANSFER="hlg")
+    rc, out = run(["bash", ROOT / "pipelines" / "raw_to_hdr10.sh", d, tmp_path / "hdr10"], env)
+    assert rc == 0, out
+    mkv = tmp_path / "hdr10.mkv"
+    assert mkv.stat().st_size > 0
+    rc, out = run(["gst-launch-1.0", "-v", "filesrc", f"location={mkv}", "!", "matroskademux", "!", "vp9dec",
+                   "!", "fakesink"], gst_subprocess_env)
+    assert rc == 0, out
+    assert "format=(string)I420_10LE" in out and "colorimetry=(string)bt2100-hlg" in out
+
+
+@pytest.mark.gst
+def test_raw_hdr_recording_pipelines(gst_subprocess_env, tiny_clip, tmp_path):
+    from nrhdr_core import io
+    d, prof, raws = tiny_clip
+    env = dict(gst_subprocess_env, METHOD="nearest")
+    rec = tmp_path / "rec" / "clip.nrhdr"
+    rc, out = run(["bash", ROOT / "pipelines" / "raw_to_hdr_recording.sh", d, rec], env)
+    assert rc == 0, out
+    assert rec.stat().st_size == len(raws) * 5 * prof.width * prof.height
+    assert "layout=(string)f32-u8-planar" in (tmp_path / "rec" / "clip.nrhdr.caps").read_text()
+    rc, out = run(["bash", ROOT / "pipelines" / "hdr_recording_to_png.sh", rec, tmp_path / "png"], env)
+    assert rc == 0, out
+    files = sorted((tmp_path / "png").glob("frame_*.png"))
+    assert len(files) == len(raws)
+    assert io.read_image(files[0], np.uint8).max() > 0
