@@ -29,7 +29,7 @@ if not Gst.is_initialized():
     Gst.init(None)
 
 __all__ = ["Gst", "GstBase", "GstVideo", "GObject", "np", "HDR_MEDIA_TYPE", "HDR_LAYOUT", "hdr_template_caps",
-           "HdrInfo", "HdrPool", "alloc_hdr_buffer", "map_hdr", "map_video", "ErrorPoster", "Choice",
+           "HdrInfo", "HdrPool", "alloc_hdr_buffer", "map_hdr", "map_sample", "map_video", "ErrorPoster", "Choice",
            "load_profile", "copy_timestamps", "debug_category", "MUTABLE_PLAYING", "MUTABLE_READY",
            "CONTROLLABLE"]
 
@@ -243,6 +243,15 @@ def map_hdr(buf: Gst.Buffer, info: HdrInfo, write: bool):
                 raw[:info.state_offset] = values.reshape(-1).view(np.uint8)
     finally:
         buf.unmap(mi)
+
+
+@contextlib.contextmanager
+def map_sample(sample, write: bool = False):
+    """For apps (appsink): yield (values, state) numpy views of an `other/x-nrhdr` Gst.Sample's frame, no
+    copy; valid inside the `with` block only (copy what you keep). examples/appsink_numpy.py."""
+    info = HdrInfo.from_caps(sample.get_caps())
+    with map_hdr(sample.get_buffer(), info, write) as planes:
+        yield planes
 
 
 @contextlib.contextmanager
