@@ -150,6 +150,7 @@ def _add_sensor_args(p, profile_opt=True):
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="nrhdr", description=__doc__)
+    ap.add_argument("--version", action="version", version=f"nrhdr {__import__('nrhdr_core').__version__}")
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="turn an HDR scene into raw sensor video (clip folder)")
