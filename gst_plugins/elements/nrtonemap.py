@@ -229,6 +229,21 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
         except Exception:  # noqa: BLE001
             return False, 0
 
+    def do_decide_allocation(self, query):
+        """Output frames from a buffer pool: downstream's if it proposes one (videoconvert, video sinks),
+        else a plain pool of this size that BaseTransform creates (pngenc, appsink propose none), so
+        frames are allocated once, not per frame."""
+        try:
+            if query.get_n_allocation_pools() == 0:
+                caps, _need_pool = query.parse_allocation()
+                vi = GstVideo.VideoInfo.new_from_caps(caps) if caps is not None else None
+                if vi is not None:
+                    query.add_allocation_pool(None, vi.size, 2, 0)
+                    self.gst_debug(f"downstream proposed no pool: own pool of {vi.size}-byte frames")
+        except Exception as e:  # noqa: BLE001 - fall back to BaseTransform's per-frame allocation
+            self.gst_debug(f"decide_allocation: {e}")
+        return GstBase.BaseTransform.do_decide_allocation(self, query)
+
     def do_set_caps(self, incaps, outcaps):
         try:
             self._in_info = HdrInfo.from_caps(incaps)
