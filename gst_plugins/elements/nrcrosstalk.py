@@ -35,6 +35,7 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
         self._mode = Choice("mode", MODES, "kernel")
         self._profile = None
         self._info = None
+        self._calibrated = False
         self._frames = 0
         self.set_in_place(True)
         self.set_passthrough(False)
@@ -111,6 +112,7 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
                 return False
             self._info = info
             calibrated = getattr(self._profile, "crosstalk", None) is not None
+            self._calibrated = calibrated
             self.gst_debug(f"caps {incaps.to_string()}; profile {self._profile.path}"
                            f"{'' if calibrated else ' has no crosstalk calibration: frames pass unchanged'}")
             return True
@@ -124,7 +126,7 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
             if self._info is None:
                 self.post_error("no caps negotiated before the first buffer", kind="negotiation")
                 return Gst.FlowReturn.NOT_NEGOTIATED
-            if mode != "off":
+            if mode != "off":       # (without a calibration the core returns the frame unchanged)
                 from nrhdr_core import crosstalk
                 t0 = time.perf_counter()
                 with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
@@ -135,7 +137,8 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
                     if s2 is not state:
                         state[...] = s2
                 if self.gst_debug_enabled(Gst.DebugLevel.LOG):
-                    self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: mode={mode} in "
+                    self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: "
+                                 f"{f'mode={mode}' if self._calibrated else 'unchanged (no calibration)'} in "
                                  f"{(time.perf_counter() - t0) * 1e3:.2f} ms"
                                  f"{' (result copied back: core returned new arrays)' if copied else ''}")
             elif self.gst_debug_enabled(Gst.DebugLevel.LOG):
