@@ -337,20 +337,19 @@ def _py_logger(level):
 
 # ---- Python warnings raised inside an element -> bus WARNING messages -------------------------------------
 # warnings.catch_warnings() is process-global, not per thread (elements run in several streaming threads),
-# so a hook on warnings._showwarnmsg (which catch_warnings, pytest included, does not replace) looks up the
-# element running in the current thread; outside an element the usual display happens, once per location.
+# so a hook on warnings._showwarnmsg (which catch_warnings, pytest's included, does not replace) looks up the
+# element running in the current thread and posts the warning on the bus; outside an element the usual
+# display happens unchanged. The warning filters are left alone: their "default" action shows a warning once
+# per location, and each element start (reset_errors) invalidates that memory, so every run reports it.
 
 _tls = threading.local()
 _HOOK_MARK = "_nrhdr_bus_hook"
-_WARN_MODULES = r"(nrhdr_core|gst_plugins)(\..*)?$"
-_warn_filter = []
 
 
 def _install_warning_hook() -> None:
     prev = getattr(warnings, "_showwarnmsg", None)
     if prev is None or getattr(prev, _HOOK_MARK, False):
         return
-    seen = set()
 
     def hook(msg):
         el = getattr(_tls, "element", None)
@@ -360,24 +359,26 @@ def _install_warning_hook() -> None:
                 return
             except Exception:  # noqa: BLE001 - never lose the warning
                 pass
-        key = (str(msg.message), msg.category, msg.filename, msg.lineno)
-        if key not in seen:          # "default" action: once per location and text
-            seen.add(key)
-            prev(msg)
+        prev(msg)
 
     setattr(hook, _HOOK_MARK, True)
     warnings._showwarnmsg = hook
+
+
+def _rearm_warnings() -> None:
+    """Forget which warnings were already shown ("default"/"module" actions), as on a filter change."""
+    f = getattr(warnings, "_filters_mutated", None)
+    if f is not None:
+        try:
+            f()
+        except Exception:  # noqa: BLE001
+            pass
 
 
 @contextlib.contextmanager
 def _warnings_to(element):
     """Within the block, warnings raised in this thread become bus WARNING messages of `element`."""
     _install_warning_hook()
-    # every occurrence of a warning attributed to nrhdr's own modules reaches the hook (which
-    # deduplicates); the filter is re-added if something (pytest, catch_warnings) reset the list
-    if not _warn_filter or _warn_filter[0] not in warnings.filters:
-        warnings.filterwarnings("always", module=_WARN_MODULES)
-        _warn_filter[:] = [warnings.filters[0]]
     old = getattr(_tls, "element", None)
     _tls.element = element
     try:
@@ -501,6 +502,7 @@ class ErrorPoster:
     def reset_errors(self) -> None:
         self.__dict__["_nr_posted"] = set()
         self.__dict__["_nr_warned"] = {}
+        _rearm_warnings()          # a new run reports Python warnings again
 
     def post_exception(self, where: str, exc: BaseException) -> Gst.FlowReturn:
         """Post an element error for an exception raised in a vfunc and return FlowReturn.ERROR."""
