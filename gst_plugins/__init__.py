@@ -20,14 +20,26 @@ _lock = threading.Lock()
 _registered = False
 
 
+def _init_gstreamer_first() -> None:
+    """Gst.init before any element module is imported: with GST_REGISTRY_FORK=no the registry scan runs in
+    Gst.init, in this process, and the plugin loader imports the element shims; a half-imported element
+    module there would cache the python plugin with no elements in the registry (issue 11)."""
+    import gi
+    gi.require_version("Gst", "1.0")
+    from gi.repository import Gst
+    if not Gst.is_initialized():
+        Gst.init(None)
+
+
 def register_all() -> list[str]:
     """Register all nrhdr elements with GStreamer in this process (idempotent, thread-safe). Initialises
     GStreamer if needed. Returns the factory names. The element classes are the same objects the plugin
     loader uses, so registering in a process that also loaded the plugin does not clash."""
     global _registered
     with _lock:
+        _init_gstreamer_first()
         from .elements import ELEMENTS, element_class
-        from .elements._common import Gst  # Gst.init happens there
+        from .elements._common import Gst
         if _registered:
             return list(ELEMENTS)
         for name in ELEMENTS:

@@ -39,3 +39,20 @@ def test_nrhdr_env_then_plain_gst_launch(tiny_clip, tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert len(list(out.glob("f_*.png"))) == len(raws)
     assert not os.path.exists(tmp_path / "home" / ".cache" / "gstreamer-1.0"), "user registry was written"
+
+
+@pytest.mark.parametrize("first_import", ["import gst_plugins; gst_plugins.register_all()",
+                                          "from gst_plugins.elements._common import HdrInfo"])
+def test_app_in_the_same_registry_does_not_poison_it(gst_subprocess_env, tmp_path, first_import):
+    """An app (venv Python, GST_REGISTRY_FORK=no, so the registry scan runs in-process) sharing the
+    exports' GST_REGISTRY must cache the python plugin WITH its elements: plain gst-launch run later in the
+    same shell still finds them (the registry-cache trap, caused before by half-imported modules)."""
+    env = dict(gst_subprocess_env, GST_REGISTRY=str(tmp_path / "registry.bin"), GST_REGISTRY_FORK="no")
+    p = subprocess.run([sys.executable, "-c", first_import], cwd=ROOT, env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "registry.bin").exists()
+    env.pop("GST_REGISTRY_FORK")
+    p = subprocess.run(["gst-inspect-1.0", "python"], env=env, capture_output=True, text=True, timeout=120)
+    for name in ("nrvalidity", "nrcrosstalk", "nrreconstruct", "nrtonemap", "nrexrsink"):
+        assert name in p.stdout, p.stdout

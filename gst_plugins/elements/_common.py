@@ -2,7 +2,7 @@
 docs/ARCHITECTURE.md), its buffer pool, error posting, GStreamer debug categories, Python warnings as bus
 WARNING messages, string "enum" properties and profile loading.
 
-Importing this module initialises GStreamer (idempotent) but compiles nothing: numba kernels are warmed up
+Importing this module initialises GStreamer (idempotent, at the end of the module) but compiles nothing: numba kernels are warmed up
 in the elements' `do_start`.
 """
 from __future__ import annotations
@@ -24,9 +24,6 @@ gi.require_version("GstVideo", "1.0")
 from gi.repository import GObject, Gst, GstBase, GstVideo  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-if not Gst.is_initialized():
-    Gst.init(None)
 
 __all__ = ["Gst", "GstBase", "GstVideo", "GObject", "np", "HDR_MEDIA_TYPE", "HDR_LAYOUT", "hdr_template_caps",
            "HdrInfo", "HdrPool", "alloc_hdr_buffer", "map_hdr", "map_sample", "map_video", "ErrorPoster", "Choice",
@@ -563,3 +560,11 @@ def load_profile(path: str):
                 _profile_cache.clear()
             _profile_cache[key] = p
     return p
+
+
+# Initialise GStreamer last, when every name above exists: with GST_REGISTRY_FORK=no (apps in a venv) the
+# registry scan runs inside this call, in this process, and the plugin loader then imports the element
+# shims, which import this module; done at the top, they found it half-initialised, failed, and the python
+# plugin was cached in the registry with no elements (the registry-cache trap, docs/ELEMENTS.md).
+if not Gst.is_initialized():
+    Gst.init(None)
