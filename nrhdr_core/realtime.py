@@ -300,11 +300,11 @@ class JitWatch:
                 def on_end(self, event):
                     d = getattr(self._local, "depth", 1) - 1
                     self._local.depth = d
-                    disp = (event.data or {}).get("dispatcher")
-                    name = getattr(getattr(disp, "py_func", None), "__qualname__", "?")
+                    fn = getattr((event.data or {}).get("dispatcher"), "py_func", None)
                     with JitWatch._lock:
                         JitWatch.count += 1
-                        JitWatch.names.append(name)
+                        if getattr(fn, "__module__", "").startswith("nrhdr_core"):
+                            JitWatch.names.append(f"{fn.__module__}.{fn.__qualname__}")
                         if d == 0:
                             JitWatch.seconds += time.perf_counter() - getattr(self._local, "t0",
                                                                               time.perf_counter())
@@ -323,5 +323,5 @@ class JitWatch:
         """Compilations since `snap`: (count, seconds, last few kernel names)."""
         with cls._lock:
             n = cls.count - snap[0]
-            names = list(cls.names)[-min(n, 8):] if n > 0 else []
+            names = sorted(set(list(cls.names)[-n:]))[:8] if n > 0 else []
             return n, cls.seconds - snap[1], names

@@ -10,9 +10,10 @@ Modes: `location=` a clip folder of `nrhdr simulate` (clip.json + clip.raw; `loo
 file / "synthetic" rendered with the simulator's motion and noise model (`nrhdr_core.realtime.SceneCamera`:
 `frames` frames rendered once at start, then repeated). Live (default): frame k of the sensor's timeline
 is exposed during [t0 + k T, t0 + (k+1) T) of the pipeline's running time (t0: the first request) and
-pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query answers one frame period. When
-downstream is slower than the frame rate, the frames it did not pick up in time are lost at the source,
-as with a camera's full ring buffer (`dropped`, DISCONT flag, offsets count sensor frames). Not live
+pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query answers one frame period
+(min) and RING periods (max). A camera driver holds RING frames: when downstream falls more than that
+behind, the oldest frames are lost at the source (`dropped`, DISCONT flag; offsets count sensor frames),
+so put a `queue` after the source, as after any live source. Not live
 (`is-live=false`): frames as fast as downstream takes them, PTS k T, no loss.
 """
 from __future__ import annotations
@@ -23,6 +24,7 @@ import threading
 from ._common import (MUTABLE_READY, ErrorPoster, GObject, Gst, GstBase, GstVideo, np,
                       raw_template_caps)
 
+RING = 4  # frames a camera driver buffers (v4l2src's default); reported as the maximum latency
 _RW = GObject.ParamFlags.READWRITE
 _RO = GObject.ParamFlags.READABLE
 
@@ -103,10 +105,25 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
         self._profile = value or ""
 
     @GObject.Property(type=str, default="", nick="Profile in use",
-                      blurb="The camera profile JSON of the frames (read-only, set at start): give it "
-                            "to nrvalidity profile=...", flags=_RO)
+                      blurb="The camera profile JSON of the frames (read-only; resolved from location / "
+                            "scene / profile / width / height): give it to nrvalidity profile=...",
+                      flags=_RO)
     def profile_path(self):
-        return self._profile_used
+        if self._profile_used:
+            return self._profile_used
+        try:  # before start: resolve it (an app can hand it to nrvalidity before playing)
+            if self._location:
+                from nrhdr_core import simulate
+                info = simulate.load_clip(self._location)
+                return os.path.join(info["dir"], info.get("profile", "camera.json"))
+            if self._scene:
+                if self._profile:
+                    return os.path.abspath(self._profile)
+                from nrhdr_core import profile as profiles
+                return self._cached_default_profile(profiles.default(self._height, self._width, seed=1))
+        except (OSError, ValueError, KeyError):
+            pass
+        return ""
 
     @GObject.Property(type=bool, default=False, nick="Loop",
                       blurb="Clip mode: start again at the first frame after the last (else EOS)",
@@ -275,6 +292,7 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
 
     def do_stop(self):
         self._cam = None
+        self._profile_used = ""
         return True
 
     def do_get_caps(self, filt):
@@ -291,8 +309,9 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
     def do_gst_base_src_query(self, query):
         if query.type == Gst.QueryType.LATENCY and self._cam is not None:
             if self._live:
-                # a frame is complete one period after its PTS (camera latency)
-                query.set_latency(True, self._period, self._period)
+                # a frame is complete one period after its PTS (min); it stays available while the
+                # camera's ring of RING frames holds it (max)
+                query.set_latency(True, self._period, RING * self._period)
             else:
                 query.set_latency(False, 0, Gst.CLOCK_TIME_NONE)
             return True
@@ -328,11 +347,12 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
         t = self._t
         k = self._next
         discont = False
-        if now >= self._origin + t(k + 2):              # frames k.. were overwritten: take the newest
+        if now >= self._origin + t(k + 1 + RING):       # frame k was overwritten in the ring
             newest = (now - self._origin) * self._fps_n // Gst.SECOND - 1
-            if newest > k:
-                self._dropped += newest - k
-                k, discont = newest, True
+            oldest = newest - RING + 1
+            if oldest > k:
+                self._dropped += oldest - k
+                k, discont = oldest, True
         due = base + self._origin + t(k + 1)
         with self._lock:
             if self._flushing:

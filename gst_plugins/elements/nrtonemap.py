@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
 from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, Choice, ErrorPoster, GObject, Gst,
                       GstBase, GstVideo, HdrInfo, copy_fields, hdr_template_caps, map_hdr, map_video, np,
                       raw_template_caps, transform_caps_by_structure)
@@ -25,7 +26,7 @@ class ToneParams:
     smoothing: float = 0.1
 
 
-class NrTonemap(ErrorPoster, GstBase.BaseTransform):
+class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrTonemap"
     __gstmetadata__ = (
         "nrhdr logarithmic tone mapping",
@@ -40,8 +41,12 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
                             raw_template_caps("{ GRAY8, GRAY16_LE }")),
     )
 
+    do_gst_base_transform_query = LiveTiming.nr_live_query
+    processing_latency = live_latency_property()
+
     def __init__(self):
         super().__init__()
+        self.nr_live_init()
         self._params = ToneParams()
         self._normalise = Choice("normalise", NORMALISE, "caps")
         self._in_info = None
@@ -123,7 +128,7 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
                 return False
             from nrhdr_core import tonemap
             if hasattr(tonemap, "warmup"):
-                tonemap.warmup()
+                self.nr_warmup(tonemap.warmup)
             self._tracker = None
             self._frames = 0
             return True

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import urllib.parse
 
+from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
 from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster,
                       GObject, Gst, GstBase, GstVideo, HdrInfo, alloc_hdr_buffer, copy_fields,
                       copy_timestamps, hdr_template_caps, load_profile, map_hdr, map_video,
@@ -17,7 +18,7 @@ from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_REA
 MODES = ("all", "best", "threshold")
 
 
-class NrValidity(ErrorPoster, GstBase.BaseTransform):
+class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrValidity"
     __gstmetadata__ = (
         "nrhdr validity and ND scaling",
@@ -33,8 +34,12 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
     )
 
+    do_gst_base_transform_query = LiveTiming.nr_live_query
+    processing_latency = live_latency_property()
+
     def __init__(self):
         super().__init__()
+        self.nr_live_init()
         self._profile_path = ""
         self._mode = Choice("mode", MODES, "threshold")
         self._params = ("threshold", -1.0)   # (mode, l_min): swapped whole, read once per frame
@@ -97,7 +102,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
                 self.post_error(str(e), kind="settings" if not self._profile_path else "read")
                 return False
             from nrhdr_core import validity
-            validity.warmup()
+            self.nr_warmup(validity.warmup)
             self._frames = 0
             self._size_checked = False
             return True
