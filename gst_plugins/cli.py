@@ -202,6 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_snr)
 
+    from . import cli_live
+    cli_live.register_cli(sub)  # nrhdr warmup (issue #7)
     try:
         from nrhdr_core import calibration
         if hasattr(calibration, "register_cli"):

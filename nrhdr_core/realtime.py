@@ -320,6 +320,7 @@ class JitWatch:
 
     @classmethod
     def since(cls, snap: tuple[int, float]) -> tuple[int, float, list[str]]:
+        cls.install()
         """Compilations since `snap`: (count, seconds, last few kernel names)."""
         with cls._lock:
             n = cls.count - snap[0]

@@ -359,7 +359,21 @@ class LiveTiming:
         self._nr_out += 1
         if t0 is not None and self._nr_times.add(time.perf_counter() - t0) and self._nr_fixed_latency < 0:
             self.post_message(Gst.Message.new_latency(self))
+        from nrhdr_core.realtime import JitWatch
+        if JitWatch.count != self.__dict__.get("_nr_jit_seen", JitWatch.count):  # compiled while streaming
+            self._nr_report_jit("while streaming", self._nr_jit_seen)
+        self._nr_jit_seen = JitWatch.count
         return Gst.PadProbeReturn.OK
+
+    def _nr_report_jit(self, when, seen):
+        from nrhdr_core.realtime import JitWatch
+        n, sec, names = JitWatch.since((seen, JitWatch.seconds))
+        text = (f"{self.get_name()}: numba compiled {n} function(s) {when} (not in the numba cache: run "
+                f"'nrhdr warmup' once after install or after a source change)"
+                + (f": {', '.join(names)}" if names else ""))
+        Gst.info(text)
+        self.message_full(Gst.MessageType.INFO, Gst.core_error_quark(), int(Gst.CoreError.FAILED), text,
+                          None, __file__, "nr_live", 0)
 
     def nr_live_reset(self) -> None:
         self._nr_times.reset()
@@ -389,13 +403,9 @@ class LiveTiming:
         snap = JitWatch.snapshot()
         t0 = time.perf_counter()
         out = fn(*args, **kw)
-        n, sec, names = JitWatch.since(snap)
-        if n:
-            text = (f"{self.get_name()}: compiled {n} numba kernel(s) in {time.perf_counter() - t0:.1f} s "
-                    f"(not in the numba cache: run 'nrhdr warmup' once after install): {', '.join(names)}")
-            Gst.info(text)
-            self.message_full(Gst.MessageType.INFO, Gst.core_error_quark(), int(Gst.CoreError.FAILED), text,
-                              None, __file__, "nr_warmup", 0)
+        if JitWatch.count != snap[0]:
+            self._nr_report_jit(f"at start in {time.perf_counter() - t0:.1f} s", snap[0])
+        self._nr_jit_seen = JitWatch.count
         return out
 
 

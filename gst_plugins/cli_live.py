@@ -1,0 +1,72 @@
+"""`nrhdr warmup`: compile every numba kernel of the chain once, into numba's on-disk cache (next to the
+sources, `nrhdr_core/__pycache__`), so that no pipeline compiles on its first frames (issue #7: the first
+`make demo` used to run at 1 frame/s while numba compiled inside gst-launch, silently). Run by
+scripts/setup.sh after install; elements that still compile report it (Gst INFO log + bus INFO message)."""
+from __future__ import annotations
+
+import sys
+import time
+
+
+def _stages():
+    """(element, what, callable) for every stage of the chain, in pipeline order."""
+    import numpy as np
+
+    from nrhdr_core import crosstalk, reconstruction, tonemap, validity
+
+    def fse_presets():
+        from nrhdr_core import fse
+        rng = np.random.default_rng(0)
+        v = rng.random((32, 32)).astype(np.float32)
+        k = rng.random((32, 32)) < 0.5
+        nan = np.full_like(v, np.nan)
+        for preset in fse.FSE_PRESETS:
+            fse.fse_reconstruct(v.copy(), k, lower=nan, upper=nan, preset=preset)
+
+    def other_methods():
+        v = np.random.default_rng(1).random((16, 16)).astype(np.float32)
+        k = np.ones((16, 16), bool)
+        k[4:8, 4:8] = False
+        for m in ("nearest", "linear"):
+            reconstruction.reconstruct(v, k, method=m)
+
+    return [("nrvalidity", "validity.classify", validity.warmup),
+            ("nrcrosstalk", "crosstalk lut + kernel", crosstalk.warmup),
+            ("nrreconstruct", "pull-push preview", lambda: reconstruction.warmup("preview")),
+            ("nrreconstruct", "fse, every preset", fse_presets),
+            ("nrreconstruct", "nearest, linear", other_methods),
+            ("nrtonemap", "log tone map", tonemap.warmup)]
+
+
+def run_warmup(out=sys.stdout) -> tuple[int, float]:
+    """Compile (or load from cache) every kernel; prints a line per stage; returns (compiled, seconds)."""
+    from nrhdr_core.realtime import JitWatch
+    stages = _stages()
+    total_n, t_all = 0, time.perf_counter()
+    for i, (element, what, fn) in enumerate(stages, 1):
+        snap = JitWatch.snapshot()
+        t0 = time.perf_counter()
+        print(f"nrhdr warmup: [{i}/{len(stages)}] {element}: {what} ...", end="", file=out, flush=True)
+        fn()
+        n, _sec, _names = JitWatch.since(snap)
+        total_n += n
+        how = f"{n} function(s) compiled into the cache" if n else "cached"
+        print(f" {time.perf_counter() - t0:.1f} s, {how}", file=out, flush=True)
+    return total_n, time.perf_counter() - t_all
+
+
+def cmd_warmup(a) -> int:
+    n, sec = run_warmup()
+    print(f"nrhdr warmup: done in {sec:.1f} s ({n} function(s) compiled; a second run compiles none)")
+    if a.check and n:
+        print("nrhdr warmup: --check: kernels were not in the cache", file=sys.stderr)
+        return 1
+    return 0
+
+
+def register_cli(sub) -> None:
+    p = sub.add_parser("warmup", help="compile the numba kernels of the chain once (numba cache), so "
+                                      "pipelines start at full speed")
+    p.add_argument("--check", action="store_true",
+                   help="exit 1 if any kernel had to be compiled (i.e. the cache was cold)")
+    p.set_defaults(func=cmd_warmup)
