@@ -96,12 +96,14 @@ LADDER = (Rung("fse", "best", 40.0), Rung("fse", "balanced", 8.0), Rung("fse", "
 class AutoController:
     """Picks, per frame, the most accurate rung whose predicted time fits the budget.
 
-    Cost model: seconds = c_rung * (missing + `base`) (reconstruction work grows with the share of
-    missing pixels; `base` covers the per-frame fixed part); c_rung is an exponential moving average
-    (`alpha`) of measurements, or the prior ratio times a measured rung's c before the rung was tried.
-    Hysteresis: a frame over budget moves down at once (to the best rung predicted to fit, at least one
-    step); one step up only after `up_after` consecutive frames under `up_margin` x budget and when the
-    rung above is predicted under `up_margin` x budget too."""
+    Cost model: seconds = load x rel_rung x (missing + `base`): reconstruction work grows with the share
+    of missing pixels (`base` covers the per-frame fixed part); rel_rung is the rung's relative cost,
+    learnt when the rung runs (the prior ratio of `LADDER` scaled from the nearest measured rung before
+    that), and `load` an exponential moving average (`alpha`) over every measurement, so one slow or fast
+    spell of the machine moves every rung's prediction at once. Hysteresis: a frame over budget moves
+    down at once (to the best rung predicted to fit, at least one step); one step up only after
+    `up_after` consecutive frames under `up_margin` x budget and when the rung above is predicted under
+    `up_margin` x budget too."""
 
     def __init__(self, ladder=LADDER, up_after: int = 15, up_margin: float = 0.7, alpha: float = 0.3,
                  base: float = 0.02, start: int | None = None):
@@ -110,22 +112,22 @@ class AutoController:
         self.ladder = tuple(ladder)
         self.up_after, self.up_margin, self.alpha, self.base = int(up_after), up_margin, alpha, base
         self.current = len(self.ladder) - 1 if start is None else int(start)
-        self._cost: list[float | None] = [None] * len(self.ladder)
+        self._rel: list[float | None] = [None] * len(self.ladder)
+        self._load: float | None = None
         self._calm = 0
         self.switches = 0
 
     # predictions
     def cost(self, i: int) -> float | None:
-        """Seconds per unit of (missing + base) of rung i: measured, else the prior scaled from the
-        nearest measured rung; None when nothing was measured yet."""
-        c = self._cost[i]
-        if c is not None:
-            return c
-        known = [(abs(j - i), j) for j, cj in enumerate(self._cost) if cj is not None]
-        if not known:
+        """Seconds per unit of (missing + base) of rung i at the current load; None before any frame."""
+        if self._load is None:
             return None
-        _, j = min(known)
-        return self._cost[j] * self.ladder[i].prior / self.ladder[j].prior
+        r = self._rel[i]
+        if r is None:
+            known = [(abs(j - i), j) for j, rj in enumerate(self._rel) if rj is not None]
+            _, j = min(known)
+            r = self._rel[j] * self.ladder[i].prior / self.ladder[j].prior
+        return self._load * r
 
     def predict(self, i: int, missing: float) -> float | None:
         c = self.cost(i)
@@ -156,8 +158,13 @@ class AutoController:
         """A frame reconstructed with `rung` took `seconds` (missing share `missing`)."""
         i = self.ladder.index(rung)
         c = float(seconds) / (float(missing) + self.base)
-        old = self._cost[i]
-        self._cost[i] = c if old is None else (1 - self.alpha) * old + self.alpha * c
+        if self._load is None:
+            self._load, self._rel[i] = c, 1.0
+        elif self._rel[i] is None:
+            self._rel[i] = c / self._load                       # first frame of this rung: its ratio
+        else:
+            self._load = (1 - self.alpha) * self._load + self.alpha * c / self._rel[i]
+            self._rel[i] = 0.9 * self._rel[i] + 0.1 * c / self._load
         if i != self.current:
             return
         if seconds > budget:
