@@ -30,12 +30,40 @@ def _stages():
         for m in ("nearest", "linear"):
             reconstruction.reconstruct(v, k, method=m)
 
-    return [("nrvalidity", "validity.classify", validity.warmup),
+    def pipelines():
+        """The elements on a tiny live-less stream: compiles the signatures the elements use at run time
+        (mapped, possibly strided frames), not only the warm-up calls'."""
+        import tempfile
+        from pathlib import Path
+
+        from nrhdr_core import profile
+        from gst_plugins import runtime
+        with tempfile.TemporaryDirectory(prefix="nrhdr-warmup-") as d:
+            cam = Path(d) / "cam.json"
+            profile.save(profile.default(48, 64, seed=1), cam)
+            for m in ("preview", "fse preset=preview", "fse preset=fast", "fse preset=balanced",
+                      "fse preset=best", "nearest", "linear"):
+                rc = runtime.run_pipeline(
+                    f"nrcamsrc scene=synthetic profile={cam} frames=2 is-live=false num-buffers=2 ! "
+                    f"nrvalidity profile={cam} ! nrcrosstalk ! nrreconstruct method={m} ! tee name=t "
+                    f"t. ! queue ! nrtonemap ! fakesink "
+                    f"t. ! queue ! nrtonemap ! video/x-raw,format=GRAY16_LE ! fakesink")
+                if rc != 0:
+                    raise RuntimeError(f"warm-up pipeline with method={m} failed")
+
+    stages = [("nrvalidity", "validity.classify", validity.warmup),
             ("nrcrosstalk", "crosstalk lut + kernel", crosstalk.warmup),
             ("nrreconstruct", "pull-push preview", lambda: reconstruction.warmup("preview")),
             ("nrreconstruct", "fse, every preset", fse_presets),
             ("nrreconstruct", "nearest, linear", other_methods),
             ("nrtonemap", "log tone map", tonemap.warmup)]
+    try:
+        import gi
+        gi.require_version("Gst", "1.0")
+        stages.append(("pipelines", "every element on a tiny stream, every method", pipelines))
+    except (ImportError, ValueError):  # no GStreamer: the core kernels are all there is
+        pass
+    return stages
 
 
 def run_warmup(out=sys.stdout) -> tuple[int, float]:

@@ -374,15 +374,26 @@ def test_tee_recipe_records_every_frame_while_the_display_drops(gst_subprocess_e
     assert r2.returncode == 2 and "FORCE=1" in r2.stderr
 
 
-def test_warmup_command_compiles_then_finds_everything_cached(tmp_path):
+@pytest.mark.gst
+def test_warmup_command_then_a_fresh_pipeline_compiles_nothing(gst_subprocess_env, tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     cmd = [sys.executable, "-m", "gst_plugins.cli", "warmup"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.count("nrhdr warmup: [") == 6
+    assert r.stdout.count("nrhdr warmup: [") == 7
     r = subprocess.run(cmd + ["--check"], env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr             # a fresh process: nothing left to compile
     assert "0 function(s) compiled" in r.stdout
+    # the chain in a fresh gst-launch: every element finds its kernels in the cache (else it says so)
+    clip, _prof, _raws = make_test_clip(tmp_path / "clip", width=80, height=64, frames=3, fps=25)
+    for method in ("auto", "fse preset=fast", "nearest"):
+        r = subprocess.run(["gst-launch-1.0", "-m", "nrcamsrc", f"location={clip}", "is-live=false", "!",
+                            "nrvalidity", f"profile={clip / 'camera.json'}", "!", "nrcrosstalk", "!",
+                            "nrreconstruct", *f"method={method}".split(), "!", "nrtonemap", "!", "fakesink"],
+                           env=gst_subprocess_env, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert r.stdout.count("nrhdr-frame-stats") == 3
+        assert "numba compiled" not in r.stdout + r.stderr, method
 
 
 @pytest.mark.gst

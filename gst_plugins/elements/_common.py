@@ -373,7 +373,7 @@ class LiveTiming:
                 + (f": {', '.join(names)}" if names else ""))
         Gst.info(text)
         self.message_full(Gst.MessageType.INFO, Gst.core_error_quark(), int(Gst.CoreError.FAILED), text,
-                          None, __file__, "nr_live", 0)
+                          text, __file__, "nr_live", 0)  # gst-launch prints an INFO's debug text only
 
     def nr_live_reset(self) -> None:
         self._nr_times.reset()

@@ -272,8 +272,9 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
         text = (f"{self.get_name()}: rendering {cam.n} frames {cam.width}x{cam.height} of scene {name} "
                 f"(simulator motion and noise; once, before playing)")
         Gst.info(text)
-        self.message_full(Gst.MessageType.INFO, Gst.core_error_quark(), int(Gst.CoreError.FAILED), text,
-                          None, __file__, "start", 0)
+        if cam.n * cam.width * cam.height > 10_000_000:  # takes seconds: say so on the bus too
+            self.message_full(Gst.MessageType.INFO, Gst.core_error_quark(), int(Gst.CoreError.FAILED), text,
+                              text, __file__, "start", 0)  # gst-launch prints an INFO's debug text only
         cam.render_all()
         return cam
 
