@@ -50,6 +50,13 @@ def _stages():
                     f"t. ! queue ! nrtonemap ! video/x-raw,format=GRAY16_LE ! fakesink")
                 if rc != 0:
                     raise RuntimeError(f"warm-up pipeline with method={m} failed")
+            # an odd width: GStreamer pads GRAY16 rows to 4 bytes, so frames arrive as strided views
+            odd = Path(d) / "odd.json"
+            profile.save(profile.default(47, 63, seed=1), odd)
+            if runtime.run_pipeline(f"nrcamsrc scene=synthetic profile={odd} frames=2 is-live=false "
+                                    f"num-buffers=2 ! nrvalidity profile={odd} ! nrreconstruct method=preview "
+                                    f"! nrtonemap ! fakesink") != 0:
+                raise RuntimeError("warm-up pipeline with an odd frame width failed")
 
     stages = [("nrvalidity", "validity.classify", validity.warmup),
             ("nrcrosstalk", "crosstalk lut + kernel", crosstalk.warmup),
