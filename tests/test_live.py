@@ -180,6 +180,36 @@ def test_camsrc_live_timestamps_follow_the_clock_at_the_nominal_rate(gst, live_c
 
 
 @pytest.mark.gst
+def test_camsrc_loses_the_oldest_frames_when_downstream_falls_behind_its_ring(gst, live_clip):
+    """No queue, a consumer 6 periods slow per frame: the camera's 4-frame ring overflows; the frames that
+    come keep their sensor index (offset) and PTS on the nominal grid, with DISCONT after a loss."""
+    d, _prof, raws = live_clip
+    p = gst.parse_launch(f"nrcamsrc name=s location={d} loop=true fps=100 num-buffers=8 ! "
+                         f"identity sleep-time=60000 ! fakesink name=k sync=false")
+    seen = []
+
+    def probe(pad, info):
+        b = info.get_buffer()
+        seen.append((b.pts, b.offset, b.has_flags(gst.BufferFlags.DISCONT)))
+        return gst.PadProbeReturn.OK
+
+    p.get_by_name("k").sinkpad.add_probe(gst.PadProbeType.BUFFER, probe)
+    p.set_state(gst.State.PLAYING)
+    msg = p.get_bus().timed_pop_filtered(30 * SEC, gst.MessageType.EOS | gst.MessageType.ERROR)
+    dropped = p.get_by_name("s").get_property("dropped")
+    p.set_state(gst.State.NULL)
+    assert msg is not None and msg.type == gst.MessageType.EOS
+    assert len(seen) == 8
+    offs = [o for _, o, _ in seen]
+    assert offs == sorted(set(offs)) and offs[0] == 0
+    assert dropped == offs[-1] + 1 - 8 > 0                 # every sensor frame pushed or counted lost
+    t0 = seen[0][0]
+    for (ts, off, disc), prev in zip(seen[1:], offs):
+        assert ts == t0 + off * SEC // 100                 # PTS of the sensor frame, not of the push
+        assert disc == (off > prev + 1)
+
+
+@pytest.mark.gst
 def test_camsrc_clip_not_live_frames_exact_then_eos(gst, live_clip):
     d, _prof, raws = live_clip
     from conftest import sample_payload
@@ -214,6 +244,9 @@ def test_camsrc_scene_mode_and_errors(gst, tmp_path):
     p, msgs, err = _run(gst, "nrcamsrc ! fakesink")
     p.set_state(gst.State.NULL)
     assert err is not None and "location" in err and "scene" in err
+    p, msgs, err = _run(gst, f"nrcamsrc location={tmp_path / 'nope'} ! fakesink")
+    p.set_state(gst.State.NULL)
+    assert err is not None and str(tmp_path / "nope") in err and "clip.json" in err
 
 
 def _slow_live(gst, prof_path, qos=True, frames=100, leaky=False):
