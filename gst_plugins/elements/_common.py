@@ -345,12 +345,15 @@ class LiveTiming:
         self._nr_times = FrameTimes()
         self._nr_fixed_latency = -1.0      # ms; < 0 = the measured estimate
         self._nr_t0 = None
+        self._nr_jit_seen = 0
         self._nr_in = self._nr_out = 0
         self.sinkpad.add_probe(Gst.PadProbeType.BUFFER, self._nr_sink_probe)
         self.srcpad.add_probe(Gst.PadProbeType.BUFFER, self._nr_src_probe)
 
     def _nr_sink_probe(self, pad, info):
+        from nrhdr_core.realtime import JitWatch
         self._nr_in += 1
+        self._nr_jit_seen = JitWatch.count
         self._nr_t0 = time.perf_counter()
         return Gst.PadProbeReturn.OK
 
@@ -360,9 +363,8 @@ class LiveTiming:
         if t0 is not None and self._nr_times.add(time.perf_counter() - t0) and self._nr_fixed_latency < 0:
             self.post_message(Gst.Message.new_latency(self))
         from nrhdr_core.realtime import JitWatch
-        if JitWatch.count != self.__dict__.get("_nr_jit_seen", JitWatch.count):  # compiled while streaming
+        if t0 is not None and JitWatch.count != self._nr_jit_seen:  # compiled inside this frame's transform
             self._nr_report_jit("while streaming", self._nr_jit_seen)
-        self._nr_jit_seen = JitWatch.count
         return Gst.PadProbeReturn.OK
 
     def _nr_report_jit(self, when, seen):
@@ -405,7 +407,6 @@ class LiveTiming:
         out = fn(*args, **kw)
         if JitWatch.count != snap[0]:
             self._nr_report_jit(f"at start in {time.perf_counter() - t0:.1f} s", snap[0])
-        self._nr_jit_seen = JitWatch.count
         return out
 
 
