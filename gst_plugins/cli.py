@@ -204,6 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_snr)
 
     from . import cli_env; cli_env.register_cli(sub)  # noqa: E702  (issue 11: `nrhdr env`)
+    from . import cli_live
+    cli_live.register_cli(sub)  # nrhdr warmup (issue #7)
     try:
         from nrhdr_core import calibration
         if hasattr(calibration, "register_cli"):

@@ -230,6 +230,12 @@ def run_pipeline(description: str, on_message=None) -> int:
             w, dbg = msg.parse_warning()
             name = msg.src.get_name() if msg.src is not None else "?"
             print(f"WARNING from {name}: {w.message}", file=sys.stderr)
+        if t == Gst.MessageType.LATENCY:  # an element's processing time grew (issue #7): as gst-launch does
+            pipeline.recalculate_latency()
+        if t == Gst.MessageType.INFO:  # e.g. numba compiling inside the pipeline (issue #7): never silent
+            i, _dbg = msg.parse_info()
+            print(f"INFO from {msg.src.get_name() if msg.src is not None else '?'}: {i.message}",
+                  file=sys.stderr)
         return False
 
     ret = pipeline.set_state(Gst.State.PLAYING)

@@ -11,6 +11,7 @@ ELEMENTS = {
     "nrreconstruct": ("nrreconstruct", "NrReconstruct"),
     "nrtonemap": ("nrtonemap", "NrTonemap"),
     "nrexrsink": ("nrexrsink", "NrExrSink"),
+    "nrcamsrc": ("nrcamsrc", "NrCamSrc"),
 }
 
 

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import time
 
+from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
 from ._common import (MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster, GObject, Gst, GstBase, HdrInfo,
                       debug_category, hdr_template_caps, load_profile, map_hdr)
 
 MODES = ("lut", "kernel", "off")
 
 
-class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
+class NrCrosstalk(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrCrosstalk"
     DEBUG_CATEGORY = debug_category("nrcrosstalk", "nrhdr crosstalk correction")
     __gstmetadata__ = (
@@ -29,8 +30,12 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
     )
 
+    do_gst_base_transform_query = LiveTiming.nr_live_query
+    processing_latency = live_latency_property()
+
     def __init__(self):
         super().__init__()
+        self.nr_live_init()
         self._profile_path = ""
         self._mode = Choice("mode", MODES, "kernel")
         self._profile = None
@@ -81,7 +86,7 @@ class NrCrosstalk(ErrorPoster, GstBase.BaseTransform):
                     return False
             from nrhdr_core import crosstalk
             if hasattr(crosstalk, "warmup"):
-                crosstalk.warmup()
+                self.nr_warmup(crosstalk.warmup)
             self._frames = 0
             return True
         except Exception as e:  # noqa: BLE001

@@ -5,6 +5,11 @@ known = reason VALID; clipped pixels' values are lower bounds and too-dark pixel
 (`use-bounds`). Filled pixels get the RECONSTRUCTED bit (their reason is kept). `method` and `preset` can
 change while PLAYING: the setter swaps an immutable parameter object that the streaming thread reads once
 per frame. Posts an element message "nrhdr-frame-stats" per frame.
+
+Live (docs/ELEMENTS.md "Live operation"): QoS on by default and LATENCY answered with the processing time
+(`_common.LiveTiming`); `method=auto` picks per frame the most accurate rung of
+`nrhdr_core.realtime.LADDER` that fits `budget-ms` (default 70 % of the frame period), with hysteresis
+(`nrhdr_core.realtime.AutoController`).
 """
 from __future__ import annotations
 
@@ -14,8 +19,10 @@ import time
 from ._common import (MUTABLE_PLAYING, Choice, ErrorPoster, GObject, Gst, GstBase, HdrInfo,
                       hdr_template_caps, map_hdr, np)
 from ._common import debug_category  # noqa: E402  (issue 11: GST_DEBUG=nrreconstruct:6)
+from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
 
-METHODS = ("fse", "linear", "nearest", "preview")
+METHODS = ("fse", "linear", "nearest", "preview", "auto")
+BUDGET_SHARE = 0.7  # method=auto without budget-ms: this share of the frame period (the rest: other stages)
 PRESETS = ("preview", "fast", "balanced", "best")
 STATS_MESSAGE = "nrhdr-frame-stats"
 
@@ -27,7 +34,7 @@ class ReconParams:
     use_bounds: bool = True
 
 
-class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
+class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrReconstruct"
     DEBUG_CATEGORY = debug_category("nrreconstruct", "nrhdr missing-pixel reconstruction")
     __gstmetadata__ = (
@@ -43,8 +50,15 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
     )
 
+    do_gst_base_transform_query = LiveTiming.nr_live_query
+    processing_latency = live_latency_property()
+
     def __init__(self):
         super().__init__()
+        self.nr_live_init()
+        self._budget_ms = 0.0
+        self._auto = None
+        self._last_pts, self._skipped = None, 0
         self._params = ReconParams()
         self._method = Choice("method", METHODS, "fse")
         self._preset = Choice("preset", PRESETS, "balanced")
@@ -58,8 +72,9 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
     @GObject.Property(type=str, default="fse", nick="Method",
                       blurb="Reconstruction method: 'fse' = Frequency Selective Extrapolation (paper, best), "
                             "'linear' = Delaunay-linear, 'nearest' = nearest known pixel, 'preview' = fast "
-                            "pull-push for live preview (one of: fse, linear, nearest, preview). "
-                            "Changeable while PLAYING",
+                            "pull-push for live preview, 'auto' = per frame the most accurate of fse "
+                            "best/balanced/fast/preview and preview that fits budget-ms (one of: fse, "
+                            "linear, nearest, preview, auto). Changeable while PLAYING",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
     def method(self):
         return self._params.method
@@ -82,6 +97,17 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
         v = self.set_choice(self._preset, value)
         if v is not None:
             self._params = dataclasses.replace(self._params, preset=v)
+
+    @GObject.Property(type=float, default=0.0, minimum=0.0, maximum=60000.0, nick="Time budget (ms)",
+                      blurb="method=auto: milliseconds per frame the reconstruction may take; 0 = 70 % of "
+                            "the frame period of the caps (33 ms frames -> 23 ms), 23 ms without a framerate",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+    def budget_ms(self):
+        return self._budget_ms
+
+    @budget_ms.setter
+    def budget_ms(self, value):
+        self._budget_ms = float(value)
 
     @GObject.Property(type=bool, default=True, nick="Use bounds",
                       blurb="Keep reconstructed clipped pixels at or above their clip level and too-dark "
@@ -113,8 +139,13 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
                 if c.invalid:
                     self.post_error(c.invalid, kind="settings")
                     return False
-            from nrhdr_core import reconstruction
-            reconstruction.warmup(self._params.method)  # others compile on first use after a switch
+            from nrhdr_core import realtime, reconstruction
+            m = self._params.method
+            for wm in (("preview", "fse") if m == "auto" else (m,)):  # others compile on first use
+                self.nr_warmup(reconstruction.warmup, wm)
+            self._auto = realtime.AutoController()
+            self.nr_live_reset()
+            self._last_pts, self._skipped = None, 0
             self._frames = 0
             return True
         except Exception as e:  # noqa: BLE001
@@ -142,17 +173,24 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
                 self.post_error("no caps negotiated before the first buffer", kind="negotiation")
                 return Gst.FlowReturn.NOT_NEGOTIATED
             from nrhdr_core import reconstruction, validity
+            self._count_gap(buf)
             t0 = time.perf_counter()
+            method, preset, rung = p.method, p.preset, None
             with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
                 missing = validity.missing_mask(state)
                 n_miss = int(np.count_nonzero(missing))
+                share = n_miss / float(self._info.pixels)
+                if n_miss and method == "auto":
+                    budget = self._budget()
+                    rung = self._auto.choose(budget, share)
+                    method, preset = rung.method, rung.preset or p.preset
                 if n_miss:
                     known = validity.known_mask(state)
                     lower = upper = None
                     if p.use_bounds:
                         lower, upper = validity.bounds(values, state)
                     # hook (issue 11): once reconstruct() takes out=, pass out=values and drop the copy
-                    out = reconstruction.reconstruct(values, known, method=p.method, preset=p.preset,
+                    out = reconstruction.reconstruct(values, known, method=method, preset=preset,
                                                      lower=lower, upper=upper)
                     if out.shape != values.shape:
                         raise ValueError(f"reconstruction returned shape {out.shape}, expected {values.shape}")
@@ -162,19 +200,48 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
             if self.gst_debug_enabled(Gst.DebugLevel.LOG):  # per-frame line (GST_DEBUG=nrreconstruct:6)
                 self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: " + (
                     f"{n_miss} missing pixels ({100.0 * n_miss / self._info.pixels:.2f} %) filled by "
-                    f"method={p.method} preset={p.preset} in {dt * 1e3:.2f} ms" if n_miss else
+                    f"method={method} preset={preset} in {dt * 1e3:.2f} ms" if n_miss else
                     f"skipped: no pixel missing ({dt * 1e3:.2f} ms)"))
+            if rung is not None:
+                self._auto.record(rung, dt, share, budget)
             if self._post_stats:
-                self._post_frame_stats(n_miss / float(self._info.pixels), p.method, dt)
+                chosen = "none" if not n_miss else (f"fse/{preset}" if method == "fse" else method)
+                self._post_frame_stats(share, method, dt, chosen, preset if method == "fse" else "")
             self._frames += 1
             return Gst.FlowReturn.OK
         except Exception as e:  # noqa: BLE001
             return self.post_exception(f"frame {self._frames} (method={p.method}, preset={p.preset})", e)
 
-    def _post_frame_stats(self, missing: float, method: str, seconds: float) -> None:
+    def _count_gap(self, buf) -> None:
+        """Frames skipped upstream (QoS drops in earlier elements, frames lost at a live source): PTS
+        gaps of more than one frame duration."""
+        pts, dur = buf.pts, buf.duration
+        last, self._last_pts = self._last_pts, pts
+        if (last is None or pts == Gst.CLOCK_TIME_NONE or dur == Gst.CLOCK_TIME_NONE or dur == 0
+                or pts <= last):
+            return
+        self._skipped += max(int(round((pts - last) / dur)) - 1, 0)
+
+    def _budget(self) -> float:
+        """Seconds per frame for method=auto: budget-ms, else BUDGET_SHARE of the frame period."""
+        if self._budget_ms > 0:
+            return self._budget_ms / 1e3
+        i = self._info
+        period = i.fps_d / i.fps_n if i.fps_n > 0 else 1 / 30
+        return BUDGET_SHARE * period
+
+    def _post_frame_stats(self, missing: float, method: str, seconds: float, chosen: str = "",
+                          preset: str = "") -> None:
         s = Gst.Structure.new_empty(STATS_MESSAGE)
         s.set_value("frame", GObject.Value(GObject.TYPE_UINT64, self._frames))
         s.set_value("missing", GObject.Value(GObject.TYPE_DOUBLE, float(missing)))
         s.set_value("method", method)
         s.set_value("seconds", GObject.Value(GObject.TYPE_DOUBLE, float(seconds)))
+        # live operation (issue #7): what method=auto (or the fixed method) used for this frame, late
+        # frames QoS dropped before this one, and the processing latency answered to the LATENCY query
+        s.set_value("preset", preset)
+        s.set_value("chosen", chosen)
+        s.set_value("qos-dropped", GObject.Value(GObject.TYPE_UINT64, self.nr_qos_skipped()))
+        s.set_value("skipped", GObject.Value(GObject.TYPE_UINT64, self._skipped + self.nr_qos_skipped()))
+        s.set_value("latency", GObject.Value(GObject.TYPE_DOUBLE, self.nr_processing_latency() / 1e9))
         self.post_message(Gst.Message.new_element(self, s))

@@ -14,6 +14,7 @@ import dataclasses
 import math
 import time
 
+from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
 from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster,
                       GObject, Gst, GstBase, GstVideo, HdrInfo, copy_fields, debug_category, hdr_template_caps,
                       map_hdr, map_video, np, transform_caps_by_structure)
@@ -46,7 +47,7 @@ class ToneParams:
     reference_white: float = DEFAULT_REFERENCE_WHITE
 
 
-class NrTonemap(ErrorPoster, GstBase.BaseTransform):
+class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrTonemap"
     DEBUG_CATEGORY = debug_category("nrtonemap", "nrhdr tone mapping and HDR (PQ/HLG) output")
     __gstmetadata__ = (
@@ -62,8 +63,12 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, _src_template()),
     )
 
+    do_gst_base_transform_query = LiveTiming.nr_live_query
+    processing_latency = live_latency_property()
+
     def __init__(self):
         super().__init__()
+        self.nr_live_init()
         self._params = ToneParams()
         self._normalise = Choice("normalise", NORMALISE, "caps")
         self._transfer = Choice("transfer", TRANSFERS, "log")
@@ -176,9 +181,9 @@ class NrTonemap(ErrorPoster, GstBase.BaseTransform):
                     return False
             from nrhdr_core import tonemap
             if self._transfer.value == "log":
-                tonemap.warmup()
+                self.nr_warmup(tonemap.warmup)
             else:
-                tonemap.warmup_hdr()
+                self.nr_warmup(tonemap.warmup_hdr)
             self._tracker = None
             self._frames = 0
             return True

@@ -15,6 +15,7 @@ import os
 import time
 import urllib.parse
 
+from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
 from ._common import (CONTROLLABLE, HDR_LAYOUT, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice,
                       ErrorPoster, GObject, Gst, GstBase, GstVideo, HdrInfo, HdrPool, copy_fields,
                       copy_timestamps, debug_category, hdr_template_caps, load_profile, map_hdr, map_video,
@@ -23,7 +24,7 @@ from ._common import (CONTROLLABLE, HDR_LAYOUT, HDR_MEDIA_TYPE, MUTABLE_PLAYING,
 MODES = ("all", "best", "threshold")
 
 
-class NrValidity(ErrorPoster, GstBase.BaseTransform):
+class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrValidity"
     DEBUG_CATEGORY = debug_category("nrvalidity", "nrhdr validity and ND scaling")
     __gstmetadata__ = (
@@ -41,9 +42,13 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
                             hdr_template_caps(strict=True)),
     )
 
+    do_gst_base_transform_query = LiveTiming.nr_live_query
+    processing_latency = live_latency_property()
+
     def __init__(self):
         super().__init__()
         self._pool = None
+        self.nr_live_init()
         self._profile_path = ""
         self._mode = Choice("mode", MODES, "threshold")
         self._params = ("threshold", -1.0)   # (mode, l_min): swapped whole, read once per frame
@@ -106,7 +111,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
                 self.post_error(str(e), kind="settings" if not self._profile_path else "read")
                 return False
             from nrhdr_core import validity
-            validity.warmup()
+            self.nr_warmup(validity.warmup)
             self._frames = 0
             self._size_checked = False
             return True

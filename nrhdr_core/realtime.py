@@ -1,0 +1,335 @@
+"""Live operation without GStreamer: processing-time estimates for the LATENCY query, the `method=auto`
+controller of nrreconstruct, the frame sources of `nrcamsrc` and a report of numba compilations.
+
+- `FrameTimes`: running high-percentile estimate of per-frame processing time (what an element adds to the
+  pipeline latency, GStreamer design doc "latency"), and whether it grew enough to announce.
+- `AutoController`: per frame, the most accurate rung of `LADDER` predicted to fit a time budget, from
+  measured per-rung costs scaled by the frame's missing share, with hysteresis (down at once when over
+  budget, up only after `up_after` comfortable frames) so quality does not flicker.
+- `ClipCamera` / `SceneCamera`: raw GRAY16 frames of a clip folder (`nrhdr simulate`) or rendered from an
+  HDR scene with the simulator's motion and sensor noise model (`simulate.view`, `sensor.capture`).
+- `JitWatch`: counts numba compilations (cache misses) so elements can report them instead of stalling
+  silently.
+"""
+from __future__ import annotations
+
+import collections
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+# ---- processing time -------------------------------------------------------------------------------
+
+
+class FrameTimes:
+    """Per-frame processing times of one element: `estimate()` is the `quantile` of the last `window`
+    frames times `margin` (the first `skip` frames, which may include cache loading, are ignored).
+    `add()` returns True when the estimate grew by more than `grow` (relative) and `floor` seconds over
+    the value last announced, i.e. when the element should post a LATENCY message."""
+
+    def __init__(self, window: int = 32, quantile: float = 0.95, margin: float = 1.2, skip: int = 1,
+                 grow: float = 0.25, floor: float = 0.002):
+        if not 0 < quantile <= 1:
+            raise ValueError(f"quantile must be in (0, 1], got {quantile}")
+        self.window, self.quantile, self.margin, self.skip = int(window), quantile, margin, int(skip)
+        self.grow, self.floor = grow, floor
+        self._times: collections.deque = collections.deque(maxlen=self.window)
+        self._seen = 0
+        self.announced = 0.0
+        self._lock = threading.Lock()
+
+    def add(self, seconds: float) -> bool:
+        with self._lock:
+            self._seen += 1
+            if self._seen <= self.skip or not math.isfinite(seconds) or seconds < 0:
+                return False
+            self._times.append(float(seconds))
+            est = self._estimate()
+            if est > self.announced * (1.0 + self.grow) + self.floor:
+                self.announced = est
+                return True
+            return False
+
+    def _estimate(self) -> float:
+        if not self._times:
+            return 0.0
+        return float(np.quantile(np.fromiter(self._times, float), self.quantile)) * self.margin
+
+    def estimate(self) -> float:
+        """Seconds (0 before any counted frame)."""
+        with self._lock:
+            return self._estimate()
+
+    @property
+    def count(self) -> int:
+        return len(self._times)
+
+    def reset(self) -> None:
+        with self._lock:
+            self._times.clear()
+            self._seen = 0
+            self.announced = 0.0
+
+
+# ---- method=auto -----------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Rung:
+    method: str
+    preset: str
+    prior: float  # relative cost (pull-push preview = 1), used until the rung has been measured
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}/{self.preset}" if self.method == "fse" else self.method
+
+
+# Most accurate first (docs/BENCHMARKS.md: quality and cost of each method/preset). Priors: cost relative
+# to the pull-push preview at 640x480, 30 % missing (benchmarks/pipeline.py), refined by measurement.
+LADDER = (Rung("fse", "best", 40.0), Rung("fse", "balanced", 8.0), Rung("fse", "fast", 4.0),
+          Rung("fse", "preview", 2.0), Rung("preview", "", 1.0))
+
+
+class AutoController:
+    """Picks, per frame, the most accurate rung whose predicted time fits the budget.
+
+    Cost model: seconds = load x rel_rung x (missing + `base`): reconstruction work grows with the share
+    of missing pixels (`base` covers the per-frame fixed part); rel_rung is the rung's relative cost,
+    learnt when the rung runs (the prior ratio of `LADDER` scaled from the nearest measured rung before
+    that), and `load` an exponential moving average (`alpha`) over every measurement, so one slow or fast
+    spell of the machine moves every rung's prediction at once. Hysteresis: a frame over budget moves
+    down at once (to the best rung predicted to fit, at least one step); one step up only after
+    `up_after` consecutive frames under `up_margin` x budget and when the rung above is predicted under
+    `up_margin` x budget too."""
+
+    def __init__(self, ladder=LADDER, up_after: int = 15, up_margin: float = 0.7, alpha: float = 0.3,
+                 base: float = 0.02, start: int | None = None):
+        if not ladder:
+            raise ValueError("the auto ladder is empty")
+        self.ladder = tuple(ladder)
+        self.up_after, self.up_margin, self.alpha, self.base = int(up_after), up_margin, alpha, base
+        self.current = len(self.ladder) - 1 if start is None else int(start)
+        self._rel: list[float | None] = [None] * len(self.ladder)
+        self._load: float | None = None
+        self._calm = 0
+        self.switches = 0
+
+    # predictions
+    def cost(self, i: int) -> float | None:
+        """Seconds per unit of (missing + base) of rung i at the current load; None before any frame."""
+        if self._load is None:
+            return None
+        r = self._rel[i]
+        if r is None:
+            known = [(abs(j - i), j) for j, rj in enumerate(self._rel) if rj is not None]
+            _, j = min(known)
+            r = self._rel[j] * self.ladder[i].prior / self.ladder[j].prior
+        return self._load * r
+
+    def predict(self, i: int, missing: float) -> float | None:
+        c = self.cost(i)
+        return None if c is None else c * (float(missing) + self.base)
+
+    def _best_fitting(self, budget: float, missing: float, below: int) -> int:
+        """The most accurate rung at index >= below predicted to fit, else the cheapest."""
+        for i in range(below, len(self.ladder)):
+            p = self.predict(i, missing)
+            if p is not None and p <= budget:
+                return i
+        return len(self.ladder) - 1
+
+    # per frame
+    def choose(self, budget: float, missing: float) -> Rung:
+        """The rung to use for a frame with this missing share under this budget (seconds)."""
+        cur = self.current
+        p = self.predict(cur, missing)
+        if p is not None and p > budget and cur < len(self.ladder) - 1:
+            self._set(self._best_fitting(budget, missing, cur + 1))
+        elif self._calm >= self.up_after and cur > 0:
+            up = self.predict(cur - 1, missing)
+            if up is not None and up <= self.up_margin * budget:
+                self._set(cur - 1)
+        return self.ladder[self.current]
+
+    def record(self, rung: Rung, seconds: float, missing: float, budget: float) -> None:
+        """A frame reconstructed with `rung` took `seconds` (missing share `missing`)."""
+        i = self.ladder.index(rung)
+        c = float(seconds) / (float(missing) + self.base)
+        if self._load is None:
+            self._load, self._rel[i] = c, 1.0
+        elif self._rel[i] is None:
+            self._rel[i] = c / self._load                       # first frame of this rung: its ratio
+        else:
+            self._load = (1 - self.alpha) * self._load + self.alpha * c / self._rel[i]
+            self._rel[i] = 0.9 * self._rel[i] + 0.1 * c / self._load
+        if i != self.current:
+            return
+        if seconds > budget:
+            if i < len(self.ladder) - 1:
+                self._set(max(i + 1, self._best_fitting(budget, missing, i + 1)))
+            self._calm = 0
+        elif seconds <= self.up_margin * budget:
+            self._calm += 1
+        else:
+            self._calm = 0
+
+    def _set(self, i: int) -> None:
+        if i != self.current:
+            self.current = i
+            self.switches += 1
+            self._calm = 0
+
+
+# ---- frame sources of nrcamsrc ---------------------------------------------------------------------
+
+class ClipCamera:
+    """Frames of a clip folder written by `nrhdr simulate` (clip.json + clip.raw, memory-mapped)."""
+
+    def __init__(self, clip_dir, loop: bool = False):
+        from pathlib import Path
+
+        from . import io, simulate
+        self.info = simulate.load_clip(clip_dir)
+        d = Path(self.info["dir"])
+        self.width, self.height = int(self.info["width"]), int(self.info["height"])
+        self.fps = int(self.info["fps"])
+        self.profile_path = str(d / self.info.get("profile", "camera.json"))
+        self._frames = io.read_raw_video(d / self.info.get("raw", "clip.raw"), self.width, self.height)
+        if len(self._frames) == 0:
+            raise ValueError(f"{d / self.info.get('raw', 'clip.raw')}: the clip has no frames")
+        self.loop = loop
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def frame(self, i: int) -> np.ndarray | None:
+        """Frame i (uint16 H x W), wrapping round with `loop`; None past the end."""
+        n = len(self._frames)
+        if i >= n and not self.loop:
+            return None
+        return self._frames[i % n]
+
+
+class SceneCamera:
+    """Raw frames of an HDR scene through the simulator: the camera path of `simulate.Motion` over
+    `frames` frames (then it repeats), exposure from `simulate.exposure_scale`, noise and clipping from
+    `sensor.capture`. The `frames` raw frames are rendered once by `render_all()` (seeded), so playback
+    at video rate costs a copy per frame."""
+
+    def __init__(self, scene: np.ndarray, profile, frames: int = 30, motion=None, seed: int = 0,
+                 exposure_stops: float = 0.0, sensor_model=None):
+        from . import simulate
+        if frames < 1:
+            raise ValueError(f"frames must be >= 1, got {frames}")
+        self.scene = np.asarray(scene, np.float32)
+        if self.scene.ndim != 2 or min(self.scene.shape) < 2:
+            raise ValueError(f"scene must be a 2-D luminance image, got shape {self.scene.shape}")
+        self.profile = profile
+        self.width, self.height = profile.width, profile.height
+        self.n = int(frames)
+        self.motion = motion if motion is not None else simulate.Motion()
+        self.seed, self.sensor_model = seed, sensor_model
+        self.k = simulate.exposure_scale(self.scene, profile, exposure_stops)
+        self._raw: list[np.ndarray] = []
+
+    def render_all(self, progress=None) -> None:
+        """Render the loop's frames (progress(i, n) after each)."""
+        from scipy.ndimage import gaussian_filter
+
+        from . import sensor, simulate
+        # the same anti-aliasing as simulate.simulate_clip: the view shrinks the scene ~W * fov / w
+        shrink = max(self.scene.shape[1] * self.motion.fov / self.width, 1.0)
+        pre = (gaussian_filter(self.scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2
+               else self.scene)
+        rng = np.random.default_rng(self.seed)
+        out = []
+        for i in range(self.n):
+            t = i / max(self.n - 1, 1)
+            flux = simulate.view(self.scene, self.height, self.width, t, self.motion, prefiltered=pre)
+            out.append(sensor.capture(flux * np.float32(self.k), self.profile, rng,
+                                      sensor_model=self.sensor_model))
+            if progress is not None:
+                progress(i + 1, self.n)
+        self._raw = out
+
+    def __len__(self) -> int:
+        return self.n
+
+    def frame(self, i: int) -> np.ndarray:
+        if not self._raw:
+            self.render_all()
+        return self._raw[i % self.n]
+
+
+def load_scene(arg: str, height: int = 1200) -> tuple[np.ndarray, str]:
+    """An HDR file's linear luminance, or for 'synthetic' the synthesised scene (4:3) at twice `height`
+    rows, at most the 1200 rows `nrhdr simulate` uses (small frames need no big scene)."""
+    from pathlib import Path
+
+    from . import io, scene
+    if arg in ("", "synthetic"):
+        h = int(min(1200, max(120, 2 * height)))
+        return scene.synthetic_hdr_scene(h, h * 4 // 3), "synthetic"
+    return io.read_luminance(arg), Path(arg).name
+
+
+# ---- numba compilations ----------------------------------------------------------------------------
+
+class JitWatch:
+    """Counts numba compilations (cache misses: numba only compiles when its on-disk cache has no entry)
+    in this process via numba's event API. `snapshot()` -> (count, seconds); installed once, lazily."""
+
+    _installed = False
+    _lock = threading.Lock()
+    count = 0
+    seconds = 0.0
+    names: collections.deque = collections.deque(maxlen=64)
+
+    @classmethod
+    def install(cls) -> None:
+        with cls._lock:
+            if cls._installed:
+                return
+            from numba.core import event as ev
+
+            class _Listener(ev.Listener):
+                _local = threading.local()
+
+                def on_start(self, event):
+                    d = getattr(self._local, "depth", 0)
+                    self._local.depth = d + 1
+                    if d == 0:
+                        self._local.t0 = time.perf_counter()
+
+                def on_end(self, event):
+                    d = getattr(self._local, "depth", 1) - 1
+                    self._local.depth = d
+                    fn = getattr((event.data or {}).get("dispatcher"), "py_func", None)
+                    with JitWatch._lock:
+                        JitWatch.count += 1
+                        if getattr(fn, "__module__", "").startswith("nrhdr_core"):
+                            JitWatch.names.append(f"{fn.__module__}.{fn.__qualname__}")
+                        if d == 0:
+                            JitWatch.seconds += time.perf_counter() - getattr(self._local, "t0",
+                                                                              time.perf_counter())
+
+            ev.register("numba:compile", _Listener())
+            cls._installed = True
+
+    @classmethod
+    def snapshot(cls) -> tuple[int, float]:
+        cls.install()
+        with cls._lock:
+            return cls.count, cls.seconds
+
+    @classmethod
+    def since(cls, snap: tuple[int, float]) -> tuple[int, float, list[str]]:
+        cls.install()
+        """Compilations since `snap`: (count, seconds, last few kernel names)."""
+        with cls._lock:
+            n = cls.count - snap[0]
+            names = sorted(set(list(cls.names)[-n:]))[:8] if n > 0 else []
+            return n, cls.seconds - snap[1], names
