@@ -47,3 +47,18 @@ PY
        "framerate=$FPS/1" "plane-strides=<$((2 * W))>" ! nrvalidity "profile=$PROFILE"
        "mode=${MODE:-threshold}" ! nrcrosstalk)
 }
+
+# nr_out DIR EXT: make the output folder of a frame sequence (frame_%05d.EXT). An existing sequence there is
+# refused (old and new frames would mix) unless OVERWRITE=true, which deletes only its frame_NNNNN.EXT files.
+nr_out() {
+  local dir="$1" ext="$2" old
+  mkdir -p "$dir"
+  old="$(find "$dir" -maxdepth 1 -regextype posix-extended -regex ".*/frame_[0-9]+\.$ext" | head -n 1)"
+  if [ -n "$old" ]; then
+    if [ "${OVERWRITE:-false}" != "true" ]; then
+      echo "error: $dir already holds a recording ($old ...): choose another folder or set OVERWRITE=true" >&2
+      exit 2
+    fi
+    find "$dir" -maxdepth 1 -regextype posix-extended -regex ".*/frame_[0-9]+\.$ext" -delete
+  fi
+}
