@@ -83,6 +83,10 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
     groups: dict[float, list[Path]] = {}
     seen = set()
     for n, row in enumerate(rows, start=2):
+        if None in row:     # csv.DictReader puts surplus cells under the key None (as a list)
+            raise CalibrationError(f"{csv_path}: line {n}: {len(fields) + len(row[None])} columns, but the "
+                                   f"header has {len(fields)} ({','.join(fields)}); extra cells "
+                                   f"{row[None]!r}")
         row = {(k or "").strip(): (v or "").strip() for k, v in row.items()}
         name = row.get("file", "")
         if not name:
@@ -98,7 +102,11 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
         if not (math.isfinite(t) and t >= 0):
             raise CalibrationError(f"{csv_path}: line {n}: exposure_s must be finite and >= 0, got {t}")
         p = folder / name
-        if not p.is_file():
+        try:
+            found = p.is_file()
+        except (OSError, ValueError):     # e.g. a NUL byte or a name too long for the file system
+            found = False
+        if not found:
             raise CalibrationError(f"{csv_path}: line {n}: frame {p} not found")
         groups.setdefault(t, []).append(p)
     if not groups:

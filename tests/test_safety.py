@@ -144,3 +144,324 @@ def test_shipped_pipeline_stops_on_sigterm(gst_subprocess_env, tmp_path):
             p.kill()
     assert p.returncode == 143, out
     assert not any(_alive(k) for k in kids)
+
+
+# ---- 2. nrexrsink: OpenEXR only, never mixes with an old recording ----------------------------------------
+
+def _exr_chain(d, prof, sink):
+    return (f"filesrc location={d / 'clip.raw'} ! rawvideoparse format=gray16-le width={prof.width} "
+            f"height={prof.height} framerate=5/1 plane-strides=<{2 * prof.width}> ! "
+            f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method=nearest ! {sink}")
+
+
+@pytest.mark.gst
+@pytest.mark.parametrize("ext", ["jpg", "png", "tif", ""])
+def test_exrsink_refuses_non_exr_extension(gst, tiny_clip, tmp_path, capsys, ext):
+    from gst_plugins import runtime
+    d, prof, _ = tiny_clip
+    loc = tmp_path / (f"f_%05d.{ext}" if ext else "f_%05d")
+    assert runtime.run_pipeline(_exr_chain(d, prof, f"nrexrsink location={loc}")) == 1
+    err = capsys.readouterr().err
+    assert "nrexrsink" in err and "OpenEXR only" in err and ".exr" in err
+    assert not list(tmp_path.iterdir())          # nothing written
+
+
+@pytest.mark.gst
+def test_exrsink_refuses_existing_sequence_unless_overwrite(gst, tiny_clip, tmp_path, capsys):
+    from gst_plugins import runtime
+    d, prof, raws = tiny_clip
+    loc = tmp_path / "f_%05d.exr"
+    # an older, longer recording of the same sequence plus an unrelated file
+    for i in range(len(raws) + 3):
+        io.write_exr(tmp_path / f"f_{i:05d}.exr", np.full((2, 2), 7.0, np.float32))
+    (tmp_path / "notes.txt").write_text("mine")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert runtime.run_pipeline(_exr_chain(d, prof, f"nrexrsink location={loc}")) == 1
+    err = capsys.readouterr().err
+    assert "already exists" in err and "overwrite=true" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    assert io.read_exr(tmp_path / "f_00000.exr")[0].shape == (2, 2)        # untouched
+    # overwrite=true: the old sequence goes as a whole, the new one has exactly len(raws) frames
+    assert runtime.run_pipeline(_exr_chain(d, prof, f"nrexrsink location={loc} overwrite=true")) == 0
+    assert sorted(p.name for p in tmp_path.glob("f_*.exr")) == [f"f_{i:05d}.exr" for i in range(len(raws))]
+    assert io.read_exr(tmp_path / "f_00000.exr")[0].shape == (prof.height, prof.width)
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+def test_exrsink_sequence_pattern_matching():
+    from gst_plugins.elements.nrexrsink import sequence_regex
+    folder, rx = sequence_regex("out/f_%05d.exr")
+    assert folder == "out"
+    assert rx.fullmatch("f_00012.exr") and rx.fullmatch("f_123456.exr")
+    assert not rx.fullmatch("f_00012.exr.tmp") and not rx.fullmatch("g_00012.exr") and not rx.fullmatch("f_.exr")
+    _, rx = sequence_regex("a%%b_%d.exr")
+    assert rx.fullmatch("a%b_7.exr") and not rx.fullmatch("a%%b_7.exr")
+
+
+# ---- 3. no silent overwrite: --force, whole folders ----------------------------------------------------
+
+SIM = ["--width", "32", "--height", "24", "--frames", "3"]
+
+
+def _tree(d: Path) -> dict:
+    return {p.relative_to(d).as_posix(): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def test_simulate_refuses_existing_clip_and_force_replaces_only_its_files(tmp_path, capsys):
+    out = tmp_path / "clip"
+    assert cli.main(["simulate", "-o", str(out), "--frames", "5", "--width", "32", "--height", "24"]) == 0
+    (out / "notes.txt").write_text("keep me")
+    (out / "truth" / "my_truth.txt").write_text("keep me too")
+    old = _tree(out)
+    assert cli.main(["simulate", "-o", str(out), *SIM, "--seed", "9"]) == 2
+    err = capsys.readouterr().err
+    assert "already exists" in err and "--force" in err
+    assert _tree(out) == old                          # untouched
+    assert cli.main(["simulate", "-o", str(out), *SIM, "--seed", "9", "--force"]) == 0
+    new = _tree(out)
+    # the new clip (3 frames) is not mixed with the old one (5 frames); foreign files kept
+    assert sorted(k for k in new if k.startswith("truth/frame_")) == [f"truth/frame_{i:05d}.exr" for i in range(3)]
+    assert new["notes.txt"] == b"keep me" and new["truth/my_truth.txt"] == b"keep me too"
+    assert json.loads(new["clip.json"])["frames"] == 3
+    assert len(new["clip.raw"]) == 3 * 32 * 24 * 2
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]   # no staging folder left
+
+
+def test_interrupted_simulate_leaves_old_clip_untouched(tmp_path, monkeypatch):
+    from nrhdr_core import sensor, simulate
+    out = tmp_path / "clip"
+    assert cli.main(["simulate", "-o", str(out), *SIM]) == 0
+    old = _tree(out)
+    real = sensor.capture
+    calls = []
+
+    def interrupted(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(sensor, "capture", interrupted)
+    assert cli.main(["simulate", "-o", str(out), *SIM, "--seed", "4", "--force"]) == 130
+    assert _tree(out) == old
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert simulate.load_clip(out)["frames"] == 3
+
+
+@pytest.mark.parametrize("args,field", [
+    (["--zoom", "0"], "zoom"), (["--zoom", "-1"], "zoom"), (["--exposure", "1e6"], "exposure"),
+    (["--fov", "0"], "fov"), (["--fov", "5"], "fov"), (["--zoom", "0.5", "--fov", "0.9"], "zoom"),
+    (["--exposure", "nan"], "exposure"), (["--pan", "inf"], "pan"), (["--nd", "1e6"], "nd"),
+    (["--nd", "1e308"], "nd"), (["--frames", "0"], "frames"),
+])
+def test_simulate_bad_arguments_are_named_and_write_nothing(tmp_path, capsys, args, field):
+    out = tmp_path / "clip"
+    rc = cli.main(["simulate", "-o", str(out), "--width", "32", "--height", "24", "--frames", "2", *args])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert field in err and "Traceback" not in err
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_profile_command_refuses_existing_unless_force(tmp_path, capsys):
+    f = tmp_path / "cam.json"
+    assert cli.main(["profile", "-o", str(f), "--width", "8", "--height", "6", "--nd", "4"]) == 0
+    old = _tree(tmp_path)
+    assert cli.main(["profile", "-o", str(f), "--width", "8", "--height", "6", "--nd", "8"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert _tree(tmp_path) == old
+    # the mask alone in the way is refused as well
+    f.unlink()
+    assert cli.main(["profile", "-o", str(f), "--width", "8", "--height", "6", "--nd", "8"]) == 2
+    assert "cam_mask.png" in capsys.readouterr().err
+    assert cli.main(["profile", "-o", str(f), "--width", "8", "--height", "6", "--nd", "8", "--force"]) == 0
+    assert profile.load(f).nd == 8
+
+
+def test_simulate_flats_and_calibrate_refuse_existing(tmp_path, capsys):
+    flats = tmp_path / "flats"
+    common = ["--width", "12", "--height", "10", "--exposures", "8", "--frames", "2", "-q",
+              "--sensor-model", "none"]
+    assert cli.main(["simulate-flats", str(flats), *common]) == 0
+    (flats / "README").write_text("mine")
+    old = _tree(flats)
+    assert cli.main(["simulate-flats", str(flats), *common, "--seed", "3"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert _tree(flats) == old
+    assert cli.main(["simulate-flats", str(flats), *common, "--seed", "3", "--force"]) == 0
+    new = _tree(flats)
+    assert new["README"] == b"mine" and new["exposures.csv"] == old["exposures.csv"]
+    assert new["flat_003_00.tif"] != old["flat_003_00.tif"]     # another noise seed: really rewritten
+    # calibrate: an existing profile is refused before any work
+    out = tmp_path / "cal" / "cam.json"
+    out.parent.mkdir()
+    out.write_text("{}")
+    assert cli.main(["calibrate", str(flats), "--mask", str(flats / "mask.png"), "-o", str(out), "-q",
+                     "--no-plots"]) == 2
+    assert "already exists" in capsys.readouterr().err and out.read_text() == "{}"
+
+
+@pytest.mark.gst
+def test_demo_refuses_existing_and_never_deletes_foreign_files(tmp_path, capsys):
+    out = tmp_path / "demo"
+    (out / "exr").mkdir(parents=True)
+    (out / "exr" / "frame_notes.txt").write_text("mine")       # the issue's deleted file
+    (out / "exr" / "frame_00000.exr").write_bytes(b"old")
+    args = ["demo", "-o", str(out), "--frames", "2", "--width", "32", "--height", "24", "--method", "nearest"]
+    assert cli.main(args) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert (out / "exr" / "frame_00000.exr").read_bytes() == b"old"
+    assert cli.main(args + ["--force"]) == 0
+    assert (out / "exr" / "frame_notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in (out / "exr").glob("frame_*.exr")) == ["frame_00000.exr", "frame_00001.exr"]
+    assert io.read_exr(out / "exr" / "frame_00000.exr")[0].shape == (24, 32)
+    assert (out / "clip" / "clip.json").is_file()
+
+
+# ---- 4. calibrations are bound to their sensor --------------------------------------------------------
+
+def _calibrated(tmp_path, name, mask):
+    from nrhdr_core import crosstalk
+    p = profile.make(mask, crosstalk=crosstalk.identity_calibration(mask))
+    return profile.save(p, tmp_path / f"{name}.json")
+
+
+def test_calibration_records_mask_checksum_and_refuses_another_mask(tmp_path):
+    from nrhdr_core import mask as masks
+    ma, mb = masks.nonregular_mask(24, 32, seed=1), masks.nonregular_mask(24, 32, seed=2)
+    f = _calibrated(tmp_path, "cam", ma)
+    entry = json.loads(f.read_text())["crosstalk"]
+    assert entry["mask_sha256"] == profile.mask_sha256(ma) != profile.mask_sha256(mb)
+    assert (entry["mask_width"], entry["mask_height"], entry["bit_depth"]) == (32, 24, 12)
+    assert profile.load(f).crosstalk is not None
+    io.write_mask(tmp_path / "cam_mask.png", mb)        # the mask beside it replaced by another sensor's
+    with pytest.raises(profile.ProfileError, match="another sensor") as e:
+        profile.load(f)
+    assert "cam_crosstalk.npz" in str(e.value) and "cam_mask.png" in str(e.value)
+    # bit depth recorded with the calibration must match the profile's
+    io.write_mask(tmp_path / "cam_mask.png", ma)
+    doc = json.loads(f.read_text())
+    doc["crosstalk"]["bit_depth"] = 10
+    f.write_text(json.dumps(doc))
+    with pytest.raises(profile.ProfileError, match="10-bit"):
+        profile.load(f)
+
+
+def test_old_calibration_without_checksum_loads_with_warning(tmp_path):
+    from nrhdr_core import mask as masks
+    f = _calibrated(tmp_path, "cam", masks.nonregular_mask(24, 32, seed=1))
+    doc = json.loads(f.read_text())
+    for k in ("mask_sha256", "mask_width", "mask_height", "bit_depth"):
+        del doc["crosstalk"][k]
+    f.write_text(json.dumps(doc))
+    with pytest.warns(profile.ProfileWarning, match="no mask checksum"):
+        p = profile.load(f)
+    assert p.crosstalk is not None
+
+
+@pytest.mark.gst
+def test_nrcrosstalk_refuses_calibration_of_another_sensor(gst, tiny_clip, tmp_path, capsys):
+    from gst_plugins import runtime
+    from nrhdr_core import mask as masks
+    d, prof, _ = tiny_clip
+    other = _calibrated(tmp_path, "other", masks.nonregular_mask(prof.height, prof.width, seed=99))
+    same = _calibrated(tmp_path, "same", prof.mask)
+    chain = (f"filesrc location={d / 'clip.raw'} ! rawvideoparse format=gray16-le width={prof.width} "
+             f"height={prof.height} framerate=5/1 plane-strides=<{2 * prof.width}> ! "
+             f"nrvalidity profile={d / 'camera.json'} ! nrcrosstalk profile={{}} ! fakesink")
+    assert runtime.run_pipeline(chain.format(other)) == 1
+    err = capsys.readouterr().err
+    assert "nrcrosstalk" in err and "another sensor" in err
+    assert str(other) in err and str(d / "camera.json") in err          # names both files
+    assert runtime.run_pipeline(chain.format(same)) == 0
+
+
+# ---- 6. a stride that does not match the frame --------------------------------------------------------
+
+@pytest.mark.gst
+def test_nrvalidity_says_plane_strides_for_unpadded_odd_width(gst, tmp_path, capsys):
+    """Width 5: GStreamer pads GRAY16_LE rows to 12 bytes, nrhdr's files have 10-byte rows. 6 frames of
+    5x4 (240 bytes) divide evenly into 48-byte padded frames: without the check, silent garbage."""
+    from conftest import make_test_clip
+    from gst_plugins import runtime
+    d, prof, _ = make_test_clip(tmp_path / "c", width=5, height=4, frames=6)
+    src = (f"filesrc location={d / 'clip.raw'} ! rawvideoparse format=gray16-le width=5 height=4 "
+           f"framerate=5/1 {{}} ! nrvalidity profile={d / 'camera.json'} ! fakesink")
+    assert (d / "clip.raw").stat().st_size % (12 * 4) == 0
+    assert runtime.run_pipeline(src.format("")) == 1
+    err = capsys.readouterr().err
+    assert "nrvalidity" in err and "plane-strides=<10>" in err and "truncated" not in err
+    # 7 frames do not divide evenly: the same advice instead of a misleading 'truncated'
+    raw = (d / "clip.raw").read_bytes()
+    (d / "clip.raw").write_bytes(raw + raw[:40])
+    assert runtime.run_pipeline(src.format("")) == 1
+    err = capsys.readouterr().err
+    assert "plane-strides=<10>" in err and "truncated" not in err
+    assert runtime.run_pipeline(src.format("plane-strides=<10>")) == 0
+
+
+# ---- 7. odd inputs: clear errors naming the field -------------------------------------------------------
+
+def _profile_doc(tmp_path, **changes):
+    p = profile.default(12, 16, seed=1)
+    f = profile.save(p, tmp_path / "cam.json")
+    doc = json.loads(f.read_text())
+    doc.update(changes)
+    f.write_text(json.dumps(doc))
+    return f
+
+
+@pytest.mark.parametrize("field,value,text", [
+    ("nd", 1e308, "field 'nd'"), ("nd", 1e6, "field 'nd'"), ("gain", 1e300, "field 'gain'"),
+    ("full_well", 1e30, "field 'full_well'"), ("read_noise", 1e12, "field 'read_noise'"),
+    ("width", "16", "field 'width' must be an integer"), ("height", 12.0, "field 'height' must be an integer"),
+    ("width", True, "field 'width'"), ("mask", 5, "field 'mask'"), ("black_level", 10 ** 400, "black_level"),
+])
+def test_profile_rejects_values_that_cannot_work(tmp_path, field, value, text):
+    f = _profile_doc(tmp_path, **{field: value})
+    with pytest.raises(profile.ProfileError, match=text) as e:
+        profile.load(f)
+    assert "160x120 but the profile says 160x120" not in str(e.value)
+
+
+def test_mask_with_alpha_is_refused(tmp_path):
+    import OpenImageIO as oiio
+    f = _profile_doc(tmp_path)
+    m = np.where(profile.load(f).mask, 255, 0).astype(np.uint8)
+    ga = np.ascontiguousarray(np.stack([m, np.zeros_like(m)], -1))      # gray + alpha 0 (transparent)
+    spec = oiio.ImageSpec(16, 12, 2, oiio.UINT8)
+    spec.channelnames = ("Y", "A")
+    spec.alpha_channel = 1
+    out = oiio.ImageOutput.create(str(tmp_path / "cam_mask.png"))
+    assert out.open(str(tmp_path / "cam_mask.png"), spec) and out.write_image(ga) and out.close()
+    with pytest.raises(profile.ProfileError, match="alpha channel"):
+        profile.load(f)
+
+
+def test_sixteen_bit_mask_messages_say_what_is_there(tmp_path):
+    f = _profile_doc(tmp_path)
+    m = profile.load(f).mask
+    io.write_image(tmp_path / "cam_mask.png", np.where(m, 255, 0).astype(np.uint16), np.uint16)
+    with pytest.raises(profile.ProfileError) as e:
+        profile.load(f)
+    msg = str(e.value)
+    assert "16-bit" in msg and "0, 255" in msg and "65535" in msg and "e.g. 1" not in msg
+    io.write_image(tmp_path / "cam_mask.png", np.where(m, 65535, 0).astype(np.uint16), np.uint16)
+    assert np.array_equal(profile.load(f).mask, m)       # 16-bit full scale: read properly
+
+
+def test_exposures_csv_extra_column_is_a_calibration_error(tmp_path):
+    from nrhdr_core import calibration
+    flats = tmp_path / "f"
+    calibration.simulate_flats(flats, profile.default(10, 12, seed=1), None,
+                               exposures=calibration.default_exposures(6), frames_per_exposure=2,
+                               progress=False)
+    lines = (flats / "exposures.csv").read_text().splitlines()
+    lines[3] += ",oops"
+    (flats / "exposures.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(calibration.CalibrationError, match="line 4: 3 columns") as e:
+        calibration.read_index(flats)
+    assert "oops" in str(e.value)
+    rc = cli.main(["calibrate", str(flats), "--mask", str(flats / "mask.png"), "-o", str(tmp_path / "c.json"),
+                   "-q", "--no-plots"])
+    assert rc == 2
