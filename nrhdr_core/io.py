@@ -233,8 +233,16 @@ class RawVideoWriter:
 def read_raw_video(path, width: int, height: int) -> np.ndarray:
     """Read a GRAY16_LE raw file as (frames, H, W) uint16 (memory-mapped); a trailing partial frame is an
     error naming the file."""
-    size = os.path.getsize(path)
+    if not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))
+            and width >= 1 and height >= 1):
+        raise ImageFileError(f"{path}: frame size must be positive integers, got {width!r}x{height!r}")
+    try:
+        size = os.path.getsize(path)
+    except OSError as e:
+        raise ImageFileError(f"{path}: cannot read raw video: {e}") from None
     fb = width * height * 2
+    if size == 0:
+        return np.zeros((0, height, width), "<u2")
     if size % fb:
         raise ImageFileError(f"{path}: size {size} is not a whole number of {width}x{height} GRAY16_LE "
                              f"frames ({size // fb} frames + {size % fb} bytes)")
