@@ -93,13 +93,15 @@ def soak(Gst, desc: str, caps: str, frames: list[bytes], n: int, fps: int, sampl
             break
         if i % sample_every == 0:
             res["rss"].append((i, rss_kb()))
-            if read_bus:   # an application that reads its bus; without it, messages pile up (if posted)
-                while bus.pop_filtered(Gst.MessageType.ELEMENT) is not None:
-                    pass
-            msg = bus.pop_filtered(Gst.MessageType.ERROR)
-            if msg is not None:
-                res["error"] = msg.parse_error()[0].message
-                break
+            if read_bus:   # an application that reads its bus (pop_filtered would discard the rest: only
+                while True:  # the reading app touches the bus; an error also stops push-buffer)
+                    msg = bus.pop()
+                    if msg is None:
+                        break
+                    if msg.type == Gst.MessageType.ERROR:
+                        res["error"] = msg.parse_error()[0].message
+                if res["error"] is not None:
+                    break
     src.emit("end-of-stream")
     t.join(timeout=120)
     res["seconds"] = time.perf_counter() - t0
