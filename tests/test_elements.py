@@ -534,7 +534,7 @@ def test_run_pipeline_in_process(gst, tiny_clip, tmp_path, capsys):
     assert runtime.run_pipeline(desc, on_message=on_message) == 0
     assert len(stats) == len(raws) and all(0 < m < 1 for m in stats)
     assert len(list(tmp_path.glob("f_*.exr"))) == len(raws)
-    bad = desc.replace(f"width={prof.width}", "width=32")
+    bad = desc.replace(f"width={prof.width}", "width=32").replace("/f_%03d", "/bad_%03d")  # new sequence
     assert runtime.run_pipeline(bad) == 1
     err = capsys.readouterr().err
     assert "nrvalidity" in err and "64x48 mask but the stream is 32x48" in err
