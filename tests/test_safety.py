@@ -465,3 +465,23 @@ def test_exposures_csv_extra_column_is_a_calibration_error(tmp_path):
     rc = cli.main(["calibrate", str(flats), "--mask", str(flats / "mask.png"), "-o", str(tmp_path / "c.json"),
                    "-q", "--no-plots"])
     assert rc == 2
+
+
+@pytest.mark.gst
+def test_shipped_recording_pipeline_refuses_old_recording(gst_subprocess_env, tiny_clip, tmp_path):
+    d, _, raws = tiny_clip
+    out = tmp_path / "png"
+    out.mkdir()
+    for i in range(len(raws) + 4):                    # an older, longer recording
+        (out / f"frame_{i:05d}.png").write_bytes(b"old")
+    (out / "frame_notes.txt").write_text("mine")
+    cmd = ["bash", str(PIPELINES / "raw_to_png.sh"), str(d), str(out)]
+    p = subprocess.run(cmd, env=gst_subprocess_env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "already holds a recording" in p.stderr and "OVERWRITE=true" in p.stderr
+    assert (out / "frame_00000.png").read_bytes() == b"old"
+    p = subprocess.run(cmd, env=dict(gst_subprocess_env, OVERWRITE="true"), capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert sorted(f.name for f in out.glob("frame_*.png")) == [f"frame_{i:05d}.png" for i in range(len(raws))]
+    assert io.read_image(out / "frame_00000.png", np.uint8).shape[:2] == raws.shape[1:]
+    assert (out / "frame_notes.txt").read_text() == "mine"
