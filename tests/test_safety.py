@@ -118,6 +118,23 @@ def test_launch_child_stops_when_wrapper_is_killed_hard(gst_subprocess_env, tiny
 
 
 @pytest.mark.gst
+def test_launch_status_when_child_is_killed(gst_subprocess_env):
+    """A gst-launch killed by a signal gives the shell convention 128 + n (137 for SIGKILL), not 247."""
+    env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}")
+    p = subprocess.Popen(_nrhdr_cmd() + ["launch", "videotestsrc", "is-live=true", "!", "fakesink"], env=env,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert _wait_for(lambda: bool(_children(p.pid)) or p.poll() is not None)
+        kids = _children(p.pid)
+        assert kids
+        os.kill(kids[0], signal.SIGKILL)
+        assert p.wait(timeout=30) == 128 + signal.SIGKILL
+    finally:
+        if p.poll() is None:
+            p.kill()
+
+
+@pytest.mark.gst
 def test_shipped_pipeline_stops_on_sigterm(gst_subprocess_env, tmp_path):
     """pipelines/*.sh exec `nrhdr launch`, so a SIGTERM to the script's PID stops the whole pipeline."""
     from conftest import make_test_clip
@@ -203,21 +220,31 @@ def test_exrsink_sequence_pattern_matching():
 SIM = ["--width", "32", "--height", "24", "--frames", "3"]
 
 
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    """A small HDR scene (a 4-decade ramp): the synthesised default scene takes seconds to build."""
+    f = tmp_path_factory.mktemp("scene") / "ramp.exr"
+    yy, xx = np.mgrid[0:60, 0:80]
+    io.write_exr(f, (10.0 ** (4 * xx / 80) * (1 + 0.2 * np.sin(yy / 5))).astype(np.float32))
+    return str(f)
+
+
 def _tree(d: Path) -> dict:
     return {p.relative_to(d).as_posix(): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
 
 
-def test_simulate_refuses_existing_clip_and_force_replaces_only_its_files(tmp_path, capsys):
+def test_simulate_refuses_existing_clip_and_force_replaces_only_its_files(tmp_path, capsys, scene_file):
     out = tmp_path / "clip"
-    assert cli.main(["simulate", "-o", str(out), "--frames", "5", "--width", "32", "--height", "24"]) == 0
+    assert cli.main(["simulate", scene_file, "-o", str(out), "--frames", "5", "--width", "32", "--height",
+                     "24"]) == 0
     (out / "notes.txt").write_text("keep me")
     (out / "truth" / "my_truth.txt").write_text("keep me too")
     old = _tree(out)
-    assert cli.main(["simulate", "-o", str(out), *SIM, "--seed", "9"]) == 2
+    assert cli.main(["simulate", scene_file, "-o", str(out), *SIM, "--seed", "9"]) == 2
     err = capsys.readouterr().err
     assert "already exists" in err and "--force" in err
     assert _tree(out) == old                          # untouched
-    assert cli.main(["simulate", "-o", str(out), *SIM, "--seed", "9", "--force"]) == 0
+    assert cli.main(["simulate", scene_file, "-o", str(out), *SIM, "--seed", "9", "--force"]) == 0
     new = _tree(out)
     # the new clip (3 frames) is not mixed with the old one (5 frames); foreign files kept
     assert sorted(k for k in new if k.startswith("truth/frame_")) == [f"truth/frame_{i:05d}.exr" for i in range(3)]
@@ -227,10 +254,10 @@ def test_simulate_refuses_existing_clip_and_force_replaces_only_its_files(tmp_pa
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]   # no staging folder left
 
 
-def test_interrupted_simulate_leaves_old_clip_untouched(tmp_path, monkeypatch):
+def test_interrupted_simulate_leaves_old_clip_untouched(tmp_path, monkeypatch, scene_file):
     from nrhdr_core import sensor, simulate
     out = tmp_path / "clip"
-    assert cli.main(["simulate", "-o", str(out), *SIM]) == 0
+    assert cli.main(["simulate", scene_file, "-o", str(out), *SIM]) == 0
     old = _tree(out)
     real = sensor.capture
     calls = []
@@ -242,7 +269,7 @@ def test_interrupted_simulate_leaves_old_clip_untouched(tmp_path, monkeypatch):
         return real(*a, **k)
 
     monkeypatch.setattr(sensor, "capture", interrupted)
-    assert cli.main(["simulate", "-o", str(out), *SIM, "--seed", "4", "--force"]) == 130
+    assert cli.main(["simulate", scene_file, "-o", str(out), *SIM, "--seed", "4", "--force"]) == 130
     assert _tree(out) == old
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
     assert simulate.load_clip(out)["frames"] == 3
