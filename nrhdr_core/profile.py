@@ -10,6 +10,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import numbers
 import os
 import warnings
 from pathlib import Path
@@ -107,7 +108,7 @@ def validate(p: CameraProfile, where: str = "profile") -> None:
         bad("mask", f"{m.shape[1]}x{m.shape[0]} is larger than {MAX_SIZE} pixels on a side")
     for f in ("nd", "gain", "full_well", "read_noise", "black_level", "l_min"):
         v = getattr(p, f)
-        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
+        if not (isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)):
             bad(f, f"must be a finite number, got {v!r}")
     for f in ("bit_depth", "clip_code"):
         v = getattr(p, f)
