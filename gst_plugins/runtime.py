@@ -119,6 +119,7 @@ FLOATING_NOISE = "The created element should be floating, this is probably cause
 STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
 STOP_TIMEOUT_S = 10.0   # after the EOS request: then SIGTERM, and SIGKILL KILL_TIMEOUT_S later
 KILL_TIMEOUT_S = 5.0
+DUPLICATE_S = 1.0       # a second signal within this time of the first is the same request, not an escalation
 
 
 def _stop_timeout() -> float:
@@ -170,8 +171,9 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
 
     With `forward_signals` (gst-launch children) SIGINT, SIGTERM and SIGHUP to this process become one
     SIGINT to the child (EOS: it finishes its files), escalated to SIGTERM after NRHDR_STOP_TIMEOUT s
-    (default 10) and SIGKILL 5 s later; a second signal escalates at once. The child runs in its own process
-    group and gets SIGINT if this process dies (PR_SET_PDEATHSIG), so it is never left running alone.
+    (default 10) and SIGKILL 5 s later; a second signal (more than 1 s after the first) escalates at once.
+    The child runs in its own process group and gets SIGINT if this process dies (PR_SET_PDEATHSIG), so it
+    is never left running alone.
     Returns 128 + signal number when a signal stopped the run (130 SIGINT, 143 SIGTERM), else the child's
     status (128 + n when the child itself died of signal n)."""
     import signal
@@ -223,9 +225,15 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
             return
         stage["n"] = min(n + 1, 3)
 
+    first = [0.0]
+
     def on_signal(signum, frame):
+        now = time.monotonic()
+        if got and now - first[0] < DUPLICATE_S:
+            return   # the same stop, delivered twice (terminal's process group + a script forwarding it)
         got.append(signum)
         if len(got) == 1:
+            first[0] = now
             print(f"nrhdr: {signal.Signals(signum).name}: stopping the pipeline with EOS (files are "
                   f"finished; signal again to stop at once)", file=sys.stderr)
         escalate()

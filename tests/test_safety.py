@@ -140,8 +140,10 @@ def test_shipped_pipeline_stops_on_sigterm(gst_subprocess_env, tmp_path):
     from conftest import make_test_clip
     d, _, _ = make_test_clip(tmp_path / "clip", frames=300, fps=30)     # 10 s played in real time
     for sh in PIPELINES.glob("*.sh"):
+        text = sh.read_text()
         if sh.name != "common.sh":
-            assert 'exec "$NRHDR" launch' in sh.read_text(), f"{sh.name} must exec nrhdr launch"
+            assert 'exec "$NRHDR" launch' in text or ("nr_launch " in text and '"$NRHDR" launch' not in text), \
+                f"{sh.name} must 'exec \"$NRHDR\" launch' (or use nr_launch) so that signals reach nrhdr"
     env = dict(gst_subprocess_env, SYNC="true")
     p = subprocess.Popen(["bash", str(PIPELINES / "raw_to_display_headless.sh"), str(d)], env=env,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -512,3 +514,44 @@ def test_shipped_recording_pipeline_refuses_old_recording(gst_subprocess_env, ti
     assert sorted(f.name for f in out.glob("frame_*.png")) == [f"frame_{i:05d}.png" for i in range(len(raws))]
     assert io.read_image(out / "frame_00000.png", np.uint8).shape[:2] == raws.shape[1:]
     assert (out / "frame_notes.txt").read_text() == "mine"
+
+
+@pytest.mark.gst
+@pytest.mark.parametrize("sig,status,group", [(signal.SIGTERM, 143, False), (signal.SIGINT, 130, False),
+                                              (signal.SIGINT, 130, True)])
+def test_nr_launch_forwards_signals_from_a_script(gst_subprocess_env, tiny_clip, tmp_path, sig, status, group):
+    """pipelines/common.sh nr_launch: for scripts with work after the pipeline; a signal to the script's PID
+    (or, like a terminal's Ctrl-C, to its whole process group: nrhdr then gets it twice and must not take
+    the duplicate for 'stop at once') stops the recording with EOS, nothing is left running, and (set -e)
+    the script stops there."""
+    d, prof, _ = tiny_clip
+    script = tmp_path / "rec.sh"
+    script.write_text(f"""#!/usr/bin/env bash
+source "{PIPELINES / 'common.sh'}"
+nr_launch videotestsrc is-live=true pattern=snow ! video/x-raw,format=GRAY16_LE,width=64,height=48,framerate=30/1 \\
+  ! nrvalidity "profile={d / 'camera.json'}" ! nrreconstruct method=preview \\
+  ! nrexrsink "location={tmp_path}/f_%05d.exr" write-state=true
+touch "{tmp_path}/after"
+""")
+    env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}")
+    p = subprocess.Popen(["bash", str(script)], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         text=True, start_new_session=group)
+    try:
+        assert _wait_for(lambda: len(list(tmp_path.glob("f_*.exr"))) >= 5 or p.poll() is not None)
+        assert p.poll() is None, p.communicate()[0]
+        procs = _children(p.pid)
+        procs += [g for c in procs for g in _children(c)]          # nrhdr and its gst-launch
+        assert len(procs) >= 2
+        if group:
+            os.killpg(p.pid, sig)
+        else:
+            p.send_signal(sig)
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == status, out
+    assert "Got EOS" in out and "terminating it" not in out     # one clean EOS, no escalation
+    assert not any(_alive(k) for k in procs)
+    assert not (tmp_path / "after").exists()
+    _check_recording(tmp_path, prof)
