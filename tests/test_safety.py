@@ -555,3 +555,15 @@ touch "{tmp_path}/after"
     assert not any(_alive(k) for k in procs)
     assert not (tmp_path / "after").exists()
     _check_recording(tmp_path, prof)
+
+
+@pytest.mark.gst
+def test_nrvalidity_buffer_not_whole_rows_says_plane_strides(gst, tiny_clip):
+    from conftest import run_appsrc
+    d, prof, raws = tiny_clip
+    caps = f"video/x-raw,format=GRAY16_LE,width={prof.width},height={prof.height},framerate=5/1"
+    short = gst.Buffer.new_wrapped(np.ascontiguousarray(raws[0], "<u2").tobytes()[:-2])
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'}", caps, [short])
+    assert r.error is not None and r.error[0].startswith("nrvalidity")
+    assert "plane-strides" in r.error[1] and "not 48 whole rows" in r.error[1]
+    assert not r.samples

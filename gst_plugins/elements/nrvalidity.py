@@ -211,6 +211,8 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         """rawvideoparse silently drops a partial last frame: ask upstream for the byte size of its input
         (filesrc answers) and refuse a file that is not a whole number of frames."""
         self._size_checked = True
+        if not self._check_stride(inbuf):
+            return False
         frame = inbuf.get_size()
         try:
             if not self._raw_parser_upstream():
@@ -269,7 +271,12 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         except Exception:  # noqa: BLE001 - no usable meta: size checks only
             meta_stride = None
         size = inbuf.get_size()
-        used = stride if size == vi.size else (size // h if h else 0)
+        if size != vi.size and (size % h or size // h < 2 * w):
+            self.post_error(f"{self._input_name()}: a buffer of {size} bytes is not {h} whole rows of a {w}x{h} "
+                            f"GRAY16_LE frame ({vi.size} bytes with rows padded to {stride}, {tight} unpadded): "
+                            f"wrong size, or set plane-strides=<ROW_BYTES> on rawvideoparse", kind="format")
+            return False
+        used = stride if size == vi.size else size // h
         if meta_stride is not None and meta_stride != used:
             self.post_error(f"{self._input_name()}: the buffers' video meta says rows of {meta_stride} bytes but "
                             f"{size}-byte {w}x{h} frames give {used}: set plane-strides=<{meta_stride}> on "
