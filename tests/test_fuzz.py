@@ -19,7 +19,7 @@ from nrhdr_core import calibration, crosstalk, io, profile, reconstruction, tone
 
 # Bounded for the suite (seconds, reproducible); NRHDR_FUZZ_EXAMPLES=2000 for a deeper, random run.
 _DEEP = int(os.environ.get("NRHDR_FUZZ_EXAMPLES", "0") or 0)
-FUZZ = settings(max_examples=_DEEP or 60, deadline=None, derandomize=not _DEEP,
+FUZZ = settings(max_examples=_DEEP or 60, deadline=None, derandomize=not _DEEP, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 H, W = 12, 16
