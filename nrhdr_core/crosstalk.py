@@ -298,7 +298,7 @@ def load_calibration(entry: dict, base_dir, shape) -> CrosstalkCalibration:
     try:
         float(entry["qscale"]), float(entry["qoffset"]), float(entry["black_level"]), int(entry["clip_code"])
     except (TypeError, ValueError, OverflowError):
-        raise ValueError(f"crosstalk entry: qscale, qoffset, black_level, clip_code must be numbers") from None
+        raise ValueError("crosstalk entry: qscale, qoffset, black_level, clip_code must be numbers") from None
     nd = float(entry["nd"])
     if not (math.isfinite(nd) and nd >= 1):
         raise ValueError(f"crosstalk entry: field 'nd' must be >= 1, got {entry['nd']!r}")
