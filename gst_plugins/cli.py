@@ -26,7 +26,10 @@ def _profile_from_args(a):
 def cmd_simulate(a) -> int:
     from nrhdr_core import simulate
     motion = simulate.Motion(pan=a.pan, tilt=a.tilt, zoom=a.zoom, fov=a.fov)
-    simulate.check_args(a.frames, a.fps, a.exposure, motion, a.sequence)   # before anything is read/written
+    try:                                   # before anything is read or written; messages start with the name
+        simulate.check_args(a.frames, a.fps, a.exposure, motion, a.sequence)
+    except ValueError as e:
+        raise ValueError(f"--{e}") from None
     prof = _profile_from_args(a)
     model = None
     if a.sensor_model and a.sensor_model != "none":
