@@ -5,7 +5,7 @@ setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	.venv/bin/nrhdr demo
+	.venv/bin/nrhdr demo --force
 
 test: setup
 	.venv/bin/python -m pytest -q -ra tests

@@ -98,7 +98,7 @@ def main(argv=None) -> int:
         f"appsrc name=cam is-live=true format=time "
         f"caps=video/x-raw,format=GRAY16_LE,width={a.width},height={a.height},framerate={a.fps}/1 "
         f"! queue ! nrvalidity profile=\"{prof_path}\" ! nrcrosstalk "
-        f"! nrreconstruct name=rec method=preview ! nrtonemap name=tm ! video/x-raw,format=GRAY8 ! {sink}")
+        f"! nrreconstruct name=rec method=preview post-stats=true ! nrtonemap name=tm ! video/x-raw,format=GRAY8 ! {sink}")
     cam, rec, tm = (pipeline.get_by_name(n) for n in ("cam", "rec", "tm"))
     out = pipeline.get_by_name("out")
     frame_ns = Gst.SECOND // a.fps

@@ -85,7 +85,7 @@ def build_pipeline(c: dict, out: Path, a) -> Gst.Pipeline:
         f"filesrc location={q(c['raw'])} ! rawvideoparse format=gray16-le width={w} height={h} "
         f"framerate={int(c['fps'])}/1 plane-strides=<{2 * w}> "
         f"! nrvalidity name=validity profile={q(c['profile'])} ! nrcrosstalk "
-        f"! nrreconstruct name=reconstruct method={a.method} preset={a.preset} ! tee name=t "
+        f"! nrreconstruct name=reconstruct method={a.method} preset={a.preset} post-stats=true ! tee name=t "
         f"t. ! queue ! nrexrsink name=exr location={q(out / 'exr' / 'frame_%05d.exr')} write-state=true "
         f"t. ! queue ! nrtonemap exposure={a.exposure} ! video/x-raw,format=GRAY8 ! pngenc "
         f"! multifilesink location={q(out / 'png' / 'frame_%05d.png')}"

@@ -25,6 +25,11 @@ def _profile_from_args(a):
 
 def cmd_simulate(a) -> int:
     from nrhdr_core import simulate
+    motion = simulate.Motion(pan=a.pan, tilt=a.tilt, zoom=a.zoom, fov=a.fov)
+    try:                                   # before anything is read or written; messages start with the name
+        simulate.check_args(a.frames, a.fps, a.exposure, motion, a.sequence)
+    except ValueError as e:
+        raise ValueError(f"--{e}") from None
     prof = _profile_from_args(a)
     model = None
     if a.sensor_model and a.sensor_model != "none":
@@ -32,10 +37,10 @@ def cmd_simulate(a) -> int:
         model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width,
                                                  seed=a.sensor_seed)
     scene, name = _scene(a.scene)
-    motion = simulate.Motion(pan=a.pan, tilt=a.tilt, zoom=a.zoom, fov=a.fov)
     info = simulate.simulate_clip(scene, a.output, prof, frames=a.frames, fps=a.fps,
                                   exposure_stops=a.exposure, motion=motion, seed=a.seed,
-                                  sensor_model=model, sequence=a.sequence, scene_name=name)
+                                  sensor_model=model, sequence=a.sequence, scene_name=name,
+                                  overwrite=a.force)
     out = Path(a.output)
     print(f"wrote {info['frames']} frames {info['width']}x{info['height']} GRAY16_LE to {out / 'clip.raw'}")
     print(f"profile {out / 'camera.json'}, ground truth {out / 'truth'}/")
@@ -48,7 +53,7 @@ def cmd_simulate(a) -> int:
 def cmd_profile(a) -> int:
     from nrhdr_core import profile
     p = _profile_from_args(a)
-    profile.save(p, a.output)
+    profile.save(p, a.output, overwrite=a.force)
     print(f"wrote {a.output} ({p.width}x{p.height}, {a.pattern} mask, ND {p.nd}, "
           f"{p.mask.mean() * 100:.1f} % attenuated)")
     return 0
@@ -75,20 +80,42 @@ def demo_pipeline(clip: dict, out: Path, method: str, preset: str) -> str:
     d = Path(clip["dir"])
     prof = d / clip["profile"]
     return (f"filesrc location={d / clip['raw']} ! {rawvideoparse(clip)} ! nrvalidity profile={prof} ! "
-            f"nrcrosstalk profile={prof} ! nrreconstruct method={method} preset={preset} ! tee name=t "
+            f"nrcrosstalk profile={prof} ! nrreconstruct method={method} preset={preset} post-stats=true ! tee name=t "
             f"t. ! queue ! nrexrsink write-state=true location={out / 'exr' / 'frame_%05d.exr'} "
             f"t. ! queue ! nrtonemap ! pngenc ! multifilesink location={out / 'png' / 'frame_%05d.png'}")
 
 
+# What `nrhdr demo` writes into its output folder (io.staged_folder: --force replaces only these).
+DEMO_OUTPUTS = (r"clip/.*", r"exr/frame_\d+\.exr", r"png/frame_\d+\.png")
+
+
+class _DemoFailed(Exception):
+    pass
+
+
 def cmd_demo(a) -> int:
+    from nrhdr_core import io
+    final = Path(a.output).resolve()
+    try:
+        with io.staged_folder(final, force=a.force, owned=io.owned_by_patterns(*DEMO_OUTPUTS)) as tmp:
+            rc, lines = _run_demo(a, Path(tmp))
+            if rc != 0:
+                raise _DemoFailed
+    except _DemoFailed:
+        print(f"nrhdr demo: nothing written to {final}", file=sys.stderr)
+        return rc
+    for line in lines:
+        print(line.replace(str(tmp), str(final)))
+    return 0
+
+
+def _run_demo(a, out: Path):
+    """The demo in folder `out` (a staging folder); returns (rc, summary lines)."""
     import numpy as np
     from nrhdr_core import io, metrics, scene, simulate
     from . import runtime
-    out = Path(a.output).resolve()
     for sub in ("exr", "png"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-        for f in (out / sub).glob("frame_*"):
-            f.unlink()
     print(f"nrhdr demo: simulating {a.frames} frames {a.width}x{a.height} of the synthesised HDR scene")
     from nrhdr_core import profile
     prof = profile.default(a.height, a.width, seed=1)
@@ -109,7 +136,7 @@ def cmd_demo(a) -> int:
     dt = time.perf_counter() - t0
     if rc != 0:
         print("nrhdr demo: the pipeline failed", file=sys.stderr)
-        return rc
+        return rc, []
     exrs = sorted((out / "exr").glob("frame_*.exr"))
     pngs = sorted((out / "png").glob("frame_*.png"))
     # quality against the simulator's ground truth (log domain: HDR-robust), on a few frames
@@ -119,12 +146,16 @@ def cmd_demo(a) -> int:
         truth, _ = io.read_exr(out / "clip" / "truth" / f.name)
         lp.append(metrics.log_psnr(np.minimum(truth, prof.white), v))
     miss = 100.0 * float(np.mean(stats)) if stats else float("nan")
-    print(f"tone-mapped frames: {out / 'png'}/ ({len(pngs)} PNG)")
-    print(f"linear HDR frames:  {out / 'exr'}/ ({len(exrs)} OpenEXR, channels Y + state)")
-    print(f"summary: {len(pngs)} frames in {dt:.1f} s = {len(pngs) / dt:.1f} frames/s (JIT warm-up included), "
-          f"{miss:.1f} % of pixels reconstructed, log-domain PSNR vs ground truth "
-          f"{np.mean(lp):.1f} dB")
-    return 0 if len(pngs) == a.frames == len(exrs) else 1
+    lines = [f"tone-mapped frames: {out / 'png'}/ ({len(pngs)} PNG)",
+             f"linear HDR frames:  {out / 'exr'}/ ({len(exrs)} OpenEXR, channels Y + state)",
+             f"summary: {len(pngs)} frames in {dt:.1f} s = {len(pngs) / dt:.1f} frames/s (JIT warm-up "
+             f"included), {miss:.1f} % of pixels reconstructed, log-domain PSNR vs ground truth "
+             f"{np.mean(lp):.1f} dB"]
+    if not (len(pngs) == a.frames == len(exrs)):
+        print("\n".join(lines))
+        print(f"nrhdr demo: expected {a.frames} frames", file=sys.stderr)
+        return 1, []
+    return 0, lines
 
 
 def cmd_snr(a) -> int:
@@ -171,11 +202,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor-seed", type=int, default=0,
                    help="seed of the sensor model's pixel-to-pixel variation (same as simulate-flats')")
     p.add_argument("--sequence", choices=("png", "tiff"), help="also write 16-bit raw frames")
+    p.add_argument("--force", action="store_true",
+                   help="replace the clip files in an existing folder (other files there are kept)")
     _add_sensor_args(p)
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("profile", help="write a camera profile (mask PNG + JSON)")
     p.add_argument("-o", "--output", required=True)
+    p.add_argument("--force", action="store_true", help="replace an existing profile (JSON and mask PNG)")
     _add_sensor_args(p, profile_opt=False)
     p.set_defaults(func=cmd_profile)
 
@@ -194,6 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--method", default="fse", choices=("fse", "linear", "nearest", "preview"))
     p.add_argument("--preset", default="fast", choices=("preview", "fast", "balanced", "best"))
+    p.add_argument("--force", action="store_true",
+                   help="replace the demo's files (clip/, exr/frame_*, png/frame_*) in an existing folder; "
+                        "other files there are kept")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("snr", help="the paper's SNR and valid-pixel analysis (Fig. 3, 4, 5) as plots")

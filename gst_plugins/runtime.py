@@ -115,10 +115,72 @@ def _tool(name: str) -> str:
 FLOATING_NOISE = "The created element should be floating, this is probably caused by faulty bindings"
 
 
-def _call_filtered(cmd: list[str], env: dict) -> int:
-    """Run `cmd`, passing its stderr through except the harmless FLOATING_NOISE lines."""
+# Signals a wrapper turns into a clean stop of its gst-launch child (SIGINT = EOS with `gst-launch -e`).
+STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
+STOP_TIMEOUT_S = 10.0   # after the EOS request: then SIGTERM, and SIGKILL KILL_TIMEOUT_S later
+KILL_TIMEOUT_S = 5.0
+DUPLICATE_S = 1.0       # a second signal within this time of the first is the same request, not an escalation
+
+
+def _stop_timeout() -> float:
+    """Seconds a child gets to finish its files after SIGINT (env NRHDR_STOP_TIMEOUT, default 10)."""
+    try:
+        v = float(os.environ.get("NRHDR_STOP_TIMEOUT", STOP_TIMEOUT_S))
+        return v if v > 0 else STOP_TIMEOUT_S
+    except ValueError:
+        return STOP_TIMEOUT_S
+
+
+def _child_preexec_factory():
+    """preexec_fn for a gst-launch child on Linux: its own process group (a terminal's Ctrl-C reaches only
+    the wrapper, which forwards exactly one SIGINT: gst-launch dies on a second one) and
+    PR_SET_PDEATHSIG=SIGINT (the child stops with EOS even when the wrapper is killed hard, e.g. SIGKILL).
+    None where prctl is unavailable (then only the process group is set)."""
+    parent = os.getpid()
+    prctl = None
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            prctl = libc.prctl
+        except (OSError, AttributeError):
+            prctl = None
+    import signal as _signal
+    sigint = int(_signal.SIGINT)
+
+    sigpipe = getattr(_signal, "SIGPIPE", None)
+
+    def preexec():  # runs in the forked child before exec
+        os.setpgid(0, 0)
+        if sigpipe is not None:   # if the wrapper dies, stderr writes must not kill a pipeline finishing
+            _signal.signal(sigpipe, _signal.SIG_IGN)   # its files (SIG_IGN survives exec)
+        if prctl is not None:
+            prctl(1, sigint, 0, 0, 0)          # PR_SET_PDEATHSIG = 1
+            if os.getppid() != parent:         # the wrapper died before prctl took effect
+                os.kill(os.getpid(), sigint)
+    return preexec
+
+
+def _exit_status(rc: int) -> int:
+    """Popen return code -> shell-style status (128 + signal for a child killed by a signal)."""
+    return 128 - rc if rc < 0 else rc
+
+
+def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> int:
+    """Run `cmd`, passing its stderr through except the harmless FLOATING_NOISE lines.
+
+    With `forward_signals` (gst-launch children) SIGINT, SIGTERM and SIGHUP to this process become one
+    SIGINT to the child (EOS: it finishes its files), escalated to SIGTERM after NRHDR_STOP_TIMEOUT s
+    (default 10) and SIGKILL 5 s later; a second signal (more than 1 s after the first) escalates at once.
+    The child runs in its own process group and gets SIGINT if this process dies (PR_SET_PDEATHSIG), so it
+    is never left running alone.
+    Returns 128 + signal number when a signal stopped the run (130 SIGINT, 143 SIGTERM), else the child's
+    status (128 + n when the child itself died of signal n)."""
+    import signal
     import threading
-    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, bufsize=0)
+    import time
+    preexec = _child_preexec_factory() if forward_signals and os.name == "posix" else None
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, bufsize=0, preexec_fn=preexec)
 
     def pump():
         pending_blank = False
@@ -140,16 +202,84 @@ def _call_filtered(cmd: list[str], env: dict) -> int:
 
     t = threading.Thread(target=pump, daemon=True)
     t.start()
+    got: list[int] = []            # signals received, in order
+    stage = {"n": 0, "deadline": None}   # 0 running, 1 SIGINT sent, 2 SIGTERM sent, 3 SIGKILL sent
+    old = {}
+
+    def escalate():
+        if proc.poll() is not None:
+            return
+        n = stage["n"]
+        try:
+            if n == 0:
+                proc.send_signal(signal.SIGINT)
+                stage["deadline"] = time.monotonic() + _stop_timeout()
+            elif n == 1:
+                print("nrhdr: the pipeline did not stop after EOS; terminating it", file=sys.stderr)
+                proc.send_signal(signal.SIGTERM)
+                stage["deadline"] = time.monotonic() + KILL_TIMEOUT_S
+            else:
+                proc.kill()
+                stage["deadline"] = None
+        except ProcessLookupError:
+            return
+        stage["n"] = min(n + 1, 3)
+
+    first = [0.0]
+
+    def on_signal(signum, frame):
+        now = time.monotonic()
+        if got and now - first[0] < DUPLICATE_S:
+            return   # the same stop, delivered twice (terminal's process group + a script forwarding it)
+        got.append(signum)
+        if len(got) == 1:
+            first[0] = now
+            print(f"nrhdr: {signal.Signals(signum).name}: stopping the pipeline with EOS (files are "
+                  f"finished; signal again to stop at once)", file=sys.stderr)
+        escalate()
+
+    if forward_signals and threading.current_thread() is threading.main_thread():
+        for name in STOP_SIGNALS:
+            sig = getattr(signal, name, None)
+            if sig is not None:
+                try:
+                    old[sig] = signal.signal(sig, on_signal)
+                except (OSError, ValueError):
+                    pass
     try:
-        rc = proc.wait()
-    except KeyboardInterrupt:  # gst-launch -e got the same SIGINT: let it finish its files
-        rc = proc.wait()
-    t.join(timeout=5)
-    return rc
+        while True:
+            try:
+                rc = proc.wait(timeout=0.2)
+                break
+            except subprocess.TimeoutExpired:
+                pass
+            except KeyboardInterrupt:   # no handler installed (not the main thread): gst-launch -e
+                got.append(int(signal.SIGINT))  # got the same SIGINT from the terminal
+                continue
+            if stage["deadline"] is not None and time.monotonic() > stage["deadline"]:
+                escalate()
+    except BaseException:
+        if proc.poll() is None:     # never leave the child alone
+            proc.kill()
+            proc.wait()
+        raise
+    finally:
+        for sig, h in old.items():
+            try:
+                signal.signal(sig, h)
+            except (OSError, ValueError):
+                pass
+        t.join(timeout=5)
+    if got:
+        return 128 + got[0]
+    return _exit_status(rc)
 
 
 def launch(args: list[str]) -> int:
-    """Run `gst-launch-1.0 -e <args>` with gst_env(); returns its exit code (non-zero on error)."""
+    """Run `gst-launch-1.0 -e <args>` with gst_env(); returns its exit status (non-zero on error).
+
+    SIGINT/SIGTERM/SIGHUP stop the pipeline with EOS (see `_call_filtered`): the exit status is then 130 /
+    143 / 129; the child never outlives this process."""
     try:
         exe = _tool("gst-launch-1.0")
     except FileNotFoundError as e:
@@ -158,7 +288,7 @@ def launch(args: list[str]) -> int:
     args = list(args)
     if "-e" not in args and "--eos-on-shutdown" not in args:
         args = ["-e"] + args
-    return _call_filtered([exe] + args, gst_env())
+    return _call_filtered([exe] + args, gst_env(), forward_signals=True)
 
 
 def inspect(args: list[str]) -> int:
@@ -187,7 +317,8 @@ def run_pipeline(description: str, on_message=None) -> int:
 
     Blocks until EOS (returns 0) or the first error (prints `ERROR from <element>: <text>` and the debug
     text to stderr, returns 1). `on_message(msg)` is called for every bus message (e.g. the element messages
-    "nrhdr-frame-stats" of nrreconstruct). Ctrl-C sends EOS so files are finished; a second Ctrl-C stops."""
+    "nrhdr-frame-stats" of nrreconstruct). Ctrl-C (or SIGTERM/SIGHUP, in the main thread) sends EOS so files
+    are finished; a second one stops (130)."""
     import gst_plugins
     gst_plugins.register_all()
     from gi.repository import GLib, Gst
@@ -238,6 +369,17 @@ def run_pipeline(description: str, on_message=None) -> int:
                   file=sys.stderr)
         return False
 
+    import signal
+    import threading
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        def _term(signum, frame):   # SIGTERM/SIGHUP: like Ctrl-C, EOS first so files are finished
+            raise KeyboardInterrupt
+        try:
+            old_term = {s: signal.signal(s, _term) for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None))
+                        if s is not None}
+        except (OSError, ValueError):
+            old_term = None
     ret = pipeline.set_state(Gst.State.PLAYING)
     try:
         if ret == Gst.StateChangeReturn.FAILURE:
@@ -265,3 +407,5 @@ def run_pipeline(description: str, on_message=None) -> int:
                 return result["rc"]
     finally:
         pipeline.set_state(Gst.State.NULL)
+        for sig, h in (old_term or {}).items():
+            signal.signal(sig, h)

@@ -83,6 +83,10 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
     groups: dict[float, list[Path]] = {}
     seen = set()
     for n, row in enumerate(rows, start=2):
+        if None in row:     # csv.DictReader puts surplus cells under the key None (as a list)
+            raise CalibrationError(f"{csv_path}: line {n}: {len(fields) + len(row[None])} columns, but the "
+                                   f"header has {len(fields)} ({','.join(fields)}); extra cells "
+                                   f"{row[None]!r}")
         row = {(k or "").strip(): (v or "").strip() for k, v in row.items()}
         name = row.get("file", "")
         if not name:
@@ -98,7 +102,11 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
         if not (math.isfinite(t) and t >= 0):
             raise CalibrationError(f"{csv_path}: line {n}: exposure_s must be finite and >= 0, got {t}")
         p = folder / name
-        if not p.is_file():
+        try:
+            found = p.is_file()
+        except (OSError, ValueError):     # e.g. a NUL byte or a name too long for the file system
+            found = False
+        if not found:
             raise CalibrationError(f"{csv_path}: line {n}: frame {p} not found")
         groups.setdefault(t, []).append(p)
     if not groups:
@@ -183,20 +191,32 @@ def default_exposures(n: int = 40, t_sat: float = 0.01, nd: float = 6.35, over: 
     return np.concatenate([[0.0], lo, hi])
 
 
+# What simulate_flats writes (io.staged_folder: with overwrite, only these are replaced).
+FLATS_OUTPUTS = io.owned_by_patterns(r"flat_\d+_\d+\.(tif|png)", r"exposures\.csv", r"mask\.png",
+                                     r"truth\.json")
+
+
 def simulate_flats(out_dir, prof, sensor_model=None, exposures=None, frames_per_exposure: int = 4,
-                   seed: int = 0, fmt: str = "tiff", t_sat: float = 0.01, progress: bool = True) -> dict:
+                   seed: int = 0, fmt: str = "tiff", t_sat: float = 0.01, progress: bool = True,
+                   overwrite: bool = False) -> dict:
     """Write a flat-field sweep captured by `prof` (+ `sensor_model`) into `out_dir`: frames, exposures.csv,
     mask.png and truth.json. Flux per second is chosen so that a regular pixel reaches clipping at `t_sat`.
-    Returns the truth (ND, kernel, ...)."""
-    from tqdm import tqdm
-    from . import sensor
+    Returns the truth (ND, kernel, ...). The folder is written as a whole (io.staged_folder): a non-empty
+    `out_dir` is refused unless `overwrite`, which replaces only FLATS_OUTPUTS."""
     if frames_per_exposure < 1:
         raise ValueError("frames_per_exposure must be >= 1")
     ext = {"tiff": ".tif", "tif": ".tif", "png": ".png"}.get(fmt)
     if ext is None:
         raise ValueError(f"format must be tiff or png, got {fmt!r}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    with io.staged_folder(out_dir, force=overwrite, owned=FLATS_OUTPUTS) as tmp:
+        return _write_flats(tmp, prof, sensor_model, exposures, frames_per_exposure, seed, ext, t_sat,
+                            progress)
+
+
+def _write_flats(out: Path, prof, sensor_model, exposures, frames_per_exposure, seed, ext, t_sat,
+                 progress) -> dict:
+    from tqdm import tqdm
+    from . import sensor
     exp = default_exposures(nd=prof.nd, t_sat=t_sat) if exposures is None else np.asarray(exposures, float)
     rate = (prof.clip_code - prof.black_level) / t_sat            # DN per second for a regular pixel
     rng = np.random.default_rng(seed)
@@ -885,14 +905,18 @@ def write_plots(res: CalibrationResult, prefix) -> list[Path]:
 # ======================================================================================================
 
 def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None,
-                  plots=True, progress=True):
-    """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary."""
+                  plots=True, progress=True, overwrite=False):
+    """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary. Existing
+    outputs (the profile's files, the plots) are refused before any work unless `overwrite`."""
+    out = Path(output)
+    if not overwrite:
+        io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
+                                                          ("curves", "nd_eff", "valid_ratio")])
     try:
         mask = io.read_mask(mask_path)
     except io.ImageFileError as e:
         raise CalibrationError(str(e)) from None
     sweep = read_flats(flats, progress=progress)
-    out = Path(output)
     res = calibrate(sweep, mask, nd_nominal=nd_nominal, l_min=l_min, clip_code=clip_code,
                     bit_depth=bit_depth, name=out.stem, mask_name=str(mask_path), progress=progress)
     profiles.save(res.profile, out)
@@ -906,8 +930,8 @@ def _cmd_calibrate(a) -> int:
     try:
         s = run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
                           clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
-                          progress=not a.quiet)
-    except CalibrationError as e:
+                          progress=not a.quiet, overwrite=a.force)
+    except (CalibrationError, io.OutputExistsError) as e:
         print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
         return 2
     if a.json:
@@ -935,9 +959,13 @@ def _cmd_simulate_flats(a) -> int:
     except (ValueError, profiles.ProfileError) as e:
         print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
         return 2
-    exp = default_exposures(a.exposures, nd=prof.nd)
-    truth = simulate_flats(a.output, prof, model, exposures=exp, frames_per_exposure=a.frames, seed=a.seed,
-                           fmt=a.format, progress=not a.quiet)
+    try:
+        exp = default_exposures(a.exposures, nd=prof.nd)
+        truth = simulate_flats(a.output, prof, model, exposures=exp, frames_per_exposure=a.frames,
+                               seed=a.seed, fmt=a.format, progress=not a.quiet, overwrite=a.force)
+    except (ValueError, io.OutputExistsError) as e:
+        print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
+        return 2
     print(f"wrote {len(exp) * a.frames} flat frames ({len(exp)} exposures x {a.frames}) to {a.output}/ "
           f"with exposures.csv, mask.png and truth.json (ND {truth['nd']}, sensor model {a.sensor_model})")
     print(f"calibrate: nrhdr calibrate {a.output} --mask {Path(a.output) / 'mask.png'} -o camera.json")
@@ -959,6 +987,8 @@ def register_cli(sub) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing profile (and its mask, calibration, plots) at --output")
     p.set_defaults(func=_cmd_calibrate)
 
     p = sub.add_parser("simulate-flats", help="write a simulated flat-field sweep (for calibrate)")
@@ -977,4 +1007,6 @@ def register_cli(sub) -> None:
                    help="seed of the sensor's pixel-to-pixel variation: use the same value with "
                         "'nrhdr simulate --sensor-seed' to calibrate the sensor that recorded a clip")
     p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("--force", action="store_true",
+                   help="replace the sweep files in an existing folder (other files there are kept)")
     p.set_defaults(func=_cmd_simulate_flats)

@@ -286,6 +286,19 @@ def load_calibration(entry: dict, base_dir, shape) -> CrosstalkCalibration:
         raise ValueError(f"{path}: knot fluxes must be finite and increasing")
     if not np.all(np.isfinite(arr["sigma"])) or not np.all(np.isfinite(arr["sig_e"])):
         raise ValueError(f"{path}: neighbour spill table contains non-finite values")
+    # issue 9 (fuzzing): what the numba kernels index without bounds checks must be well-formed
+    if arr["sig_e"].ndim != 1 or arr["sig_e"].shape[0] < 2 or np.any(np.diff(arr["sig_e"]) < 0):
+        raise ValueError(f"{path}: neighbour spill table signals must be an increasing 1-D array of at least "
+                         f"2 values, got shape {arr['sig_e'].shape}")
+    if k < 1 or int(arr["n_knots"].min(initial=0)) < 0:
+        raise ValueError(f"{path}: knot counts must be in 0..{k} (corrupt calibration)")
+    for name in ("codes_q", "n_knots", "knot_flux", "clip_flux", "sig_e", "sigma", "alpha"):
+        if arr[name].dtype.kind not in "uif":
+            raise ValueError(f"{path}: array {name} has type {arr[name].dtype}, expected numbers")
+    try:
+        float(entry["qscale"]), float(entry["qoffset"]), float(entry["black_level"]), int(entry["clip_code"])
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError("crosstalk entry: qscale, qoffset, black_level, clip_code must be numbers") from None
     nd = float(entry["nd"])
     if not (math.isfinite(nd) and nd >= 1):
         raise ValueError(f"crosstalk entry: field 'nd' must be >= 1, got {entry['nd']!r}")

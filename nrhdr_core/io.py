@@ -5,7 +5,10 @@ written completely or not at all.
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import re
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -17,6 +20,10 @@ LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
 class ImageFileError(ValueError):
     """A file could not be read or has unexpected content; the message names the file."""
+
+
+class OutputExistsError(FileExistsError):
+    """A command would replace a file or folder it was not told to replace (`--force`, `overwrite`)."""
 
 
 def _oiio():
@@ -145,16 +152,46 @@ def write_mask(path, mask) -> Path:
 
 
 def read_mask(path) -> np.ndarray:
-    """Read an ND mask PNG (8-bit, one channel or equal channels; 255 = attenuated, 0 = regular)."""
-    px = read_image(path, np.uint8)
+    """Read an ND mask image: one gray channel (or equal colour channels), no alpha, holding exactly two
+    levels: 0 = regular and the format's full scale = attenuated (255 for 8-bit, the PNG `write_mask`
+    writes; 65535 for 16-bit). Anything else is an ImageFileError saying what was found."""
+    oiio = _oiio()
+    path = str(path)
+    if not os.path.isfile(path):
+        raise ImageFileError(f"{path}: no such file")
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ImageFileError(f"{path}: cannot read image: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        names = [str(n) for n in spec.channelnames]
+        if spec.alpha_channel >= 0 or any(n.upper() in ("A", "ALPHA") for n in names):
+            raise ImageFileError(f"{path}: mask has an alpha channel (channels {', '.join(names)}); save it as "
+                                 f"a gray PNG without transparency (0 = regular, 255 = attenuated)")
+        bits = {oiio.UINT8: 8, oiio.UINT16: 16}.get(spec.format.basetype)
+        if bits is None:
+            raise ImageFileError(f"{path}: mask must be an 8-bit (or 16-bit) integer image, got {spec.format}")
+        px = inp.read_image(0, 0, 0, spec.nchannels, oiio.UINT8 if bits == 8 else oiio.UINT16)
+        if px is None:
+            raise ImageFileError(f"{path}: cannot decode pixels: {inp.geterror()}")
+    finally:
+        inp.close()
+    px = np.asarray(px)
+    if px.ndim == 2:
+        px = px[:, :, None]
     m = px[:, :, 0]
-    if px.shape[2] > 1 and not all(np.array_equal(m, px[:, :, c]) for c in range(1, min(3, px.shape[2]))):
+    if px.shape[2] > 1 and not all(np.array_equal(m, px[:, :, c]) for c in range(1, px.shape[2])):
         raise ImageFileError(f"{path}: mask must be gray (all colour channels equal)")
-    bad = (m != 0) & (m != 255)
+    full = (1 << bits) - 1
+    bad = (m != 0) & (m != full)
     if bad.any():
-        raise ImageFileError(f"{path}: mask must contain only 0 (regular) and 255 (attenuated); "
-                             f"found {int(bad.sum())} other values, e.g. {int(m[bad][0])}")
-    return m == 255
+        vals = np.unique(m)
+        shown = ", ".join(str(int(v)) for v in vals[:6]) + (", ..." if vals.size > 6 else "")
+        raise ImageFileError(f"{path}: a {bits}-bit mask must hold only 0 (regular) and {full} (attenuated); "
+                             f"it holds {vals.size} distinct values ({shown}), {int(bad.sum())} pixels "
+                             f"have other values" + (" (an 8-bit mask saved as 16 bit? write 0/255 as 8-bit "
+                                                      "PNG)" if bits == 16 and int(vals.max()) <= 255 else ""))
+    return m == full
 
 
 class RawVideoWriter:
@@ -196,9 +233,105 @@ class RawVideoWriter:
 def read_raw_video(path, width: int, height: int) -> np.ndarray:
     """Read a GRAY16_LE raw file as (frames, H, W) uint16 (memory-mapped); a trailing partial frame is an
     error naming the file."""
-    size = os.path.getsize(path)
+    if not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))
+            and width >= 1 and height >= 1):
+        raise ImageFileError(f"{path}: frame size must be positive integers, got {width!r}x{height!r}")
+    try:
+        size = os.path.getsize(path)
+    except OSError as e:
+        raise ImageFileError(f"{path}: cannot read raw video: {e}") from None
     fb = width * height * 2
+    if size == 0:
+        return np.zeros((0, height, width), "<u2")
     if size % fb:
         raise ImageFileError(f"{path}: size {size} is not a whole number of {width}x{height} GRAY16_LE "
                              f"frames ({size // fb} frames + {size % fb} bytes)")
     return np.memmap(path, dtype="<u2", mode="r", shape=(size // fb, height, width))
+
+
+# ======================================================================================================
+# Outputs: never overwrite unless told, folders written as a whole
+# ======================================================================================================
+
+def refuse_existing(paths, hint: str = "--force") -> None:
+    """Raise OutputExistsError naming the first of `paths` that exists (and how many do)."""
+    existing = [Path(p) for p in paths if os.path.lexists(p)]
+    if existing:
+        more = f" (and {len(existing) - 1} more)" if len(existing) > 1 else ""
+        raise OutputExistsError(f"{existing[0]} already exists{more}; nothing was written: use {hint} to "
+                                f"replace it, or choose another output")
+
+
+def owned_by_patterns(*patterns: str):
+    """`owned(rel_path) -> bool` for `staged_folder`: True when the path relative to the output folder (posix
+    form) fully matches one of the regular expressions."""
+    rx = [re.compile(p) for p in patterns]
+    return lambda rel: any(r.fullmatch(rel) for r in rx)
+
+
+def _files_under(d: Path) -> list[str]:
+    return sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file() or p.is_symlink())
+
+
+@contextlib.contextmanager
+def staged_folder(final, force: bool = False, owned=None, hint: str = "--force"):
+    """Write a whole output folder: yields a temporary sibling folder to write into; on success it becomes
+    `final` (rename), on any exception it is removed and `final` is left untouched.
+
+    An existing non-empty `final` is refused (OutputExistsError) unless `force`. With `force`, the files of
+    `final` that the command writes (`owned(rel_path)`, default: every file) are replaced as a whole: the old
+    folder is renamed aside, the new one renamed in, and every file the command does not own (e.g. the
+    user's notes) is moved back into it; nothing but old outputs of the same command is deleted."""
+    final = Path(final)
+    owned = owned or (lambda rel: True)
+    if os.path.lexists(final) and not final.is_dir():
+        raise OutputExistsError(f"{final} exists and is not a folder; nothing was written")
+    if final.is_dir() and any(final.iterdir()) and not force:
+        raise OutputExistsError(f"{final} already exists and is not empty; nothing was written: use {hint} "
+                                f"to replace what this command writes there, or choose another folder")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    try:
+        os.chmod(tmp, 0o777 & ~_umask())
+        if not final.exists():
+            os.rename(tmp, final)
+            return
+        if not any(final.iterdir()):
+            final.rmdir()
+            os.rename(tmp, final)
+            return
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
+        old.rmdir()
+        os.rename(final, old)           # the old folder, whole, aside
+        try:
+            os.rename(tmp, final)       # the new folder, whole, in
+        except OSError:
+            os.rename(old, final)       # put the old one back: nothing changed
+            raise
+        for rel in _files_under(old):   # give back what this command did not write
+            if owned(rel):
+                continue
+            dst = final / rel
+            if os.path.lexists(dst):    # cannot happen for a correct `owned`; keep the user's file
+                dst = dst.with_name(dst.name + ".kept")
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(old / rel, dst)
+        for d in sorted((p for p in old.rglob("*") if p.is_dir() and not p.is_symlink()), reverse=True):
+            rel = d.relative_to(old).as_posix()
+            if not (final / rel).exists():
+                (final / rel).mkdir(parents=True, exist_ok=True)   # keep the user's (empty) folders
+        shutil.rmtree(old)              # holds only this command's old outputs now
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _umask() -> int:
+    m = os.umask(0)
+    os.umask(m)
+    return m

@@ -7,9 +7,12 @@ raises `ProfileError` naming the file and the field at fault.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
+import numbers
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +26,29 @@ VERSION = 1
 
 class ProfileError(ValueError):
     """A camera profile is missing, unreadable or inconsistent; the message names file and field."""
+
+
+class ProfileWarning(UserWarning):
+    """A profile loads but something cannot be checked (e.g. a calibration without mask checksum)."""
+
+
+# Bounds beyond which the chain cannot work (docs/PROFILE.md, "Bounds"): a larger ND leaves the regular pixels
+# in the bottom 10 % of the display (log tone mapping, white = clip * ND) and the white overflows float32
+# arithmetic long before 1e308; gain, full well and noise outside these ranges describe no real sensor.
+ND_MAX = 1024.0             # 10 stops
+GAIN_RANGE = (1e-4, 1e4)    # DN per electron
+FULL_WELL_RANGE = (1.0, 1e9)  # electrons
+READ_NOISE_MAX = 1e6        # electrons rms
+MAX_SIZE = 65536            # width, height in pixels
+
+
+def mask_sha256(mask: np.ndarray) -> str:
+    """Checksum binding a calibration to its sensor: sha256 of 'HxW:' and the mask bits (row-major,
+    np.packbits, 1 = attenuated)."""
+    m = np.ascontiguousarray(np.asarray(mask, dtype=bool))
+    h = hashlib.sha256(f"{m.shape[0]}x{m.shape[1]}:".encode())
+    h.update(np.packbits(m, axis=None).tobytes())
+    return h.hexdigest()
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -78,26 +104,44 @@ def validate(p: CameraProfile, where: str = "profile") -> None:
     m = p.mask
     if not isinstance(m, np.ndarray) or m.ndim != 2 or m.dtype != bool or m.size == 0:
         bad("mask", "must be a non-empty 2-D boolean array")
-    for f in ("nd", "gain", "full_well"):
+    if max(m.shape) > MAX_SIZE:
+        bad("mask", f"{m.shape[1]}x{m.shape[0]} is larger than {MAX_SIZE} pixels on a side")
+    for f in ("nd", "gain", "full_well", "read_noise", "black_level", "l_min"):
         v = getattr(p, f)
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            bad(f, f"must be a finite number > 0, got {v!r}")
-    if p.nd < 1:
-        bad("nd", f"must be >= 1 (attenuation), got {p.nd}")
+        if not (isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)):
+            bad(f, f"must be a finite number, got {v!r}")
+    for f in ("bit_depth", "clip_code"):
+        v = getattr(p, f)
+        if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool)):
+            bad(f, f"must be an integer, got {v!r}")
+    if not (1 <= p.nd <= ND_MAX):
+        bad("nd", f"must be in 1..{ND_MAX:g} (attenuation factor; above {ND_MAX:g} = 10 stops the regular "
+                  f"pixels would tone-map to black), got {p.nd!r}")
+    if not (GAIN_RANGE[0] <= p.gain <= GAIN_RANGE[1]):
+        bad("gain", f"must be in {GAIN_RANGE[0]:g}..{GAIN_RANGE[1]:g} DN per electron, got {p.gain!r}")
+    if not (FULL_WELL_RANGE[0] <= p.full_well <= FULL_WELL_RANGE[1]):
+        bad("full_well", f"must be in {FULL_WELL_RANGE[0]:g}..{FULL_WELL_RANGE[1]:g} electrons, "
+                         f"got {p.full_well!r}")
+    if p.read_noise > READ_NOISE_MAX:
+        bad("read_noise", f"must be <= {READ_NOISE_MAX:g} electrons, got {p.read_noise!r}")
     if not (isinstance(p.bit_depth, int) and 1 <= p.bit_depth <= 16):
         bad("bit_depth", f"must be an integer 1..16, got {p.bit_depth!r}")
     if not (0 < p.clip_code <= p.max_code):
         bad("clip_code", f"must be in 1..{p.max_code} for {p.bit_depth}-bit data, got {p.clip_code}")
     if not (0 <= p.black_level < p.clip_code):
         bad("black_level", f"must be in 0..clip_code-1, got {p.black_level}")
-    if not (math.isfinite(p.read_noise) and p.read_noise >= 0):
+    if not (p.read_noise >= 0):
         bad("read_noise", f"must be >= 0, got {p.read_noise}")
     sat = p.full_well * p.gain + p.black_level
     if sat < p.clip_code + 3.0 * p.read_noise * p.gain:
         bad("gain", f"full_well * gain + black_level = {sat:.1f} DN does not reach clip_code "
                     f"{p.clip_code} by 3 sigma of read noise: saturated pixels would read as valid")
-    if not (math.isfinite(p.l_min) and 0 <= p.l_min < p.clip_code - p.black_level):
+    if not (0 <= p.l_min < p.clip_code - p.black_level):
         bad("l_min", f"must be in 0..clip_code-black_level, got {p.l_min}")
+    if not isinstance(p.name, str):
+        bad("name", f"must be a string, got {p.name!r}")
+    if not isinstance(p.extra, dict):
+        bad("extra", f"must be an object, got {type(p.extra).__name__}")
 
 
 def make(mask: np.ndarray, **fields) -> CameraProfile:
@@ -110,10 +154,20 @@ _SCALARS = {"nd": float, "bit_depth": int, "clip_code": int, "black_level": floa
             "read_noise": float, "full_well": float, "l_min": float, "name": str}
 
 
-def save(p: CameraProfile, path) -> Path:
-    """Write `path` (JSON), the mask PNG and the crosstalk calibration beside it, atomically."""
+def written_files(path) -> list[Path]:
+    """The files `save(p, path)` may write: the JSON, `<stem>_mask.png`, `<stem>_crosstalk.npz`."""
+    path = Path(path)
+    return [path, path.with_name(f"{path.stem}_mask.png"), path.with_name(f"{path.stem}_crosstalk.npz")]
+
+
+def save(p: CameraProfile, path, overwrite: bool = True) -> Path:
+    """Write `path` (JSON), the mask PNG and the crosstalk calibration beside it, atomically. With
+    `overwrite=False` an existing file among them is refused (io.OutputExistsError) before anything is
+    written (the `nrhdr` commands pass their `--force` here)."""
     validate(p)
     path = Path(path)
+    if not overwrite:
+        io.refuse_existing(written_files(path))
     stem = path.stem
     mask_name = f"{stem}_mask.png"
     io.write_mask(path.parent / mask_name, p.mask)
@@ -126,6 +180,9 @@ def save(p: CameraProfile, path) -> Path:
         from . import crosstalk
         xt_name = f"{stem}_crosstalk.npz"
         doc["crosstalk"] = crosstalk.save_calibration(p.crosstalk, path.parent / xt_name)
+        # bind the calibration to its sensor: the mask it was made with, its size and ADC depth
+        doc["crosstalk"].update(mask_sha256=mask_sha256(p.mask), mask_width=p.width, mask_height=p.height,
+                                bit_depth=p.bit_depth)
     if p.extra:
         doc["extra"] = p.extra
     _write_json_atomic(path, doc)
@@ -156,7 +213,14 @@ def load(path) -> CameraProfile:
     for k in ("mask", "nd", "width", "height"):
         if k not in doc:
             raise ProfileError(f"{path}: missing required field '{k}'")
-    mask_path = path.parent / str(doc["mask"])
+    for k in ("width", "height"):
+        v = doc[k]
+        if not (isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_SIZE):
+            raise ProfileError(f"{path}: field '{k}' must be an integer number of pixels in 1..{MAX_SIZE}, "
+                               f"got {v!r}")
+    if not isinstance(doc["mask"], str) or not doc["mask"]:
+        raise ProfileError(f"{path}: field 'mask' must be the name of a PNG file, got {doc['mask']!r}")
+    mask_path = path.parent / doc["mask"]
     try:
         mask = io.read_mask(mask_path)
     except io.ImageFileError as e:
@@ -174,20 +238,71 @@ def load(path) -> CameraProfile:
                 raise ProfileError(f"{path}: field '{k}' must be a number, got {v!r}")
             if typ is str and not isinstance(v, str):
                 raise ProfileError(f"{path}: field '{k}' must be a string, got {v!r}")
-            fields[k] = typ(v)
+            try:
+                fields[k] = typ(v)
+            except OverflowError:
+                raise ProfileError(f"{path}: field '{k}' is out of range: {v!r}") from None
     xt = None
     xt_file = None
     if doc.get("crosstalk") is not None:
         from . import crosstalk
+        entry = doc["crosstalk"]
         try:
-            xt = crosstalk.load_calibration(doc["crosstalk"], path.parent, mask.shape)
-        except (OSError, ValueError, KeyError) as e:
+            xt = crosstalk.load_calibration(entry, path.parent, mask.shape)
+        except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
             raise ProfileError(f"{path}: field 'crosstalk': {e}") from None
-        xt_file = doc["crosstalk"].get("file") if isinstance(doc["crosstalk"], dict) else None
+        xt_file = entry.get("file")
+        _check_binding(path, entry, mask, mask_path, fields.get("bit_depth", CameraProfile.bit_depth))
     p = CameraProfile(mask=mask, crosstalk=xt, crosstalk_file=xt_file, extra=doc.get("extra", {}),
                       path=path, **fields)
     validate(p, where=str(path))
     return p
+
+
+def _check_binding(path: Path, entry: dict, mask: np.ndarray, mask_path: Path, bit_depth: int) -> None:
+    """A calibration belongs to the sensor it was measured on: its recorded mask checksum, size and bit depth
+    must match the profile's mask (docs/PROFILE.md). Calibrations written before the checksum existed load
+    with a ProfileWarning (nothing to compare)."""
+    xt = entry.get("file")
+    want = entry.get("mask_sha256")
+    if want is None:
+        warnings.warn(f"{path}: field 'crosstalk': calibration {xt} records no mask checksum (written by an "
+                      f"older nrhdr): cannot check that it was made for {mask_path.name}; re-save the profile "
+                      f"with a current nrhdr to bind it", ProfileWarning, stacklevel=3)
+        return
+    if not isinstance(want, str):
+        raise ProfileError(f"{path}: field 'crosstalk.mask_sha256' must be a string, got {want!r}")
+    size = (entry.get("mask_width"), entry.get("mask_height"))
+    if size != (mask.shape[1], mask.shape[0]):
+        raise ProfileError(f"{path}: field 'crosstalk': calibration {xt} was made for a {size[0]}x{size[1]} "
+                           f"mask, but {mask_path.name} is {mask.shape[1]}x{mask.shape[0]}")
+    if entry.get("bit_depth") != bit_depth:
+        raise ProfileError(f"{path}: field 'crosstalk': calibration {xt} was made for {entry.get('bit_depth')!r}"
+                           f"-bit data, the profile says {bit_depth}-bit")
+    got = mask_sha256(mask)
+    if got != want:
+        raise ProfileError(f"{path}: field 'crosstalk': calibration {xt} was made for another sensor: its mask "
+                           f"checksum {want[:12]}... differs from {mask_path.name} ({got[:12]}...); "
+                           f"recalibrate with this mask (nrhdr calibrate) or use the mask it was made with")
+
+
+def check_same_sensor(calibrated: CameraProfile, stream: CameraProfile) -> None:
+    """Raise ProfileError naming both files when `calibrated` (the profile whose crosstalk calibration is
+    applied) describes another sensor than `stream` (the profile the raw frames were classified with):
+    different mask size, mask pattern (checksum) or bit depth."""
+    a = calibrated.path or calibrated.name
+    b = stream.path or stream.name
+    if calibrated.mask.shape != stream.mask.shape:
+        raise ProfileError(f"calibration profile {a} has a {calibrated.width}x{calibrated.height} mask but the "
+                           f"stream's profile {b} has {stream.width}x{stream.height}")
+    if calibrated.bit_depth != stream.bit_depth:
+        raise ProfileError(f"calibration profile {a} is for {calibrated.bit_depth}-bit data but the stream's "
+                           f"profile {b} says {stream.bit_depth}-bit")
+    ha, hb = mask_sha256(calibrated.mask), mask_sha256(stream.mask)
+    if ha != hb:
+        raise ProfileError(f"calibration profile {a} was made for another sensor than the stream's profile {b}: "
+                           f"their ND masks differ ({int(np.sum(calibrated.mask != stream.mask))} pixels, "
+                           f"checksums {ha[:12]}... vs {hb[:12]}...)")
 
 
 def default(height: int = 480, width: int = 640, seed: int = 0, pattern: str = "nonregular",

@@ -253,7 +253,7 @@ def _fill_3x3(vals, known, coarse, out):
 def _preview(out, k):
     h, w = out.shape
     levels = int(np.ceil(np.log2(max(h, w, 2))))
-    coarse = out.astype(np.float32)
+    coarse = np.where(k, out, np.float32(0.0)).astype(np.float32)   # NaN/Inf at missing pixels: weight 0 * NaN
     _pull_push(coarse, k.astype(np.float32), levels)
     res = np.empty_like(coarse)
     _fill_3x3(out.astype(np.float32), k, coarse, res)

@@ -29,6 +29,48 @@ class Motion:
     zoom: float = 1.25
     fov: float = 0.8
 
+    def validate(self) -> None:
+        """ValueError naming the argument when the path cannot be rendered: fov in (0, 1], zoom > 0 and the
+        widest view (fov / zoom when zooming out) inside the scene, pan and tilt finite within +-1."""
+        for k in ("pan", "tilt", "zoom", "fov"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise ValueError(f"{k} must be a finite number, got {v!r}")
+        if not (0 < self.fov <= 1):
+            raise ValueError(f"fov must be in (0, 1] (the first view's share of the scene), got {self.fov}")
+        if not (self.zoom > 0):
+            raise ValueError(f"zoom must be > 0 (1 = none, 2 = twice as close at the end), got {self.zoom}")
+        if self.fov / min(self.zoom, 1.0) > 1:
+            raise ValueError(f"zoom {self.zoom} with fov {self.fov} would zoom out beyond the scene (fov / zoom "
+                             f"= {self.fov / self.zoom:.3g} > 1): use zoom >= fov")
+        for k in ("pan", "tilt"):
+            if abs(getattr(self, k)) > 1:
+                raise ValueError(f"{k} must be within -1..1 (a fraction of the scene), got {getattr(self, k)}")
+
+
+EXPOSURE_STOPS_MAX = 30.0   # |exposure| beyond 30 stops is all black or all clipped on any sensor
+
+
+def check_args(frames: int, fps: int, exposure_stops: float, motion: Motion, sequence=None) -> None:
+    """Validate simulate_clip's arguments up front (before anything is written); ValueError names them."""
+    if not (isinstance(frames, (int, np.integer)) and not isinstance(frames, bool) and frames >= 1):
+        raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
+    if not (isinstance(fps, (int, np.integer)) and not isinstance(fps, bool) and 1 <= fps <= 10000):
+        raise ValueError(f"fps must be an integer in 1..10000, got {fps!r}")
+    if not (isinstance(exposure_stops, (int, float)) and math.isfinite(exposure_stops)
+            and abs(exposure_stops) <= EXPOSURE_STOPS_MAX):
+        raise ValueError(f"exposure must be within -{EXPOSURE_STOPS_MAX:g}..{EXPOSURE_STOPS_MAX:g} stops, got "
+                         f"{exposure_stops!r}")
+    if sequence not in (None, "png", "tiff"):
+        raise ValueError(f"sequence must be 'png' or 'tiff', got {sequence!r}")
+    motion.validate()
+
+
+# What simulate_clip writes into a clip folder (io.staged_folder: with overwrite, only these are replaced).
+CLIP_OUTPUTS = io.owned_by_patterns(r"clip\.json", r"clip\.raw", r"camera\.json", r"camera_mask\.png",
+                                    r"camera_crosstalk\.npz", r"truth/frame_\d+\.exr",
+                                    r"raw_png/frame_\d+\.png", r"raw_tiff/frame_\d+\.tif")
+
 
 def exposure_scale(scene: np.ndarray, profile, stops: float) -> float:
     """Scene to flux factor: the scene's median lands at 18 % of the regular pixels' range, times 2^stops
@@ -60,23 +102,30 @@ def view(scene: np.ndarray, h: int, w: int, t: float, motion: Motion, prefiltere
 def simulate_clip(scene: np.ndarray, out_dir, profile=None, frames: int = 60, fps: int = 30,
                   exposure_stops: float = 0.0, motion: Motion = Motion(), seed: int = 0,
                   sensor_model=None, sequence: str | None = None, scene_name: str = "scene",
-                  progress: bool = True) -> dict:
+                  progress: bool = True, overwrite: bool = False) -> dict:
     """Simulate `frames` raw frames of `scene` (linear luminance) and write the clip folder; returns the
-    clip description also written to clip.json. `sequence`: None, "png" or "tiff" (16-bit raw frames)."""
-    from scipy.ndimage import gaussian_filter
-    if frames < 1:
-        raise ValueError(f"frames must be >= 1, got {frames}")
-    if fps < 1:
-        raise ValueError(f"fps must be >= 1, got {fps}")
-    if sequence not in (None, "png", "tiff"):
-        raise ValueError(f"sequence must be 'png' or 'tiff', got {sequence!r}")
+    clip description also written to clip.json. `sequence`: None, "png" or "tiff" (16-bit raw frames).
+
+    The folder is written as a whole (io.staged_folder): an interrupted run leaves an existing clip
+    untouched; a non-empty `out_dir` is refused (io.OutputExistsError) unless `overwrite`, which replaces
+    only the files a clip consists of (CLIP_OUTPUTS) and keeps any other file there."""
+    check_args(frames, fps, exposure_stops, motion, sequence)
     scene = np.asarray(scene, np.float32)
     if scene.ndim != 2 or min(scene.shape) < 2:
         raise ValueError(f"scene must be a 2-D luminance image, got shape {scene.shape}")
+    if not np.isfinite(scene).all():
+        raise ValueError("scene holds NaN or Inf values (io.read_luminance replaces them)")
     prof = profile if profile is not None else profiles.default()
+    with io.staged_folder(out_dir, force=overwrite, owned=CLIP_OUTPUTS) as tmp:
+        info = _write_clip(scene, tmp, prof, frames, fps, exposure_stops, motion, seed, sensor_model,
+                           sequence, scene_name, progress)
+    return info
+
+
+def _write_clip(scene, out: Path, prof, frames, fps, exposure_stops, motion, seed, sensor_model, sequence,
+                scene_name, progress) -> dict:
+    from scipy.ndimage import gaussian_filter
     h, w = prof.height, prof.width
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     (out / "truth").mkdir(exist_ok=True)
     profiles.save(prof, out / "camera.json")
     k = exposure_scale(scene, prof, exposure_stops)

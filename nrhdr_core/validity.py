@@ -88,17 +88,21 @@ def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, mode, 
             state[y, x] = st | np.uint8(reason)
 
 
+class FrameError(ValueError):
+    """A raw frame (or argument) classify cannot use: wrong type, shape, mode or l_min; names what is wrong."""
+
+
 def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l_min: float | None = None,
              values: np.ndarray | None = None, state: np.ndarray | None = None):
     """Classify a raw frame (uint16 (H, W)) into (values float32, state uint8), Eq. 3. Output arrays may be
     passed in (e.g. mapped GStreamer memory) and are filled in place. `l_min` overrides the profile's."""
     if mode not in _MODE_ID:
-        raise ValueError(f"selection mode must be one of {MODES}, got {mode!r}")
+        raise FrameError(f"selection mode must be one of {MODES}, got {mode!r}")
     raw = np.asarray(raw)
     if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise ValueError(f"raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")
+        raise FrameError(f"raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")
     if raw.shape != profile.mask.shape:
-        raise ValueError(f"raw frame is {raw.shape[1]}x{raw.shape[0]} but the profile's mask is "
+        raise FrameError(f"raw frame is {raw.shape[1]}x{raw.shape[0]} but the profile's mask is "
                          f"{profile.width}x{profile.height}")
     if values is None:
         values = np.empty(raw.shape, np.float32)
@@ -106,6 +110,8 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
         state = np.empty(raw.shape, np.uint8)
     s0 = zero_db_signal_dn(profile)
     lm = profile.l_min if l_min is None else float(l_min)
+    if not (np.isfinite(lm) and lm >= 0):
+        raise FrameError(f"l_min must be a finite number >= 0, got {l_min!r}")
     if mode == "threshold":
         dark_att, dark_reg = lm, -np.inf
     else:

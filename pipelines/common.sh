@@ -47,3 +47,37 @@ PY
        "framerate=$FPS/1" "plane-strides=<$((2 * W))>" ! nrvalidity "profile=$PROFILE"
        "mode=${MODE:-threshold}" ! nrcrosstalk)
 }
+
+# nr_out DIR EXT: make the output folder of a frame sequence (frame_%05d.EXT). An existing sequence there is
+# refused (old and new frames would mix) unless OVERWRITE=true, which deletes only its frame_NNNNN.EXT files.
+nr_out() {
+  local dir="$1" ext="$2" old
+  mkdir -p "$dir"
+  old="$(find "$dir" -maxdepth 1 -regextype posix-extended -regex ".*/frame_[0-9]+\.$ext" | head -n 1)"
+  if [ -n "$old" ]; then
+    if [ "${OVERWRITE:-false}" != "true" ]; then
+      echo "error: $dir already holds a recording ($old ...): choose another folder or set OVERWRITE=true" >&2
+      exit 2
+    fi
+    find "$dir" -maxdepth 1 -regextype posix-extended -regex ".*/frame_[0-9]+\.$ext" -delete
+  fi
+}
+
+# nr_launch ARGS...: run `"$NRHDR" launch ARGS` for a script that must do something after the pipeline (else
+# use `exec "$NRHDR" launch ...`: the signal then reaches nrhdr directly). SIGINT, SIGTERM and SIGHUP to the
+# script are forwarded to nrhdr, which stops the pipeline with EOS (docs/ELEMENTS.md, "Stopping"); returns
+# nrhdr's status (130/143/129 after a signal), so with `set -e` the script stops there.
+nr_launch() {
+  local pid rc=0
+  "$NRHDR" launch "$@" &
+  pid=$!
+  trap 'kill -INT "$pid" 2>/dev/null || true' INT
+  trap 'kill -TERM "$pid" 2>/dev/null || true' TERM
+  trap 'kill -HUP "$pid" 2>/dev/null || true' HUP
+  while :; do
+    wait "$pid" && rc=0 || rc=$?
+    kill -0 "$pid" 2>/dev/null || break   # wait was interrupted by a forwarded signal: wait again
+  done
+  trap - INT TERM HUP
+  return "$rc"
+}

@@ -3,7 +3,8 @@
 # tone-mapped 8-bit PNG frames OUT_DIR/frame_%05d.png.
 #   pipelines/hdr_recording_to_png.sh REC [OUT_DIR]
 # REC.caps holds the caps; filesrc's blocksize must be one frame (5*W*H bytes), else nrtonemap refuses the
-# buffers. Environment: EXPOSURE (stops), NRHDR.
+# buffers. An existing PNG sequence in OUT_DIR is refused unless OVERWRITE=true. Environment: EXPOSURE
+# (stops), NRHDR, OVERWRITE.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in -h|--help|"") sed -n '2,6p' "$0"; exit 0;; esac
 REC="$1"
@@ -14,7 +15,7 @@ fi
 CAPS="$(cat "$REC.caps")"
 W="$(sed -n 's/.*width=(int)\([0-9]*\).*/\1/p' <<<"$CAPS")"
 H="$(sed -n 's/.*height=(int)\([0-9]*\).*/\1/p' <<<"$CAPS")"
-mkdir -p "$OUT"
+nr_out "$OUT" png
 exec "$NRHDR" launch filesrc "location=$REC" "blocksize=$((5 * W * H))" ! "$CAPS" \
   ! nrtonemap "exposure=${EXPOSURE:-0}" ! video/x-raw,format=GRAY8 \
   ! pngenc ! multifilesink "location=$OUT/frame_%05d.png"

@@ -264,7 +264,7 @@ def test_crosstalk_data_path_calls_core_in_place(gst, tiny_clip, monkeypatch):
 @pytest.mark.parametrize("method", ["preview", "nearest", "linear"])
 def test_reconstruct_fills_missing_keeps_known(gst, tiny_clip, method):
     d, prof, raws = tiny_clip
-    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method={method}",
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method={method} post-stats=true",
                    raw_caps(prof.width, prof.height), raw_buffers(raws))
     assert r.error is None, r.error_text
     assert len(r.samples) == len(raws) and r.eos
@@ -314,7 +314,8 @@ def test_reconstruct_method_and_preset_change_while_playing(gst, tiny_clip):
             el.set_property("use-bounds", False)
             assert el.get_property("method") == "linear"
 
-    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct name=r method=preview",
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct name=r method=preview "
+                   f"post-stats=true",
                    raw_caps(prof.width, prof.height), raw_buffers(raws[:4]), before_push=before,
                    lockstep=True)
     assert r.error is None, r.error_text
@@ -529,11 +530,11 @@ def test_run_pipeline_in_process(gst, tiny_clip, tmp_path, capsys):
 
     desc = (f"filesrc location={d / 'clip.raw'} ! rawvideoparse format=gray16-le width={prof.width} "
             f"height={prof.height} framerate=5/1 ! nrvalidity profile={d / 'camera.json'} ! "
-            f"nrreconstruct method=nearest ! nrexrsink location={tmp_path}/f_%03d.exr")
+            f"nrreconstruct method=nearest post-stats=true ! nrexrsink location={tmp_path}/f_%03d.exr")
     assert runtime.run_pipeline(desc, on_message=on_message) == 0
     assert len(stats) == len(raws) and all(0 < m < 1 for m in stats)
     assert len(list(tmp_path.glob("f_*.exr"))) == len(raws)
-    bad = desc.replace(f"width={prof.width}", "width=32")
+    bad = desc.replace(f"width={prof.width}", "width=32").replace("/f_%03d", "/bad_%03d")  # new sequence
     assert runtime.run_pipeline(bad) == 1
     err = capsys.readouterr().err
     assert "nrvalidity" in err and "64x48 mask but the stream is 32x48" in err

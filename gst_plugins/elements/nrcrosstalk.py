@@ -111,6 +111,8 @@ class NrCrosstalk(ErrorPoster, LiveTiming, GstBase.BaseTransform):
                     self.post_error(str(e), kind="read")
                     return False
             p = self._profile
+            if not self._check_same_sensor(p, info):
+                return False
             if (p.width, p.height) != (info.width, info.height):
                 self.post_error(f"profile {p.path} has a {p.width}x{p.height} mask but the stream is "
                                 f"{info.width}x{info.height}", kind="format")
@@ -124,6 +126,22 @@ class NrCrosstalk(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         except Exception as e:  # noqa: BLE001
             self.post_exception("set_caps", e)
             return False
+
+    def _check_same_sensor(self, p, info) -> bool:
+        """Issue 9: a calibration must belong to the sensor that recorded the stream (the profile nrvalidity
+        named in the caps): same mask size, pattern and bit depth, else an element error naming both files."""
+        if p.crosstalk is None or not self._profile_path or not info.profile:
+            return True
+        import os
+        if p.path is not None and os.path.abspath(info.profile) == os.path.abspath(str(p.path)):
+            return True
+        from nrhdr_core import profile as profile_mod
+        try:
+            profile_mod.check_same_sensor(p, load_profile(info.profile))
+        except ValueError as e:
+            self.post_error(str(e), kind="settings")
+            return False
+        return True
 
     def do_transform_ip(self, buf):
         try:

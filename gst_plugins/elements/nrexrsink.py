@@ -1,10 +1,15 @@
 """nrexrsink: records linear HDR frames (`other/x-nrhdr`) as an OpenEXR sequence, one file per frame
 (float32 channel "Y", optionally a second channel "state"), written atomically by
 `nrhdr_core.io.write_exr`. A failed write posts an error naming the file.
+
+Nothing is lost silently: a location whose extension is not .exr is refused at start (OpenImageIO would
+write 8-bit PNG/JPEG clipped to white), and so is a sequence that already has files unless
+`overwrite=true` (then the old sequence's files are deleted at start, so old and new frames never mix).
 """
 from __future__ import annotations
 
 import os
+import re
 
 from ._common import (MUTABLE_READY, ErrorPoster, GObject, Gst, GstBase, HdrInfo, hdr_template_caps,
                       map_hdr)
@@ -22,6 +27,31 @@ def format_location(pattern: str, index: int) -> str:
         raise ValueError(f"location {pattern!r} is not a printf pattern with one integer (e.g. "
                          f"out/frame_%05d.exr): {e}") from None
     return name
+
+
+def sequence_regex(pattern: str):
+    """(folder, compiled regex) matching the file names `pattern` produces for any index (printf %d, %05d,
+    %i, ...; %% is a literal %), or None when the folder part itself holds a conversion."""
+    folder, base = os.path.split(pattern)
+    if "%" in folder.replace("%%", ""):
+        return None
+    parts = re.split(r"(%%|%[-+ 0#]*\d*[di])", base)
+    rx = "".join("%" if t == "%%" else (r"[-+ ]*\d+" if t.startswith("%") else re.escape(t))
+                 for t in parts if t)
+    return folder or ".", re.compile(rx)
+
+
+def sequence_files(pattern: str) -> list[str]:
+    """Existing files of the sequence `pattern` (any index), sorted."""
+    r = sequence_regex(pattern)
+    if r is None:
+        return []
+    folder, rx = r
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return []
+    return sorted(os.path.join(folder, n) for n in names if rx.fullmatch(n))
 
 
 class NrExrSink(ErrorPoster, GstBase.BaseSink):
@@ -43,6 +73,7 @@ class NrExrSink(ErrorPoster, GstBase.BaseSink):
         self._location = "frame_%05d.exr"
         self._write_state = False
         self._start_index = 0
+        self._overwrite = False
         self._index = 0
         self._info = None
         self.set_sync(False)
@@ -80,6 +111,18 @@ class NrExrSink(ErrorPoster, GstBase.BaseSink):
     def index(self, value):
         self._start_index = int(value)
 
+    @GObject.Property(type=bool, default=False, nick="Overwrite",
+                      blurb="Replace an existing recording: at start, delete the files of the sequence "
+                            "'location' (any index) so old and new frames never mix. Default false: refuse "
+                            "to start when any file of the sequence exists",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_READY)
+    def overwrite(self):
+        return self._overwrite
+
+    @overwrite.setter
+    def overwrite(self, value):
+        self._overwrite = bool(value)
+
     def do_start(self):
         self.reset_errors()
         try:
@@ -96,6 +139,28 @@ class NrExrSink(ErrorPoster, GstBase.BaseSink):
                 self.post_error(f"location {self._location!r} has no %d: every frame would overwrite the "
                                 f"same file (use e.g. frame_%05d.exr)", kind="settings")
                 return False
+            ext = os.path.splitext(a)[1]
+            if ext.lower() != ".exr":
+                self.post_error(f"location {self._location!r}: nrexrsink writes OpenEXR only, the name ends in "
+                                f"{ext or 'no extension'!r}; use .exr (for 8-bit images: nrtonemap ! pngenc ! "
+                                f"multifilesink)", kind="settings")
+                return False
+            first = format_location(self._location, self._start_index)
+            old = sequence_files(self._location)
+            if os.path.lexists(first) and first not in old:
+                old.append(first)
+            if old and not self._overwrite:
+                self.post_error(f"{os.path.abspath(old[0])} already exists ({len(old)} file(s) of the sequence "
+                                f"{self._location!r}): refusing to mix a new recording with an old one; "
+                                f"choose another location or set overwrite=true", kind="write")
+                return False
+            for f in old:       # overwrite=true: the old sequence goes as a whole
+                try:
+                    os.unlink(f)
+                except OSError as e:
+                    self.post_error(f"overwrite=true: cannot delete the old file {os.path.abspath(f)}: {e}",
+                                    kind="write")
+                    return False
             self._index = self._start_index
             return True
         except Exception as e:  # noqa: BLE001

@@ -62,7 +62,7 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         self._params = ReconParams()
         self._method = Choice("method", METHODS, "fse")
         self._preset = Choice("preset", PRESETS, "balanced")
-        self._post_stats = True
+        self._post_stats = False   # off by default: unread bus messages would pile up (issue 9)
         self._info = None
         self._frames = 0
         self.set_in_place(True)
@@ -120,9 +120,10 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     def use_bounds(self, value):
         self._params = dataclasses.replace(self._params, use_bounds=bool(value))
 
-    @GObject.Property(type=bool, default=True, nick="Post statistics",
+    @GObject.Property(type=bool, default=False, nick="Post statistics",
                       blurb="Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing "
-                            "= fraction of pixels reconstructed, method, seconds)",
+                            "= fraction of pixels reconstructed, method, seconds). Off by default: an "
+                            "application that never reads the bus would keep every message",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
     def post_stats(self):
         return self._post_stats

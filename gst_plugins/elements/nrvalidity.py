@@ -261,6 +261,8 @@ class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         """rawvideoparse silently drops a partial last frame: ask upstream for the byte size of its input
         (filesrc answers) and refuse a file that is not a whole number of frames."""
         self._size_checked = True
+        if not self._check_stride(inbuf):
+            return False
         frame = inbuf.get_size()
         try:
             if not self._raw_parser_upstream():
@@ -268,7 +270,11 @@ class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
             ok, total = self.sinkpad.peer_query_duration(Gst.Format.BYTES)
         except Exception:  # noqa: BLE001
             return True
-        if not ok or total is None or total <= 0 or frame <= 0 or total % frame == 0:
+        if not ok or total is None or total <= 0 or frame <= 0:
+            return True
+        if not self._check_stride(inbuf, total):
+            return False
+        if total % frame == 0:
             return True
         where = "input"
         try:
@@ -286,6 +292,53 @@ class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
                         f"GRAY16_LE frames ({total // frame} frames + {total % frame} bytes): the last frame "
                         f"is truncated", kind="format")
         return False
+
+    def _input_name(self) -> str:
+        try:
+            q = Gst.Query.new_uri()
+            if self.sinkpad.peer_query(q):
+                uri = q.parse_uri()
+                if uri and uri.startswith("file://"):
+                    return urllib.parse.unquote(uri[len("file://"):])
+                return uri or "input"
+        except Exception:  # noqa: BLE001
+            pass
+        return "input"
+
+    def _check_stride(self, inbuf, total=None) -> bool:
+        """Issue 9: a stride that does not match the frame. GStreamer pads GRAY16_LE rows of odd width to 4
+        bytes; a raw file of unpadded rows (what nrhdr writes) parsed without plane-strides gives garbage
+        (or a misleading 'truncated' error). Detected from the file size (a whole number of unpadded frames
+        while the rows are padded) or a GstVideoMeta whose stride differs from the caps'."""
+        vi = self._in_info
+        w, h = vi.width, vi.height
+        tight, stride = 2 * w * h, int(vi.stride[0])
+        meta_stride = None
+        try:
+            meta = GstVideo.buffer_get_video_meta(inbuf)
+            if meta is not None:
+                meta_stride = int(meta.stride[0])
+        except Exception:  # noqa: BLE001 - no usable meta: size checks only
+            meta_stride = None
+        size = inbuf.get_size()
+        if size != vi.size and (size % h or size // h < 2 * w):
+            self.post_error(f"{self._input_name()}: a buffer of {size} bytes is not {h} whole rows of a {w}x{h} "
+                            f"GRAY16_LE frame ({vi.size} bytes with rows padded to {stride}, {tight} unpadded): "
+                            f"wrong size, or set plane-strides=<ROW_BYTES> on rawvideoparse", kind="format")
+            return False
+        used = stride if size == vi.size else size // h
+        if meta_stride is not None and meta_stride != used:
+            self.post_error(f"{self._input_name()}: the buffers' video meta says rows of {meta_stride} bytes but "
+                            f"{size}-byte {w}x{h} frames give {used}: set plane-strides=<{meta_stride}> on "
+                            f"rawvideoparse (or fix the source's stride)", kind="format")
+            return False
+        if total is not None and used != 2 * w and size == vi.size and total % tight == 0:
+            self.post_error(f"{self._input_name()} holds a whole number of unpadded {w}x{h} GRAY16_LE frames "
+                            f"({total // tight} x {tight} bytes), but rawvideoparse reads rows padded to "
+                            f"{used} bytes (GStreamer's default stride for width {w}): set "
+                            f"plane-strides=<{2 * w}> on rawvideoparse", kind="format")
+            return False
+        return True
 
     def do_before_transform(self, buf):
         try:
