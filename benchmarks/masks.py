@@ -98,10 +98,14 @@ def run_hdr(specs, scenes, size, preset, crosstalk_on, seed=0):
                 model = crosstalk.sensor_model_preset("prototype", h, w, seed=seed + 2)
                 with tempfile.TemporaryDirectory(prefix="nrhdr_masks_") as tmp:
                     calibration.simulate_flats(Path(tmp) / "f", prof, model, frames_per_exposure=2,
-                                               exposures=calibration.default_exposures(24, nd=prof.nd),
                                                seed=seed + 3, progress=False)
                     sweep = calibration.read_flats(Path(tmp) / "f", progress=False)
-                cal = calibration.calibrate(sweep, prof.mask, nd_nominal=prof.nd, progress=False).profile
+                try:
+                    cal = calibration.calibrate(sweep, prof.mask, nd_nominal=prof.nd, progress=False).profile
+                except calibration.CalibrationError as e:
+                    rows.append({"image": Path(sp).stem, "mask": spec, "crosstalk": True, "log_psnr": None,
+                                 "error": str(e).split(": ", 1)[-1]})
+                    continue
             raw = sensor.capture(flux, prof, np.random.default_rng(seed + 4), sensor_model=model)
             v, s = validity.classify(raw, cal, "threshold")
             if crosstalk_on:
@@ -123,7 +127,7 @@ def table(rows, key, specs):
         vals = []
         for sp in specs:
             sel = [r[key] for r in rows if r["mask"] == sp and (im == "**mean**" or r["image"] == im)]
-            vals.append(f"{np.mean(sel):.2f}" if sel else "")
+            vals.append(f"{np.mean(sel):.2f}" if sel and None not in sel else "n/a")
         lines.append(f"| {im} | " + " | ".join(vals) + " |")
     return "\n".join(lines)
 
