@@ -250,10 +250,10 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="96x128 sensors, 2 scenes")
     ap.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=DEFAULT_SIZE)
     ap.add_argument("--sensors", nargs="+", default=SENSORS)
-    ap.add_argument("--json", help=f"results file (default: {DEFAULT_JSON.relative_to(ROOT)} for a complete "
-                                   f"run, else {PARTIAL_DIR.relative_to(ROOT)}/crosstalk_validation.json)")
-    ap.add_argument("--img", help=f"plot folder (default: {DEFAULT_IMG.relative_to(ROOT)} for a complete run, "
-                                  f"else {PARTIAL_DIR.relative_to(ROOT)}/img)")
+    ap.add_argument("--json", help="results file (default: benchmarks/results/crosstalk_validation.json for a "
+                                   "complete run, else bench_out/crosstalk_validation/crosstalk_validation.json)")
+    ap.add_argument("--img", help="plot folder (default: docs/img for a complete run, else "
+                                  "bench_out/crosstalk_validation/img)")
     ap.add_argument("--force", action="store_true", help="replace an existing --json / --img plots")
     a = ap.parse_args(argv)
     h, w = (96, 128) if a.quick else tuple(a.size)
