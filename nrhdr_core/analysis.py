@@ -20,15 +20,18 @@ def expected_valid(flux_dn, prof) -> tuple[bool, bool]:
     return bool(flux_dn >= s0), bool(flux_dn / prof.nd >= s0)
 
 
-def classify_expected(raw, prof, mode: str, flux_dn: float):
+def classify_expected(raw, prof, mode: str, flux_dn: float, max_clipped: float = 0.01):
     """Known pixels of a flat field for the selection modes of Fig. 3/4 with the 0 dB rule on the expected
-    SNR (`expected_valid`); clipping is read from each pixel's code (section 2.3). 'best' drops an
-    attenuated pixel when one of its 8 neighbours is a known regular pixel. Returns (values, known)."""
+    SNR (`expected_valid`); clipping is read from each pixel's code (section 2.3), and a class of which more
+    than `max_clipped` clips is dropped whole (its unclipped rest is a truncated, biased sample). 'best'
+    drops an attenuated pixel when one of its 8 neighbours is a known regular pixel. Returns (values, known)."""
     from scipy.ndimage import maximum_filter
     values, state = validity.classify(raw, prof, "all")
     clipped = (state & validity.REASON_MASK) == validity.CLIPPED
     values = ((raw.astype(np.float64) - prof.black_level) * np.where(prof.mask, prof.nd, 1.0))
     reg_ok, att_ok = expected_valid(flux_dn, prof)
+    reg_ok = reg_ok and clipped[~prof.mask].mean() <= max_clipped
+    att_ok = att_ok and clipped[prof.mask].mean() <= max_clipped
     reg = ~prof.mask & ~clipped & reg_ok
     att = prof.mask & ~clipped & att_ok
     if mode == "best":
@@ -72,7 +75,7 @@ def snr_sweep(prof, flux_norm: np.ndarray, rng: np.random.Generator, modes=("all
                 k = validity.known_mask(s)
                 vals = v
             else:
-                vals, k = classify_expected(raw, prof, m, fdn)
+                vals, k = classify_expected(raw, prof, m, fdn, max_clipped)
             res[f"snr_global_{m}"].append(_snr(vals[k]))
             res[f"known_{m}"].append(float(k.mean()))
         for lm in l_mins:

@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 PATTERNS = ("nonregular", "random", "regular", "cell2", "cell2diag", "bluenoise")
-BLUENOISE_JITTER = 0.5   # threshold randomisation of `bluenoise` (benchmarks/masks.py measures the choice)
+BLUENOISE_JITTER = 0.4   # threshold randomisation of `bluenoise` (benchmarks/masks.py: the measured trade-off)
 
 
 def make_mask(pattern: str, height: int, width: int, seed: int = 0, **kw) -> np.ndarray:
