@@ -241,12 +241,16 @@ def fig02(tmp, cfg, nums, ctx):
         m = masks.make_mask(pat, n, n, seed=cfg.seed + 1)
         st = masks.spectrum_stats(m)
         spec = masks.mask_spectrum(m[:64, :64])          # a 64 x 64 patch: peaks visible at print size
+        spec = np.pad(spec, ((0, 1), (0, 1)), mode="wrap")  # show +1/2 beside -1/2 (Nyquist on all sides)
         axs[i, 0].imshow(~m[:16, :16], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         axs[i, 0].set_title(f"{label}\n16x16 detail (white = known)", fontsize=8)
+        hb = 0.5 / 64
         axs[i, 1].imshow(np.log10(spec + 1e-4), cmap="magma", vmin=-3, vmax=0,
-                         extent=(-0.5, 0.5, 0.5, -0.5))
+                         extent=(-0.5 - hb, 0.5 + hb, 0.5 + hb, -0.5 - hb), interpolation="nearest")
         pk = np.argwhere(spec > 0.5)
-        axs[i, 1].plot((pk[:, 1] - 32) / 64, (pk[:, 0] - 32) / 64, "o", mfc="none", mec="c", ms=9)
+        axs[i, 1].plot((pk[:, 1] - 32) / 64, (pk[:, 0] - 32) / 64, "o", mfc="none", mec="c", ms=12, mew=2)
+        axs[i, 1].set_xlim(-0.5 - hb, 0.5 + hb)
+        axs[i, 1].set_ylim(0.5 + hb, -0.5 - hb)
         axs[i, 1].set_title(f"|DFT| (log, 64x64 patch; circles: peaks > DC/2)\nlargest non-DC peak "
                             f"{st['peak_ratio']:.3f} of DC ({n}x{n})", fontsize=8)
         res = {}
