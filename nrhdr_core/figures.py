@@ -359,15 +359,14 @@ def fig03_05(tmp, cfg, nums, ctx):
     ax.semilogx(flux, ana["reg"], "k-", lw=1, label="Eq. 4 regular (ideal)")
     ax.semilogx(flux, ana["att"], "k--", lw=1, label="Eq. 5 attenuated (ideal)")
     ax.semilogx(flux, r["snr_global_threshold"], "-", label="global, known pixels (l_min = 100)")
-    gains = []
     for lm in (100, 400):
-        key = f"snr_recon_lmin{lm}"
-        ax.semilogx(flux, r[key], "-.", lw=2, label=f"after FSE, l_min = {lm}")
-    for lm in (100,):
-        rec = np.array(r[f"snr_recon_lmin{lm}"], float)
-        kt = np.array(r["known_threshold"])
-        sel = (kt > 0.01) & (kt < 0.99) & np.isfinite(rec) & np.isfinite(np.array(r["snr_global_threshold"]))
-        gains = rec[sel] - np.array(r["snr_global_threshold"])[sel]
+        ax.semilogx(flux, r[f"snr_recon_lmin{lm}"], "-.", lw=2, label=f"after FSE, l_min = {lm}")
+    # the gain where pixels are missing (profile l_min = 100: the threshold mode's known pixels)
+    rec = np.array(r["snr_recon_lmin100"], float)
+    glob = np.array(r["snr_global_threshold"], float)
+    kt = np.array(r["known_threshold"])
+    sel = (kt > 0.01) & (kt < 0.99) & np.isfinite(rec) & np.isfinite(glob)
+    gains = rec[sel] - glob[sel]
     ax.set_xlabel("normalised radiant flux Φ'")
     ax.set_ylabel("SNR [dB]")
     ax.set_title(TITLES["fig05"], fontsize=9)
@@ -599,7 +598,7 @@ def fig10(tmp, cfg, nums, ctx):
     """Fig. 10: a) unmodified camera (no mask), c/d) 50 % discarded at random + FSE, e) raw non-regular
     capture, f) FSE from the valid regular pixels only, g) linear (triangular) and h) FSE reconstruction of
     all known pixels after LUT crosstalk compensation at l_min = 400, log tone mapped; magnified crops."""
-    from . import mask as masks, metrics, profile, reconstruction, scene, sensor, simulate, tonemap, validity
+    from . import mask as masks, metrics, reconstruction, scene, sensor, tonemap, validity
     from . import crosstalk
     plt = _plt()
     prof, model, res = _sensor(cfg, ctx)
