@@ -7,7 +7,8 @@ regular checkerboard, measured for several mask designs on the same inputs in on
 
 Masks (nrhdr_core.mask): random (the paper's iid), cell2 (2 of 4 per 2 x 2 cell, Jonscher et al.),
 cell2diag (a checkerboard with random phase per 2 x 2 cell), bluenoise (error diffusion of 50 % grey with a
-randomised threshold; `bluenoise:J` sets the jitter J), regular (checkerboard). All exactly half attenuated.
+randomised threshold; `bluenoise:J` sets the jitter J), voidcluster (Ulichney's void-and-cluster on a 128 x 128
+tile; `voidcluster:S` sets the filter width S), regular (checkerboard). All exactly half attenuated.
 Cases (the mask's attenuated pixels are the missing ones for 8-bit content: 50 % known):
   zoneplate  N x N zone plate, local frequency rising to 0.45 cycles/pixel (then constant)
   texture    three gratings at 0.38-0.45 cycles/pixel (sparse in Fourier, aliased by the checkerboard)
@@ -45,6 +46,8 @@ def make(spec: str, h: int, w: int, seed: int) -> np.ndarray:
     name, _, arg = spec.partition(":")
     if name == "bluenoise" and arg:
         return masks.bluenoise_mask(h, w, seed=seed, jitter=float(arg))
+    if name == "voidcluster" and arg:
+        return masks.voidcluster_mask(h, w, seed=seed, sigma=float(arg))
     return masks.make_mask(name, h, w, seed=seed)
 
 
@@ -174,8 +177,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--masks", nargs="+",
-                    default=["random", "cell2", "cell2diag", "bluenoise:0.25", "bluenoise:0.5",
-                             "bluenoise:1.0", "regular"])
+                    default=["random", "cell2", "cell2diag", "bluenoise:0.3", "bluenoise", "bluenoise:1.0",
+                             "voidcluster", "voidcluster:1.0", "regular"])
     ap.add_argument("--images", help="glob of 8-bit images instead of Kodak 01-08")
     ap.add_argument("--preset", default="balanced")
     ap.add_argument("--seeds", type=int, default=1, help="mask seeds averaged per case")

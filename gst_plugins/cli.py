@@ -141,7 +141,7 @@ def _add_sensor_args(p, profile_opt=True):
         p.add_argument("--profile", help="existing camera profile JSON to use")
     g.add_argument("--width", type=int, default=640)
     g.add_argument("--height", type=int, default=480)
-    g.add_argument("--pattern", choices=("nonregular", "regular", "cell2", "cell2diag", "bluenoise"),
+    g.add_argument("--pattern", choices=("nonregular", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster"),
                    default="nonregular", help="ND mask: the paper's non-regular (iid) pattern, the regular "
                    "2x2 (Nayar) one, or a reduced-randomness design (docs/PAPER.md)")
     g.add_argument("--mask-seed", type=int, default=0, help="seed of the non-regular mask")

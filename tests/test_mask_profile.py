@@ -86,7 +86,7 @@ def test_mask_png_must_be_binary(tmp_path):
 
 # ---- reduced-randomness designs (issue 10) ---------------------------------------------------------
 
-@pytest.mark.parametrize("pattern", ["cell2", "cell2diag", "bluenoise", "random"])
+@pytest.mark.parametrize("pattern", ["cell2", "cell2diag", "bluenoise", "voidcluster", "random"])
 @pytest.mark.parametrize("shape", [(48, 64), (33, 47)])
 def test_new_masks_exactly_half_and_seeded(pattern, shape):
     a = mask.make_mask(pattern, *shape, seed=5)
@@ -119,6 +119,19 @@ def test_bluenoise_has_little_low_frequency_energy_and_no_peak():
     assert st_w["low_freq_power_share"] == pytest.approx(st_w["low_freq_area_share"], rel=0.3)
     assert st_b["peak_ratio"] < 0.1
     assert mask.spectrum_stats(mask.regular_mask(128, 128))["peak_ratio"] == pytest.approx(1.0)
+
+
+def test_voidcluster_is_blue_noise_without_peak():
+    # void-and-cluster (Ulichney 1993): little low-frequency power, no spectral peak besides DC, and the
+    # relaxation really acts (far fewer 2 x 2 cells entirely unknown than an iid mask's ~1/16)
+    m = mask.voidcluster_mask(128, 128, seed=3)
+    st = mask.spectrum_stats(m)
+    assert st["low_freq_power_share"] < 0.2 * st["low_freq_area_share"]
+    assert st["peak_ratio"] < 0.1
+    cells = m.reshape(64, 2, 64, 2).transpose(0, 2, 1, 3).reshape(-1, 4)
+    assert np.mean(cells.all(1)) < 0.01 < np.mean(mask.nonregular_mask(128, 128, seed=3)
+                                                   .reshape(64, 2, 64, 2).transpose(0, 2, 1, 3)
+                                                   .reshape(-1, 4).all(1))
 
 
 def test_bluenoise_without_jitter_is_the_checkerboard():
