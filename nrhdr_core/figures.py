@@ -268,7 +268,7 @@ def fig02(tmp, cfg, nums, ctx):
         for a in axs[i]:
             a.set_xticks([])
             a.set_yticks([])
-        paper_peak = {"regular": 1.0, "nonregular": 0.0}.get(pat)
+        paper_peak = {"regular": 1.0, "nonregular": "<< 1 (single dominant peak)"}.get(pat)
         nums.add("fig02", f"{pat}: largest non-DC spectral peak / DC", paper_peak, st["peak_ratio"], "",
                  "paper: two equal peaks (regular) vs one dominant peak (non-regular)" if paper_peak is not None
                  else "reduced-randomness design (docs/PAPER.md)")
