@@ -57,6 +57,10 @@ def test_numbers_follow_the_paper_where_physics_fixes_them(tiny_run):
     # Eq. 5 / Eq. 7 offsets of the measured curves (ideal camera)
     r = next(v for k, v in num.items() if k.startswith("SNR_d1 - SNR_d0"))
     assert r["ours"] == pytest.approx(-10 * np.log10(6.35), abs=0.6)
+    # paper 2.1: the checkerboard's aliasing ambiguity defeats reconstruction, a non-regular mask does not
+    zp = {m: next(v for k, v in num.items() if k.startswith(f"{m}: zone plate"))["ours"]
+          for m in ("regular", "nonregular", "voidcluster")}
+    assert zp["nonregular"] > zp["regular"] + 10 and zp["voidcluster"] > zp["regular"] + 10
     # Fig. 4's low end is the expected step exactly (0 dB rule on the expected SNR)
     r = next(v for k, v in num.items() if k.startswith("largest |measured - expected| known ratio"))
     assert r["ours"] == 0.0
