@@ -15,13 +15,17 @@ Sensors: `prototype` (the preset: non-uniform, signal-dependent, blooming, PRNU/
 linear 1 % kernel), `none`, and `independent`: a plain scipy convolution with a different, non-conserving
 kernel and ND 8, written here without the project's sensor model (as an outside tester would), once
 conserving (centre 1 - sum of the kernel) and once not (`independent-nc`, centre 1).
-Writes docs/img/crosstalk_*.png and benchmarks/results/crosstalk_validation.json.
+Writes docs/img/crosstalk_*.png and benchmarks/results/crosstalk_validation.json, the committed results, only
+from a complete run (all default sensors at the default size, natural scenes found, not --quick). Any other
+run writes to bench_out/crosstalk_validation/ instead (or to --json / --img, which must not exist yet unless
+--force). Files are made in a temporary folder and moved in at the end: never a partial result.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
 import shutil
 import sys
 import tempfile
@@ -35,8 +39,13 @@ sys.path.insert(0, str(ROOT))
 
 from nrhdr_core import calibration, crosstalk, io, profile, sensor, validity  # noqa: E402
 
-SCENES_DIR = ROOT.parent / "shared" / "data" / "hdr"
+SCENES_DIR = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data")) / "hdr"
 MIN_FLUX = 20.0
+SENSORS = ["prototype", "linear", "independent", "independent-nc", "none"]
+DEFAULT_SIZE = (192, 256)
+DEFAULT_JSON = ROOT / "benchmarks" / "results" / "crosstalk_validation.json"
+DEFAULT_IMG = ROOT / "docs" / "img"
+PARTIAL_DIR = ROOT / "bench_out" / "crosstalk_validation"
 
 
 class IndependentModel:
@@ -208,7 +217,6 @@ def report(results):
 
 
 def copy_plots(results, img_dir):
-    img_dir.mkdir(parents=True, exist_ok=True)
     proto = next((r for r in results if r["sensor"] == "prototype"), None)
     if not proto:
         return
@@ -240,34 +248,65 @@ def plot_modes(results, img_dir):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="96x128 sensors, 2 scenes")
-    ap.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=(192, 256))
-    ap.add_argument("--sensors", nargs="+", default=["prototype", "linear", "independent", "independent-nc", "none"])
-    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "crosstalk_validation.json"))
-    ap.add_argument("--img", default=str(ROOT / "docs" / "img"))
+    ap.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=DEFAULT_SIZE)
+    ap.add_argument("--sensors", nargs="+", default=SENSORS)
+    ap.add_argument("--json", help="results file (default: benchmarks/results/crosstalk_validation.json for a "
+                                   "complete run, else bench_out/crosstalk_validation/crosstalk_validation.json)")
+    ap.add_argument("--img", help="plot folder (default: docs/img for a complete run, else "
+                                  "bench_out/crosstalk_validation/img)")
+    ap.add_argument("--force", action="store_true", help="replace an existing --json / --img plots")
     a = ap.parse_args(argv)
-    h, w = (96, 128) if a.quick else a.size
+    h, w = (96, 128) if a.quick else tuple(a.size)
     scenes = sorted(SCENES_DIR.glob("*.exr"))
     if not scenes:
         print(f"note: no EXR scenes in {SCENES_DIR}; natural-scene rows are skipped", file=sys.stderr)
     if a.quick:
         scenes = scenes[:2]
+    why = [m for m, bad in (("--quick", a.quick), (f"size {h}x{w} is not {DEFAULT_SIZE}", (h, w) != tuple(DEFAULT_SIZE)),
+                            ("not all sensors", not set(SENSORS) <= set(a.sensors)),
+                            (f"no natural scenes in {SCENES_DIR}", not scenes)) if bad]
+    complete = not why
+    json_path = Path(a.json) if a.json else (DEFAULT_JSON if complete else PARTIAL_DIR / "crosstalk_validation.json")
+    img_dir = Path(a.img) if a.img else (DEFAULT_IMG if complete else PARTIAL_DIR / "img")
+    if not complete:
+        print(f"note: partial run ({'; '.join(why)}): the committed results are left alone; writing "
+              f"{json_path} and {img_dir}/", file=sys.stderr)
+    plot_names = ["crosstalk_modes.png"] + (["crosstalk_curves.png", "crosstalk_nd_eff.png",
+                                             "crosstalk_valid_ratio.png"] if "prototype" in a.sensors else [])
+    explicit = [p for p, given in ((json_path, a.json), *((img_dir / n, a.img) for n in plot_names)) if given]
+    clash = [str(p) for p in explicit if p.exists()]
+    if clash and not a.force:
+        print(f"crosstalk_validation: error: {', '.join(clash)} exist(s); choose new paths or pass --force",
+              file=sys.stderr)
+        return 2
     results = []
     with tempfile.TemporaryDirectory(prefix="nrhdr_xt_") as tmp:
         work = Path(tmp)
+        stage = work / "_out"
+        stage.mkdir()
         for name in a.sensors:
             print(f"[{name}] {w}x{h}: flats, calibration, evaluation ...", file=sys.stderr, flush=True)
             results.append(run_sensor(name, h, w, scenes, work))
-        copy_plots(results, Path(a.img))
-    plot_modes(results, Path(a.img))
-    Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-    for r in results:
-        r["summary"].pop("plots", None)
-        r["summary"].pop("profile", None)
-        r["summary"].pop("flats", None)
-        r.pop("plots", None)
-    Path(a.json).write_text(json.dumps(results, indent=1) + "\n")
+        copy_plots(results, stage)
+        plot_modes(results, stage)
+        for r in results:
+            r["summary"].pop("plots", None)
+            r["summary"].pop("profile", None)
+            r["summary"].pop("flats", None)
+            r.pop("plots", None)
+        (stage / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+        # everything computed: move into place (same-folder temp + rename per file)
+        img_dir.mkdir(parents=True, exist_ok=True)
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        for p in sorted(stage.glob("crosstalk_*.png")):
+            t = img_dir / f".{p.name}.tmp"
+            shutil.copyfile(p, t)
+            os.replace(t, img_dir / p.name)
+        t = json_path.with_name(f".{json_path.name}.tmp")
+        shutil.copyfile(stage / "results.json", t)
+        os.replace(t, json_path)
     print(report(results))
-    print(f"\n(raw results: {a.json})")
+    print(f"\n(raw results: {json_path}; plots: {img_dir}/)")
     return 0
 
 

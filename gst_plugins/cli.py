@@ -172,8 +172,9 @@ def _add_sensor_args(p, profile_opt=True):
         p.add_argument("--profile", help="existing camera profile JSON to use")
     g.add_argument("--width", type=int, default=640)
     g.add_argument("--height", type=int, default=480)
-    g.add_argument("--pattern", choices=("nonregular", "regular"), default="nonregular",
-                   help="ND mask: the paper's non-regular pattern or the regular 2x2 (Nayar) one")
+    g.add_argument("--pattern", choices=("nonregular", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster"),
+                   default="nonregular", help="ND mask: the paper's non-regular (iid) pattern, the regular "
+                   "2x2 (Nayar) one, or a reduced-randomness design (docs/PAPER.md)")
     g.add_argument("--mask-seed", type=int, default=0, help="seed of the non-regular mask")
     g.add_argument("--nd", type=float, default=6.35, help="ND factor (Eq. 1)")
     g.add_argument("--l-min", type=float, default=100.0, help="threshold for attenuated pixels (2.3)")
@@ -243,6 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     from . import cli_env; cli_env.register_cli(sub)  # noqa: E702  (issue 11: `nrhdr env`)
     from . import cli_live
     cli_live.register_cli(sub)  # nrhdr warmup (issue #7)
+    from .cli_figures import register_cli as register_figures
+    register_figures(sub)                                              # nrhdr figures (issue 10)
     try:
         from nrhdr_core import calibration
         if hasattr(calibration, "register_cli"):

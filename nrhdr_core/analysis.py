@@ -11,11 +11,47 @@ import numpy as np
 from . import metrics, profile as profiles, reconstruction, sensor, validity
 
 
+def expected_valid(flux_dn, prof) -> tuple[bool, bool]:
+    """The 0 dB rule of section 2.3 / Fig. 4 applied to the *expected* SNR of each pixel class (Eq. 4, 5 with
+    the profile's read noise): (regular valid, attenuated valid) for a flat field of `flux_dn` DN. Expected
+    SNR = s / sqrt(g s + (g sigma_r)^2) for a signal of s DN (s = flux, or flux / ND behind the filter)."""
+    g, c = prof.gain, (prof.gain * prof.read_noise) ** 2
+    s0 = 0.5 * (g + np.sqrt(g * g + 4.0 * c))          # s^2 = g s + c: SNR = 0 dB
+    return bool(flux_dn >= s0), bool(flux_dn / prof.nd >= s0)
+
+
+def classify_expected(raw, prof, mode: str, flux_dn: float, max_clipped: float = 0.01):
+    """Known pixels of a flat field for the selection modes of Fig. 3/4 with the 0 dB rule on the expected
+    SNR (`expected_valid`); clipping is read from each pixel's code (section 2.3), and a class of which more
+    than `max_clipped` clips is dropped whole (its unclipped rest is a truncated, biased sample). 'best'
+    drops an attenuated pixel when one of its 8 neighbours is a known regular pixel. Returns (values, known)."""
+    from scipy.ndimage import maximum_filter
+    values, state = validity.classify(raw, prof, "all")
+    clipped = (state & validity.REASON_MASK) == validity.CLIPPED
+    values = ((raw.astype(np.float64) - prof.black_level) * np.where(prof.mask, prof.nd, 1.0))
+    reg_ok, att_ok = expected_valid(flux_dn, prof)
+    reg_ok = reg_ok and clipped[~prof.mask].mean() <= max_clipped
+    att_ok = att_ok and clipped[prof.mask].mean() <= max_clipped
+    reg = ~prof.mask & ~clipped & reg_ok
+    att = prof.mask & ~clipped & att_ok
+    if mode == "best":
+        att &= ~maximum_filter(reg, size=3, mode="constant")
+    elif mode != "all":
+        raise ValueError(f"mode must be 'all' or 'best', got {mode!r}")
+    return values, reg | att
+
+
 def snr_sweep(prof, flux_norm: np.ndarray, rng: np.random.Generator, modes=("all", "best", "threshold"),
-              l_mins=(), method: str | None = None) -> dict:
+              l_mins=(), method: str | None = None, max_clipped: float = 0.01) -> dict:
     """For each normalised flux Phi' (1 = regular pixel at full well), capture a flat field and measure:
-    SNR of regular / attenuated pixels (valid ones), global SNR and known-pixel ratio per mode, and
-    (with `method`) the global SNR after reconstruction for each l_min of `l_mins` (Fig. 5)."""
+    SNR of the regular / attenuated pixels (Eq. 4, 5: over *all* pixels of the class, NaN once more than
+    `max_clipped` of them clip), global SNR and known-pixel ratio per mode, and (with `method`) the global
+    SNR after reconstruction for each l_min of `l_mins` (Fig. 5).
+
+    Modes 'all' and 'best' apply the 0 dB rule to the expected SNR of the pixel class (`expected_valid`),
+    as Eq. 4-7 do; SNR over a subset that passed a per-sample threshold would be biased upwards (the
+    darkest samples of a class are the ones dropped). 'threshold' is the paper's practical rule: an
+    attenuated pixel is known when its measured value reaches l_min (section 2.3, Fig. 9)."""
     res = {"flux": [float(f) for f in flux_norm], "snr_regular": [], "snr_attenuated": [],
            "mu_electrons": []}
     for m in modes:
@@ -24,17 +60,23 @@ def snr_sweep(prof, flux_norm: np.ndarray, rng: np.random.Generator, modes=("all
         res[f"snr_recon_lmin{lm:g}"] = []
     for f in flux_norm:
         mu_e = f * prof.full_well
-        flux_dn = np.full(prof.mask.shape, mu_e * prof.gain)
-        raw = sensor.capture(flux_dn, prof, rng)
+        fdn = mu_e * prof.gain
+        raw = sensor.capture(np.full(prof.mask.shape, fdn), prof, rng)
         res["mu_electrons"].append(float(mu_e))
         v, s = validity.classify(raw, prof, "all")
-        k = validity.known_mask(s)
-        res["snr_regular"].append(_snr(v[k & ~prof.mask]))
-        res["snr_attenuated"].append(_snr(v[k & prof.mask]))
+        clipped = (s & validity.REASON_MASK) == validity.CLIPPED
+        lin = (raw.astype(np.float64) - prof.black_level) * np.where(prof.mask, prof.nd, 1.0)
+        for key, sel in (("snr_regular", ~prof.mask), ("snr_attenuated", prof.mask)):
+            ok = sel & ~clipped
+            res[key].append(_snr(lin[ok]) if ok.sum() >= (1 - max_clipped) * sel.sum() else float("nan"))
         for m in modes:
-            v, s = validity.classify(raw, prof, m)
-            k = validity.known_mask(s)
-            res[f"snr_global_{m}"].append(_snr(v[k]))
+            if m == "threshold":
+                v, s = validity.classify(raw, prof, m)
+                k = validity.known_mask(s)
+                vals = v
+            else:
+                vals, k = classify_expected(raw, prof, m, fdn, max_clipped)
+            res[f"snr_global_{m}"].append(_snr(vals[k]))
             res[f"known_{m}"].append(float(k.mean()))
         for lm in l_mins:
             v, s = validity.classify(raw, prof, "threshold", l_min=lm)
@@ -52,6 +94,14 @@ def _snr(x):
     return metrics.snr_db(x) if np.size(x) > 2 else float("nan")
 
 
+def ideal_profile(size: int = 96, seed: int = 0, nd: float = 6.35, l_min: float = 100.0, pattern="nonregular"):
+    """The ideal camera of section 2.3: shot noise only, 1 DN per electron (no quantisation error on
+    integer photon counts), 12 bit, clipping at 4094 (= full well, so Phi' = 1 is regular clipping)."""
+    from . import mask as masks
+    return profiles.make(masks.make_mask(pattern, size, size, seed=seed), nd=nd, l_min=l_min,
+                         read_noise=0.0, gain=1.0, full_well=4094.0)
+
+
 def run_snr_analysis(out_dir, nd: float = 6.35, l_min: float = 100.0, seed: int = 0, size: int = 96,
                      points: int = 36, method: str = "fse") -> list[Path]:
     """Write snr.png (Fig. 3/5), known_ratio.png (Fig. 4) and snr_analysis.json for an ideal sensor
@@ -61,7 +111,7 @@ def run_snr_analysis(out_dir, nd: float = 6.35, l_min: float = 100.0, seed: int 
     import matplotlib.pyplot as plt
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    prof = profiles.default(size, size, seed=seed, nd=nd, l_min=l_min, read_noise=0.0)
+    prof = ideal_profile(size, seed=seed, nd=nd, l_min=l_min)
     rng = np.random.default_rng(seed)
     flux = np.logspace(-4, np.log10(2 * nd), points)
     try:

@@ -309,10 +309,4 @@ def default(height: int = 480, width: int = 640, seed: int = 0, pattern: str = "
             **fields) -> CameraProfile:
     """A profile like the paper's prototype: 12 bit, clip at 4094, ND 6.35, half the pixels attenuated."""
     from . import mask as masks
-    if pattern == "nonregular":
-        m = masks.nonregular_mask(height, width, seed=seed)
-    elif pattern == "regular":
-        m = masks.regular_mask(height, width)
-    else:
-        raise ValueError(f"mask pattern must be 'nonregular' or 'regular', got {pattern!r}")
-    return make(m, **fields)
+    return make(masks.make_mask(pattern, height, width, seed=seed), **fields)

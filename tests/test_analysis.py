@@ -40,3 +40,25 @@ def test_run_writes_plots(tmp_path):
     paths = analysis.run_snr_analysis(tmp_path, size=24, points=5, method="nearest")
     assert [p.name for p in paths] == ["snr.png", "known_ratio.png", "snr_analysis.json"]
     assert all(p.stat().st_size > 1000 for p in paths)
+
+
+def test_low_end_matches_eq4_eq5_and_expected_snr_rule():
+    # issue 10: below Phi' ~ 1e-3 the measured SNR followed only pixels above a per-sample threshold (22 dB,
+    # inf); now the SNR is over all pixels of the class (Eq. 4, 5) and the 0 dB rule uses the expected SNR
+    from nrhdr_core import sensor
+    p = analysis.ideal_profile(128, seed=4, nd=6.35)
+    flux = np.array([1e-4, 2e-4, 6e-4, 3e-3])              # mu = 0.4 .. 12 electrons
+    r = analysis.snr_sweep(p, flux, np.random.default_rng(7), modes=("all", "best"), l_mins=())
+    mu = np.array(r["mu_electrons"])
+    assert r["snr_regular"] == pytest.approx(sensor.snr_regular_db(mu), abs=0.6)
+    assert r["snr_attenuated"] == pytest.approx(sensor.snr_attenuated_db(mu, 6.35), abs=1.0)
+    # expected 0 dB rule (shot noise only, 1 DN/e-): regular valid from 1 e-, attenuated from ND e-
+    exp = [0.5 * (m >= 1) + 0.5 * (m / 6.35 >= 1) for m in mu]
+    assert r["known_all"] == pytest.approx(exp, abs=1e-12)
+    # best pixel only: attenuated pixels count only without a regular 8-neighbour
+    from scipy.ndimage import maximum_filter
+    lone = float(np.mean(p.mask & ~maximum_filter(~p.mask, size=3, mode="constant")))
+    assert r["known_best"] == pytest.approx([0.5 * (m >= 1) + lone * (m / 6.35 >= 1) for m in mu], abs=1e-12)
+    # where only the regular class is valid, the global SNR is the regular SNR; where both are, Eq. 7
+    assert np.isnan(r["snr_global_all"][0]) and r["snr_global_all"][2] == pytest.approx(r["snr_regular"][2], abs=1e-9)
+    assert r["snr_global_all"][3] == pytest.approx(sensor.snr_global_db(mu[3], 6.35), abs=0.6)

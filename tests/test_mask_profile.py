@@ -82,3 +82,66 @@ def test_mask_png_must_be_binary(tmp_path):
     io.write_image(tmp_path / "m.png", np.full((4, 4), 128, np.uint8), np.uint8)
     with pytest.raises(io.ImageFileError, match="only 0.*255"):
         io.read_mask(tmp_path / "m.png")
+
+
+# ---- reduced-randomness designs (issue 10) ---------------------------------------------------------
+
+@pytest.mark.parametrize("pattern", ["cell2", "cell2diag", "bluenoise", "voidcluster", "random"])
+@pytest.mark.parametrize("shape", [(48, 64), (33, 47)])
+def test_new_masks_exactly_half_and_seeded(pattern, shape):
+    a = mask.make_mask(pattern, *shape, seed=5)
+    b = mask.make_mask(pattern, *shape, seed=5)
+    c = mask.make_mask(pattern, *shape, seed=6)
+    assert a.dtype == bool and a.shape == shape
+    assert int(a.sum()) == round(a.size / 2)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+
+
+def test_cell2_two_per_cell_all_arrangements():
+    m = mask.cell2_mask(64, 64, seed=1)
+    cells = m.reshape(32, 2, 32, 2).transpose(0, 2, 1, 3).reshape(-1, 4)
+    assert (cells.sum(1) == 2).all()
+    assert len({tuple(c) for c in cells}) == 6            # every one of the C(4,2) arrangements occurs
+
+
+def test_cell2diag_cells_are_diagonal():
+    m = mask.make_mask("cell2diag", 64, 64, seed=1)
+    cells = m.reshape(32, 2, 32, 2).transpose(0, 2, 1, 3).reshape(-1, 4)
+    assert {tuple(c) for c in cells} == {(True, False, False, True), (False, True, True, False)}
+
+
+def test_bluenoise_has_little_low_frequency_energy_and_no_peak():
+    # blue noise: power concentrated at high frequencies, no spectral peak besides DC (unlike the
+    # checkerboard's at (1/2, 1/2)); iid random (white) spreads it evenly
+    st_b = mask.spectrum_stats(mask.bluenoise_mask(128, 128, seed=2))
+    st_w = mask.spectrum_stats(mask.nonregular_mask(128, 128, seed=2))
+    assert st_b["low_freq_power_share"] < 0.2 * st_b["low_freq_area_share"]
+    assert st_w["low_freq_power_share"] == pytest.approx(st_w["low_freq_area_share"], rel=0.3)
+    assert st_b["peak_ratio"] < 0.1
+    assert mask.spectrum_stats(mask.regular_mask(128, 128))["peak_ratio"] == pytest.approx(1.0)
+
+
+def test_voidcluster_is_blue_noise_without_peak():
+    # void-and-cluster (Ulichney 1993): little low-frequency power, no spectral peak besides DC, and the
+    # relaxation really acts (far fewer 2 x 2 cells entirely unknown than an iid mask's ~1/16)
+    m = mask.voidcluster_mask(128, 128, seed=3)
+    st = mask.spectrum_stats(m)
+    assert st["low_freq_power_share"] < 0.2 * st["low_freq_area_share"]
+    assert st["peak_ratio"] < 0.1
+    cells = m.reshape(64, 2, 64, 2).transpose(0, 2, 1, 3).reshape(-1, 4)
+    assert np.mean(cells.all(1)) < 0.01 < np.mean(mask.nonregular_mask(128, 128, seed=3)
+                                                   .reshape(64, 2, 64, 2).transpose(0, 2, 1, 3)
+                                                   .reshape(-1, 4).all(1))
+
+
+def test_bluenoise_without_jitter_is_the_checkerboard():
+    m = mask.bluenoise_mask(32, 32, seed=0, jitter=0.0)
+    assert np.array_equal(m, mask.regular_mask(32, 32)) or np.array_equal(m, ~mask.regular_mask(32, 32))
+
+
+def test_profile_default_takes_new_patterns():
+    from nrhdr_core import profile
+    p = profile.default(32, 48, seed=3, pattern="cell2")
+    assert np.array_equal(p.mask, mask.cell2_mask(32, 48, seed=3))
+    with pytest.raises(ValueError, match="pattern"):
+        profile.default(8, 8, pattern="hexagonal")
