@@ -202,6 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_snr)
 
+    from . import cli_batch  # `nrhdr batch` (issue #12)
+    cli_batch.register_cli(sub)
     try:
         from nrhdr_core import calibration
         if hasattr(calibration, "register_cli"):
