@@ -327,7 +327,7 @@ class Failure:
     error: str
 
     def __str__(self):
-        return f"frame {self.index} ({self.file}): {self.error}"
+        return f"frame {self.index} of {self.file}: {self.error}"
 
 
 @dataclasses.dataclass
@@ -350,7 +350,9 @@ def _progress(total, enabled, desc="batch"):
 
 
 def _error_text(e: BaseException) -> str:
-    return f"{type(e).__name__}: {e}"
+    """Our own errors (ValueError/OSError: bad data, unreadable files) speak for themselves; others keep
+    their type."""
+    return str(e) if isinstance(e, (ValueError, OSError)) and str(e) else f"{type(e).__name__}: {e}"
 
 
 def run_loop(job: Job, todo, progress: bool = False, on_failure=None) -> Result:
@@ -520,6 +522,24 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
 
 
 @contextlib.contextmanager
+def _sigint_ignored():
+    """Ignore SIGINT while the worker processes start: they inherit the ignored disposition (it survives
+    fork and exec), so a terminal's Ctrl-C, sent to the whole process group, reaches only this process,
+    which cancels the frames and closes the cluster (workers would otherwise die printing tracebacks).
+    A Ctrl-C during the few seconds of cluster start-up is lost."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+@contextlib.contextmanager
 def local_client(workers: int | None = None, numba_threads: int = 1, quiet: bool = True):
     """A LocalCluster of `workers` processes (default: one per core) with one dask thread each and numba
     limited to `numba_threads` threads (NUMBA_NUM_THREADS set before each worker process starts).
@@ -540,9 +560,10 @@ def local_client(workers: int | None = None, numba_threads: int = 1, quiet: bool
             # ours there too, and restore this process's environment once the workers have started
             os.environ.update(ours)
             try:
-                cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                       host="127.0.0.1", dashboard_address=None,
-                                       silence_logs=logging.CRITICAL if quiet else logging.WARNING)
+                with _sigint_ignored():   # workers inherit it: Ctrl-C is for this process
+                    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                           host="127.0.0.1", dashboard_address=None,
+                                           silence_logs=logging.CRITICAL if quiet else logging.WARNING)
             finally:
                 os.environ.clear()
                 os.environ.update(saved)
