@@ -287,15 +287,15 @@ def frame_task(index: int, src: Source, profile, xt_profile, settings: chain.Cha
                raw: np.ndarray | None = None, return_files: bool = False):
     """Compute frame `index` and write its files (a shared file system), or, with `return_files`, write
     them in a private temp folder and return their bytes for the client to write. Returns (index,
-    seconds, {name: bytes} or None)."""
-    t0 = time.perf_counter()
+    (wall seconds, CPU seconds of this process), {name: bytes} or None)."""
+    t0, c0 = time.perf_counter(), time.process_time()
     if raw is None:
         raw = read_frame(src.raw, src.width, src.height, index)
     values, state = chain.process_frame(raw, profile, settings, xt_profile)
     tone = chain.tonemap_frame(values, profile, settings) if len(outputs) > 1 else None
     if not return_files:
         write_frame_files([Path(o) for o in outputs], values, state, tone)
-        return index, time.perf_counter() - t0, None
+        return index, (time.perf_counter() - t0, time.process_time() - c0), None
     tmp = Path(tempfile.mkdtemp(prefix="nrhdr-batch-"))
     try:
         local = [tmp / Path(o).name for o in outputs]
@@ -303,7 +303,7 @@ def frame_task(index: int, src: Source, profile, xt_profile, settings: chain.Cha
         files = {Path(o).name: f.read_bytes() for o, f in zip(outputs, local)}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return index, time.perf_counter() - t0, files
+    return index, (time.perf_counter() - t0, time.process_time() - c0), files
 
 
 def _write_bytes_atomic(path: Path, data: bytes) -> None:
@@ -336,7 +336,8 @@ class Result:
     skipped: int = 0
     failures: list[Failure] = dataclasses.field(default_factory=list)
     seconds: float = 0.0          # wall time of the frame loop (after warm-up)
-    frame_seconds: float = 0.0    # sum of the per-frame compute times on the workers
+    frame_seconds: float = 0.0    # sum of the per-frame compute (wall) times on the workers
+    frame_cpu_seconds: float = 0.0  # sum of the workers' CPU time per frame (all their threads)
 
     @property
     def fps(self) -> float:
@@ -364,10 +365,11 @@ def run_loop(job: Job, todo, progress: bool = False, on_failure=None) -> Result:
     with _progress(len(todo), progress) as bar:
         for i in todo:
             try:
-                _, dt, _ = frame_task(i, job.source, job.profile, job.xt_profile, job.settings,
+                _, (dt, cpu), _ = frame_task(i, job.source, job.profile, job.xt_profile, job.settings,
                                       [str(p) for p in job.outputs(i)])
                 res.done.append(i)
                 res.frame_seconds += dt
+                res.frame_cpu_seconds += cpu
             except Exception as e:  # noqa: BLE001 - reported by frame, the others go on
                 f = Failure(i, str(job.source.raw), _error_text(e))
                 res.failures.append(f)
@@ -494,12 +496,13 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
                 i = inflight.pop(fut)
                 if fut.status == "finished":
                     try:
-                        _, dt, files = fut.result()
+                        _, (dt, cpu), files = fut.result()
                         if files:
                             for name, data in files.items():
                                 _write_bytes_atomic(job.out_dir / name, data)
                         res.done.append(i)
                         res.frame_seconds += dt
+                        res.frame_cpu_seconds += cpu
                     except Exception as e:  # noqa: BLE001 - e.g. a write on the client failed
                         fail(i, _error_text(e), bar)
                 else:
@@ -554,7 +557,10 @@ def local_client(workers: int | None = None, numba_threads: int = 1, quiet: bool
     env.update(ours)
     cluster = client = None
     saved = dict(os.environ)
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
+    # worker-saturation inf: the scheduler hands every submitted frame (at most the window) to a worker at
+    # once instead of holding it until a thread is free, so a worker never waits a round trip per frame
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env,
+                          "distributed.scheduler.worker-saturation": float("inf")}):
         try:
             # the nanny prefers os.environ over its config and copies its values into os.environ: set
             # ours there too, and restore this process's environment once the workers have started
@@ -563,6 +569,7 @@ def local_client(workers: int | None = None, numba_threads: int = 1, quiet: bool
                 with _sigint_ignored():   # workers inherit it: Ctrl-C is for this process
                     cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
                                            host="127.0.0.1", dashboard_address=None,
+                                           scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                                            silence_logs=logging.CRITICAL if quiet else logging.WARNING)
             finally:
                 os.environ.clear()
