@@ -84,10 +84,11 @@ def test_bit_identical_to_gstreamer_chain_on_two_local_workers(clip6, tmp_path, 
 @pytest.mark.gst
 def test_bit_identical_with_other_settings_in_a_plain_loop(clip6, tmp_path, gst_subprocess_env):
     """Other element settings (validity mode 'all', method preview) through the same core function in the
-    no-Dask loop (--workers 0) equal the pipeline with MODE=all METHOD=preview."""
+    no-Dask loop (--workers 0) equal the pipeline with MODE=all METHOD=preview; the tone-mapped PNGs
+    (--png, --exposure) equal pipelines/raw_to_png.sh's pixels."""
     d, _, raws = clip6
     rc, out = nrhdr_batch(d, "-o", tmp_path / "batch", "--workers", "0", "--mode", "all", "--method",
-                          "preview", env=gst_subprocess_env)
+                          "preview", "--png", "--exposure", "1.5", env=gst_subprocess_env)
     assert rc == 0, out
     env = dict(gst_subprocess_env, METHOD="preview", MODE="all")
     p = subprocess.run(["bash", str(PIPELINES / "raw_to_exr.sh"), str(d), str(tmp_path / "gst")], env=env,
@@ -97,6 +98,17 @@ def test_bit_identical_with_other_settings_in_a_plain_loop(clip6, tmp_path, gst_
     assert len(a) == len(b) == len(raws)
     for fa, fb in zip(a, b):
         assert_same_exr(fa, fb)
+    env["EXPOSURE"] = "1.5"
+    p = subprocess.run(["bash", str(PIPELINES / "raw_to_png.sh"), str(d), str(tmp_path / "png")], env=env,
+                       capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stdout + p.stderr
+    from nrhdr_core import io
+    pngs = sorted((tmp_path / "png").glob("frame_*.png"))
+    assert len(pngs) == len(raws)
+    for f in pngs:
+        ours = io.read_image(tmp_path / "batch" / f.name, np.uint8)
+        assert np.array_equal(ours, io.read_image(f, np.uint8)), f.name
+        assert ours.max() > ours.min()
 
 
 def test_resume_skips_complete_frames_and_refuses_other_settings(clip6, tmp_path):
@@ -130,9 +142,6 @@ def test_resume_skips_complete_frames_and_refuses_other_settings(clip6, tmp_path
             assert_same_exr(out / f.name, f)
         else:
             assert np.array_equal(io.read_image(out / f.name, np.uint8), io.read_image(f, np.uint8))
-    # nothing left to do
-    rc, log = nrhdr_batch(d, "-o", out, "--workers", "0", "--method", "preview", "--png")
-    assert rc == 0 and f"{n} already done, 0 to compute" in log, log
     # other settings: refused (names what differs), exit 2, nothing touched; --force recomputes
     before = {f.name: f.stat().st_mtime_ns for f in out.iterdir()}
     rc, log = nrhdr_batch(d, "-o", out, "--workers", "0", "--method", "nearest", "--png")
@@ -191,7 +200,7 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path):
     """SIGINT to the whole process group (a terminal's Ctrl-C) during a 2-worker run: exit 130, no
     process of the run is left, only complete files (no temp files); the same command then finishes the
     rest, and every frame equals the chain's output."""
-    d, prof, raws = make_test_clip(tmp_path / "clip", width=96, height=72, frames=40)
+    d, prof, raws = make_test_clip(tmp_path / "clip", width=96, height=72, frames=24)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "gst_plugins.cli", "batch", str(d), "-o", str(out), "--workers", "2",
            "--preset", "best", "--no-progress"]
@@ -225,7 +234,30 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path):
     assert f"{len(done)} already done, {len(raws) - len(done)} to compute" in log
     from nrhdr_core import chain, profile
     prof = profile.load(d / "camera.json")
-    for i in range(len(raws)):
+    for i in (0, len(raws) - 1):   # one frame from before the interruption, one from the rerun
         v, st = chain.process_frame(raws[i], prof, chain.ChainSettings(preset="best"))
         fv, fst = io.read_exr(out / f"frame_{i:05d}.exr")
         assert np.array_equal(fv.view(np.uint32), v.view(np.uint32)) and np.array_equal(fst, st), i
+
+
+def test_existing_scheduler_with_data_transfer(clip6, tmp_path):
+    """--scheduler ADDRESS (a cluster started elsewhere, here by this test) with --transfer data: the
+    client sends raw frames and writes the files the worker returns; same frames as the chain in-process."""
+    from nrhdr_core import batch, chain, io, profile
+    d, _, raws = clip6
+    out = tmp_path / "out"
+    with batch.local_client(1, 1) as client:
+        addr = client.scheduler.address
+        rc, log = nrhdr_batch(d, "-o", out, "--scheduler", addr, "--transfer", "data", "--method", "preview",
+                              "--png")
+    assert rc == 0, log
+    assert "oversubscribed" not in log
+    prof = profile.load(d / "camera.json")
+    s = chain.ChainSettings(method="preview")
+    for i, raw in enumerate(raws):
+        v, st = chain.process_frame(raw, prof, s)
+        fv, fst = io.read_exr(out / f"frame_{i:05d}.exr")
+        assert np.array_equal(fv.view(np.uint32), v.view(np.uint32)) and np.array_equal(fst, st), i
+        png = io.read_image(out / f"frame_{i:05d}.png", np.uint8)[:, :, 0]
+        assert np.array_equal(png, chain.tonemap_frame(v, prof, s)), i
+    assert not [f for f in out.iterdir() if f.name.startswith(".")]
