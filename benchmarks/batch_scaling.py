@@ -172,15 +172,17 @@ def main(argv=None) -> int:
     raw_bytes = 2 * a.width * a.height
     anchor = rows[0]["fps"]
     anchor1 = rows[1]["fps"]
+    cpu1 = rows[1]["cpu_s"] / max(rows[1]["frames"], 1)   # CPU seconds per frame of the 1-thread loop
     spread = ", ".join(f"{r['run']}: " + "/".join(f"{f:.2f}" for f in r["fps_all"]) for r in rows)
     print(f"# nrhdr batch scaling: {a.width} x {a.height}, {a.frames} frames, {a.method} {a.preset}, "
           f"{cores} cores, {platform.processor() or platform.machine()}")
     print(f"anchor: loop x{cores} {anchor:.2f} frames/s, loop x1 {anchor1:.2f} frames/s; best of "
           f"{a.repeat} round-robin runs each (all: {spread})\n")
     print("| run | workers x numba threads | frames/s | vs loop x%d | efficiency vs %s x loop x1 | "
-          "CPU ms/frame | wall ms/frame in the task | idle worker ms/frame | no-op task ms (files / data) |"
+          "CPU ms/frame | CPU efficiency vs loop x1 | wall ms/frame in the task | idle worker ms/frame | "
+          "no-op task ms (files / data) |"
           % (cores, "W"))
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         w = max(r["workers"], 1)
         wt = f"{r['workers']} x {r['threads']}" if r["workers"] else f"loop, {r['threads']} threads"
@@ -190,7 +192,8 @@ def main(argv=None) -> int:
                 if "noop_ms_per_frame_files" in r else "-")
         n = max(r["frames"], 1)
         print(f"| {r['run']} | {wt} | {r['fps']:.2f} | {r['fps'] / anchor:.2f} | {eff:.2f} | "
-              f"{1e3 * r['cpu_s'] / n:.0f} | {1e3 * r['compute_s'] / n:.0f} | {idle} | {noop} |")
+              f"{1e3 * r['cpu_s'] / n:.0f} | {cpu1 / (r['cpu_s'] / n):.2f} | {1e3 * r['compute_s'] / n:.0f} | "
+              f"{idle} | {noop} |")
     best = max((r for r in rows if r["workers"]), key=lambda r: r["fps"])
     sched_ms = best["noop_ms_per_frame_files"]
     print(f"\ndata per frame: raw in {raw_bytes / 1e3:.1f} kB, EXR (Y + state) out {exr_bytes / 1e3:.1f} kB "
