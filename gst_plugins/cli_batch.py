@@ -100,6 +100,10 @@ def cmd_batch(a) -> int:
                 res = batch.run_dask(job, todo, client, progress=progress, return_files=a.transfer == "data",
                                      on_failure=on_failure)
         else:
+            n = a.workers or batch.usable_cores()
+            if n * a.threads_per_worker > batch.usable_cores():
+                print(f"nrhdr batch: warning: oversubscribed: {n} workers x {a.threads_per_worker} numba "
+                      f"threads > {batch.usable_cores()} cores (docs/BATCH.md)", file=sys.stderr)
             with batch.local_client(a.workers, a.threads_per_worker) as client:
                 res = batch.run_dask(job, todo, client, progress=progress, return_files=a.transfer == "data",
                                      on_failure=on_failure)
