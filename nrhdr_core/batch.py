@@ -366,7 +366,7 @@ def run_loop(job: Job, todo, progress: bool = False, on_failure=None) -> Result:
         for i in todo:
             try:
                 _, (dt, cpu), _ = frame_task(i, job.source, job.profile, job.xt_profile, job.settings,
-                                      [str(p) for p in job.outputs(i)])
+                                             [str(p) for p in job.outputs(i)])
                 res.done.append(i)
                 res.frame_seconds += dt
                 res.frame_cpu_seconds += cpu
