@@ -261,3 +261,42 @@ def test_existing_scheduler_with_data_transfer(clip6, tmp_path):
         png = io.read_image(out / f"frame_{i:05d}.png", np.uint8)[:, :, 0]
         assert np.array_equal(png, chain.tonemap_frame(v, prof, s)), i
     assert not [f for f in out.iterdir() if f.name.startswith(".")]
+
+
+@pytest.mark.gst
+def test_given_crosstalk_calibration_equals_gstreamer(tmp_path, gst_subprocess_env):
+    """A clip of a sensor with crosstalk, calibrated from simulated flats (`nrhdr calibrate`), the
+    calibration given separately (--crosstalk-profile = nrcrosstalk profile=): same frames as the
+    GStreamer chain, in kernel mode (the default)."""
+    from gst_plugins import cli
+    from nrhdr_core import calibration, crosstalk, profile, scene, simulate
+    prof = profile.default(48, 64, seed=4)
+    model = crosstalk.sensor_model_preset("prototype", 48, 64, seed=2)
+    simulate.simulate_clip(scene.synthetic_hdr_scene(180, 240, seed=3), tmp_path / "clip", prof, frames=3,
+                           seed=5, sensor_model=model, progress=False)
+    calibration.simulate_flats(tmp_path / "flats", prof, model, exposures=calibration.default_exposures(16),
+                               frames_per_exposure=2, seed=6, progress=False)
+    cal = tmp_path / "cal" / "cam.json"
+    assert cli.main(["calibrate", str(tmp_path / "flats"), "--mask", str(tmp_path / "flats" / "mask.png"),
+                     "-o", str(cal), "--json", "-q", "--no-plots"]) == 0
+    clip = tmp_path / "clip"
+    rc, log = nrhdr_batch(clip, "-o", tmp_path / "batch", "--workers", "0", "--crosstalk-profile", cal,
+                          "--method", "preview", env=gst_subprocess_env)
+    assert rc == 0, log
+    cmd = [sys.executable, "-m", "gst_plugins.cli", "launch", "-q", "filesrc", f"location={clip / 'clip.raw'}",
+           "!", "rawvideoparse", "format=gray16-le", "width=64", "height=48", "framerate=30/1",
+           "plane-strides=<128>", "!", "nrvalidity", f"profile={clip / 'camera.json'}", "!", "nrcrosstalk",
+           f"profile={cal}", "!", "nrreconstruct", "method=preview", "!", "nrexrsink", "write-state=true",
+           f"location={tmp_path / 'gst'}/frame_%05d.exr"]
+    p = subprocess.run(cmd, env=gst_subprocess_env, capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stdout + p.stderr
+    a, b = exr_frames(tmp_path / "batch"), exr_frames(tmp_path / "gst")
+    assert len(a) == len(b) == 3
+    from nrhdr_core import chain, io
+    raws = np.fromfile(clip / "clip.raw", "<u2").reshape(3, 48, 64)
+    uncalibrated = profile.load(clip / "camera.json")
+    for i, (fa, fb) in enumerate(zip(a, b)):
+        assert_same_exr(fa, fb)
+        # the calibration was applied: the chain without it gives other values
+        v0, _ = chain.process_frame(raws[i], uncalibrated, chain.ChainSettings(method="preview"))
+        assert not np.array_equal(io.read_exr(fa)[0], v0)
