@@ -246,6 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
     cli_live.register_cli(sub)  # nrhdr warmup (issue #7)
     from .cli_figures import register_cli as register_figures
     register_figures(sub)                                              # nrhdr figures (issue 10)
+    from . import cli_batch  # `nrhdr batch` (issue #12)
+    cli_batch.register_cli(sub)
     try:
         from nrhdr_core import calibration
         if hasattr(calibration, "register_cli"):

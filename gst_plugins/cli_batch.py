@@ -1,0 +1,126 @@
+"""`nrhdr batch`: reprocess recorded raw clips into an OpenEXR sequence (Y + state), frame-parallel on Dask
+(nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames failed (each reported
+by number and file), 2 bad input or a refused output folder, 130 interrupted."""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+EPILOG = """\
+examples:
+  nrhdr batch demo_out/clip -o demo_out/exr                      # one worker per core, fse fast
+  nrhdr batch demo_out/clip -o best --preset best --png          # final quality + tone-mapped PNGs
+  nrhdr batch rec.raw --profile camera.json -o out --workers 0   # plain loop in this process
+  nrhdr batch demo_out/clip -o out --scheduler tcp://host:8786   # an existing Dask cluster
+defaults are pipelines/raw_to_exr.sh's (METHOD=fse PRESET=fast MODE=threshold, nrcrosstalk mode=kernel),
+so the files equal that pipeline's bit for bit."""
+
+
+def register_cli(sub) -> None:
+    from nrhdr_core import chain
+    p = sub.add_parser("batch", help="reprocess a raw clip into OpenEXR frames on a Dask cluster",
+                       description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("input", help="clip folder (clip.json, clip.raw, camera.json) or a GRAY16_LE raw file")
+    p.add_argument("-o", "--output", required=True, help="output folder: frame_%%05d.exr (+ .png), batch.json")
+    g = p.add_argument_group("input")
+    g.add_argument("--profile", help="camera profile JSON (default: the clip's camera.json; required for a "
+                                     "raw file)")
+    g.add_argument("--width", type=int, help="frame width of a raw file (default: the profile's mask)")
+    g.add_argument("--height", type=int, help="frame height of a raw file (default: the profile's mask)")
+    g.add_argument("--frames", type=int, help="number of frames (default: all the file holds)")
+    g = p.add_argument_group("chain (the elements' properties)")
+    g.add_argument("--mode", choices=chain.VALIDITY_MODES, default="threshold", help="nrvalidity mode")
+    g.add_argument("--l-min", type=float, default=None, help="nrvalidity l-min (default: the profile's)")
+    g.add_argument("--crosstalk", choices=chain.CROSSTALK_MODES, default="kernel", help="nrcrosstalk mode")
+    g.add_argument("--crosstalk-profile", help="profile whose crosstalk calibration to apply (nrcrosstalk "
+                                               "profile=; default: the camera profile's)")
+    g.add_argument("--method", choices=chain.METHODS, default="fse", help="nrreconstruct method")
+    g.add_argument("--preset", choices=chain.PRESETS, default="fast",
+                   help="nrreconstruct preset (default fast, as raw_to_exr.sh; 'best' for final quality)")
+    g.add_argument("--no-bounds", action="store_true", help="nrreconstruct use-bounds=false")
+    g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
+    g.add_argument("--exposure", type=float, default=0.0, help="nrtonemap exposure in stops")
+    g.add_argument("--contrast", type=float, default=1000.0, help="nrtonemap contrast")
+    g.add_argument("--white", type=float, default=None, help="nrtonemap white (default: the profile's)")
+    g = p.add_argument_group("execution")
+    g.add_argument("--workers", type=int, default=None,
+                   help="local worker processes (default: one per core); 0 = plain loop in this process")
+    g.add_argument("--threads-per-worker", type=int, default=1,
+                   help="numba threads per local worker (default 1; keep workers x threads = cores)")
+    g.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://host:8786) instead of "
+                                       "a local cluster")
+    g.add_argument("--transfer", choices=("files", "data"), default="files",
+                   help="files: workers read the raw file and write the outputs (shared file system, "
+                        "default); data: this process sends raw frames and writes the files workers return")
+    g.add_argument("--force", action="store_true",
+                   help="recompute into a folder holding other settings' or another program's output")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_batch)
+
+
+def _sigterm(signum, frame):
+    raise KeyboardInterrupt
+
+
+def cmd_batch(a) -> int:
+    from nrhdr_core import batch, chain
+    if a.workers is not None and a.workers < 0:
+        raise ValueError(f"--workers must be >= 0, got {a.workers}")
+    if a.threads_per_worker < 1:
+        raise ValueError(f"--threads-per-worker must be >= 1, got {a.threads_per_worker}")
+    if a.scheduler and a.workers is not None:
+        raise ValueError("--workers starts a local cluster; it cannot go with --scheduler")
+    settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, crosstalk=a.crosstalk, method=a.method,
+                                   preset=a.preset, use_bounds=not a.no_bounds, white=a.white,
+                                   exposure=a.exposure, contrast=a.contrast)
+    src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames)
+    job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile)
+    todo, skipped = batch.prepare_output(job, force=a.force)
+    progress = not a.no_progress
+    print(f"nrhdr batch: {src.frames} frames {src.width}x{src.height} from {src.raw}, {skipped} already done, "
+          f"{len(todo)} to compute; method={settings.method} preset={settings.preset} -> {job.out_dir}",
+          file=sys.stderr)
+
+    def on_failure(f, bar):
+        bar.write(f"nrhdr batch: error: {f}", file=sys.stderr)
+
+    old = signal.signal(signal.SIGTERM, _sigterm)
+    res = None
+    try:
+        if not todo:
+            res = batch.Result(skipped=skipped)
+        elif a.workers == 0:
+            res = batch.run_loop(job, todo, progress=progress, on_failure=on_failure)
+        elif a.scheduler:
+            from distributed import Client
+            with Client(a.scheduler, timeout="30s") as client:
+                for w in batch.oversubscription_warnings(client):
+                    print(f"nrhdr batch: warning: oversubscribed: {w}", file=sys.stderr)
+                res = batch.run_dask(job, todo, client, progress=progress, return_files=a.transfer == "data",
+                                     on_failure=on_failure)
+        else:
+            n = a.workers or batch.usable_cores()
+            if n * a.threads_per_worker > batch.usable_cores():
+                print(f"nrhdr batch: warning: oversubscribed: {n} workers x {a.threads_per_worker} numba "
+                      f"threads > {batch.usable_cores()} cores (docs/BATCH.md)", file=sys.stderr)
+            with batch.local_client(a.workers, a.threads_per_worker) as client:
+                res = batch.run_dask(job, todo, client, progress=progress, return_files=a.transfer == "data",
+                                     on_failure=on_failure)
+    except KeyboardInterrupt:
+        if not a.scheduler:   # remote workers may still finish a frame; the next run cleans up
+            batch.remove_temp_files(job.out_dir)
+        print(f"nrhdr batch: interrupted; the complete frames in {job.out_dir} are kept, rerun the same "
+              f"command to resume", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    res.skipped = skipped
+    fps = f", {res.fps:.2f} frames/s" if res.done else ""
+    print(f"nrhdr batch: wrote {len(res.done)} frames, skipped {skipped} done, {len(res.failures)} failed "
+          f"in {res.seconds:.1f} s{fps}", file=sys.stderr)
+    if res.failures:
+        for f in sorted(res.failures, key=lambda f: f.index):
+            print(f"nrhdr batch: failed: {f}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,585 @@
+"""Batch reprocessing of recorded raw clips, frame-parallel on Dask (dask.distributed); docs/BATCH.md.
+
+Every frame goes through `chain.process_frame` (the elements' own core calls, so the output equals the
+GStreamer chain's bit for bit) and is written with `io.write_exr(path, values, state)` (nrexrsink's writer:
+atomic, temp + rename). The output folder gets a manifest (`batch.json`) with the input's identity and the
+settings: a rerun with the same settings skips the frames whose files exist (they are complete, since every
+write is atomic), a rerun with other settings or into a folder written by something else refuses unless
+forced. A frame that fails (e.g. the truncated last frame of a raw file) is reported by number and file;
+the others are still written.
+
+Oversubscription rule: workers x numba threads per worker = cores (default: one single-threaded worker
+process per core, numba pinned to 1 thread through NUMBA_NUM_THREADS before the worker starts).
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import chain
+
+MANIFEST = "batch.json"
+MANIFEST_FORMAT = "nrhdr-batch"
+EXR_NAME = "frame_{:05d}.exr"       # nrexrsink location=OUT/frame_%05d.exr
+PNG_NAME = "frame_{:05d}.png"       # pipelines/raw_to_png.sh names
+TEMP_PREFIX = ".frame_"             # io's atomic writers: "." + stem + "." + random + suffix
+
+
+class BatchError(ValueError):
+    """Bad input or an output folder the batch must not touch; the message names the file or folder."""
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (the affinity mask, not the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+# ---- input ------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Source:
+    """A GRAY16_LE raw file: `frames` frames of width x height (frames past the file's end, or a partial
+    last frame, fail when read)."""
+    raw: Path
+    width: int
+    height: int
+    frames: int
+    profile: Path
+
+    @property
+    def frame_bytes(self) -> int:
+        return 2 * self.width * self.height
+
+
+def open_source(path, profile=None, width=None, height=None, frames=None) -> Source:
+    """A clip folder (clip.json + clip.raw + camera.json, from `nrhdr simulate`) or a raw file with a
+    profile. Geometry: the clip's, else width/height given, else the profile's mask. Frame count: every
+    frame the file holds (a partial last one included, so it is reported), at least the clip's count."""
+    p = Path(path)
+    clip_frames = 0
+    if p.is_dir():
+        cj = p / "clip.json"
+        if not cj.is_file():
+            raise BatchError(f"{p}: not a clip folder (no clip.json); give a clip folder from 'nrhdr simulate' "
+                             f"or a raw file with --profile")
+        try:
+            c = json.loads(cj.read_text())
+            w, h = int(c["width"]), int(c["height"])
+            clip_frames = int(c.get("frames", 0))
+            raw = p / c.get("raw", "clip.raw")
+            prof = Path(profile) if profile else p / c.get("profile", "camera.json")
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise BatchError(f"{cj}: cannot read the clip description: {e}") from None
+        if width is not None and int(width) != w or height is not None and int(height) != h:
+            raise BatchError(f"{cj} says {w}x{h}; --width/--height {width}x{height} disagree")
+    elif p.is_file():
+        if not profile:
+            raise BatchError(f"{p}: a raw file needs --profile (the camera profile JSON)")
+        raw, prof = p, Path(profile)
+        w = h = None
+        if width is not None or height is not None:
+            if width is None or height is None:
+                raise BatchError("give both --width and --height (or neither: the profile's mask size)")
+            w, h = int(width), int(height)
+    else:
+        raise BatchError(f"{p}: no such clip folder or raw file")
+    if not prof.is_file():
+        raise BatchError(f"camera profile {prof} not found")
+    if w is None:
+        from . import profile as profile_mod
+        pm = profile_mod.load(prof)
+        w, h = pm.width, pm.height
+    if w < 1 or h < 1:
+        raise BatchError(f"frame size must be positive, got {w}x{h}")
+    if not raw.is_file():
+        raise BatchError(f"raw video {raw} not found")
+    size = raw.stat().st_size
+    fb = 2 * w * h
+    in_file = -(-size // fb)  # whole frames + a partial one
+    n = int(frames) if frames is not None else max(in_file, clip_frames)
+    if n < 1:
+        raise BatchError(f"{raw}: no frames ({size} bytes, {w}x{h} GRAY16_LE frames are {fb} bytes)")
+    return Source(raw=raw.resolve(), width=w, height=h, frames=n, profile=prof.resolve())
+
+
+def read_frame(raw, width: int, height: int, index: int) -> np.ndarray:
+    """Frame `index` of a GRAY16_LE file as uint16 (H, W); a missing or partial frame is an error naming
+    the file and the frame."""
+    from .io import ImageFileError
+    fb = 2 * width * height
+    with open(raw, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        f.seek(index * fb)
+        data = f.read(fb)
+    if len(data) != fb:
+        whole, rest = divmod(size, fb)
+        what = (f"truncated: {len(data)} of {fb} bytes" if data else "missing: the file ends before it")
+        raise ImageFileError(f"{raw}: frame {index} is {what} (the file is {size} bytes = {whole} whole "
+                             f"{width}x{height} GRAY16_LE frames + {rest} bytes)")
+    return np.frombuffer(data, dtype="<u2").reshape(height, width).astype(np.uint16, copy=False)
+
+
+# ---- job, manifest, output folder ----------------------------------------------------------------------
+
+def _file_id(path: Path) -> dict:
+    st = path.stat()
+    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclasses.dataclass
+class Job:
+    """What to compute: source frames, settings, output folder; profiles loaded once here."""
+    source: Source
+    out_dir: Path
+    settings: chain.ChainSettings = chain.ChainSettings()
+    png: bool = False
+    crosstalk_profile: Path | None = None
+
+    def __post_init__(self):
+        from . import profile as profile_mod
+        self.out_dir = Path(self.out_dir)
+        self.profile = profile_mod.load(self.source.profile)
+        if (self.profile.width, self.profile.height) != (self.source.width, self.source.height):
+            raise BatchError(f"profile {self.source.profile} has a {self.profile.width}x{self.profile.height} "
+                             f"mask but the frames are {self.source.width}x{self.source.height}")
+        self.xt_profile = None
+        if self.crosstalk_profile is not None:
+            self.crosstalk_profile = Path(self.crosstalk_profile).resolve()
+            self.xt_profile = profile_mod.load(self.crosstalk_profile)
+            if (self.xt_profile.width, self.xt_profile.height) != (self.profile.width, self.profile.height):
+                raise BatchError(f"crosstalk profile {self.crosstalk_profile} has a {self.xt_profile.width}x"
+                                 f"{self.xt_profile.height} mask but the frames are {self.profile.width}x"
+                                 f"{self.profile.height}")
+
+    def outputs(self, index: int) -> list[Path]:
+        names = [EXR_NAME.format(index)] + ([PNG_NAME.format(index)] if self.png else [])
+        return [self.out_dir / n for n in names]
+
+    def manifest(self) -> dict:
+        """Everything the output depends on: a rerun resumes only when this is equal."""
+        s = self.source
+
+        def prof(path):
+            if path is None:
+                return None
+            return {"path": str(path), "sha256": _sha256(path)}
+
+        return {"format": MANIFEST_FORMAT, "version": 1, "writer": "nrhdr batch",
+                "input": dict(_file_id(s.raw), width=s.width, height=s.height, frames=s.frames),
+                "profile": prof(s.profile), "crosstalk_profile": prof(self.crosstalk_profile),
+                "settings": self.settings.as_dict(), "png": self.png,
+                "files": {"exr": "frame_%05d.exr", "png": "frame_%05d.png" if self.png else None}}
+
+
+def _diff(a, b, prefix=""):
+    out = []
+    for k in sorted(set(a) | set(b)):
+        va, vb = a.get(k), b.get(k)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += _diff(va, vb, f"{prefix}{k}.")
+        elif va != vb:
+            out.append(f"{prefix}{k}: {va!r} -> {vb!r}")
+    return out
+
+
+def _default_mode(path) -> None:
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)   # mkstemp makes 0600; give the final file the usual mode
+
+
+def _write_json_atomic(path: Path, doc: dict) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".batch.", suffix=".json", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(doc, indent=2) + "\n")
+        _default_mode(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def remove_temp_files(out_dir: Path) -> int:
+    """Remove the partial files an interrupted writer left (io's atomic temp names, '.frame_*')."""
+    n = 0
+    if out_dir.is_dir():
+        for f in out_dir.iterdir():
+            if f.name.startswith(TEMP_PREFIX) and f.is_file():
+                f.unlink(missing_ok=True)
+                n += 1
+    return n
+
+
+def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
+    """Check the output folder, write the manifest; returns (frames to compute, frames skipped).
+
+    Empty/new folder: all frames. Our manifest with equal settings: the frames whose files are missing.
+    Other settings, or a non-empty folder without our manifest: BatchError unless `force` (then this job's
+    frame files there are deleted first, so an interrupted forced run resumes correctly)."""
+    out = job.out_dir
+    if out.exists() and not out.is_dir():
+        raise BatchError(f"output {out} exists and is not a folder")
+    want = job.manifest()
+    mpath = out / MANIFEST
+    resume = False
+    if mpath.is_file():
+        try:
+            have = json.loads(mpath.read_text())
+            ours = isinstance(have, dict) and have.get("format") == MANIFEST_FORMAT
+        except (OSError, ValueError):
+            have, ours = None, False
+        if ours and have == want:
+            resume = True
+        elif not force:
+            if ours:
+                diff = "; ".join(_diff(have, want)[:6])
+                raise BatchError(f"{out} holds a batch run with other input or settings ({diff}): use --force "
+                                 f"to recompute it, or another output folder")
+            raise BatchError(f"{mpath} is not an nrhdr batch manifest: use --force to overwrite {out}")
+    elif out.is_dir() and any(out.iterdir()) and not force:
+        raise BatchError(f"{out} is not empty and was not written by nrhdr batch (no {MANIFEST}): use --force "
+                         f"to write into it anyway, or another output folder")
+    out.mkdir(parents=True, exist_ok=True)
+    remove_temp_files(out)
+    frames = range(job.source.frames)
+    if not resume:
+        for i in frames:   # forced: this job's old frame files go before the new manifest is written
+            for f in job.outputs(i):
+                f.unlink(missing_ok=True)
+        _write_json_atomic(mpath, want)
+        return list(frames), 0
+    todo = [i for i in frames if not all(f.is_file() for f in job.outputs(i))]
+    return todo, job.source.frames - len(todo)
+
+
+# ---- the per-frame task (runs on the workers) ----------------------------------------------------------
+
+def write_frame_files(outputs, values, state, tone) -> None:
+    """nrexrsink's write (EXR: Y + state) and, with `tone`, the GRAY8 PNG (atomic writers)."""
+    from . import io
+    io.write_exr(outputs[0], values, state)
+    if tone is not None:
+        io.write_image(outputs[1], tone, np.uint8)
+
+
+def frame_task(index: int, src: Source, profile, xt_profile, settings: chain.ChainSettings, outputs,
+               raw: np.ndarray | None = None, return_files: bool = False):
+    """Compute frame `index` and write its files (a shared file system), or, with `return_files`, write
+    them in a private temp folder and return their bytes for the client to write. Returns (index,
+    (wall seconds, CPU seconds of this process), {name: bytes} or None)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    if raw is None:
+        raw = read_frame(src.raw, src.width, src.height, index)
+    values, state = chain.process_frame(raw, profile, settings, xt_profile)
+    tone = chain.tonemap_frame(values, profile, settings) if len(outputs) > 1 else None
+    if not return_files:
+        write_frame_files([Path(o) for o in outputs], values, state, tone)
+        return index, (time.perf_counter() - t0, time.process_time() - c0), None
+    tmp = Path(tempfile.mkdtemp(prefix="nrhdr-batch-"))
+    try:
+        local = [tmp / Path(o).name for o in outputs]
+        write_frame_files(local, values, state, tone)
+        files = {Path(o).name: f.read_bytes() for o, f in zip(outputs, local)}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return index, (time.perf_counter() - t0, time.process_time() - c0), files
+
+
+def _write_bytes_atomic(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix="." + path.stem + ".", suffix=path.suffix, dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        _default_mode(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+# ---- drivers -----------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class Failure:
+    index: int
+    file: str
+    error: str
+
+    def __str__(self):
+        return f"frame {self.index} of {self.file}: {self.error}"
+
+
+@dataclasses.dataclass
+class Result:
+    done: list[int] = dataclasses.field(default_factory=list)
+    skipped: int = 0
+    failures: list[Failure] = dataclasses.field(default_factory=list)
+    seconds: float = 0.0          # wall time of the frame loop (after warm-up)
+    frame_seconds: float = 0.0    # sum of the per-frame compute (wall) times on the workers
+    frame_cpu_seconds: float = 0.0  # sum of the workers' CPU time per frame (all their threads)
+
+    @property
+    def fps(self) -> float:
+        return len(self.done) / self.seconds if self.seconds > 0 else 0.0
+
+
+def _progress(total, enabled, desc="batch"):
+    from tqdm import tqdm
+    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled, dynamic_ncols=True,
+                smoothing=0.1)
+
+
+def _error_text(e: BaseException) -> str:
+    """Our own errors (ValueError/OSError: bad data, unreadable files) speak for themselves; others keep
+    their type."""
+    return str(e) if isinstance(e, (ValueError, OSError)) and str(e) else f"{type(e).__name__}: {e}"
+
+
+def run_loop(job: Job, todo, progress: bool = False, on_failure=None) -> Result:
+    """The same task in a plain loop in this process (no Dask): `--workers 0` and the scaling anchor."""
+    res = Result()
+    warm_cache(job.settings, job.png)
+    chain.warmup(job.settings, tone=job.png)
+    t0 = time.perf_counter()
+    with _progress(len(todo), progress) as bar:
+        for i in todo:
+            try:
+                _, (dt, cpu), _ = frame_task(i, job.source, job.profile, job.xt_profile, job.settings,
+                                             [str(p) for p in job.outputs(i)])
+                res.done.append(i)
+                res.frame_seconds += dt
+                res.frame_cpu_seconds += cpu
+            except Exception as e:  # noqa: BLE001 - reported by frame, the others go on
+                f = Failure(i, str(job.source.raw), _error_text(e))
+                res.failures.append(f)
+                if on_failure:
+                    on_failure(f, bar)
+            bar.update(1)
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def warm_cache(settings: chain.ChainSettings, tone: bool = False) -> None:
+    """Fill numba's on-disk cache for `settings` in a short-lived subprocess, so that this process and the
+    workers then *load* the kernels rather than JIT-compile them. Why: the fastmath FSE kernels give results
+    that differ in the last bits between a fresh JIT compile and the cached machine code (observed with
+    numba 0.68), so two processes agree bit for bit (batch workers among themselves and with a
+    GStreamer run) only when both loaded the cache. A failure here only costs speed."""
+    import subprocess
+    import sys
+    code = ("import json, sys; from nrhdr_core import chain; "
+            "chain.warmup(chain.ChainSettings(**json.loads(sys.argv[1])), tone=sys.argv[2] == '1')")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+    subprocess.run([sys.executable, "-c", code, json.dumps(settings.as_dict()), "1" if tone else "0"],
+                   env=env, check=False, stdout=subprocess.DEVNULL)
+
+
+def _worker_warmup(settings: chain.ChainSettings, tone: bool) -> None:
+    warm_cache(settings, tone)
+    chain.warmup(settings, tone)
+
+
+def warm_workers(client, settings: chain.ChainSettings, tone: bool) -> None:
+    """On every worker: fill numba's cache in a subprocess (`warm_cache`), then load the kernels, before
+    the clock starts."""
+    client.run(_worker_warmup, settings, tone)
+
+
+def worker_threads(client) -> dict:
+    """{worker address: (dask threads, numba threads, cores)} for the oversubscription check."""
+    def probe():
+        import numba
+        return numba.config.NUMBA_NUM_THREADS, usable_cores()
+    info = client.scheduler_info(n_workers=-1)["workers"] if _takes_n_workers(client) else \
+        client.scheduler_info()["workers"]
+    probed = client.run(probe)
+    return {a: (w.get("nthreads", 1), *probed.get(a, (None, None))) for a, w in info.items()}
+
+
+def _takes_n_workers(client) -> bool:
+    import inspect
+    try:
+        return "n_workers" in inspect.signature(client.scheduler_info).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def oversubscription_warnings(client) -> list[str]:
+    """Hosts where dask threads x numba threads exceed the cores (the rule of docs/BATCH.md)."""
+    hosts: dict[str, list] = {}
+    for addr, (nthreads, numba_threads, cores) in worker_threads(client).items():
+        host = addr.rsplit(":", 1)[0]
+        hosts.setdefault(host, []).append((nthreads, numba_threads or 1, cores or 1))
+    out = []
+    for host, ws in hosts.items():
+        used = sum(n * t for n, t, _ in ws)
+        cores = ws[0][2]
+        if used > cores:
+            out.append(f"{host}: {len(ws)} workers x threads x numba threads = {used} > {cores} cores "
+                       f"(start workers with NUMBA_NUM_THREADS=1 and --nthreads 1, one per core)")
+    return out
+
+
+def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool = False,
+             window: int | None = None, on_failure=None, warm: bool = True) -> Result:
+    """Frame-parallel on a dask.distributed client. At most `window` frames are in flight (default
+    2 x worker threads + 1), so memory stays bounded and Ctrl-C has little to cancel. With `return_files`
+    the client reads the raw frames and writes the files the workers return (no shared file system);
+    else workers read the raw file and write the outputs themselves. KeyboardInterrupt cancels the
+    frames in flight and propagates."""
+    from distributed import as_completed
+    res = Result()
+    nthreads = sum(client.nthreads().values()) or 1
+    window = window or 2 * nthreads + 1
+    prof_f = client.scatter(job.profile, broadcast=True, hash=False)
+    xt_f = client.scatter(job.xt_profile, broadcast=True, hash=False) if job.xt_profile is not None else None
+    if warm:
+        warm_workers(client, job.settings, job.png)
+    pending = iter(todo)
+    inflight: dict = {}
+    ac = as_completed()
+    src = job.source
+
+    def fail(i, text, bar):
+        f = Failure(i, str(src.raw), text)
+        res.failures.append(f)
+        if on_failure:
+            on_failure(f, bar)
+
+    def submit_next(bar) -> bool:
+        for i in pending:
+            raw = None
+            if return_files:
+                try:
+                    raw = read_frame(src.raw, src.width, src.height, i)
+                except Exception as e:  # noqa: BLE001
+                    fail(i, _error_text(e), bar)
+                    bar.update(1)
+                    continue
+            outs = [str(p) for p in job.outputs(i)]
+            fut = client.submit(frame_task, i, src, prof_f, xt_f, job.settings, outs, raw, return_files,
+                                key=f"nrhdr-frame-{i}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
+                                retries=0)
+            inflight[fut] = i
+            ac.add(fut)
+            return True
+        return False
+
+    t0 = time.perf_counter()
+    try:
+        with _progress(len(todo), progress) as bar:
+            for _ in range(window):
+                if not submit_next(bar):
+                    break
+            for fut in ac:
+                i = inflight.pop(fut)
+                if fut.status == "finished":
+                    try:
+                        _, (dt, cpu), files = fut.result()
+                        if files:
+                            for name, data in files.items():
+                                _write_bytes_atomic(job.out_dir / name, data)
+                        res.done.append(i)
+                        res.frame_seconds += dt
+                        res.frame_cpu_seconds += cpu
+                    except Exception as e:  # noqa: BLE001 - e.g. a write on the client failed
+                        fail(i, _error_text(e), bar)
+                else:
+                    try:
+                        err = fut.exception()
+                        text = _error_text(err) if err is not None else f"task {fut.status}"
+                    except Exception as e:  # noqa: BLE001 - cancelled/lost
+                        text = _error_text(e)
+                    fail(i, text, bar)
+                fut.release()
+                bar.update(1)
+                submit_next(bar)
+    except BaseException:
+        if inflight:
+            client.cancel(list(inflight), force=True)
+        raise
+    finally:
+        res.seconds = time.perf_counter() - t0
+    return res
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """Ignore SIGINT while the worker processes start: they inherit the ignored disposition (it survives
+    fork and exec), so a terminal's Ctrl-C, sent to the whole process group, reaches only this process,
+    which cancels the frames and closes the cluster (workers would otherwise die printing tracebacks).
+    A Ctrl-C during the few seconds of cluster start-up is lost."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+@contextlib.contextmanager
+def local_client(workers: int | None = None, numba_threads: int = 1, quiet: bool = True):
+    """A LocalCluster of `workers` processes (default: one per core) with one dask thread each and numba
+    limited to `numba_threads` threads (NUMBA_NUM_THREADS set before each worker process starts).
+    Closing it (also on Ctrl-C) stops every worker process."""
+    import logging
+
+    import dask
+    from distributed import Client, LocalCluster
+    workers = workers or usable_cores()
+    ours = {"NUMBA_NUM_THREADS": str(int(numba_threads)), "OMP_NUM_THREADS": "1"}
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
+    env.update(ours)
+    cluster = client = None
+    saved = dict(os.environ)
+    # worker-saturation inf: the scheduler hands every submitted frame (at most the window) to a worker at
+    # once instead of holding it until a thread is free, so a worker never waits a round trip per frame
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env,
+                          "distributed.scheduler.worker-saturation": float("inf")}):
+        try:
+            # the nanny prefers os.environ over its config and copies its values into os.environ: set
+            # ours there too, and restore this process's environment once the workers have started
+            os.environ.update(ours)
+            try:
+                with _sigint_ignored():   # workers inherit it: Ctrl-C is for this process
+                    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                           host="127.0.0.1", dashboard_address=None,
+                                           scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                                           silence_logs=logging.CRITICAL if quiet else logging.WARNING)
+            finally:
+                os.environ.clear()
+                os.environ.update(saved)
+            client = Client(cluster)
+            yield client
+        finally:
+            if client is not None:
+                with contextlib.suppress(Exception):
+                    client.close(timeout=10)
+            if cluster is not None:
+                with contextlib.suppress(Exception):
+                    cluster.close(timeout=20)
