@@ -59,7 +59,10 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     values: float (H, W) in any scale (8-bit data or linear HDR); known: bool (H, W);
     lower/upper: optional float (H, W) bounds for missing pixels, NaN = no bound;
     preset/params: FSE parameter set (`fse.FSE_PRESETS`) and overrides; ignored by other methods.
-    With no known pixel the result is all zeros and a ReconstructionWarning is issued."""
+    Missing pixels are returned finite, within [min(known min, 0), max(known max, lower bound)] (no
+    blow-up, no negative value from non-negative data; issue 8) and within their bounds.
+    With no known pixel the result is the bounds (lower where there is one, else upper, else 0) and a
+    ReconstructionWarning saying so is issued."""
     if method not in METHODS:
         raise ValueError(f"reconstruction method must be one of {METHODS}, got {method!r}")
     v, k, lower, upper = _validate(values, known, lower, upper)
@@ -68,9 +71,10 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     if not miss.any():
         return out
     if not k.any():
-        warnings.warn("no pixel is known: returning zeros", ReconstructionWarning, stacklevel=2)
-        out[:] = 0.0
-        return _apply_bounds(out, miss, lower, upper)
+        warnings.warn("no pixel is known: the output is filled from the bounds (clipped pixels at their "
+                      "lower bound, too-dark ones at their upper bound, 0 where there is none)",
+                      ReconstructionWarning, stacklevel=2)
+        return _fill_from_bounds(out, lower, upper)
     if method == "fse":
         from .fse import fse_reconstruct
         out = fse_reconstruct(out, k, lower=lower, upper=upper, preset=preset, **params)
@@ -85,7 +89,41 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
             out = _linear(out, k)
     out = np.asarray(out, dtype=np.float32)
     out[k] = np.asarray(v, dtype=np.float32)[k]
+    out = _clamp_to_data(out, v, k, miss, lower)
     return _apply_bounds(out, miss, lower, upper)
+
+
+def _fill_from_bounds(out, lower, upper):
+    """No known pixel: each pixel at its lower bound, else its upper bound, else 0 (issue 9 item 5: a
+    saturated frame is a uniform area at the clip bound, not the mask pattern)."""
+    out[:] = 0.0
+    if upper is not None:
+        m = ~np.isnan(upper)
+        out[m] = upper[m]
+    if lower is not None:
+        m = ~np.isnan(lower)
+        out[m] = lower[m]
+    return out
+
+
+def _clamp_to_data(out, v, k, miss, lower):
+    """Missing pixels finite and within [min(known min, 0), max(known max, their lower bound)]: no
+    reconstruction exceeds what the data and its bounds imply (issue 8); NaN/Inf (never expected) are
+    replaced by the nearest known value."""
+    kv = np.asarray(v, np.float32)[k]
+    lo = min(float(kv.min()), 0.0)
+    hi = float(kv.max())
+    o = out[miss]
+    bad = ~np.isfinite(o)
+    if bad.any():
+        near = _nearest(np.asarray(v, np.float32), k)[miss]
+        o[bad] = near[bad]
+    top = np.float32(hi)
+    if lower is not None:
+        lm = lower[miss]
+        top = np.where(np.isnan(lm), top, np.maximum(lm, top))
+    out[miss] = np.minimum(np.maximum(o, np.float32(lo)), top)
+    return out
 
 
 def _apply_bounds(out, miss, lower, upper):

@@ -44,11 +44,42 @@ def missing_mask(state: np.ndarray) -> np.ndarray:
 
 def bounds(values: np.ndarray, state: np.ndarray):
     """(lower, upper) float32 arrays, NaN where there is no bound: CLIPPED pixels are at least their
-    value, DARK pixels at most their value (paper 2.3; fse-reference 'Quirks')."""
+    value, DARK pixels at most their value (paper 2.3; fse-reference 'Quirks'); a clipped regular pixel
+    whose attenuated neighbours are all clipped too is at least what they imply (`clip_lower_bound`)."""
     reason = state & REASON_MASK
     lower = np.where(reason == CLIPPED, values, np.nan).astype(np.float32)
     upper = np.where(reason == DARK, values, np.nan).astype(np.float32)
+    clip_lower_bound(values, state, lower)
     return lower, upper
+
+
+def clip_lower_bound(values: np.ndarray, state: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """Raise, in place, the lower bound of every clipped regular pixel whose attenuated pixels in its
+    3 x 3 neighbourhood (5 x 5 when the 3 x 3 has none) are all clipped to the smallest of their lower
+    bounds: light that saturates the ND pixels around it saturates it at least as much (issue 8/9: a
+    saturated area is reconstructed as a uniform area at the ND pixels' clip level, not the mask)."""
+    from scipy import ndimage
+    reason = state & REASON_MASK
+    att = (state & ATTENUATED) != 0
+    clip = reason == CLIPPED
+    reg_clip = clip & ~att
+    if not reg_clip.any() or not (clip & att).any():
+        return lower
+    big = np.float32(np.finfo(np.float32).max)
+    vals = np.asarray(values, np.float32)
+    att_f = att.astype(np.float32)
+    bad_f = (att & ~clip).astype(np.float32)     # an attenuated neighbour that is not clipped
+    cand = np.where(att & clip, vals, big).astype(np.float32)
+    for size in (3, 5):
+        n_att = ndimage.uniform_filter(att_f, size, mode="constant") * (size * size)
+        n_bad = ndimage.uniform_filter(bad_f, size, mode="constant") * (size * size)
+        m = ndimage.minimum_filter(cand, size, mode="constant", cval=big)
+        ok = reg_clip & (n_att > 0.5) & (n_bad < 0.5) & (m < big)
+        lower[ok] = np.maximum(np.nan_to_num(lower[ok], nan=-np.inf), m[ok])
+        reg_clip = reg_clip & ~ok & (n_att < 0.5)    # only pixels without attenuated 3x3 neighbours go on
+        if not reg_clip.any():
+            break
+    return lower
 
 
 @njit(cache=True, nogil=True, parallel=True)
