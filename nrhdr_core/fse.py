@@ -1112,12 +1112,13 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
 # --------------------------------------------------------------------------------------------------
 # Python wrapper
 # --------------------------------------------------------------------------------------------------
-def log_offset(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0) -> float:
+def log_offset(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0, lower=None) -> float:
     """The offset c of the ``auto`` domain log2(x + c) (issue 8; docs/FSE.md "Domain"), from robust
     statistics of the known values only, so that it moves little with the noise or mask seed:
 
-    c = max(p50 * 2^(12 - 5 r), noise_k * sigma_dark), r = log2(p99.9 / p50) (stops of highlights above
-    the median). The family log2(x + c) is continuous in c and tends to the linear domain as c grows:
+    c = max(p50 * 2^(12 - 5 r), noise_k * sigma_dark), r = log2(top / p50) (stops of highlights above
+    the median), top = max(p99.9 of the known values, largest lower bound: a clipped pixel implies at
+    least its clip level, so a scene whose highlights all clip is still HDR). The family log2(x + c) is continuous in c and tends to the linear domain as c grows:
     low-dynamic-range data (8-bit images, r <= 1.5) get c >= 8 x their maximum, i.e. linear (the
     caller switches to exactly linear above 64 x the range, where the two agree); HDR data (r >= 4) a
     log domain down to the noise floor sigma_dark, a MAD estimate from second differences of three
@@ -1135,7 +1136,14 @@ def log_offset(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0) -> float:
         p50 = float(np.mean(np.abs(kv)))
         if not p50 > 0.0:
             return 0.0
-    r = math.log2(max(p999, p50) / p50)
+    top = float(p999)
+    if lower is not None:
+        lw = np.asarray(lower, np.float32)
+        if lw.size > 1:
+            fin = lw[np.isfinite(lw)]
+            if fin.size:
+                top = max(top, float(fin.max()))
+    r = math.log2(max(top, p50) / p50)
     c = p50 * 2.0 ** min(12.0 - 5.0 * r, 60.0)
     if vs.shape[1] >= 3:
         tri = ks[:, 2:] & ks[:, 1:-1] & ks[:, :-2]
@@ -1221,7 +1229,7 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     c = 0.0
     if domain == "auto":
         domain = "log"
-        c = log_offset(v32, k, float(p["offset_noise_k"])) if p["log_offset"] is None else float(p["log_offset"])
+        c = log_offset(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None) if p["log_offset"] is None else float(p["log_offset"])
         if c >= 64.0 * (float(kmax) - min(float(kmin), 0.0)):
             domain, c = "linear", 0.0     # log2(x + c) is linear to < 1 % there: use it exactly
     elif domain == "log" and p["log_offset"] is not None:

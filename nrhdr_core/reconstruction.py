@@ -53,12 +53,16 @@ def _validate(values, known, lower, upper):
 
 
 def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lower=None, upper=None,
-                **params) -> np.ndarray:
+                noisy=None, noise=None, **params) -> np.ndarray:
     """Fill the pixels where `known` is False; returns float32 (H, W), known pixels bit-exact.
 
     values: float (H, W) in any scale (8-bit data or linear HDR); known: bool (H, W);
     lower/upper: optional float (H, W) bounds for missing pixels, NaN = no bound;
     preset/params: FSE parameter set (`fse.FSE_PRESETS`) and overrides; ignored by other methods.
+    noisy/noise: optional bool (H, W) of missing pixels whose value is a noisy measurement (state NOISY,
+    dark policy "weighted") and the noise model (anything with gain, read_noise, nd: a CameraProfile);
+    they are reconstructed like the other missing pixels, then fused with their measurement by inverse
+    variance (`fuse_noisy`, issue 8).
     Missing pixels are returned finite, within [min(known min, 0), max(known max, lower bound)] (no
     blow-up, no negative value from non-negative data; issue 8) and within their bounds.
     With no known pixel the result is the bounds (lower where there is one, else upper, else 0) and a
@@ -90,7 +94,39 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     out = np.asarray(out, dtype=np.float32)
     out[k] = np.asarray(v, dtype=np.float32)[k]
     out = _clamp_to_data(out, v, k, miss, lower)
+    if noisy is not None and noise is not None:
+        nz = np.asarray(noisy, bool) & miss
+        if nz.any():
+            out = fuse_noisy(out, np.asarray(v, np.float32), k, nz, noise)
     return _apply_bounds(out, miss, lower, upper)
+
+
+def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int = 5):
+    """Inverse-variance fusion of the reconstruction g with a noisy measurement m at `noisy` pixels
+    (issue 8, beyond the paper): g + w (m - g), w = var_g / (var_g + var_m). var_m: the sensor's noise
+    at level g for an attenuated pixel (`validity.measurement_variance`, Eq. 4-7); var_g: the
+    reconstruction's own error, modelled as the regular-pixel noise at g over the ~4 neighbours it is
+    interpolated from plus `texture` x the known neighbours' variance in excess of their noise (size x
+    size window): in flat areas the estimate wins, at edges and fine detail the measurement."""
+    from scipy import ndimage
+    from .validity import measurement_variance
+    g = out[noisy].astype(np.float32)
+    m = values[noisy]
+    kf = known.astype(np.float32)
+    kv = np.where(known, values, 0.0).astype(np.float32)
+    n = ndimage.uniform_filter(kf, size, mode="nearest")
+    s1 = ndimage.uniform_filter(kv, size, mode="nearest")
+    s2 = ndimage.uniform_filter(kv * kv, size, mode="nearest")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, s1 / n, 0.0)
+        var = np.where(n > 0, s2 / n - mean * mean, 0.0)
+    reg_noise = measurement_variance(mean, noise, regular=True)
+    excess = np.maximum(var - reg_noise, 0.0)[noisy]
+    var_g = measurement_variance(g, noise, regular=True) / 4.0 + np.float32(texture) * excess
+    var_m = measurement_variance(g, noise, regular=False)
+    w = var_g / (var_g + var_m)
+    out[noisy] = np.maximum(g + w * (m - g), 0.0)
+    return out
 
 
 def _fill_from_bounds(out, lower, upper):

@@ -24,11 +24,13 @@ CLIPPED = 1
 DARK = 2
 DISCARDED = 3
 UNCALIBRATED = 4
+NOISY = 5          # attenuated pixel below l_min kept as a noisy measurement (dark_policy="weighted")
 REASON_MASK = 0x0F
 RECONSTRUCTED = 0x40
 ATTENUATED = 0x80
 
 MODES = ("all", "best", "threshold")
+DARK_POLICIES = ("threshold", "weighted")
 _MODE_ID = {m: i for i, m in enumerate(MODES)}
 
 
@@ -120,11 +122,17 @@ def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, mode, 
 
 
 def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l_min: float | None = None,
-             values: np.ndarray | None = None, state: np.ndarray | None = None):
+             values: np.ndarray | None = None, state: np.ndarray | None = None,
+             dark_policy: str = "threshold"):
     """Classify a raw frame (uint16 (H, W)) into (values float32, state uint8), Eq. 3. Output arrays may be
-    passed in (e.g. mapped GStreamer memory) and are filled in place. `l_min` overrides the profile's."""
+    passed in (e.g. mapped GStreamer memory) and are filled in place. `l_min` overrides the profile's.
+    `dark_policy` (mode "threshold" only): "threshold" = the paper's hard l_min (DARK, value = upper
+    bound); "weighted" = attenuated pixels between SNR 0 dB and l_min become NOISY with their measured
+    value, which the reconstruction fuses with its estimate by their noise (`mark_noisy`, issue 8)."""
     if mode not in _MODE_ID:
         raise ValueError(f"selection mode must be one of {MODES}, got {mode!r}")
+    if dark_policy not in DARK_POLICIES:
+        raise ValueError(f"dark policy must be one of {DARK_POLICIES}, got {dark_policy!r}")
     raw = np.asarray(raw)
     if raw.dtype != np.uint16 or raw.ndim != 2:
         raise ValueError(f"raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")
@@ -143,7 +151,39 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
         dark_att, dark_reg = s0, s0
     _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
                      float(profile.nd), float(dark_att), float(dark_reg), _MODE_ID[mode], values, state)
+    if dark_policy == "weighted" and mode == "threshold":
+        mark_noisy(raw, profile, values, state)
     return values, state
+
+
+def mark_noisy(raw: np.ndarray, profile: CameraProfile, values: np.ndarray, state: np.ndarray) -> int:
+    """Dark policy "weighted" (issue 8, beyond the paper): DARK attenuated pixels whose signal is at or
+    above SNR = 0 dB become NOISY and carry their measurement ((code - black) * ND, Eq. 3) instead of the
+    l_min bound; below 0 dB they stay DARK (upper bound). Returns the number of NOISY pixels."""
+    s0 = zero_db_signal_dn(profile)
+    sig = raw.astype(np.float32) - np.float32(profile.black_level)
+    m = ((state & REASON_MASK) == DARK) & ((state & ATTENUATED) != 0) & (sig >= np.float32(s0))
+    values[m] = sig[m] * np.float32(profile.nd)
+    state[m] = (state[m] & ~np.uint8(REASON_MASK)) | np.uint8(NOISY)
+    return int(np.count_nonzero(m))
+
+
+def noisy_mask(state: np.ndarray) -> np.ndarray:
+    """True where the pixel is a NOISY measurement not yet reconstructed."""
+    return ((state & REASON_MASK) == NOISY) & ((state & RECONSTRUCTED) == 0)
+
+
+def measurement_variance(values, profile, regular=False) -> np.ndarray:
+    """Noise variance (linear DN^2) of a measurement at level `values` (ND-scaled linear DN): shot noise
+    gain * signal, read noise (gain * read_noise)^2 and quantisation 1/12 (Eq. 4-7), times ND^2 for
+    attenuated pixels (their signal is values / ND)."""
+    g = float(profile.gain)
+    floor = (g * float(profile.read_noise)) ** 2 + 1.0 / 12.0
+    v = np.maximum(np.asarray(values, np.float32), 0.0)
+    if regular:
+        return g * v + floor
+    nd = float(profile.nd)
+    return nd * g * v + nd * nd * floor
 
 
 def valid_ratio(state: np.ndarray) -> float:
