@@ -173,6 +173,15 @@ def noisy_mask(state: np.ndarray) -> np.ndarray:
     return ((state & REASON_MASK) == NOISY) & ((state & RECONSTRUCTED) == 0)
 
 
+def default_noise():
+    """The default sensor's noise model (gain, read_noise, nd of `CameraProfile`), for frames whose
+    profile is unknown."""
+    import types
+    f = {x.name: x.default for x in CameraProfile.__dataclass_fields__.values()
+         if x.name in ("gain", "read_noise", "nd")}
+    return types.SimpleNamespace(**f)
+
+
 def measurement_variance(values, profile, regular=False) -> np.ndarray:
     """Noise variance (linear DN^2) of a measurement at level `values` (ND-scaled linear DN): shot noise
     gain * signal, read noise (gain * read_noise)^2 and quantisation 1/12 (Eq. 4-7), times ND^2 for

@@ -38,6 +38,7 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
         self._profile_path = ""
         self._mode = Choice("mode", MODES, "threshold")
         self._params = ("threshold", -1.0)   # (mode, l_min): swapped whole, read once per frame
+        self._dark_policy = Choice("dark-policy", ("threshold", "weighted"), "weighted")  # issue 8
         self._profile = None
         self._in_info = None
         self._out_info = None
@@ -84,13 +85,28 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
     def l_min(self, value):
         self._params = (self._params[0], float(value))
 
+    # ---- dark policy (issue 8, helper "hdr") --------------------------------------------------------
+    @GObject.Property(type=str, default="weighted", nick="Dark policy",
+                      blurb="Threshold mode: 'threshold' = attenuated pixels below l-min are missing with "
+                            "l-min x ND as upper bound (paper 2.3); 'weighted' = between SNR 0 dB and l-min "
+                            "they are kept as NOISY measurements that nrreconstruct fuses with its estimate "
+                            "by their noise (measured better, docs/BENCHMARKS.md) (one of: threshold, weighted)",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+    def dark_policy(self):
+        return self._dark_policy.value
+
+    @dark_policy.setter
+    def dark_policy(self, value):
+        self.set_choice(self._dark_policy, value)
+
     # ---- state --------------------------------------------------------------------------------------
     def do_start(self):
         self.reset_errors()
         try:
-            if self._mode.invalid:
-                self.post_error(self._mode.invalid, kind="settings")
-                return False
+            for c in (self._mode, self._dark_policy):
+                if c.invalid:
+                    self.post_error(c.invalid, kind="settings")
+                    return False
             try:
                 self._profile = load_profile(self._profile_path)
             except ValueError as e:  # ProfileError is a ValueError
@@ -252,7 +268,8 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
             lm = None if lm < 0 else lm
             with map_video(inbuf, self._in_info, "<u2", write=False) as raw, \
                     map_hdr(outbuf, self._out_info, write=True) as (values, state):
-                validity.classify(raw, self._profile, mode=mode, l_min=lm, values=values, state=state)
+                validity.classify(raw, self._profile, mode=mode, l_min=lm, values=values, state=state,
+                                  dark_policy=self._dark_policy.value)
             self._frames += 1
             return Gst.FlowReturn.OK
         except Exception as e:  # noqa: BLE001
