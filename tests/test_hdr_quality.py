@@ -194,3 +194,28 @@ def test_fusion_weights_follow_the_noise():
     vg = validity.measurement_variance(100.0, prof, regular=True) / 4
     vm = validity.measurement_variance(100.0, prof)
     assert res == pytest.approx(100 + vg / (vg + vm) * 200, rel=1e-5)
+
+
+# ---- elements: the default chain uses the noise-aware policy and matches the core -----------------------
+
+@pytest.mark.gst
+def test_element_chain_weighted_default_matches_core(gst, tiny_clip):
+    from conftest import raw_buffer, run_appsrc
+    d, prof, raws = tiny_clip
+    dur = 200_000_000
+    caps = f"video/x-raw,format=GRAY16_LE,width={prof.width},height={prof.height},framerate=5/1"
+    bufs = [raw_buffer(r, pts=i * dur, duration=dur) for i, r in enumerate(raws)]
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method=preview", caps, bufs)
+    assert r.error is None, r.error_text
+    assert len(r.samples) == len(raws)
+    for i, smp in enumerate(r.samples):
+        vals, st = smp[3]
+        v, s = validity.classify(raws[i], prof, dark_policy="weighted")
+        noisy = (s & validity.REASON_MASK) == validity.NOISY
+        assert noisy.any()
+        np.testing.assert_array_equal(st[noisy], s[noisy] | validity.RECONSTRUCTED)
+        lo, hi = validity.bounds(v, s)
+        want = reconstruction.reconstruct(v, validity.known_mask(s), method="preview", lower=lo, upper=hi,
+                                          noisy=noisy, noise=prof)
+        np.testing.assert_allclose(vals, want, rtol=1e-5, atol=1e-3)
+        assert np.isfinite(vals).all() and (vals >= 0).all()
