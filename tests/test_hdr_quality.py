@@ -148,6 +148,20 @@ def test_saturated_frame_is_uniform_at_the_bound_not_the_mask():
     assert not any("zeros" in str(r.message) for r in rec)
 
 
+def test_overexposed_scene_shows_no_mask_pattern():
+    """Issue 9 item 5: a scene over-exposed by 7 stops: where it saturates both pixel kinds the output is
+    one uniform level (regular and ND pixels alike), not the ND mask as a dot pattern."""
+    from scipy.ndimage import binary_erosion
+    sc = io.read_luminance(shared_data("hdr", "Desk.exr"))
+    prof = profile.default(96, 128)
+    t = simulate.view(sc, 96, 128, 0.3, simulate.Motion()) * np.float32(simulate.exposure_scale(sc, prof, 7.0))
+    out = chain(sensor.capture(t, prof, np.random.default_rng(0)), prof)[0]
+    sat = binary_erosion(t > 2 * prof.white, iterations=2)
+    assert sat.mean() > 0.2
+    assert abs(out[sat & ~prof.mask].mean() - out[sat & prof.mask].mean()) < 1e-3 * prof.white
+    assert out[sat].std() < 1e-3 * prof.white
+
+
 def test_clipped_regular_pixel_takes_its_clipped_nd_neighbours_bound():
     prof = profile.default(32, 32)
     t = np.full((32, 32), 200.0, np.float32)
