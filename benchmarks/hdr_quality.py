@@ -199,9 +199,9 @@ def main(argv=None) -> int:
                     key = f"{pattern} | {method} | {pname}"
                     results[key] = r
                     rows.append((key, r, dt))
-                    print(f"{key}: log2 PSNR dark {r['dark']['log2_psnr']:.2f} mid {r['mid']['log2_psnr']:.2f} "
-                          f"bright {r['bright']['log2_psnr'] if r['bright']['log2_psnr'] is None else round(r['bright']['log2_psnr'], 2)} "
-                          f"neg {r['negative']} ({dt:.1f} s)", flush=True)
+                    f2 = lambda x: "-" if x is None else f"{x:.2f}"
+                    print(f"{key}: log2 PSNR dark {f2(r['dark']['log2_psnr'])} mid {f2(r['mid']['log2_psnr'])} "
+                          f"bright {f2(r['bright']['log2_psnr'])} neg {r['negative']} ({dt:.1f} s)", flush=True)
             md.append(f"### {pattern} mask ({xt})\n\n" + table(rows) + "\n")
     total = time.perf_counter() - t_start
     info = {"quick": a.quick, "size": [w, h], "frames_per_scene": frames, "methods": methods,

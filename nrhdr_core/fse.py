@@ -1118,8 +1118,9 @@ def log_offset(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0, lower=None) -
 
     c = max(p50 * 2^(12 - 5 r), noise_k * sigma_dark), r = log2(top / p50) (stops of highlights above
     the median), top = max(p99.9 of the known values, largest lower bound: a clipped pixel implies at
-    least its clip level, so a scene whose highlights all clip is still HDR). The family log2(x + c) is continuous in c and tends to the linear domain as c grows:
-    low-dynamic-range data (8-bit images, r <= 1.5) get c >= 8 x their maximum, i.e. linear (the
+    least its clip level, so a scene whose highlights all clip is still HDR). The family log2(x + c)
+    is continuous in c and tends to the linear domain as c grows: low-dynamic-range data (8-bit
+    images, r <= 1.5) get c >= 8 x their maximum, i.e. linear (the
     caller switches to exactly linear above 64 x the range, where the two agree); HDR data (r >= 4) a
     log domain down to the noise floor sigma_dark, a MAD estimate from second differences of three
     horizontally adjacent known pixels among the darkest tenth (~0 for noise-free data).
@@ -1229,7 +1230,10 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     c = 0.0
     if domain == "auto":
         domain = "log"
-        c = log_offset(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None) if p["log_offset"] is None else float(p["log_offset"])
+        if p["log_offset"] is None:
+            c = log_offset(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
+        else:
+            c = float(p["log_offset"])
         if c >= 64.0 * (float(kmax) - min(float(kmin), 0.0)):
             domain, c = "linear", 0.0     # log2(x + c) is linear to < 1 % there: use it exactly
     elif domain == "log" and p["log_offset"] is not None:
