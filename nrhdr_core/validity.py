@@ -159,15 +159,16 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
     _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
                      float(profile.nd), float(dark_att), float(dark_reg), _MODE_ID[mode], values, state)
     if dark_policy == "weighted" and mode == "threshold":
-        mark_noisy(raw, profile, values, state)
+        mark_noisy(raw, profile, values, state, lm)
     return values, state
 
 
-def mark_noisy(raw: np.ndarray, profile: CameraProfile, values: np.ndarray, state: np.ndarray) -> int:
+def mark_noisy(raw: np.ndarray, profile: CameraProfile, values: np.ndarray, state: np.ndarray,
+               l_min: float | None = None) -> int:
     """Dark policy "weighted" (issue 8, beyond the paper): DARK attenuated pixels whose signal is at or
     above SNR = 0 dB become NOISY and carry their measurement ((code - black) * ND, Eq. 3) instead of a
-    bound; below 0 dB they stay DARK with the 0 dB level x ND as upper bound. Returns the number of
-    NOISY pixels."""
+    bound; below 0 dB they stay DARK with l_min x ND as upper bound (a tighter 0 dB bound was measured
+    to bias flat fields of 16-32 DN low: noise puts true values above it). Returns the NOISY count."""
     s0 = np.float32(zero_db_signal_dn(profile))
     nd = np.float32(profile.nd)
     sig = raw.astype(np.float32) - np.float32(profile.black_level)
@@ -175,7 +176,8 @@ def mark_noisy(raw: np.ndarray, profile: CameraProfile, values: np.ndarray, stat
     m = dark & (sig >= s0)
     values[m] = sig[m] * nd
     state[m] = (state[m] & ~np.uint8(REASON_MASK)) | np.uint8(NOISY)
-    values[dark & ~m] = s0 * nd
+    lm = profile.l_min if l_min is None else float(l_min)
+    values[dark & ~m] = np.float32(lm) * nd
     return int(np.count_nonzero(m))
 
 
