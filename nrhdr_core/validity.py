@@ -10,6 +10,10 @@ Selection modes (section 2.3, Fig. 3/4):
   valid ("best pixel only": at most half the pixels known in mid-tones).
 - ``threshold``: attenuated pixels below ``l_min`` (code above black) are invalid; the paper's practical
   choice and the default.
+
+Dark policy (threshold mode, issue 8): ``threshold`` is the paper's; ``weighted`` keeps attenuated pixels
+between SNR 0 dB and ``WEIGHTED_LEVEL x l_min`` as NOISY measurements that the reconstruction fuses by
+their noise (`reconstruction.fuse_noisy`).
 """
 from __future__ import annotations
 
