@@ -198,7 +198,7 @@ def main(argv=None) -> int:
                     r = score(truths, outs, cprof)
                     key = f"{pattern} | {method} | {pname}"
                     results[key] = r
-                    rows.append((key, r, dt))
+                    rows.append((f"{method}, {pname}", r, dt))
                     f2 = lambda x: "-" if x is None else f"{x:.2f}"
                     print(f"{key}: log2 PSNR dark {f2(r['dark']['log2_psnr'])} mid {f2(r['mid']['log2_psnr'])} "
                           f"bright {f2(r['bright']['log2_psnr'])} neg {r['negative']} ({dt:.1f} s)", flush=True)
