@@ -68,28 +68,60 @@ def clip_lower_bound(values: np.ndarray, state: np.ndarray, lower: np.ndarray) -
     3 x 3 neighbourhood (5 x 5 when the 3 x 3 has none) are all clipped to the smallest of their lower
     bounds: light that saturates the ND pixels around it saturates it at least as much (issue 8/9: a
     saturated area is reconstructed as a uniform area at the ND pixels' clip level, not the mask)."""
-    from scipy import ndimage
-    reason = state & REASON_MASK
-    att = (state & ATTENUATED) != 0
-    clip = reason == CLIPPED
-    reg_clip = clip & ~att
-    if not reg_clip.any() or not (clip & att).any():
-        return lower
-    big = np.float32(np.finfo(np.float32).max)
-    vals = np.asarray(values, np.float32)
-    att_f = att.astype(np.float32)
-    bad_f = (att & ~clip).astype(np.float32)     # an attenuated neighbour that is not clipped
-    cand = np.where(att & clip, vals, big).astype(np.float32)
-    for size in (3, 5):
-        n_att = ndimage.uniform_filter(att_f, size, mode="constant") * (size * size)
-        n_bad = ndimage.uniform_filter(bad_f, size, mode="constant") * (size * size)
-        m = ndimage.minimum_filter(cand, size, mode="constant", cval=big)
-        ok = reg_clip & (n_att > 0.5) & (n_bad < 0.5) & (m < big)
-        lower[ok] = np.maximum(np.nan_to_num(lower[ok], nan=-np.inf), m[ok])
-        reg_clip = reg_clip & ~ok & (n_att < 0.5)    # only pixels without attenuated 3x3 neighbours go on
-        if not reg_clip.any():
-            break
+    _clip_lower_kernel(np.ascontiguousarray(values, np.float32), np.ascontiguousarray(state), lower)
     return lower
+
+
+@njit(cache=True, nogil=True)
+def _clip_lower_kernel(values, state, lower):
+    """Serial: only clipped regular pixels do work (and numba's parfor pass rejects the early exit)."""
+    h, w = state.shape
+    for y in range(h):
+        for x in range(w):
+            st = state[y, x]
+            if (st & ATTENUATED) != 0 or (st & REASON_MASK) != CLIPPED:
+                continue
+            for r in range(1, 3):
+                n_att = 0
+                ok = True
+                m = np.float32(np.inf)
+                for yy in range(max(y - r, 0), min(y + r + 1, h)):
+                    for xx in range(max(x - r, 0), min(x + r + 1, w)):
+                        s2 = state[yy, xx]
+                        if (s2 & ATTENUATED) == 0:
+                            continue
+                        n_att += 1
+                        if (s2 & REASON_MASK) != CLIPPED:
+                            ok = False
+                        elif values[yy, xx] < m:
+                            m = values[yy, xx]
+                if n_att == 0:
+                    continue            # no attenuated neighbour at this radius: look further
+                if ok:
+                    cur = lower[y, x]
+                    if not (cur >= m):  # NaN or lower
+                        lower[y, x] = m
+                break
+    return lower
+
+
+@njit(cache=True, nogil=True)
+def _mark_noisy_kernel(raw, state, values, black, s0, nd, lm_nd):
+    h, w = state.shape
+    c = 0
+    for y in range(h):
+        for x in range(w):
+            st = state[y, x]
+            if (st & REASON_MASK) != DARK or (st & ATTENUATED) == 0:
+                continue
+            sig = np.float32(raw[y, x]) - black
+            if sig >= s0:
+                values[y, x] = sig * nd
+                state[y, x] = (st & np.uint8(0xF0)) | np.uint8(NOISY)
+                c += 1
+            else:
+                values[y, x] = lm_nd
+    return c
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -173,16 +205,10 @@ def mark_noisy(raw: np.ndarray, profile: CameraProfile, values: np.ndarray, stat
     above SNR = 0 dB become NOISY and carry their measurement ((code - black) * ND, Eq. 3) instead of a
     bound; below 0 dB they stay DARK with l_min x ND as upper bound (a tighter 0 dB bound was measured
     to bias flat fields of 16-32 DN low: noise puts true values above it). Returns the NOISY count."""
-    s0 = np.float32(zero_db_signal_dn(profile))
-    nd = np.float32(profile.nd)
-    sig = raw.astype(np.float32) - np.float32(profile.black_level)
-    dark = ((state & REASON_MASK) == DARK) & ((state & ATTENUATED) != 0)
-    m = dark & (sig >= s0)
-    values[m] = sig[m] * nd
-    state[m] = (state[m] & ~np.uint8(REASON_MASK)) | np.uint8(NOISY)
     lm = profile.l_min if l_min is None else float(l_min)
-    values[dark & ~m] = np.float32(lm) * nd
-    return int(np.count_nonzero(m))
+    return int(_mark_noisy_kernel(raw, state, values, np.float32(profile.black_level),
+                                  np.float32(zero_db_signal_dn(profile)), np.float32(profile.nd),
+                                  np.float32(lm * profile.nd)))
 
 
 def noisy_mask(state: np.ndarray) -> np.ndarray:
@@ -220,5 +246,7 @@ def valid_ratio(state: np.ndarray) -> float:
 def warmup() -> None:
     """Compile the kernel on a tiny frame (elements call this in do_start, never at import)."""
     from .profile import make
-    p = make(np.zeros((2, 2), bool))
+    p = make(np.array([[True, False], [False, True]]))
     classify(np.zeros((2, 2), np.uint16), p)
+    v, s = classify(np.array([[4095, 4095], [3, 4095]], np.uint16), p, dark_policy="weighted")
+    bounds(v, s)
