@@ -120,27 +120,46 @@ def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int
 from numba import prange  # noqa: E402  (fuse_noisy kernel; kept beside it to keep merges local)
 
 
+@njit(cache=True, nogil=True)
+def _known_integrals(values, known):
+    """Integral images (count, sum, sum of squares) of the known pixels, float64, (h+1, w+1)."""
+    h, w = values.shape
+    c = np.zeros((h + 1, w + 1), np.float64)
+    s1 = np.zeros((h + 1, w + 1), np.float64)
+    s2 = np.zeros((h + 1, w + 1), np.float64)
+    for y in range(h):
+        rc = 0.0
+        r1 = 0.0
+        r2 = 0.0
+        for x in range(w):
+            if known[y, x]:
+                a = np.float64(values[y, x])
+                rc += 1.0
+                r1 += a
+                r2 += a * a
+            c[y + 1, x + 1] = c[y, x + 1] + rc
+            s1[y + 1, x + 1] = s1[y, x + 1] + r1
+            s2[y + 1, x + 1] = s2[y, x + 1] + r2
+    return c, s1, s2
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r):
     h, w = out.shape
+    c, s1, s2 = _known_integrals(values, known)
     for y in prange(h):
+        y0 = max(y - r, 0)
+        y1 = min(y + r + 1, h)
         for x in range(w):
             if not noisy[y, x]:
                 continue
-            n = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            for yy in range(max(y - r, 0), min(y + r + 1, h)):
-                for xx in range(max(x - r, 0), min(x + r + 1, w)):
-                    if known[yy, xx]:
-                        v = np.float64(values[yy, xx])
-                        n += 1.0
-                        s1 += v
-                        s2 += v * v
+            x0 = max(x - r, 0)
+            x1 = min(x + r + 1, w)
+            n = c[y1, x1] - c[y0, x1] - c[y1, x0] + c[y0, x0]
             excess = 0.0
-            if n > 0:
-                mean = s1 / n
-                var = s2 / n - mean * mean
+            if n > 0.5:
+                mean = (s1[y1, x1] - s1[y0, x1] - s1[y1, x0] + s1[y0, x0]) / n
+                var = (s2[y1, x1] - s2[y0, x1] - s2[y1, x0] + s2[y0, x0]) / n - mean * mean
                 excess = var - (gain * max(mean, 0.0) + floor)
                 if excess < 0.0:
                     excess = 0.0
@@ -170,20 +189,50 @@ def _clamp_to_data(out, v, k, miss, lower):
     """Missing pixels finite and within [min(known min, 0), max(known max, their lower bound)]: no
     reconstruction exceeds what the data and its bounds imply (issue 8); NaN/Inf (never expected) are
     replaced by the nearest known value."""
-    kv = np.asarray(v, np.float32)[k]
-    lo = min(float(kv.min()), 0.0)
-    hi = float(kv.max())
-    o = out[miss]
-    bad = ~np.isfinite(o)
-    if bad.any():
-        near = _nearest(np.asarray(v, np.float32), k)[miss]
-        o[bad] = near[bad]
-    top = np.float32(hi)
-    if lower is not None:
-        lm = lower[miss]
-        top = np.where(np.isnan(lm), top, np.maximum(lm, top))
-    out[miss] = np.minimum(np.maximum(o, np.float32(lo)), top)
+    v32 = np.ascontiguousarray(v, np.float32)
+    kk = np.ascontiguousarray(k)
+    lo_arr = np.zeros((1, 1), np.float32) if lower is None else np.ascontiguousarray(lower, np.float32)
+    nbad = _clamp_kernel(out, v32, kk, lo_arr, lower is not None)
+    if nbad:
+        bad = ~np.isfinite(out) & ~kk
+        out[bad] = _nearest(v32, kk)[bad]
+        _clamp_kernel(out, v32, kk, lo_arr, lower is not None)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _clamp_kernel(out, v, k, lower, use_lower):
+    h, w = out.shape
+    lo = np.inf
+    hi = -np.inf
+    for y in range(h):
+        for x in range(w):
+            if k[y, x]:
+                a = v[y, x]
+                lo = min(lo, a)
+                hi = max(hi, a)
+    lo = min(lo, 0.0)
+    flo = np.float32(lo)
+    nbad = 0
+    for y in range(h):
+        for x in range(w):
+            if k[y, x]:
+                continue
+            a = out[y, x]
+            if not np.isfinite(a):
+                nbad += 1
+                continue
+            top = np.float32(hi)
+            if use_lower:
+                b = lower[y, x]
+                if b == b and b > top:
+                    top = b
+            if a < flo:
+                a = flo
+            if a > top:
+                a = top
+            out[y, x] = a
+    return nbad
 
 
 def _apply_bounds(out, miss, lower, upper):
@@ -366,7 +415,9 @@ def warmup(method: str | None = None) -> None:
     k[1, 1] = False
     if method in (None, "preview"):
         reconstruct(v, k, method="preview")
+    # the dispatcher's own kernels (every method): data-range clamp, noise fusion (issue 8)
     from types import SimpleNamespace
+    _clamp_to_data(v.copy(), v, k, ~k, np.full(v.shape, np.nan, np.float32))
     fuse_noisy(v.copy(), v, k, ~k, SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
     if method in (None, "fse"):
         from . import fse

@@ -73,35 +73,38 @@ def clip_lower_bound(values: np.ndarray, state: np.ndarray, lower: np.ndarray) -
 
 
 @njit(cache=True, nogil=True)
+def _clip_lower_at(values, state, y, x, h, w):
+    """Smallest lower bound of the attenuated pixels around (y, x) when all of them are clipped (3 x 3,
+    else 5 x 5 when the 3 x 3 has none); NaN when some is not clipped or none is near."""
+    for r in range(1, 3):
+        n_att = 0
+        ok = True
+        m = np.float32(np.inf)
+        for yy in range(max(y - r, 0), min(y + r + 1, h)):
+            for xx in range(max(x - r, 0), min(x + r + 1, w)):
+                s2 = state[yy, xx]
+                if (s2 & ATTENUATED) == 0:
+                    continue
+                n_att += 1
+                if (s2 & REASON_MASK) != CLIPPED:
+                    ok = False
+                elif values[yy, xx] < m:
+                    m = values[yy, xx]
+        if n_att > 0:
+            return m if ok else np.float32(np.nan)
+    return np.float32(np.nan)
+
+
+@njit(cache=True, nogil=True, parallel=True)
 def _clip_lower_kernel(values, state, lower):
-    """Serial: only clipped regular pixels do work (and numba's parfor pass rejects the early exit)."""
     h, w = state.shape
-    for y in range(h):
+    for y in prange(h):
         for x in range(w):
             st = state[y, x]
-            if (st & ATTENUATED) != 0 or (st & REASON_MASK) != CLIPPED:
-                continue
-            for r in range(1, 3):
-                n_att = 0
-                ok = True
-                m = np.float32(np.inf)
-                for yy in range(max(y - r, 0), min(y + r + 1, h)):
-                    for xx in range(max(x - r, 0), min(x + r + 1, w)):
-                        s2 = state[yy, xx]
-                        if (s2 & ATTENUATED) == 0:
-                            continue
-                        n_att += 1
-                        if (s2 & REASON_MASK) != CLIPPED:
-                            ok = False
-                        elif values[yy, xx] < m:
-                            m = values[yy, xx]
-                if n_att == 0:
-                    continue            # no attenuated neighbour at this radius: look further
-                if ok:
-                    cur = lower[y, x]
-                    if not (cur >= m):  # NaN or lower
-                        lower[y, x] = m
-                break
+            if (st & ATTENUATED) == 0 and (st & REASON_MASK) == CLIPPED:
+                m = _clip_lower_at(values, state, y, x, h, w)
+                if m == m and not (lower[y, x] >= m):     # NaN-safe: raise only
+                    lower[y, x] = m
     return lower
 
 
