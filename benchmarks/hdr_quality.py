@@ -2,6 +2,7 @@
 
     python benchmarks/hdr_quality.py --quick     # 160 x 128 crops, 1 frame per scene, fse only (~2-3 min)
     python benchmarks/hdr_quality.py             # 512 x 384, 2 frames per scene, fse/linear/preview
+    python benchmarks/hdr_quality.py --cost      # ms of the issue-8 stages at 1920 x 1080 beside an anchor
 
 The five shared HDR scenes (../shared/data/hdr/*.exr, or $NRHDR_SHARED_DATA/hdr) are simulated with shot and
 read noise through a sensor with the `prototype` crosstalk preset (docs/CROSSTALK.md); that sensor is
@@ -131,6 +132,46 @@ def score(truths, outs, prof):
     return out
 
 
+def cost() -> int:
+    """Milliseconds of the issue-8 additions on one 1920 x 1080 frame (Desk), min of 5, beside an
+    anchor (a copy of one float32 frame) measured in the same run."""
+    import timeit
+    from nrhdr_core import fse
+    h, w = 1080, 1920
+    prof = profile.default(h, w)
+    sc = io.read_luminance(DATA / "hdr" / "Desk.exr")
+    t = simulate.view(sc, h, w, 0.3, simulate.Motion()) * np.float32(simulate.exposure_scale(sc, prof, 0))
+    raw = sensor.capture(t, prof, np.random.default_rng(0))
+    v, s = validity.classify(raw, prof, dark_policy="weighted")
+    k, nz = validity.known_mask(s), validity.noisy_mask(s)
+    lo, hi = validity.bounds(v, s)
+    o = v.copy()
+
+    def tm(f, n=5):
+        f()
+        return min(timeit.repeat(f, number=1, repeat=n)) * 1e3
+    rows = [("anchor: copy of one float32 frame", tm(lambda: v.copy())),
+            ("classify, threshold", tm(lambda: validity.classify(raw, prof))),
+            ("classify, weighted", tm(lambda: validity.classify(raw, prof, dark_policy="weighted"))),
+            ("bounds (with the clipped-neighbour bound)", tm(lambda: validity.bounds(v, s))),
+            ("fse.log_offset", tm(lambda: fse.log_offset(v, k, 2.0, lo))),
+            ("data-range clamp", tm(lambda: reconstruction._clamp_to_data(o, v, k, ~k, lo))),
+            (f"noise fusion ({100 * nz.mean():.0f} % NOISY)",
+             tm(lambda: reconstruction.fuse_noisy(o, v, k, nz, prof))),
+            ("preview, whole dispatcher, weighted",
+             tm(lambda: reconstruction.reconstruct(v, k, method="preview", lower=lo, upper=hi, noisy=nz,
+                                                   noise=prof))),
+            ("fse balanced, weighted", tm(lambda: reconstruction.reconstruct(v, k, lower=lo, upper=hi, noisy=nz,
+                                                                             noise=prof), 2)),
+            ("fse balanced, weighted, local_bound=0",
+             tm(lambda: reconstruction.reconstruct(v, k, lower=lo, upper=hi, noisy=nz, noise=prof,
+                                                   local_bound=0), 2))]
+    print("| stage (1920 x 1080, Desk) | ms |\n|---|---|")
+    for name, ms in rows:
+        print(f"| {name} | {ms:.1f} |")
+    return 0
+
+
 def table(rows):
     head = ("| configuration | neg / non-finite | log2 PSNR all / dark / mid / bright dB | "
             "PU21-PSNR all / dark / mid / bright dB | > 1 stop | > 3 stops | s |")
@@ -150,12 +191,15 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default=None, help="comma-separated methods (default: fse,linear,preview; "
                                                     "--quick: fse)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--cost", action="store_true", help="only time the issue-8 stages at 1920 x 1080")
     ap.add_argument("--out", default=str(OUT))
     a = ap.parse_args(argv)
     if not (DATA / "hdr").is_dir():
         print(f"hdr_quality: shared HDR scenes not found in {DATA / 'hdr'} (set NRHDR_SHARED_DATA)",
               file=sys.stderr)
         return 2
+    if a.cost:
+        return cost()
     h, w, frames = (128, 160, 1) if a.quick else (384, 512, 2)
     methods = (a.methods or ("fse" if a.quick else "fse,linear,preview")).split(",")
     out = Path(a.out)
