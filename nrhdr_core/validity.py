@@ -55,12 +55,36 @@ def missing_mask(state: np.ndarray) -> np.ndarray:
 def bounds(values: np.ndarray, state: np.ndarray):
     """(lower, upper) float32 arrays, NaN where there is no bound: CLIPPED pixels are at least their
     value, DARK pixels at most their value (paper 2.3; fse-reference 'Quirks'); a clipped regular pixel
-    whose attenuated neighbours are all clipped too is at least what they imply (`clip_lower_bound`)."""
-    reason = state & REASON_MASK
-    lower = np.where(reason == CLIPPED, values, np.nan).astype(np.float32)
-    upper = np.where(reason == DARK, values, np.nan).astype(np.float32)
-    clip_lower_bound(values, state, lower)
+    whose attenuated neighbours are all clipped too is at least what they imply (`clip_lower_bound`).
+    One numba pass."""
+    v = np.ascontiguousarray(values, np.float32)
+    st = np.ascontiguousarray(state)
+    lower = np.empty(st.shape, np.float32)
+    upper = np.empty(st.shape, np.float32)
+    _bounds_kernel(v, st, lower, upper)
     return lower, upper
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _bounds_kernel(values, state, lower, upper):
+    h, w = state.shape
+    nan = np.float32(np.nan)
+    for y in prange(h):
+        for x in range(w):
+            st = state[y, x]
+            reason = st & REASON_MASK
+            lo = nan
+            hi = nan
+            if reason == CLIPPED:
+                lo = values[y, x]
+                if (st & ATTENUATED) == 0:
+                    m = _clip_lower_at(values, state, y, x, h, w)
+                    if m == m and m > lo:
+                        lo = m
+            elif reason == DARK:
+                hi = values[y, x]
+            lower[y, x] = lo
+            upper[y, x] = hi
 
 
 def clip_lower_bound(values: np.ndarray, state: np.ndarray, lower: np.ndarray) -> np.ndarray:
@@ -72,7 +96,7 @@ def clip_lower_bound(values: np.ndarray, state: np.ndarray, lower: np.ndarray) -
     return lower
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _clip_lower_at(values, state, y, x, h, w):
     """Smallest lower bound of the attenuated pixels around (y, x) when all of them are clipped (3 x 3,
     else 5 x 5 when the 3 x 3 has none); NaN when some is not clipped or none is near."""
