@@ -88,9 +88,10 @@ class NrValidity(ErrorPoster, GstBase.BaseTransform):
     # ---- dark policy (issue 8, helper "hdr") --------------------------------------------------------
     @GObject.Property(type=str, default="weighted", nick="Dark policy",
                       blurb="Threshold mode: 'threshold' = attenuated pixels below l-min are missing with "
-                            "l-min x ND as upper bound (paper 2.3); 'weighted' = between SNR 0 dB and 4 x l-min "
-                            "they are kept as NOISY measurements that nrreconstruct fuses with its estimate "
-                            "by their noise (measured better, docs/BENCHMARKS.md) (one of: threshold, weighted)",
+                            "l-min x ND as upper bound (paper 2.3); 'weighted' = between SNR 0 dB and "
+                            "4 x l-min they are kept as NOISY measurements that nrreconstruct fuses with its "
+                            "estimate by their noise (measured better, docs/BENCHMARKS.md) "
+                            "(one of: threshold, weighted)",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
     def dark_policy(self):
         return self._dark_policy.value
