@@ -46,12 +46,13 @@ POLICIES = {"threshold l_min 100": ("threshold", 100.0), "threshold l_min 400": 
             "noise-aware (weighted)": ("weighted", 100.0)}
 
 
-def make_frames(h, w, frames, prof, model, seed):
+def make_frames(h, w, frames, prof, model, seed, scenes):
     """Raw frames and truths of every scene, one clip: the camera pans over each scene."""
     raws, truths, names = [], [], []
     rng = np.random.default_rng(seed)
-    for name in SCENES:
-        sc = io.read_luminance(DATA / "hdr" / f"{name}.exr")
+    for path in scenes:
+        name = Path(path).stem
+        sc = io.read_luminance(path)
         k = simulate.exposure_scale(sc, prof, 0.0)
         for i in range(frames):
             t = 0.3 + 0.4 * i / max(frames - 1, 1)
@@ -219,13 +220,18 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default=None, help="comma-separated methods (default: fse,linear,preview; "
                                                     "--quick: fse)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="HDR scene files (EXR/HDR, luminance) instead of the five shared ones, e.g. held-out "
+                         "scenes")
     ap.add_argument("--cost", action="store_true", help="only time the issue-8 stages at 1920 x 1080")
     ap.add_argument("--snr", action="store_true", help="only the flat-field SNR table over exposure")
     ap.add_argument("--out", default=str(OUT))
     a = ap.parse_args(argv)
-    if not (DATA / "hdr").is_dir():
-        print(f"hdr_quality: shared HDR scenes not found in {DATA / 'hdr'} (set NRHDR_SHARED_DATA)",
-              file=sys.stderr)
+    scenes = a.scenes or [str(DATA / "hdr" / f"{n}.exr") for n in SCENES]
+    missing = [p for p in scenes if not Path(p).is_file()]
+    if missing:
+        print(f"hdr_quality: scene file(s) not found: {', '.join(missing)} (set NRHDR_SHARED_DATA or "
+              f"pass --scenes)", file=sys.stderr)
         return 2
     if a.cost:
         return cost()
@@ -254,7 +260,7 @@ def main(argv=None) -> int:
                 cam = profile.save(prof, tmp / pattern / "cam.json")
                 xt = "no crosstalk (calibration failed on this mask)"
             cprof = profile.load(cam)
-            raws, truths, names = make_frames(h, w, frames, prof, model, a.seed)
+            raws, truths, names = make_frames(h, w, frames, prof, model, a.seed, scenes)
             raw_path = tmp / pattern / "clip.raw"
             with io.RawVideoWriter(raw_path, w, h) as wr:
                 for r in raws:
@@ -279,10 +285,10 @@ def main(argv=None) -> int:
                           f"bright {f2(r['bright']['log2_psnr'])} neg {r['negative']} ({dt:.1f} s)", flush=True)
             md.append(f"### {pattern} mask ({xt})\n\n" + table(rows) + "\n")
     total = time.perf_counter() - t_start
-    info = {"quick": a.quick, "size": [w, h], "frames_per_scene": frames, "methods": methods,
+    info = {"quick": a.quick, "size": [w, h], "scenes": scenes, "frames_per_scene": frames, "methods": methods,
             "seed": a.seed, "seconds": total, "results": results}
     (out / "results.json").write_text(json.dumps(info, indent=1) + "\n")
-    text = (f"{w} x {h}, {frames} frame(s) per scene, 5 scenes, prototype crosstalk calibrated from "
+    text = (f"{w} x {h}, {frames} frame(s) per scene, {len(scenes)} scenes, prototype crosstalk calibrated from "
             f"simulated flats, total {total:.0f} s (chain seconds include each gst-launch start)\n\n"
             + "\n".join(md))
     (out / "results.md").write_text(text)
