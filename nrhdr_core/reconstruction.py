@@ -70,6 +70,11 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     if method not in METHODS:
         raise ValueError(f"reconstruction method must be one of {METHODS}, got {method!r}")
     v, k, lower, upper = _validate(values, known, lower, upper)
+    if noisy is not None:
+        if noise is None:
+            raise ValueError("noisy pixels need a noise model (noise=: gain, read_noise, nd, e.g. the profile)")
+        if np.shape(noisy) != v.shape:
+            raise ValueError(f"noisy mask shape {np.shape(noisy)} differs from values shape {v.shape}")
     out = np.array(v, dtype=np.float32, copy=True)
     miss = ~k
     if not miss.any():
@@ -94,7 +99,7 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     out = np.asarray(out, dtype=np.float32)
     out[k] = np.asarray(v, dtype=np.float32)[k]
     out = _clamp_to_data(out, v, k, miss, lower)
-    if noisy is not None and noise is not None:
+    if noisy is not None:
         nz = np.asarray(noisy, bool) & miss
         if nz.any():
             out = fuse_noisy(out, np.asarray(v, np.float32), k, nz, noise)

@@ -233,3 +233,13 @@ def test_element_chain_weighted_default_matches_core(gst, tiny_clip):
                                           noisy=noisy, noise=prof)
         np.testing.assert_allclose(vals, want, rtol=1e-5, atol=1e-3)
         assert np.isfinite(vals).all() and (vals >= 0).all()
+
+
+def test_noisy_without_noise_model_is_a_clear_error():
+    v = np.ones((8, 8), np.float32)
+    k = np.ones((8, 8), bool)
+    k[3, 3] = False
+    with pytest.raises(ValueError, match="noise model"):
+        reconstruction.reconstruct(v, k, noisy=~k)
+    with pytest.raises(ValueError, match="shape"):
+        reconstruction.reconstruct(v, k, noisy=np.zeros((4, 4), bool), noise=validity.default_noise())
