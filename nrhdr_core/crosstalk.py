@@ -53,6 +53,7 @@ DIRS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (
 # state byte (duplicated from validity to keep numba kernels free of module globals lookups)
 _VALID, _CLIPPED, _DARK, _UNCAL = 0, 1, 2, 4
 _ATT = 0x80
+_NOISY = 5   # validity.NOISY (dark policy "weighted"): a measurement below l_min, corrected like DARK
 
 
 # ======================================================================================================
@@ -470,7 +471,7 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                 # the true flux is at least the flux at which this pixel clips
                 if cf == cf and cf < values[y, x]:
                     values[y, x] = cf
-            elif reason == _DARK:
+            elif reason == _DARK or reason == _NOISY:
                 f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, src[y, x] / s)
                 if ok and f > 0:
                     values[y, x] = f

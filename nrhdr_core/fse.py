@@ -25,7 +25,12 @@ __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
 # ``rho``: isotropic weight decay per block size; ``delta``: weight of already reconstructed pixels;
 # ``gamma``: orthogonality-deficiency compensation; iterations n = clip(round(iter_c * sigma),
 # iter_min, iter_max) (a conjugate pair counts 2); ``prior``: spectral prior on/off;
-# ``domain``: "auto" | "linear" | "log" | "local" (see docs/FSE.md); ``use_bounds``: clamp to lower/upper.
+# ``domain``: "auto" | "linear" | "log" | "local" (see docs/FSE.md); ``use_bounds``: clamp to lower/upper;
+# ``log_offset``: None (the data-driven rule of :func:`log_offset`) or c >= 0, the log domain is log2(x + c);
+# ``local_bound``: 0 (off) or the size (3/5/7/9) of the known neighbourhood whose range, widened by
+# ``local_margin`` stops, bounds a missing pixel in the log domain (issue 8: overshoot around point
+# sources; not used in the linear domain, where it was measured to cut true peaks of fine detail); the
+# data's own bounds (clip, l_min) always win.
 # --------------------------------------------------------------------------------------------------
 _BASE = dict(
     window=32,
@@ -41,10 +46,12 @@ _BASE = dict(
     prior=True,
     pair_exact=False,
     domain="auto",
-    hdr_domain="log",
-    hdr_threshold_stops=8.0,
     log_scale_stops=3.0,
     use_bounds=True,
+    log_offset=None,
+    offset_noise_k=2.0,
+    local_bound=5,
+    local_margin=1.0,
     edge_penalty=1.0,
     order_levels=4,
     order_slack=1,
@@ -99,6 +106,12 @@ def _check(p):
         raise ValueError("min_block must be <= max_block")
     if p["domain"] not in ("auto", "linear", "log", "local"):
         raise ValueError("domain must be one of auto, linear, log, local")
+    if int(p["local_bound"]) not in (0, 3, 5, 7, 9):
+        raise ValueError("local_bound must be 0 (off) or 3, 5, 7, 9")
+    if not float(p["local_margin"]) >= 0.0:
+        raise ValueError("local_margin must be >= 0")
+    if p["log_offset"] is not None and not float(p["log_offset"]) >= 0.0:
+        raise ValueError("log_offset must be None or >= 0")
 
 
 def _density_params(p, known_share):
@@ -1099,14 +1112,88 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
 # --------------------------------------------------------------------------------------------------
 # Python wrapper
 # --------------------------------------------------------------------------------------------------
-def _dynamic_range_stops(v: np.ndarray) -> float:
-    if v.size > 40000:
-        v = v[:: v.size // 20000]   # a strided subsample is plenty for two percentiles
-    pos = v[v > 0]
-    if pos.size < 2:
+def log_offset(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0, lower=None) -> float:
+    """The offset c of the ``auto`` domain log2(x + c) (issue 8; docs/FSE.md "Domain"), from robust
+    statistics of the known values only, so that it moves little with the noise or mask seed:
+
+    c = max(p50 * 2^(12 - 5 r), noise_k * sigma_dark), r = log2(top / p50) (stops of highlights above
+    the median), top = max(p99.9 of the known values, largest lower bound: a clipped pixel implies at
+    least its clip level, so a scene whose highlights all clip is still HDR). The family log2(x + c)
+    is continuous in c and tends to the linear domain as c grows: low-dynamic-range data (8-bit
+    images, r <= 1.5) get c >= 8 x their maximum, i.e. linear (the
+    caller switches to exactly linear above 64 x the range, where the two agree); HDR data (r >= 4) a
+    log domain down to the noise floor sigma_dark, a MAD estimate from second differences of three
+    horizontally adjacent known pixels among the darkest tenth (~0 for noise-free data).
+    Scales with the data (k * values -> k * c)."""
+    h, w = v.shape
+    step = max(1, (h * w) // 400_000)        # a row-strided subsample is plenty for percentiles
+    vs = np.asarray(v[::step], np.float64)
+    ks = k[::step]
+    kv = vs[ks]
+    if kv.size < 2:
         return 0.0
-    lo_, hi_ = np.percentile(pos, [0.1, 99.9])
-    return float(np.log2(hi_ / lo_)) if lo_ > 0 else 0.0
+    lo10, p50, p999 = np.percentile(kv, [10.0, 50.0, 99.9])
+    if not p50 > 0.0:
+        p50 = float(np.mean(np.abs(kv)))
+        if not p50 > 0.0:
+            return 0.0
+    top = float(p999)
+    if lower is not None:
+        lw = np.asarray(lower, np.float32)
+        if lw.size > 1:
+            fin = lw[np.isfinite(lw)]
+            if fin.size:
+                top = max(top, float(fin.max()))
+    r = math.log2(max(top, p50) / p50)
+    c = p50 * 2.0 ** min(12.0 - 5.0 * r, 60.0)
+    if vs.shape[1] >= 3:
+        tri = ks[:, 2:] & ks[:, 1:-1] & ks[:, :-2]
+        a = vs[:, :-2][tri]
+        m = vs[:, 1:-1][tri]
+        b = vs[:, 2:][tri]
+        dark = m <= lo10
+        if dark.sum() >= 16:
+            sd = 1.4826 * float(np.median(np.abs(a[dark] - 2.0 * m[dark] + b[dark]))) / math.sqrt(6.0)
+            c = max(c, noise_k * sd)
+    return float(c)
+
+
+def _local_bounds(work, state, size, margin, logd):
+    """Range of the known pixels (state 1) in each pixel's size x size neighbourhood, widened by
+    `margin` (stops in the log domain; share of the local range in the linear one); +-inf where no
+    known pixel is near."""
+    from scipy import ndimage
+    kn = state == 1
+    big = np.float32(np.finfo(np.float32).max)
+    mx = ndimage.maximum_filter(np.where(kn, work, -big), size=size, mode="nearest")
+    mn = ndimage.minimum_filter(np.where(kn, work, big), size=size, mode="nearest")
+    none = mx < mn
+    if logd:
+        lo = mn - np.float32(margin)
+        hi = mx + np.float32(margin)
+    else:
+        d = (mx - mn) * np.float32(margin)
+        lo = mn - d
+        hi = mx + d
+    lo[none] = -np.inf
+    hi[none] = np.inf
+    return lo.astype(np.float32), hi.astype(np.float32)
+
+
+def _merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, shape):
+    """Local bounds narrowed by the data's bounds; where they conflict the data's bound wins (a clipped
+    pixel is at least its clip level however dark its neighbours)."""
+    dlo = lo_arr if use_lo else np.full(shape, -np.inf, np.float32)
+    dhi = hi_arr if use_hi else np.full(shape, np.inf, np.float32)
+    lo = np.maximum(dlo, llo)
+    hi = np.minimum(dhi, lhi)
+    lo = np.minimum(lo, dhi)          # a local floor above the data's ceiling yields to the ceiling
+    hi = np.maximum(hi, lo)           # a local ceiling below the (data) floor yields to the floor
+    # finite sentinels: the block kernels are compiled with fastmath (no-infs), where comparisons
+    # with +-inf are not reliable
+    big = np.float32(1e38)
+    return (np.ascontiguousarray(np.clip(lo, -big, big), np.float32),
+            np.ascontiguousarray(np.clip(hi, -big, big), np.float32))
 
 
 def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanced", **params):
@@ -1135,29 +1222,53 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
                       RuntimeWarning, stacklevel=2)
         return _fill_without_data(out, ~k, lower, upper)
     p = _density_params(p, nk / v32.size)
+    if kmin == kmax:
+        # constant known data: the constant is the only model (exact), within the bounds
+        out[~k] = np.float32(kmin)
+        return _fill_bounded(out, ~k, lower if p["use_bounds"] else None, upper if p["use_bounds"] else None)
     domain = p["domain"]
+    c = 0.0
     if domain == "auto":
-        domain = "linear"
-        if minpos > 0 and math.log2(kmax / minpos) >= float(p["hdr_threshold_stops"]):
-            if _dynamic_range_stops(v32[k]) >= float(p["hdr_threshold_stops"]):
-                domain = p["hdr_domain"]
+        domain = "log"
+        if p["log_offset"] is None:
+            c = log_offset(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
+        else:
+            c = float(p["log_offset"])
+        if c >= 64.0 * (float(kmax) - min(float(kmin), 0.0)):
+            domain, c = "linear", 0.0     # log2(x + c) is linear to < 1 % there: use it exactly
+    elif domain == "log" and p["log_offset"] is not None:
+        c = float(p["log_offset"])
     lo_arr, hi_arr, use_lo, use_hi = _bounds(lower, upper, v.shape, p["use_bounds"])
     floor = 0.0
     local = False
+    src = v32
     if domain == "log":
-        floor = 0.5 * minpos if minpos > 0 else 1e-30
+        if c > 0.0:
+            # log2(max(x, 0) + c): well conditioned down to the offset (no blow-up at black pixels)
+            src = v32 + np.float32(c)
+            floor = c
+        else:
+            floor = 0.5 * minpos if minpos > 0 else 1e-30
         if use_lo:
-            lo_arr = np.log2(np.maximum(lo_arr, floor)).astype(np.float32)
+            lo_arr = np.log2(np.maximum(lo_arr + np.float32(c), floor)).astype(np.float32)
         if use_hi:
-            hi_arr = np.log2(np.maximum(hi_arr, floor)).astype(np.float32)
-        scale = float(p["log_scale_stops"])
+            hi_arr = np.log2(np.maximum(hi_arr + np.float32(c), floor)).astype(np.float32)
+        # sigma relative to the known values' log range, at most log_scale_stops (an almost linear
+        # low-dynamic-range domain then behaves like the linear one)
+        wr = math.log2(max(kmax, 0.0) + c) - math.log2(max(max(kmin, 0.0) + c, floor))
+        scale = float(p["log_scale_stops"]) if not wr > 0 else min(float(p["log_scale_stops"]), wr)
     elif domain == "local":
         scale = 1.0 / 0.4   # std relative to 2.5x the local mean ~ std/255 for mid-grey 8-bit data
         local = True
     else:
         rng = float(kmax - kmin)
         scale = rng if rng > 0 else 1.0
-    work, state = _prep(v32, k, domain == "log", np.float32(floor))
+    work, state = _prep(src, k, domain == "log", np.float32(floor))
+    if int(p["local_bound"]) and domain == "log":
+        llo, lhi = _local_bounds(work, state, int(p["local_bound"]), float(p["local_margin"]),
+                                 domain == "log")
+        lo_arr, hi_arr = _merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, v.shape)
+        use_lo = use_hi = True
     tables = _tables(p)
     cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, sizes = tables
     n = int(p["window"])
@@ -1186,6 +1297,21 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
         _nearest_fill(work, left)
         state[left] = 2
         _finish(out, work, state, domain == "log")
+    if domain == "log" and c > 0.0:
+        miss = ~k
+        out[miss] -= np.float32(c)
+    return out
+
+
+def _fill_bounded(out, miss, lower, upper):
+    if lower is not None:
+        lo = np.broadcast_to(np.asarray(lower, np.float32), out.shape)
+        m = miss & np.isfinite(lo)
+        out[m] = np.maximum(out[m], lo[m])
+    if upper is not None:
+        hi = np.broadcast_to(np.asarray(upper, np.float32), out.shape)
+        m = miss & np.isfinite(hi)
+        out[m] = np.minimum(out[m], hi[m])
     return out
 
 

@@ -103,7 +103,7 @@ def test_one_class_per_element(gst):
 def test_validity_threshold_matches_eq3(gst, tiny_clip):
     d, prof, raws = tiny_clip
     h, w = prof.height, prof.width
-    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'}", raw_caps(w, h), raw_buffers(raws))
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} dark-policy=threshold", raw_caps(w, h), raw_buffers(raws))
     assert r.error is None, r.error_text
     assert r.eos
     assert len(r.samples) == len(raws)
@@ -123,7 +123,7 @@ def test_validity_threshold_matches_eq3(gst, tiny_clip):
 
 def test_validity_white_in_caps_and_black_level(gst, tmp_path):
     d, prof, raws = make_test_clip(tmp_path / "c", width=32, height=24, frames=2, black_level=64.0)
-    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} l-min=300", raw_caps(32, 24), raw_buffers(raws))
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} l-min=300 dark-policy=threshold", raw_caps(32, 24), raw_buffers(raws))
     assert r.error is None, r.error_text
     from gi.repository import Gst
     s = Gst.Caps.from_string(r.samples[0][0]).get_structure(0)
@@ -185,7 +185,7 @@ def test_validity_mode_change_while_playing(gst, tiny_clip):
             el.set_property("l-min", 1000.0)
             el.set_property("mode", "threshold")
 
-    r = run_appsrc(f"nrvalidity name=v profile={d / 'camera.json'}", raw_caps(prof.width, prof.height),
+    r = run_appsrc(f"nrvalidity name=v profile={d / 'camera.json'} dark-policy=threshold", raw_caps(prof.width, prof.height),
                    raw_buffers(raws[:4]), before_push=before, lockstep=True)
     assert r.error is None, r.error_text
     assert len(r.samples) == 4
@@ -200,7 +200,7 @@ def test_validity_odd_width_with_plane_strides(gst, tmp_path):
     import gst_plugins
     from gi.repository import Gst
     desc = (f"filesrc location={d / 'clip.raw'} ! rawvideoparse format=gray16-le width=63 height=17 "
-            f"framerate=5/1 plane-strides=<126> ! nrvalidity profile={d / 'camera.json'} ! "
+            f"framerate=5/1 plane-strides=<126> ! nrvalidity profile={d / 'camera.json'} dark-policy=threshold ! "
             f"appsink name=sink sync=false")
     gst_plugins.register_all()
     p = Gst.parse_launch(desc)
@@ -223,7 +223,7 @@ def test_validity_odd_width_with_plane_strides(gst, tmp_path):
 
 def test_crosstalk_without_calibration_is_identity(gst, tiny_clip):
     d, prof, raws = tiny_clip
-    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrcrosstalk",
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} dark-policy=threshold ! nrcrosstalk",
                    raw_caps(prof.width, prof.height), raw_buffers(raws))
     assert r.error is None, r.error_text
     assert len(r.samples) == len(raws)
@@ -264,7 +264,7 @@ def test_crosstalk_data_path_calls_core_in_place(gst, tiny_clip, monkeypatch):
 @pytest.mark.parametrize("method", ["preview", "nearest", "linear"])
 def test_reconstruct_fills_missing_keeps_known(gst, tiny_clip, method):
     d, prof, raws = tiny_clip
-    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method={method} post-stats=true",
+    r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} dark-policy=threshold ! nrreconstruct method={method} post-stats=true",
                    raw_caps(prof.width, prof.height), raw_buffers(raws))
     assert r.error is None, r.error_text
     assert len(r.samples) == len(raws) and r.eos

@@ -191,8 +191,9 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
                     if p.use_bounds:
                         lower, upper = validity.bounds(values, state)
                     # hook (issue 11): once reconstruct() takes out=, pass out=values and drop the copy
+                    noisy, noise = self._noisy_inputs(state)      # issue 8 (helper "hdr")
                     out = reconstruction.reconstruct(values, known, method=method, preset=preset,
-                                                     lower=lower, upper=upper)
+                                                     lower=lower, upper=upper, noisy=noisy, noise=noise)
                     if out.shape != values.shape:
                         raise ValueError(f"reconstruction returned shape {out.shape}, expected {values.shape}")
                     np.copyto(values, out, where=missing)          # measured pixels untouched
@@ -212,6 +213,22 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
             return Gst.FlowReturn.OK
         except Exception as e:  # noqa: BLE001
             return self.post_exception(f"frame {self._frames} (method={p.method}, preset={p.preset})", e)
+
+    def _noisy_inputs(self, state):
+        """NOISY pixels (nrvalidity dark-policy=weighted) and the noise model to fuse them with: the
+        profile named in the caps, else the default sensor's noise (issue 8, helper "hdr")."""
+        from nrhdr_core import validity
+        noisy = validity.noisy_mask(state)
+        if not noisy.any():
+            return None, None
+        noise = None
+        if self._info.profile:
+            from ._common import load_profile
+            try:
+                noise = load_profile(self._info.profile)
+            except ValueError:
+                noise = None
+        return noisy, noise if noise is not None else validity.default_noise()
 
     def _count_gap(self, buf) -> None:
         """Frames skipped upstream (QoS drops in earlier elements, frames lost at a live source): PTS

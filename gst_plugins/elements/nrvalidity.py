@@ -52,6 +52,7 @@ class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         self._profile_path = ""
         self._mode = Choice("mode", MODES, "threshold")
         self._params = ("threshold", -1.0)   # (mode, l_min): swapped whole, read once per frame
+        self._dark_policy = Choice("dark-policy", ("threshold", "weighted"), "weighted")  # issue 8
         self._profile = None
         self._in_info = None
         self._out_info = None
@@ -98,13 +99,29 @@ class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     def l_min(self, value):
         self._params = (self._params[0], float(value))
 
+    # ---- dark policy (issue 8, helper "hdr") --------------------------------------------------------
+    @GObject.Property(type=str, default="weighted", nick="Dark policy",
+                      blurb="Threshold mode: 'threshold' = attenuated pixels below l-min are missing with "
+                            "l-min x ND as upper bound (paper 2.3); 'weighted' = between SNR 0 dB and "
+                            "4 x l-min they are kept as NOISY measurements that nrreconstruct fuses with its "
+                            "estimate by their noise (measured better, docs/BENCHMARKS.md) "
+                            "(one of: threshold, weighted)",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+    def dark_policy(self):
+        return self._dark_policy.value
+
+    @dark_policy.setter
+    def dark_policy(self, value):
+        self.set_choice(self._dark_policy, value)
+
     # ---- state --------------------------------------------------------------------------------------
     def do_start(self):
         self.reset_errors()
         try:
-            if self._mode.invalid:
-                self.post_error(self._mode.invalid, kind="settings")
-                return False
+            for c in (self._mode, self._dark_policy):
+                if c.invalid:
+                    self.post_error(c.invalid, kind="settings")
+                    return False
             try:
                 self._profile = load_profile(self._profile_path)
             except ValueError as e:  # ProfileError is a ValueError
@@ -356,7 +373,8 @@ class NrValidity(ErrorPoster, LiveTiming, GstBase.BaseTransform):
             t0 = time.perf_counter()
             with self.warnings_to_bus(), map_video(inbuf, self._in_info, "<u2", write=False) as raw, \
                     map_hdr(outbuf, self._out_info, write=True) as (values, state):
-                validity.classify(raw, self._profile, mode=mode, l_min=lm, values=values, state=state)
+                validity.classify(raw, self._profile, mode=mode, l_min=lm, values=values, state=state,
+                                  dark_policy=self._dark_policy.value)
             if self.gst_debug_enabled(Gst.DebugLevel.LOG):
                 self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(inbuf.pts)}: classified "
                              f"{self._in_info.width}x{self._in_info.height} (mode={mode}, l_min="
