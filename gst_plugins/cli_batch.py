@@ -31,6 +31,9 @@ def register_cli(sub) -> None:
     g.add_argument("--frames", type=int, help="number of frames (default: all the file holds)")
     g = p.add_argument_group("chain (the elements' properties)")
     g.add_argument("--mode", choices=chain.VALIDITY_MODES, default="threshold", help="nrvalidity mode")
+    g.add_argument("--dark-policy", choices=chain.DARK_POLICIES, default="weighted",
+                   help="nrvalidity dark-policy (weighted: noisy dark attenuated pixels kept and fused; threshold: "
+                        "the paper's hard l_min)")
     g.add_argument("--l-min", type=float, default=None, help="nrvalidity l-min (default: the profile's)")
     g.add_argument("--crosstalk", choices=chain.CROSSTALK_MODES, default="kernel", help="nrcrosstalk mode")
     g.add_argument("--crosstalk-profile", help="profile whose crosstalk calibration to apply (nrcrosstalk "
@@ -71,7 +74,7 @@ def cmd_batch(a) -> int:
         raise ValueError(f"--threads-per-worker must be >= 1, got {a.threads_per_worker}")
     if a.scheduler and a.workers is not None:
         raise ValueError("--workers starts a local cluster; it cannot go with --scheduler")
-    settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, crosstalk=a.crosstalk, method=a.method,
+    settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, white=a.white,
                                    exposure=a.exposure, contrast=a.contrast)
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames)

@@ -5,11 +5,13 @@ raw frame -> validity -> crosstalk -> reconstruction (-> log tone mapping), for 
 equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` bit for bit
 (tests/test_batch.py checks it against the real pipeline):
 
-- nrvalidity:    ``validity.classify(raw, profile, mode=mode, l_min=l_min)`` (l_min None = the profile's)
+- nrvalidity:    ``validity.classify(raw, profile, mode=mode, l_min=l_min, dark_policy=dark_policy)`` (l_min None =
+  the profile's)
 - nrcrosstalk:   ``crosstalk.correct(values, state, crosstalk_profile, mode)`` unless mode is 'off'
 - nrreconstruct: ``missing = validity.missing_mask(state)``; if any: ``known = validity.known_mask(state)``,
   ``lower, upper = validity.bounds(values, state)`` (use_bounds), ``out = reconstruction.reconstruct(values,
-  known, method=, preset=, lower=, upper=)``, ``values[missing] = out``, ``state[missing] |= RECONSTRUCTED``
+  known, method=, preset=, lower=, upper=, noisy=, noise=)`` (noisy: the NOISY pixels of dark-policy=weighted,
+  fused by the profile's noise model), ``values[missing] = out``, ``state[missing] |= RECONSTRUCTED``
 - nrexrsink:     ``io.write_exr(path, values, state)``
 - nrtonemap (normalise=caps/fixed): ``tonemap.log_tonemap(values, white, exposure_stops=, contrast=)``
   with white = the profile's white (the caps' field) unless given.
@@ -22,6 +24,7 @@ import numpy as np
 
 CROSSTALK_MODES = ("kernel", "lut", "off")      # nrcrosstalk's modes (default kernel)
 VALIDITY_MODES = ("all", "best", "threshold")   # nrvalidity's modes (default threshold)
+DARK_POLICIES = ("weighted", "threshold")       # nrvalidity's dark-policy (default weighted, issue 8)
 METHODS = ("fse", "linear", "nearest", "preview")
 PRESETS = ("preview", "fast", "balanced", "best")
 
@@ -31,6 +34,7 @@ class ChainSettings:
     """The elements' properties that change the output. Defaults are pipelines/raw_to_exr.sh's."""
     mode: str = "threshold"          # nrvalidity mode
     l_min: float | None = None       # nrvalidity l-min (None = the profile's; the element's -1)
+    dark_policy: str = "weighted"    # nrvalidity dark-policy
     crosstalk: str = "kernel"        # nrcrosstalk mode
     method: str = "fse"              # nrreconstruct method
     preset: str = "fast"             # nrreconstruct preset
@@ -40,7 +44,7 @@ class ChainSettings:
     contrast: float = 1000.0         # nrtonemap contrast (= tonemap.DEFAULT_CONTRAST)
 
     def __post_init__(self):
-        for name, allowed in (("mode", VALIDITY_MODES), ("crosstalk", CROSSTALK_MODES),
+        for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES), ("crosstalk", CROSSTALK_MODES),
                               ("method", METHODS), ("preset", PRESETS)):
             v = getattr(self, name)
             if v not in allowed:
@@ -63,7 +67,7 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
     state uint8), what nrexrsink writes."""
     from . import crosstalk, reconstruction, validity
     s = settings
-    values, state = validity.classify(raw, profile, mode=s.mode, l_min=s.l_min)
+    values, state = validity.classify(raw, profile, mode=s.mode, l_min=s.l_min, dark_policy=s.dark_policy)
     if s.crosstalk != "off":
         xt = profile if crosstalk_profile is None else crosstalk_profile
         if (xt.width, xt.height) != (profile.width, profile.height):
@@ -80,8 +84,10 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
         lower = upper = None
         if s.use_bounds:
             lower, upper = validity.bounds(values, state)
+        noisy = validity.noisy_mask(state)              # nrreconstruct._noisy_inputs
+        noisy, noise = (noisy, profile) if noisy.any() else (None, None)
         out = reconstruction.reconstruct(values, known, method=s.method, preset=s.preset, lower=lower,
-                                         upper=upper)
+                                         upper=upper, noisy=noisy, noise=noise)
         if out.shape != values.shape:
             raise ValueError(f"reconstruction returned shape {out.shape}, expected {values.shape}")
         np.copyto(values, out, where=missing)          # measured pixels untouched

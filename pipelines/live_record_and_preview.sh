@@ -8,7 +8,7 @@
 # method=auto into a sync=true sink. When the display is late it drops frames (leaky queue, QoS); the
 # recording never does. Environment: FRAMES (num-buffers, default 150), LOOP (true/false), METHOD (auto),
 # PRESET, FPS (0 = the clip's), SINK (default autovideosink with a display, else a QoS fakesink), VERBOSE=1
-# (gst-launch -m: bus messages, e.g. nrhdr-frame-stats), FORCE=1 (replace OUT_DIR/clip.raw), NRHDR.
+# (gst-launch -m: bus messages), STATS=true (nrreconstruct posts nrhdr-frame-stats), FORCE=1 (replace OUT_DIR/clip.raw), NRHDR.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in -h|--help) sed -n '2,12p' "$0"; exit 0;; esac
 CLIP="${1:-demo_out/clip}"
@@ -30,11 +30,11 @@ fi
 ARGS=()
 [ "${VERBOSE:-0}" = 1 ] && ARGS+=(-m)
 rm -f "$PART"
-"$NRHDR" launch "${ARGS[@]}" nrcamsrc "location=$CLIP" "num-buffers=$NBUF" "loop=${LOOP:-true}" \
+nr_launch "${ARGS[@]}" nrcamsrc "location=$CLIP" "num-buffers=$NBUF" "loop=${LOOP:-true}" \
     "fps=$RATE" ! tee name=t \
   t. ! queue max-size-buffers=0 max-size-bytes=0 max-size-time=10000000000 ! filesink "location=$PART" \
   t. ! queue leaky=downstream max-size-buffers=2 ! nrvalidity "profile=$PROFILE" "mode=${MODE:-threshold}" \
-    ! nrcrosstalk ! nrreconstruct "method=${METHOD:-auto}" "preset=${PRESET:-fast}" ! nrtonemap \
+    ! nrcrosstalk ! nrreconstruct "method=${METHOD:-auto}" "preset=${PRESET:-fast}" "post-stats=${STATS:-false}" ! nrtonemap \
     ! videoconvert ! "${SINKV[@]}" || { rc=$?; rm -f "$PART"; exit "$rc"; }
 # the recording is a clip folder: raw frames, the camera's profile, clip.json (written last, atomically)
 python3 - "$CLIP/clip.json" "$PART" "$OUT" "$PROFILE" <<'PY'

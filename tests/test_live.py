@@ -253,7 +253,7 @@ def _slow_live(gst, prof_path, qos=True, frames=100, leaky=False):
     q = "" if qos else " qos=false"
     queue = "queue leaky=downstream max-size-buffers=1" if leaky else "queue max-size-buffers=1000"
     return (f"nrcamsrc name=s scene=synthetic profile={prof_path} frames=3 fps=50 num-buffers={frames} ! "
-            f"{queue} ! nrvalidity profile={prof_path}{q} ! nrreconstruct method=fse preset=best{q} ! "
+            f"{queue} ! nrvalidity profile={prof_path}{q} ! nrreconstruct method=fse preset=best post-stats=true{q} ! "
             f"nrtonemap{q} ! fakesink name=k sync=true qos={str(qos).lower()} "
             f"max-lateness={20_000_000 if qos else -1}")
 
@@ -369,7 +369,7 @@ def test_auto_in_the_element_goes_down_under_load_and_up_again(gst, rng):
         elif i == 60:
             el.set_property("budget-ms", 1e-6)                  # "load": no rung fits
 
-    res = run_appsrc("nrreconstruct name=r method=auto", f"other/x-nrhdr,width={w},height={h},"
+    res = run_appsrc("nrreconstruct name=r method=auto post-stats=true", f"other/x-nrhdr,width={w},height={h},"
                      "framerate=30/1", bufs, before_push=before, lockstep=True)
     assert res.error is None and len(res.samples) == n
     st = res.element_messages("nrhdr-frame-stats")
@@ -388,7 +388,7 @@ def test_auto_in_the_element_goes_down_under_load_and_up_again(gst, rng):
 def test_tee_recipe_records_every_frame_while_the_display_drops(gst_subprocess_env, tmp_path):
     clip, _prof, raws = make_test_clip(tmp_path / "clip", width=80, height=64, frames=6, fps=25)
     out = tmp_path / "rec"
-    env = dict(gst_subprocess_env, FRAMES="40", FPS="200", METHOD="fse", PRESET="best", VERBOSE="1")
+    env = dict(gst_subprocess_env, FRAMES="40", FPS="50", METHOD="fse", PRESET="best", VERBOSE="1", STATS="true")
     r = subprocess.run(["bash", str(ROOT / "pipelines" / "live_record_and_preview.sh"), str(clip), str(out)],
                        env=env, capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
@@ -421,7 +421,7 @@ def test_warmup_command_then_a_fresh_pipeline_compiles_nothing(gst_subprocess_en
     for method in ("auto", "fse preset=fast"):
         r = subprocess.run(["gst-launch-1.0", "-m", "nrcamsrc", f"location={clip}", "is-live=false", "!",
                             "nrvalidity", f"profile={clip / 'camera.json'}", "!", "nrcrosstalk", "!",
-                            "nrreconstruct", *f"method={method}".split(), "!", "nrtonemap", "!", "fakesink"],
+                            "nrreconstruct", "post-stats=true", *f"method={method}".split(), "!", "nrtonemap", "!", "fakesink"],
                            env=gst_subprocess_env, capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stderr[-2000:]
         assert r.stdout.count("nrhdr-frame-stats") == 3

@@ -100,7 +100,7 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
 
     @GObject.Property(type=float, default=0.0, minimum=0.0, maximum=60000.0, nick="Time budget (ms)",
                       blurb="method=auto: milliseconds per frame the reconstruction may take; 0 = 70 % of "
-                            "the frame period of the caps (33 ms frames -> 23 ms), 23 ms without a framerate",
+                            "the frame period of the caps (30 frames a second when the caps have no framerate)",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
     def budget_ms(self):
         return self._budget_ms
