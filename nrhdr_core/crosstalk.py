@@ -53,6 +53,7 @@ DIRS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (
 # state byte (duplicated from validity to keep numba kernels free of module globals lookups)
 _VALID, _CLIPPED, _DARK, _UNCAL = 0, 1, 2, 4
 _ATT = 0x80
+_NO_SPILL = np.zeros((8, 1, 1), np.float32)
 
 
 # ======================================================================================================
@@ -316,15 +317,11 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
             / max(c1 - c0, np.float32(1e-3)), True
     last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
     if m <= last_c:
-        # binary search: first knot k >= 1 with code >= m
+        # first knot k >= 1 with code >= m: codes increase, so it is 1 + the number of knots 1..n-2
+        # below m (a branch-free count over the pixel's knots vectorises; a binary search mispredicts)
         lo = 1
-        hi = n - 1
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if np.float32(codes_q[y, x, mid]) * qs - qo >= m:
-                hi = mid
-            else:
-                lo = mid + 1
+        for k in range(1, n - 1):
+            lo += 1 if np.float32(codes_q[y, x, k]) * qs - qo < m else 0
         c = np.float32(codes_q[y, x, lo]) * qs - qo
         pc = np.float32(codes_q[y, x, lo - 1]) * qs - qo
         f = np.float32(knot_flux[lo])
@@ -516,13 +513,14 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
                          f"{calib.shape[1]}x{calib.shape[0]}")
     nd = float(profile.nd)
     clip_rel = np.float32(float(calib.clip_code) - float(calib.black_level))
-    src = values.copy()
     args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
             calib.knot_flux, clip_rel, calib.clip_flux, nd)
     if mode == "lut":
-        _correct_kernel(values, state, src, src, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha, 0,
-                        np.zeros((8, 1, 1), np.float32), np.float32(np.inf))
+        # per-pixel: each pixel reads only its own value, so the source is the frame itself (no copy)
+        _correct_kernel(values, state, values, values, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha,
+                        0, _NO_SPILL, np.float32(np.inf))
         return values, state
+    src = values.copy()
     # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
     state0 = state.copy()
     lut = np.empty_like(values)
