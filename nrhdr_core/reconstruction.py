@@ -673,3 +673,38 @@ def warmup(method: str | None = None) -> None:
     if method in (None, "fse"):
         from . import fse
         fse.warmup()
+
+
+# ---- whole-frame entry point for elements (issue 7 item 3): no per-frame allocation --------------------
+
+_FRAME = threading.local()
+
+
+def _frame_scratch(h, w, with_bounds):
+    s = getattr(_FRAME, "s", None)
+    if s is None or s[0].shape != (h, w):
+        s = _FRAME.s = (np.empty((h, w), np.bool_), np.empty((h, w), np.float32),
+                        np.empty((h, w), np.float32), np.empty((h, w), np.float32))
+    return s
+
+
+def reconstruct_frame(values: np.ndarray, state: np.ndarray, method: str = "fse", preset: str = "balanced",
+                      use_bounds: bool = True, **params) -> int:
+    """Reconstruct an HDR frame in place (docs/ARCHITECTURE.md layout): the missing pixels
+    (`validity.missing_mask`) of `values` get `reconstruct(values, known, ...)`'s result and the
+    RECONSTRUCTED bit in `state`; measured pixels are untouched. Known mask and bounds come from one
+    fused pass into per-thread scratch reused frame after frame; `preview` and `nearest` write straight
+    into `values`. Returns the number of pixels filled (0: nothing to do, nothing touched)."""
+    from . import validity
+    h, w = values.shape
+    known, lower, upper, res = _frame_scratch(h, w, use_bounds)
+    n_miss, n_unknown, known, lower, upper = validity._prepare(
+        values, state, known, lower if use_bounds else None, upper if use_bounds else None, use_bounds)
+    if n_miss == 0:
+        return 0
+    # in place only when every unknown pixel is to be filled (no earlier RECONSTRUCTED pixel to keep)
+    target = values if (n_miss == n_unknown and values.dtype == np.float32 and values.flags.c_contiguous) \
+        else res
+    out = reconstruct(values, known, method=method, preset=preset, lower=lower, upper=upper, out=target,
+                      **params)
+    return validity.write_back(values, state, out)

@@ -138,22 +138,12 @@ class NrReconstruct(ErrorPoster, GstBase.BaseTransform):
             if self._info is None:
                 self.post_error("no caps negotiated before the first buffer", kind="negotiation")
                 return Gst.FlowReturn.NOT_NEGOTIATED
-            from nrhdr_core import reconstruction, validity
+            from nrhdr_core import reconstruction
             t0 = time.perf_counter()
             with map_hdr(buf, self._info, write=True) as (values, state):
-                missing = validity.missing_mask(state)
-                n_miss = int(np.count_nonzero(missing))
-                if n_miss:
-                    known = validity.known_mask(state)
-                    lower = upper = None
-                    if p.use_bounds:
-                        lower, upper = validity.bounds(values, state)
-                    out = reconstruction.reconstruct(values, known, method=p.method, preset=p.preset,
-                                                     lower=lower, upper=upper)
-                    if out.shape != values.shape:
-                        raise ValueError(f"reconstruction returned shape {out.shape}, expected {values.shape}")
-                    np.copyto(values, out, where=missing)          # measured pixels untouched
-                    np.bitwise_or(state, np.uint8(validity.RECONSTRUCTED), out=state, where=missing)
+                # one fused pass for known mask + bounds, in place, measured pixels untouched (perf, #7)
+                n_miss = reconstruction.reconstruct_frame(values, state, method=p.method, preset=p.preset,
+                                                          use_bounds=p.use_bounds)
             dt = time.perf_counter() - t0
             if self._post_stats:
                 self._post_frame_stats(n_miss / float(self._info.pixels), p.method, dt)
