@@ -53,8 +53,11 @@ def scene_flux(h, w, scene_path):
     from nrhdr_core import simulate
     from nrhdr_core.simulate import Motion
     if scene_path and Path(scene_path).is_file():
-        from nrhdr_core import io
-        scene = io.read_luminance(scene_path)
+        if str(scene_path).endswith(".npy"):   # a luminance array (machines without OpenImageIO)
+            scene = np.load(scene_path).astype(np.float32)
+        else:
+            from nrhdr_core import io
+            scene = io.read_luminance(scene_path)
         name = Path(scene_path).name
     else:
         from nrhdr_core.scene import synthetic_hdr_scene
