@@ -34,8 +34,12 @@ from nrhdr_core import crosstalk, profile as profiles, reconstruction, sensor, t
 DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
 
+STAT = np.median
+
+
 def timeit(fn, repeat, setup=None):
-    """Median wall ms of `repeat` calls after one warm-up call; `setup` runs untimed before each call."""
+    """Median (or with --min, the fastest) wall ms of `repeat` calls after one warm-up call; `setup`
+    runs untimed before each call."""
     if setup is not None:
         setup()
     fn()
@@ -46,7 +50,7 @@ def timeit(fn, repeat, setup=None):
         t0 = time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(ts))
+    return 1e3 * float(STAT(ts))
 
 
 def scene_flux(h, w, scene_path):
@@ -100,7 +104,15 @@ def main(argv=None):
     ap.add_argument("--fse-repeat", type=int, default=3)
     ap.add_argument("--skip", default="", help="comma-separated stage names to skip (e.g. nearest,fse_fast)")
     ap.add_argument("--json", default=None, help="write the figures to this file")
+    ap.add_argument("--threads", type=int, default=None, help="numba threads (default: numba's default)")
+    ap.add_argument("--min", action="store_true",
+                    help="report the fastest call instead of the median (a loaded shared machine)")
     a = ap.parse_args(argv)
+    global STAT
+    STAT = np.min if a.min else np.median
+    if a.threads:
+        from numba import set_num_threads
+        set_num_threads(a.threads)
     skip = {s.strip() for s in a.skip.split(",") if s.strip()}
     h, w = a.height, a.width
     from numba import get_num_threads
@@ -109,7 +121,8 @@ def main(argv=None):
     raw = sensor.capture(flux, prof, rng)
     prof_x = prof.replace(crosstalk=synthetic_calibration(prof, a.knots))
     res = {"width": w, "height": h, "scene": scene_name, "threads": int(get_num_threads()),
-           "cpus": os.cpu_count(), "knots": a.knots, "ms": {}}
+           "cpus": os.cpu_count(), "knots": a.knots, "statistic": "min" if a.min else "median", "ms": {},
+           "load_avg_1min": os.getloadavg()[0]}
     ms = res["ms"]
 
     def rec(name, t):
@@ -125,7 +138,8 @@ def main(argv=None):
     t_big = timeit(lambda: np.copyto(bigd, big), 3)
     res["copy_gbps"] = round(2 * big.nbytes / (t_big * 1e-3) / 1e9, 2)   # read + write
     del big, bigd
-    print(f"{w}x{h} scene={scene_name} numba threads={res['threads']} cpus={res['cpus']}")
+    print(f"{w}x{h} scene={scene_name} numba threads={res['threads']} cpus={res['cpus']} "
+          f"statistic={res['statistic']} load={res['load_avg_1min']:.1f}")
     print(f"  {'copy (anchor)':<28s} {ms['copy']:9.2f} ms   copy bandwidth {res['copy_gbps']} GB/s")
 
     # ---- validity -----------------------------------------------------------------------------------
@@ -159,12 +173,12 @@ def main(argv=None):
         lo, hi = validity.bounds(v1, s1)
         return k, lo, hi
     rec("prep_numpy (mask+bounds)", timeit(prep_numpy, a.repeat))
-    if hasattr(validity, "known_bounds"):
+    if hasattr(validity, "prepare"):
         kb = np.empty((h, w), bool)
         lob = np.empty((h, w), np.float32)
         hib = np.empty((h, w), np.float32)
-        rec("prep_fused (known_bounds)",
-            timeit(lambda: validity.known_bounds(v1, s1, known=kb, lower=lob, upper=hib), a.repeat))
+        rec("prep_fused (prepare)",
+            timeit(lambda: validity.prepare(v1, s1, known=kb, lower=lob, upper=hib), a.repeat))
     known, lower, upper = prep_numpy()
 
     methods = [("preview", "preview", None), ("nearest", "nearest", None),
@@ -188,16 +202,32 @@ def main(argv=None):
         np.copyto(vw, out, where=m)
         np.bitwise_or(sw, np.uint8(validity.RECONSTRUCTED), out=sw, where=m)
     rec("writeback_numpy", timeit(writeback, a.repeat, lambda: np.copyto(sw, s1)))
+    if hasattr(validity, "write_back"):
+        rec("writeback_fused", timeit(lambda: validity.write_back(vw, sw, out), a.repeat,
+                                      lambda: np.copyto(sw, s1)))
+    if hasattr(reconstruction, "reconstruct_frame"):
+        # the element's whole frame path (prepare + in-place preview + write-back)
+        def frame_setup():
+            np.copyto(vw, v1)
+            np.copyto(sw, s1)
+        for name, method, preset in methods:
+            if name in skip or method == "fse" and name != "fse_fast":
+                continue
+            kw = {} if preset is None else {"preset": preset}
+            rec(f"frame_{name}", timeit(lambda m=method, kw=kw: reconstruction.reconstruct_frame(vw, sw, method=m, **kw),
+                                        a.repeat if method != "fse" else a.fse_repeat, frame_setup))
 
     # ---- tone mapping --------------------------------------------------------------------------------
     img8 = np.empty((h, w), np.uint8)
     rec("tonemap", timeit(lambda: tonemap.log_tonemap(out, prof.white, out=img8), a.repeat))
 
     chain = ["classify", "crosstalk_lut", "prep_numpy (mask+bounds)", "preview", "writeback_numpy", "tonemap"]
+    if "frame_preview" in ms:
+        chain = ["classify", "crosstalk_lut", "frame_preview", "tonemap"]
     if all(c in ms for c in chain):
         tot = sum(ms[c] for c in chain)
         res["chain_preview_ms"] = round(tot, 2)
-        print(f"  chain with preview (sum of the stages above): {tot:.1f} ms = {1e3 / tot:.1f} frames/s")
+        print(f"  chain with preview ({' + '.join(chain)}): {tot:.1f} ms = {1e3 / tot:.1f} frames/s")
     if a.json:
         Path(a.json).write_text(json.dumps(res, indent=2) + "\n")
     return res

@@ -303,6 +303,23 @@ def load_calibration(entry: dict, base_dir, shape) -> CrosstalkCalibration:
 # Correction kernels (numba)
 # ======================================================================================================
 
+@njit(cache=True, nogil=True, inline="always")
+def _q_threshold(m, qs, qo):
+    """Smallest stored code q (0..65536) with float32(q) * qs - qo >= m, for finite m: the knots whose
+    code is below m are exactly those with q below it (the float expression is monotone in q)."""
+    t = (m + qo) / qs
+    qt = np.int32(0)
+    if t >= np.float32(65536.0):
+        qt = np.int32(65536)
+    elif t > np.float32(0.0):
+        qt = np.int32(math.ceil(t))
+    while qt > 0 and np.float32(qt - 1) * qs - qo >= m:
+        qt -= 1
+    while qt < 65536 and np.float32(qt) * qs - qo < m:
+        qt += 1
+    return qt
+
+
 @njit(cache=True, nogil=True)
 def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
     """Flux of code m (above black) for pixel (y, x); returns (flux, ok). ok False: above the calibrated
@@ -318,10 +335,12 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
     last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
     if m <= last_c:
         # first knot k >= 1 with code >= m: codes increase, so it is 1 + the number of knots 1..n-2
-        # below m (a branch-free count over the pixel's knots vectorises; a binary search mispredicts)
+        # below m, counted branch-free on the stored integers against the integer threshold of m (the
+        # count vectorises; a binary search mispredicts)
+        qt = _q_threshold(m, qs, qo)
         lo = 1
         for k in range(1, n - 1):
-            lo += 1 if np.float32(codes_q[y, x, k]) * qs - qo < m else 0
+            lo += 1 if np.int32(codes_q[y, x, k]) < qt else 0
         c = np.float32(codes_q[y, x, lo]) * qs - qo
         pc = np.float32(codes_q[y, x, lo - 1]) * qs - qo
         f = np.float32(knot_flux[lo])
