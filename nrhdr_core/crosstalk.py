@@ -303,23 +303,6 @@ def load_calibration(entry: dict, base_dir, shape) -> CrosstalkCalibration:
 # Correction kernels (numba)
 # ======================================================================================================
 
-@njit(cache=True, nogil=True, inline="always")
-def _q_threshold(m, qs, qo):
-    """Smallest stored code q (0..65536) with float32(q) * qs - qo >= m, for finite m: the knots whose
-    code is below m are exactly those with q below it (the float expression is monotone in q). q0 =
-    floor((m + qo) / qs) is within a small fraction of a step of the threshold (qs ~ 0.07 DN, float32
-    error ~1e-3 DN), so the threshold is q0 + [expr(q0) < m] + [expr(q0 + 1) < m], branch-free."""
-    t = (m + qo) / qs
-    q0 = np.int32(0)
-    if t >= np.float32(65535.0):
-        q0 = np.int32(65535)
-    elif t > np.float32(0.0):
-        q0 = np.int32(t)
-    a = 1 if np.float32(q0) * qs - qo < m else 0
-    b = 1 if np.float32(q0 + 1) * qs - qo < m else 0
-    return min(q0 + a + b, np.int32(65536))
-
-
 @njit(cache=True, nogil=True)
 def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
     """Flux of code m (above black) for pixel (y, x); returns (flux, ok). ok False: above the calibrated
@@ -334,16 +317,15 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
             / max(c1 - c0, np.float32(1e-3)), True
     last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
     if m <= last_c:
-        # first knot k >= 1 with code >= m: a branch-free binary search (the loop count depends only on
-        # n, the step is a select) on the stored integers against the integer threshold of m
-        qt = _q_threshold(m, qs, qo)
-        base = 1
-        ln = n - 1
-        while ln > 1:
-            half = ln >> 1
-            base = base + half if np.int32(codes_q[y, x, base + half]) < qt else base
-            ln -= half
-        lo = base + (1 if np.int32(codes_q[y, x, base]) < qt else 0)
+        # binary search: first knot k >= 1 with code >= m
+        lo = 1
+        hi = n - 1
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if np.float32(codes_q[y, x, mid]) * qs - qo >= m:
+                hi = mid
+            else:
+                lo = mid + 1
         c = np.float32(codes_q[y, x, lo]) * qs - qo
         pc = np.float32(codes_q[y, x, lo - 1]) * qs - qo
         f = np.float32(knot_flux[lo])
@@ -538,7 +520,7 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
             calib.knot_flux, clip_rel, calib.clip_flux, nd)
     if mode == "lut":
-        # per-pixel: each pixel reads only its own value, so the source is the frame itself (no copy)
+        # per pixel: each pixel reads only its own value, so the source is the frame itself (no copy)
         _correct_kernel(values, state, values, values, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha,
                         0, _NO_SPILL, np.float32(np.inf))
         return values, state
