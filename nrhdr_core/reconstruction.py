@@ -93,9 +93,12 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
 
 
 def _apply_bounds(out, miss, lower, upper):
-    if lower is not None:
+    if lower is not None and upper is not None:
+        _clamp_missing2(out, miss, np.ascontiguousarray(lower, dtype=np.float32),
+                        np.ascontiguousarray(upper, dtype=np.float32))
+    elif lower is not None:
         _clamp_missing(out, miss, np.ascontiguousarray(lower, dtype=np.float32), True)
-    if upper is not None:
+    elif upper is not None:
         _clamp_missing(out, miss, np.ascontiguousarray(upper, dtype=np.float32), False)
     return out
 
@@ -179,6 +182,21 @@ def _copy_missing(res, k, out):
     for y in prange(h):
         for x in range(w):
             out[y, x] = out[y, x] if k[y, x] else res[y, x]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _clamp_missing2(out, miss, lo, hi):
+    """`_clamp_missing` with both bounds in one pass (lower first, then upper)."""
+    h, w = out.shape
+    for y in prange(h):
+        for x in range(w):
+            r = out[y, x]
+            m = miss[y, x]
+            a = lo[y, x]
+            r = a if (m and a > r) else r
+            b = hi[y, x]
+            r = b if (m and b < r) else r
+            out[y, x] = r
 
 
 @njit(cache=True, nogil=True, parallel=True)
