@@ -672,12 +672,54 @@ def _preview(vals, k, out=None):
     pv, pw, hs, ws, off, zv, kf = _pyramid(h, w)
     levels = hs.shape[0] - 1
     _pp_pull0(vals, k, zv, kf, pv, pw, off[1], hs[1], ws[1])
-    for lv in range(1, levels):
+    # big levels in parallel regions, the small ones (< _PP_SERIAL pixels) in one serial call: a parallel
+    # region per tiny level costs more than its work, and much more when the cores are busy
+    small = 1
+    while small < levels and hs[small] * ws[small] >= _PP_SERIAL:
+        small += 1
+    for lv in range(1, small):
         _pp_pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
-    for lv in range(levels - 1, 0, -1):
+    _pp_small_levels(pv, pw, hs, ws, off, small, levels)
+    for lv in range(small - 1, 0, -1):
         _pp_push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
     _pp_fill(zv, kf, pv, off[1], ws[1], out)
     return out
+
+
+_PP_SERIAL = 1 << 16
+
+
+@njit(cache=True, nogil=True)
+def _pp_small_levels(pv, pw, hs, ws, off, first, levels):
+    """Pull from level `first` to the top and push back down to `first`, serially (same arithmetic as
+    `_pp_pull` / `_pp_push`)."""
+    one = np.float32(1.0)
+    for lv in range(first, levels):
+        o0, h0, w0 = off[lv], hs[lv], ws[lv]
+        o1, h1, w1 = off[lv + 1], hs[lv + 1], ws[lv + 1]
+        for y1 in range(h1):
+            for x1 in range(w1):
+                sv = np.float32(0.0)
+                c = np.float32(0.0)
+                for y in range(2 * y1, min(2 * y1 + 2, h0)):
+                    for x in range(2 * x1, min(2 * x1 + 2, w0)):
+                        sv += pv[o0 + y * w0 + x]
+                        c += pw[o0 + y * w0 + x]
+                if c > one:
+                    sv = sv / c
+                    c = one
+                pv[o1 + y1 * w1 + x1] = sv
+                pw[o1 + y1 * w1 + x1] = c
+    for lv in range(levels - 1, first - 1, -1):
+        o0, h0, w0 = off[lv], hs[lv], ws[lv]
+        o1, w1 = off[lv + 1], ws[lv + 1]
+        for y in range(h0):
+            for x in range(w0):
+                i0 = o0 + y * w0 + x
+                if pw[i0] < one:
+                    i1 = o1 + (y // 2) * w1 + x // 2
+                    pv[i0] = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
+                pw[i0] = one
 
 
 def warmup(method: str | None = None) -> None:

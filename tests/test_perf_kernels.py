@@ -31,7 +31,7 @@ def threads():
 
 
 # ---- pull-push -------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("shape", SHAPES + [(64, 64), (101, 77)])
+@pytest.mark.parametrize("shape", SHAPES + [(64, 64), (101, 77), (600, 480)])   # 600x480: parallel levels
 def test_preview_bit_exact_with_the_serial_reference(shape, rng, threads):
     for k in _masks(rng, shape):
         if not k.any():
