@@ -343,3 +343,17 @@ def test_fast_log_tonemap_matches_the_libm_kernel(rng):
             tonemap._log_kernel_fast(v, *args, b)
             d = np.abs(a.astype(int) - b.astype(int))
             assert d.max() <= (0 if dt == np.uint8 else 1) and (d > 0).mean() < 1e-3
+
+
+def test_import_sets_passive_openmp_wait_unless_the_user_chose():
+    """Spinning OpenMP workers steal one of the two cores between parallel regions (docs/BENCHMARKS.md)."""
+    import os
+    import subprocess
+    import sys
+    code = "import os, nrhdr_core; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "PASSIVE"
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "ACTIVE"
