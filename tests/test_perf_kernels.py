@@ -357,3 +357,32 @@ def test_import_sets_passive_openmp_wait_unless_the_user_chose():
     env["OMP_WAIT_POLICY"] = "ACTIVE"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "ACTIVE"
+
+
+def test_crosstalk_lut_walk_equals_the_mode0_correction_kernel(rng, threads):
+    """The lut pass (knot search walking from the row's previous knot) against `_correct_kernel` in mode 0
+    (binary search) on a smooth frame with noise, every state, odd size."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import stages
+    h, w = 37, 131
+    prof = profiles.default(h, w)
+    px = prof.replace(crosstalk=stages.synthetic_calibration(prof, 24, seed=3))
+    cal = px.crosstalk
+    top = float(prof.clip_code) - float(prof.black_level)
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = np.exp(np.log(top * 3) * (xx / w)) * (1 + 0.1 * rng.standard_normal((h, w)))
+    v0 = np.where(prof.mask, base, base / prof.nd).astype(np.float32) * np.where(prof.mask, prof.nd, 1).astype(np.float32)
+    st0 = rng.choice(np.array([V.VALID, V.CLIPPED, V.DARK, V.DISCARDED], np.uint8), (h, w), p=[.7, .1, .1, .1])
+    st0 |= np.where(prof.mask, V.ATTENUATED, 0).astype(np.uint8)
+    args = (cal.codes_q, cal.n_knots, np.float32(cal.qscale), np.float32(cal.qoffset), cal.knot_flux,
+            np.float32(float(cal.clip_code) - float(cal.black_level)), cal.clip_flux, float(prof.nd))
+    ref_v, ref_s = v0.copy(), st0.copy()
+    crosstalk._correct_kernel(ref_v, ref_s, v0.copy(), v0.copy(), *args, 0, crosstalk.DIRS, cal.sig_e, cal.sigma,
+                              cal.alpha, 0, np.zeros((8, 1, 1), np.float32), np.float32(np.inf))
+    for t in threads:
+        numba.set_num_threads(t)
+        vv, ss = v0.copy(), st0.copy()
+        crosstalk.correct(vv, ss, px, mode="lut")
+        assert np.array_equal(vv, ref_v) and np.array_equal(ss, ref_s)
