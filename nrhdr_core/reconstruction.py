@@ -730,9 +730,22 @@ def warmup(method: str | None = None) -> None:
     k[1, 1] = False
     if method in (None, "preview"):
         reconstruct(v, k, method="preview")
+        # the parallel pyramid levels (used from 512 x 512 on) and the element's frame path with bounds
+        pv = np.zeros(8, np.float32)
+        _pp_pull(pv, pv.copy(), 0, 2, 2, 4, 1, 1)
+        _pp_push(pv, pv.copy(), 0, 2, 2, 4, 1)
+    if method in (None, "nearest"):
+        reconstruct(v, k, method="nearest")
     if method in (None, "fse"):
         from . import fse
         fse.warmup()
+    if method is not None:
+        from . import validity
+        state = np.zeros((4, 4), np.uint8)
+        state[1, 1] = validity.CLIPPED
+        state[2, 2] = validity.DARK
+        reconstruct_frame(v.copy(), state, method=method, preset="preview", use_bounds=True)
+        reconstruct_frame(v.copy(), state.copy(), method=method, preset="preview", use_bounds=False)
 
 
 # ---- whole-frame entry point for elements (issue 7 item 3): no per-frame allocation --------------------
