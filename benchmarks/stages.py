@@ -146,7 +146,7 @@ def main(argv=None):
     bigd = np.empty_like(big)
     t_big = timeit(lambda: np.copyto(bigd, big), 3)
     res["copy_gbps"] = round(2 * big.nbytes / (t_big * 1e-3) / 1e9, 2)   # read + write
-    del big, bigd
+    big = bigd = None   # free 512 MB
     print(f"{w}x{h} scene={scene_name} numba threads={res['threads']} cpus={res['cpus']} "
           f"statistic={res['statistic']} clock={res['clock']} load={res['load_avg_1min']:.1f}")
     print(f"  {'copy (anchor)':<28s} {ms['copy']:9.2f} ms   copy bandwidth {res['copy_gbps']} GB/s")
