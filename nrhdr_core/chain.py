@@ -8,10 +8,9 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
 - nrvalidity:    ``validity.classify(raw, profile, mode=mode, l_min=l_min, dark_policy=dark_policy)`` (l_min None =
   the profile's)
 - nrcrosstalk:   ``crosstalk.correct(values, state, crosstalk_profile, mode)`` unless mode is 'off'
-- nrreconstruct: ``missing = validity.missing_mask(state)``; if any: ``known = validity.known_mask(state)``,
-  ``lower, upper = validity.bounds(values, state)`` (use_bounds), ``out = reconstruction.reconstruct(values,
-  known, method=, preset=, lower=, upper=, noisy=, noise=)`` (noisy: the NOISY pixels of dark-policy=weighted,
-  fused by the profile's noise model), ``values[missing] = out``, ``state[missing] |= RECONSTRUCTED``
+- nrreconstruct: ``reconstruction.reconstruct_frame(values, state, method=, preset=, use_bounds=,
+  noise=profile)`` (known mask and bounds in one pass, reconstruction, NOISY pixels fused with the
+  profile's noise model, missing pixels written back with the RECONSTRUCTED bit)
 - nrexrsink:     ``io.write_exr(path, values, state)``
 - nrtonemap (normalise=caps/fixed): ``tonemap.log_tonemap(values, white, exposure_stops=, contrast=)``
   with white = the profile's white (the caps' field) unless given.
@@ -78,20 +77,9 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
             values[...] = v2
         if s2 is not state:
             state[...] = s2
-    missing = validity.missing_mask(state)
-    if np.count_nonzero(missing):
-        known = validity.known_mask(state)
-        lower = upper = None
-        if s.use_bounds:
-            lower, upper = validity.bounds(values, state)
-        noisy = validity.noisy_mask(state)              # nrreconstruct._noisy_inputs
-        noisy, noise = (noisy, profile) if noisy.any() else (None, None)
-        out = reconstruction.reconstruct(values, known, method=s.method, preset=s.preset, lower=lower,
-                                         upper=upper, noisy=noisy, noise=noise)
-        if out.shape != values.shape:
-            raise ValueError(f"reconstruction returned shape {out.shape}, expected {values.shape}")
-        np.copyto(values, out, where=missing)          # measured pixels untouched
-        np.bitwise_or(state, np.uint8(validity.RECONSTRUCTED), out=state, where=missing)
+    # nrreconstruct's own frame path (one function, so batch and the element give the same bits)
+    reconstruction.reconstruct_frame(values, state, method=s.method, preset=s.preset,
+                                     use_bounds=s.use_bounds, noise=profile)
     return values, state
 
 

@@ -353,6 +353,85 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
 
 
 @njit(cache=True, nogil=True)
+def _lut_eval_walk(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m, g):
+    """`_lut_eval` with the knot found by walking from the guess g (the previous pixel's knot of the same
+    kind in the row: neighbours have similar codes) instead of a binary search; the bracket test is
+    exact, so the result is identical. Returns (flux, ok, knot)."""
+    if n < 2:
+        return np.float32(0.0), False, g
+    c0 = np.float32(codes_q[y, x, 0]) * qs - qo
+    last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
+    if m <= c0 or m > last_c:
+        f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m)
+        return f, ok, g
+    if g < 1:
+        g = 1
+    if g > n - 1:
+        g = n - 1
+    # first knot k >= 1 with code >= m (exists: the last one)
+    pc = np.float32(codes_q[y, x, g - 1]) * qs - qo
+    c = np.float32(codes_q[y, x, g]) * qs - qo
+    if g > 1 and pc >= m:
+        while g > 1:
+            g -= 1
+            c = pc
+            pc = np.float32(codes_q[y, x, g - 1]) * qs - qo
+            if pc < m:
+                break
+    elif c < m:
+        while True:
+            g += 1
+            pc = c
+            c = np.float32(codes_q[y, x, g]) * qs - qo
+            if c >= m:
+                break
+    f = np.float32(knot_flux[g])
+    pf = np.float32(knot_flux[g - 1])
+    return pf + (m - pc) * (f - pf) / max(c - pc, np.float32(1e-3)), True, g
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _lut_kernel(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, nd):
+    """`lut` mode in place (the mode-0 path of `_correct_kernel`, same results): rows in parallel, each
+    row remembering the last knot of its attenuated, regular and dark pixels."""
+    h, w = values.shape
+    ndf = np.float32(nd)
+    for y in prange(h):
+        g_att = 1
+        g_reg = 1
+        g_dark = 1
+        for x in range(w):
+            st = state[y, x]
+            reason = st & 0x0F
+            if reason == _CLIPPED:
+                cf = clip_flux[y, x]
+                if cf == cf and cf < values[y, x]:
+                    values[y, x] = cf
+                continue
+            if reason != _VALID and reason != _DARK:
+                continue
+            att = (st & _ATT) != 0
+            s = ndf if att else np.float32(1.0)
+            # separate guesses: dark (upper-bound) pixels sit far below the valid ones in the table
+            g = g_dark if reason == _DARK else (g_att if att else g_reg)
+            f, ok, g = _lut_eval_walk(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel,
+                                      clip_flux[y, x], values[y, x] / s, g)
+            if reason == _DARK:
+                g_dark = g
+            elif att:
+                g_att = g
+            else:
+                g_reg = g
+            if reason == _VALID:
+                if ok:
+                    values[y, x] = f
+                else:
+                    state[y, x] = (st & 0xF0) | _UNCAL
+            elif ok and f > 0:
+                values[y, x] = f
+
+
+@njit(cache=True, nogil=True)
 def _spill_vec(sig_e, sigma, e, out):
     """out[d] = sigma_d(e) for the 8 directions with a single table search: piecewise linear in the table,
     linear through 0 below it, its last slope above it."""
@@ -530,13 +609,13 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
                          f"{calib.shape[1]}x{calib.shape[0]}")
     nd = float(profile.nd)
     clip_rel = np.float32(float(calib.clip_code) - float(calib.black_level))
-    src = values.copy()
     args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
             calib.knot_flux, clip_rel, calib.clip_flux, nd)
     if mode == "lut":
-        _correct_kernel(values, state, src, src, *args, 0, DIRS, calib.sig_e, calib.sigma, calib.alpha, 0,
-                        np.zeros((8, 1, 1), np.float32), np.float32(np.inf))
+        # per pixel, in place (no copy of the frame); knot search walks from the row's previous knot
+        _lut_kernel(values, state, *args)
         return values, state
+    src = values.copy()
     # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
     state0 = state.copy()
     lut = np.empty_like(values)

@@ -1315,14 +1315,20 @@ def _fill_bounded(out, miss, lower, upper):
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _stats(v, k):
-    nk = 0
-    kmin = np.inf
-    kmax = -np.inf
-    minpos = np.inf
+    """(known count, min, max, smallest positive known value) in one parallel pass (per-row partials,
+    reduced in row order: the result does not depend on the thread count)."""
     h, w = v.shape
-    for y in range(h):
+    r_n = np.zeros(h, np.int64)
+    r_min = np.empty(h, np.float64)
+    r_max = np.empty(h, np.float64)
+    r_pos = np.empty(h, np.float64)
+    for y in prange(h):
+        nk = 0
+        kmin = np.inf
+        kmax = -np.inf
+        minpos = np.inf
         for x in range(w):
             # branch-free (random masks): selects
             kk = k[y, x]
@@ -1331,17 +1337,30 @@ def _stats(v, k):
             kmin = min(kmin, a if kk else np.inf)
             kmax = max(kmax, a if kk else -np.inf)
             minpos = min(minpos, a if (kk and a > 0.0) else np.inf)
+        r_n[y] = nk
+        r_min[y] = kmin
+        r_max[y] = kmax
+        r_pos[y] = minpos
+    nk = 0
+    kmin = np.inf
+    kmax = -np.inf
+    minpos = np.inf
+    for y in range(h):
+        nk += r_n[y]
+        kmin = min(kmin, r_min[y])
+        kmax = max(kmax, r_max[y])
+        minpos = min(minpos, r_pos[y])
     if minpos == np.inf:
         minpos = 0.0
     return nk, kmin, kmax, minpos
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _prep(v, k, logd, floor):
     h, w = v.shape
-    work = np.zeros((h, w), np.float32)
-    state = np.zeros((h, w), np.uint8)
-    for y in range(h):
+    work = np.empty((h, w), np.float32)
+    state = np.empty((h, w), np.uint8)
+    for y in prange(h):
         for x in range(w):
             if k[y, x]:
                 state[y, x] = 1
@@ -1349,15 +1368,19 @@ def _prep(v, k, logd, floor):
                     work[y, x] = np.float32(math.log2(max(v[y, x], floor)))
                 else:
                     work[y, x] = v[y, x]
+            else:
+                state[y, x] = 0
+                work[y, x] = 0.0
     return work, state
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _finish(out, work, state, logd):
     """Write reconstructed pixels (state 2) of the working image into out; count pixels left."""
     h, w = out.shape
     left = 0
-    for y in range(h):
+    for y in prange(h):
+        c = 0
         for x in range(w):
             s = state[y, x]
             if s == 2:
@@ -1366,7 +1389,8 @@ def _finish(out, work, state, logd):
                 else:
                     out[y, x] = work[y, x]
             elif s == 0:
-                left += 1
+                c += 1
+        left += c
     return left
 
 

@@ -12,10 +12,11 @@ too-dark pixel at most `upper`), and cost nothing when no pixel is missing.
 """
 from __future__ import annotations
 
+import threading
 import warnings
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 METHODS = ("fse", "linear", "nearest", "preview")
 
@@ -35,8 +36,7 @@ def _validate(values, known, lower, upper):
         raise ValueError(f"known must be a boolean array, got {k.dtype}")
     if not np.issubdtype(v.dtype, np.number) or np.iscomplexobj(v):
         raise ValueError(f"values must be real numbers, got {v.dtype}")
-    vk = v[k]
-    if vk.size and not np.isfinite(vk).all():
+    if _nonfinite_known(v, k):
         raise ValueError("values contain NaN or Inf at known pixels; reconstruction needs finite data")
     out = []
     for name, b in (("lower", lower), ("upper", upper)):
@@ -46,14 +46,14 @@ def _validate(values, known, lower, upper):
         b = np.asarray(b, dtype=np.float32)
         if b.shape != v.shape:
             raise ValueError(f"{name} bound shape {b.shape} differs from values shape {v.shape}")
-        if np.isinf(b).any():
+        if _any_inf(b):
             raise ValueError(f"{name} bound contains Inf; use NaN for 'no bound'")
         out.append(b)
     return v, k, out[0], out[1]
 
 
 def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lower=None, upper=None,
-                noisy=None, noise=None, **params) -> np.ndarray:
+                noisy=None, noise=None, out=None, **params) -> np.ndarray:
     """Fill the pixels where `known` is False; returns float32 (H, W), known pixels bit-exact.
 
     values: float (H, W) in any scale (8-bit data or linear HDR); known: bool (H, W);
@@ -63,6 +63,8 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     dark policy "weighted") and the noise model (anything with gain, read_noise, nd: a CameraProfile);
     they are reconstructed like the other missing pixels, then fused with their measurement by inverse
     variance (`fuse_noisy`, issue 8).
+    out: optional float32 C-contiguous (H, W) array to write the result into (may be `values` itself:
+    in place, e.g. mapped frame memory), returned.
     Missing pixels are returned finite, within [min(known min, 0), max(known max, lower bound)] (no
     blow-up, no negative value from non-negative data; issue 8) and within their bounds.
     With no known pixel the result is the bounds (lower where there is one, else upper, else 0) and a
@@ -75,34 +77,42 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
             raise ValueError("noisy pixels need a noise model (noise=: gain, read_noise, nd, e.g. the profile)")
         if np.shape(noisy) != v.shape:
             raise ValueError(f"noisy mask shape {np.shape(noisy)} differs from values shape {v.shape}")
-    out = np.array(v, dtype=np.float32, copy=True)
-    miss = ~k
-    if not miss.any():
+        noisy = np.asarray(noisy, bool)
+        if not noisy.any():
+            noisy = None
+    v_meas = v
+    if noisy is not None and out is not None and np.shares_memory(out, v):
+        v_meas = np.array(v, dtype=np.float32)       # in place: keep the noisy measurements for the fusion
+    out = _output_array(v, out)
+    nk = _count_true(k)
+    if nk == k.size:
         return out
-    if not k.any():
+    miss = ~k
+    if nk == 0:
         warnings.warn("no pixel is known: the output is filled from the bounds (clipped pixels at their "
                       "lower bound, too-dark ones at their upper bound, 0 where there is none)",
                       ReconstructionWarning, stacklevel=2)
         return _fill_from_bounds(out, lower, upper)
     if method == "fse":
         from .fse import fse_reconstruct
-        out = fse_reconstruct(out, k, lower=lower, upper=upper, preset=preset, **params)
+        res = fse_reconstruct(out, k, lower=lower, upper=upper, preset=preset, **params)
     else:
         if params:
             raise ValueError(f"method {method!r} takes no parameters, got {sorted(params)}")
         if method == "preview":
-            out = _preview(out, k)
+            res = _preview(out, k, out)
         elif method == "nearest":
-            out = _nearest(out, k)
+            res = _nearest(out, k, out)
         else:
-            out = _linear(out, k)
-    out = np.asarray(out, dtype=np.float32)
-    out[k] = np.asarray(v, dtype=np.float32)[k]
-    out = _clamp_to_data(out, v, k, miss, lower)
+            res = _linear(out, k)
+    if res is not out:
+        # known pixels of `out` already hold the float32 input: take only the missing ones
+        _copy_missing(np.ascontiguousarray(res, dtype=np.float32), k, out)
+    out = _clamp_to_data(out, v_meas, k, miss, lower)
     if noisy is not None:
-        nz = np.asarray(noisy, bool) & miss
+        nz = noisy & miss
         if nz.any():
-            out = fuse_noisy(out, np.asarray(v, np.float32), k, nz, noise)
+            out = fuse_noisy(out, np.asarray(v_meas, np.float32), k, nz, noise)
     return _apply_bounds(out, miss, lower, upper)
 
 
@@ -122,7 +132,6 @@ def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int
     return out
 
 
-from numba import prange  # noqa: E402  (fuse_noisy kernel; kept beside it to keep merges local)
 
 
 @njit(cache=True, nogil=True)
@@ -241,19 +250,230 @@ def _clamp_kernel(out, v, k, lower, use_lower):
 
 
 def _apply_bounds(out, miss, lower, upper):
-    if lower is not None:
-        m = miss & ~np.isnan(lower)
-        out[m] = np.maximum(out[m], lower[m])
-    if upper is not None:
-        m = miss & ~np.isnan(upper)
-        out[m] = np.minimum(out[m], upper[m])
+    if lower is not None and upper is not None:
+        _clamp_missing2(out, miss, np.ascontiguousarray(lower, dtype=np.float32),
+                        np.ascontiguousarray(upper, dtype=np.float32))
+    elif lower is not None:
+        _clamp_missing(out, miss, np.ascontiguousarray(lower, dtype=np.float32), True)
+    elif upper is not None:
+        _clamp_missing(out, miss, np.ascontiguousarray(upper, dtype=np.float32), False)
     return out
 
 
-def _nearest(out, k):
+# ---- per-frame passes of the dispatcher as parallel numba loops (no fancy-indexing temporaries) ----------
+
+def _output_array(v, out):
+    """`out` (checked) holding `v` as float32, or a new float32 copy of `v`."""
+    if out is None:
+        return np.array(v, dtype=np.float32, copy=True, order="C")
+    if not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != v.shape \
+            or not out.flags.c_contiguous or not out.flags.writeable:
+        raise ValueError(f"out must be a writeable C-contiguous float32 array of shape {v.shape}")
+    if not (out.__array_interface__["data"][0] == v.__array_interface__["data"][0] and v.dtype == out.dtype
+            and v.strides == out.strides):
+        np.copyto(out, v, casting="unsafe")
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _count_true_kernel(k):
+    h, w = k.shape
+    n = 0
+    for y in prange(h):
+        c = 0
+        for x in range(w):
+            c += 1 if k[y, x] else 0
+        n += c
+    return n
+
+
+def _count_true(k) -> int:
+    return int(_count_true_kernel(k.reshape(1, -1) if k.ndim != 2 else k))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _nonfinite_known_kernel(v, k):
+    h, w = v.shape
+    n = 0
+    for y in prange(h):
+        c = 0
+        for x in range(w):
+            a = v[y, x]
+            c += 1 if (k[y, x] and not (a - a == 0)) else 0
+        n += c
+    return n
+
+
+def _nonfinite_known(v, k) -> bool:
+    """True if a known pixel is NaN or Inf."""
+    if v.dtype.kind in "iub":
+        return False
+    if v.dtype in (np.float32, np.float64):
+        return bool(_nonfinite_known_kernel(v, k))
+    vk = v[k]
+    return bool(vk.size and not np.isfinite(vk).all())
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _any_inf_kernel(b):
+    h, w = b.shape
+    n = 0
+    for y in prange(h):
+        c = 0
+        for x in range(w):
+            a = b[y, x]
+            c += 1 if (a - a != a - a and a == a) else 0
+        n += c
+    return n
+
+
+def _any_inf(b) -> bool:
+    if b.ndim == 2:
+        return bool(_any_inf_kernel(b))
+    return bool(np.isinf(b).any())
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _copy_missing(res, k, out):
+    h, w = out.shape
+    for y in prange(h):
+        for x in range(w):
+            out[y, x] = out[y, x] if k[y, x] else res[y, x]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _clamp_missing2(out, miss, lo, hi):
+    """`_clamp_missing` with both bounds in one pass (lower first, then upper)."""
+    h, w = out.shape
+    for y in prange(h):
+        for x in range(w):
+            r = out[y, x]
+            m = miss[y, x]
+            a = lo[y, x]
+            r = a if (m and a > r) else r
+            b = hi[y, x]
+            r = b if (m and b < r) else r
+            out[y, x] = r
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _clamp_missing(out, miss, b, is_lower):
+    """out = max(out, b) (is_lower) or min(out, b) where miss and b is not NaN (NaN out stays NaN)."""
+    h, w = out.shape
+    for y in prange(h):
+        for x in range(w):
+            r = out[y, x]
+            bb = b[y, x]
+            if is_lower:
+                r = bb if (miss[y, x] and bb > r) else r
+            else:
+                r = bb if (miss[y, x] and bb < r) else r
+            out[y, x] = r
+
+
+def _nearest_reference(out, k):
+    """scipy's exact Euclidean distance transform with indices (the previous release; tests compare)."""
     from scipy import ndimage
     idx = ndimage.distance_transform_edt(~k, return_distances=False, return_indices=True)
     return out[idx[0], idx[1]]
+
+
+def _nearest(out, k, dst=None):
+    """Value of the nearest known pixel (exact Euclidean distance; ties may pick another pixel at the
+    same distance than scipy), by a separable distance transform with argmin tracking (Felzenszwalb &
+    Huttenlocher 2012): nearest known row per column, then the lower envelope of parabolas per row.
+    Written into `dst` (may be `out`: known pixels are only read) or a new array."""
+    vals = np.ascontiguousarray(out, dtype=np.float32)
+    k = np.ascontiguousarray(k)
+    if dst is None:
+        dst = vals.copy()
+    h, w = vals.shape
+    row = _nn_scratch(h, w)
+    _nn_columns(k, row)
+    _nn_rows(vals, k, row, dst)
+    return dst
+
+
+_NN = threading.local()
+
+
+def _nn_scratch(h, w):
+    cache = getattr(_NN, "cache", None)
+    if cache is None or cache.shape != (h, w):
+        cache = _NN.cache = np.empty((h, w), np.int32)
+    return cache
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _nn_columns(known, row):
+    """row[y, x] = row of the nearest known pixel in column x (-1: the column has none); column blocks
+    of 64 in parallel, rows in memory order."""
+    h, w = known.shape
+    nb = (w + 63) // 64
+    for b in prange(nb):
+        x0 = b * 64
+        x1 = min(w, x0 + 64)
+        below = np.empty(x1 - x0, np.int32)
+        for x in range(x0, x1):
+            row[0, x] = 0 if known[0, x] else -1
+        for y in range(1, h):
+            for x in range(x0, x1):
+                row[y, x] = y if known[y, x] else row[y - 1, x]
+        for x in range(x0, x1):
+            below[x - x0] = -1
+        for y in range(h - 1, -1, -1):
+            for x in range(x0, x1):
+                if known[y, x]:
+                    below[x - x0] = y
+                bl = below[x - x0]
+                up = row[y, x]
+                if bl >= 0 and (up < 0 or bl - y < y - up):
+                    row[y, x] = bl
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _nn_rows(vals, known, row, out):
+    """Per row: lower envelope of the parabolas (x - q)^2 + (y - row[y, q])^2 over the columns q that
+    have a known pixel; each missing pixel takes the value at its minimiser."""
+    h, w = vals.shape
+    nch = min(h, 64)
+    for c in prange(nch):
+        v = np.empty(w, np.int64)
+        z = np.empty(w + 1, np.float64)
+        f = np.empty(w, np.float64)
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            kk = -1
+            for q in range(w):
+                r = row[y, q]
+                if r < 0:
+                    continue
+                f[q] = np.float64((y - r) * (y - r))
+                if kk < 0:
+                    kk = 0
+                    v[0] = q
+                    z[0] = -np.inf
+                    z[1] = np.inf
+                    continue
+                fq = f[q] + np.float64(q * q)
+                p = v[kk]
+                s = (fq - (f[p] + np.float64(p * p))) / np.float64(2 * (q - p))
+                while s <= z[kk]:
+                    kk -= 1
+                    p = v[kk]
+                    s = (fq - (f[p] + np.float64(p * p))) / np.float64(2 * (q - p))
+                kk += 1
+                v[kk] = q
+                z[kk] = s
+                z[kk + 1] = np.inf
+            if kk < 0:
+                continue
+            j = 0
+            for x in range(w):
+                while z[j + 1] < x:
+                    j += 1
+                if not known[y, x]:
+                    p = v[j]
+                    out[y, x] = vals[row[y, p], p]
 
 
 @njit(cache=True, nogil=True)
@@ -402,7 +622,8 @@ def _fill_3x3(vals, known, coarse, out):
             out[y, x] = acc / wsum if wsum > 0 else coarse[y, x]
 
 
-def _preview(out, k):
+def _preview_reference(out, k):
+    """The serial pull-push of the previous release (reference for the tests of `_preview`)."""
     h, w = out.shape
     levels = int(np.ceil(np.log2(max(h, w, 2))))
     coarse = np.where(k, out, np.float32(0.0)).astype(np.float32)   # NaN/Inf at missing pixels: weight 0 * NaN
@@ -410,6 +631,252 @@ def _preview(out, k):
     res = np.empty_like(coarse)
     _fill_3x3(out.astype(np.float32), k, coarse, res)
     return res
+
+
+# ---- pull-push at memory speed (issue 7 item 3) ---------------------------------------------------------
+# Same arithmetic as `_pull_push` + `_fill_3x3` (kept as the reference; tests compare bit for bit), but
+# parallel over rows, float32, level 0 never copied (pulled straight from the values and the known mask,
+# filled straight into the output, in place when out is values), and the coarse levels in a pyramid
+# allocated once per frame shape and thread. With 0/1 input weights every level's capped weight is 0 or 1,
+# so a push only fills empty cells with their parent's value.
+
+_PYR = threading.local()
+
+
+def _pyramid(h: int, w: int):
+    """(pv, pw, hs, ws, off, zv, kf): flat float32 value/weight storage of levels 1..L (level l at
+    off[l]) and level 0 as zero-filled values and 0/1 weights (H, W), cached per shape in thread-local
+    storage (reused frame after frame, never shared between threads)."""
+    key = (h, w)
+    cache = getattr(_PYR, "cache", None)
+    if cache is None:
+        cache = _PYR.cache = {}
+    p = cache.get(key)
+    if p is None:
+        levels = int(np.ceil(np.log2(max(h, w, 2))))
+        hs = np.empty(levels + 1, np.int64)
+        ws = np.empty(levels + 1, np.int64)
+        off = np.zeros(levels + 2, np.int64)
+        hs[0], ws[0] = h, w
+        for lv in range(levels):
+            hs[lv + 1] = (hs[lv] + 1) // 2
+            ws[lv + 1] = (ws[lv] + 1) // 2
+        for lv in range(1, levels + 1):
+            off[lv + 1] = off[lv] + hs[lv] * ws[lv]
+        n = max(int(off[levels + 1]), 1)
+        p = (np.zeros(n, np.float32), np.zeros(n, np.float32), hs, ws, off,
+             np.zeros((h, w), np.float32), np.zeros((h, w), np.float32))
+        if len(cache) > 4:
+            cache.clear()
+        cache[key] = p
+    return p
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _pp_pull0(vals, known, zv, kf, pv, pw, o1, h1, w1):
+    """Level 0 as zero-filled values zv and 0/1 weights kf; level 1 = capped 2 x 2 sums of them
+    (summation order of `_pull_push`)."""
+    h, w = vals.shape
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for y1 in prange(h1):
+        y = 2 * y1
+        for yy in range(y, min(y + 2, h)):
+            for x in range(w):
+                kk = known[yy, x]
+                zv[yy, x] = vals[yy, x] if kk else zero
+                kf[yy, x] = one if kk else zero
+        base = o1 + y1 * w1
+        if y + 1 < h:
+            for x1 in range(w // 2):
+                x = 2 * x1
+                s = zero + zv[y, x]
+                s = s + zv[y, x + 1]
+                s = s + zv[y + 1, x]
+                s = s + zv[y + 1, x + 1]
+                c = zero + kf[y, x]
+                c = c + kf[y, x + 1]
+                c = c + kf[y + 1, x]
+                c = c + kf[y + 1, x + 1]
+                d = c if c > one else one
+                pv[base + x1] = s / d
+                pw[base + x1] = c if c < one else one
+            if w % 2:
+                x = w - 1
+                s = zero + zv[y, x] + zv[y + 1, x]
+                c = zero + kf[y, x] + kf[y + 1, x]
+                pv[base + w // 2] = s / c if c > one else s
+                pw[base + w // 2] = c if c < one else one
+        else:
+            for x1 in range(w1):
+                s = zero
+                c = zero
+                for x in range(2 * x1, min(2 * x1 + 2, w)):
+                    s += zv[y, x]
+                    c += kf[y, x]
+                if c > one:
+                    s = s / c
+                    c = one
+                pv[base + x1] = s
+                pw[base + x1] = c
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _pp_pull(pv, pw, o0, h0, w0, o1, h1, w1):
+    one = np.float32(1.0)
+    for y1 in prange(h1):
+        for x1 in range(w1):
+            s = np.float32(0.0)
+            c = np.float32(0.0)
+            for y in range(2 * y1, min(2 * y1 + 2, h0)):
+                for x in range(2 * x1, min(2 * x1 + 2, w0)):
+                    s += pv[o0 + y * w0 + x]
+                    c += pw[o0 + y * w0 + x]
+            if c > one:
+                s = s / c
+                c = one
+            pv[o1 + y1 * w1 + x1] = s
+            pw[o1 + y1 * w1 + x1] = c
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _pp_push(pv, pw, o0, h0, w0, o1, w1):
+    one = np.float32(1.0)
+    for y in prange(h0):
+        for x in range(w0):
+            i0 = o0 + y * w0 + x
+            if pw[i0] < one:
+                i1 = o1 + (y // 2) * w1 + x // 2
+                pv[i0] = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
+            pw[i0] = one
+
+
+@njit(cache=True, nogil=True)
+def _pp_fill_px(zv, kf, pv, o1, w1, y, x, out):
+    """One pixel of `_pp_fill` with bounds checks (image border, no known neighbour)."""
+    h, w = zv.shape
+    if kf[y, x] > 0:
+        out[y, x] = zv[y, x]
+        return
+    acc = np.float32(0.0)
+    wsum = np.float32(0.0)
+    for dy in range(-1, 2):
+        yy = y + dy
+        if yy < 0 or yy >= h:
+            continue
+        for dx in range(-1, 2):
+            xx = x + dx
+            if xx < 0 or xx >= w or kf[yy, xx] == 0:
+                continue
+            wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
+            acc += wt * zv[yy, xx]
+            wsum += wt
+    out[y, x] = acc / wsum if wsum > 0 else pv[o1 + (y // 2) * w1 + x // 2]
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _pp_fill(zv, kf, pv, o1, w1, out):
+    """Missing pixels: weighted mean of the known 8-neighbours (edges 2, corners 1; order of
+    `_fill_3x3`), else the level-1 value; known pixels copied. Reads only zv/kf, so `out` may be the
+    input values. The interior loop is branch-free (vectorises); pixels without a known neighbour
+    come out NaN (0/0) there and are redone by `_pp_fill_px`."""
+    h, w = zv.shape
+    two = np.float32(2.0)
+    zero = np.float32(0.0)
+    for y in prange(h):
+        if y == 0 or y == h - 1 or w < 3:
+            for x in range(w):
+                _pp_fill_px(zv, kf, pv, o1, w1, y, x, out)
+            continue
+        for x in range(1, w - 1):
+            acc = zero + zv[y - 1, x - 1]
+            acc = acc + two * zv[y - 1, x]
+            acc = acc + zv[y - 1, x + 1]
+            acc = acc + two * zv[y, x - 1]
+            acc = acc + two * zv[y, x + 1]
+            acc = acc + zv[y + 1, x - 1]
+            acc = acc + two * zv[y + 1, x]
+            acc = acc + zv[y + 1, x + 1]
+            ws = zero + kf[y - 1, x - 1]
+            ws = ws + two * kf[y - 1, x]
+            ws = ws + kf[y - 1, x + 1]
+            ws = ws + two * kf[y, x - 1]
+            ws = ws + two * kf[y, x + 1]
+            ws = ws + kf[y + 1, x - 1]
+            ws = ws + two * kf[y + 1, x]
+            ws = ws + kf[y + 1, x + 1]
+            r = acc / ws
+            out[y, x] = zv[y, x] if kf[y, x] > zero else r
+        nan = 0
+        for x in range(1, w - 1):
+            nan += 1 if out[y, x] != out[y, x] else 0
+        if nan:
+            for x in range(1, w - 1):
+                if out[y, x] != out[y, x]:
+                    _pp_fill_px(zv, kf, pv, o1, w1, y, x, out)
+        _pp_fill_px(zv, kf, pv, o1, w1, y, 0, out)
+        _pp_fill_px(zv, kf, pv, o1, w1, y, w - 1, out)
+
+
+def _preview(vals, k, out=None):
+    """Pull-push preview of float32 `vals` (H, W) with bool `known`, written into `out` (new array when
+    None; may be `vals` itself); same result as `_preview_reference`, bit for bit."""
+    vals = np.ascontiguousarray(vals, dtype=np.float32)
+    k = np.ascontiguousarray(k)
+    if out is None:
+        out = np.empty_like(vals)
+    h, w = vals.shape
+    pv, pw, hs, ws, off, zv, kf = _pyramid(h, w)
+    levels = hs.shape[0] - 1
+    _pp_pull0(vals, k, zv, kf, pv, pw, off[1], hs[1], ws[1])
+    # big levels in parallel regions, the small ones (< _PP_SERIAL pixels) in one serial call: a parallel
+    # region per tiny level costs more than its work, and much more when the cores are busy
+    small = 1
+    while small < levels and hs[small] * ws[small] >= _PP_SERIAL:
+        small += 1
+    for lv in range(1, small):
+        _pp_pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+    _pp_small_levels(pv, pw, hs, ws, off, small, levels)
+    for lv in range(small - 1, 0, -1):
+        _pp_push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+    _pp_fill(zv, kf, pv, off[1], ws[1], out)
+    return out
+
+
+_PP_SERIAL = 1 << 16
+
+
+@njit(cache=True, nogil=True)
+def _pp_small_levels(pv, pw, hs, ws, off, first, levels):
+    """Pull from level `first` to the top and push back down to `first`, serially (same arithmetic as
+    `_pp_pull` / `_pp_push`)."""
+    one = np.float32(1.0)
+    for lv in range(first, levels):
+        o0, h0, w0 = off[lv], hs[lv], ws[lv]
+        o1, h1, w1 = off[lv + 1], hs[lv + 1], ws[lv + 1]
+        for y1 in range(h1):
+            for x1 in range(w1):
+                sv = np.float32(0.0)
+                c = np.float32(0.0)
+                for y in range(2 * y1, min(2 * y1 + 2, h0)):
+                    for x in range(2 * x1, min(2 * x1 + 2, w0)):
+                        sv += pv[o0 + y * w0 + x]
+                        c += pw[o0 + y * w0 + x]
+                if c > one:
+                    sv = sv / c
+                    c = one
+                pv[o1 + y1 * w1 + x1] = sv
+                pw[o1 + y1 * w1 + x1] = c
+    for lv in range(levels - 1, first - 1, -1):
+        o0, h0, w0 = off[lv], hs[lv], ws[lv]
+        o1, w1 = off[lv + 1], ws[lv + 1]
+        for y in range(h0):
+            for x in range(w0):
+                i0 = o0 + y * w0 + x
+                if pw[i0] < one:
+                    i1 = o1 + (y // 2) * w1 + x // 2
+                    pv[i0] = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
+                pw[i0] = one
 
 
 def warmup(method: str | None = None) -> None:
@@ -420,6 +887,12 @@ def warmup(method: str | None = None) -> None:
     k[1, 1] = False
     if method in (None, "preview"):
         reconstruct(v, k, method="preview")
+        # the parallel pyramid levels (used from 512 x 512 on) and the element's frame path with bounds
+        pv = np.zeros(8, np.float32)
+        _pp_pull(pv, pv.copy(), 0, 2, 2, 4, 1, 1)
+        _pp_push(pv, pv.copy(), 0, 2, 2, 4, 1)
+    if method in (None, "nearest"):
+        reconstruct(v, k, method="nearest")
     # the dispatcher's own kernels (every method): data-range clamp, noise fusion (issue 8)
     from types import SimpleNamespace
     _clamp_to_data(v.copy(), v, k, ~k, np.full(v.shape, np.nan, np.float32))
@@ -427,3 +900,57 @@ def warmup(method: str | None = None) -> None:
     if method in (None, "fse"):
         from . import fse
         fse.warmup()
+    if method is not None:
+        from . import validity
+        state = np.zeros((4, 4), np.uint8)
+        state[1, 1] = validity.CLIPPED
+        state[2, 2] = validity.DARK
+        reconstruct_frame(v.copy(), state, method=method, preset="preview", use_bounds=True)
+        reconstruct_frame(v.copy(), state.copy(), method=method, preset="preview", use_bounds=False)
+
+
+# ---- whole-frame entry point for elements (issue 7 item 3): no per-frame allocation --------------------
+
+_FRAME = threading.local()
+
+
+def _frame_scratch(h, w, with_bounds):
+    s = getattr(_FRAME, "s", None)
+    if s is None or s[0].shape != (h, w):
+        s = _FRAME.s = (np.empty((h, w), np.bool_), np.empty((h, w), np.float32),
+                        np.empty((h, w), np.float32), np.empty((h, w), np.float32))
+    return s
+
+
+def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", preset: str = "balanced",
+                      use_bounds: bool = True, noise=None, **params) -> int:
+    """Reconstruct an HDR frame in place (docs/ARCHITECTURE.md layout): the missing pixels
+    (`validity.missing_mask`) of `values` get `reconstruct(values, known, ...)`'s result and the
+    RECONSTRUCTED bit in `state`; measured pixels are untouched. Known mask and bounds come from one
+    fused pass into per-thread scratch reused frame after frame; `preview` and `nearest` write straight
+    into `values`. `noise`: the noise model (a CameraProfile) with which NOISY pixels (dark policy
+    "weighted", issue 8) are fused; without it they are reconstructed like other missing pixels.
+    `method` may be a callable `f(missing_share) -> (method, preset)`, called once the frame's missing
+    share is known (only when something is missing): how `nrreconstruct method=auto` picks per frame.
+    This is the one per-frame path of nrreconstruct and of `chain.process_frame` (batch), so both give
+    the same bits. Returns the number of pixels filled (0: nothing to do, nothing touched)."""
+    from . import validity
+    h, w = values.shape
+    known, lower, upper, res = _frame_scratch(h, w, use_bounds)
+    n_miss, n_unknown, known, lower, upper = validity._prepare(
+        values, state, known, lower if use_bounds else None, upper if use_bounds else None, use_bounds)
+    if n_miss == 0:
+        return 0
+    if callable(method):
+        method, preset = method(n_miss / float(h * w))
+    noisy = None
+    if noise is not None:
+        noisy = validity.noisy_mask(state)
+        if not noisy.any():
+            noisy = None
+    # in place only when every unknown pixel is to be filled (no earlier RECONSTRUCTED pixel to keep)
+    target = values if (n_miss == n_unknown and values.dtype == np.float32 and values.flags.c_contiguous) \
+        else res
+    out = reconstruct(values, known, method=method, preset=preset, lower=lower, upper=upper, out=target,
+                      noisy=noisy, noise=noise if noisy is not None else None, **params)
+    return validity.write_back(values, state, out)

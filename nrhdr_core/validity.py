@@ -42,9 +42,15 @@ WEIGHTED_LEVEL = 4.0
 _MODE_ID = {m: i for i, m in enumerate(MODES)}
 
 
-def known_mask(state: np.ndarray) -> np.ndarray:
-    """True where the pixel was measured and is trusted (reason VALID)."""
-    return (state & REASON_MASK) == VALID
+def known_mask(state: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """True where the pixel was measured and is trusted (reason VALID). `out`: optional bool array."""
+    state = np.asarray(state)
+    if state.ndim != 2 or state.dtype != np.uint8:
+        return np.equal(state & REASON_MASK, VALID, out=out)
+    if out is None:
+        out = np.empty(state.shape, np.bool_)
+    _known_kernel(state, out)
+    return out
 
 
 def missing_mask(state: np.ndarray) -> np.ndarray:
@@ -52,39 +58,118 @@ def missing_mask(state: np.ndarray) -> np.ndarray:
     return ((state & REASON_MASK) != VALID) & ((state & RECONSTRUCTED) == 0)
 
 
-def bounds(values: np.ndarray, state: np.ndarray):
+def bounds(values: np.ndarray, state: np.ndarray, lower: np.ndarray | None = None,
+           upper: np.ndarray | None = None):
     """(lower, upper) float32 arrays, NaN where there is no bound: CLIPPED pixels are at least their
     value, DARK pixels at most their value (paper 2.3; fse-reference 'Quirks'); a clipped regular pixel
-    whose attenuated neighbours are all clipped too is at least what they imply (`clip_lower_bound`).
-    One numba pass."""
-    v = np.ascontiguousarray(values, np.float32)
-    st = np.ascontiguousarray(state)
-    lower = np.empty(st.shape, np.float32)
-    upper = np.empty(st.shape, np.float32)
-    _bounds_kernel(v, st, lower, upper)
+    whose attenuated neighbours are all clipped too is at least what they imply (`clip_lower_bound`,
+    issue 8). `lower`/`upper`: optional float32 arrays to fill. One numba pass (`prepare`)."""
+    values = np.asarray(values)
+    state = np.asarray(state)
+    if values.ndim != 2 or state.dtype != np.uint8 or values.shape != state.shape:
+        reason = state & REASON_MASK
+        lo = np.where(reason == CLIPPED, values, np.nan).astype(np.float32)   # odd input: no neighbour rule
+        hi = np.where(reason == DARK, values, np.nan).astype(np.float32)
+        if lower is not None:
+            lower[...] = lo
+            lo = lower
+        if upper is not None:
+            upper[...] = hi
+            hi = upper
+        return lo, hi
+    _, _, lower, upper = prepare(values, state, lower=lower, upper=upper)
     return lower, upper
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _bounds_kernel(values, state, lower, upper):
+def _known_kernel(state, known):
     h, w = state.shape
-    nan = np.float32(np.nan)
     for y in prange(h):
         for x in range(w):
+            known[y, x] = (state[y, x] & REASON_MASK) == VALID
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _prepare_kernel(values, state, known, lower, upper, with_bounds):
+    """One pass: known mask, bounds, counts of missing (not VALID, not RECONSTRUCTED) and of
+    not-VALID pixels."""
+    h, w = state.shape
+    nan = np.float32(np.nan)
+    n_miss = 0
+    n_unknown = 0
+    for y in prange(h):
+        cm = 0
+        cu = 0
+        for x in range(w):
             st = state[y, x]
-            reason = st & REASON_MASK
-            lo = nan
-            hi = nan
-            if reason == CLIPPED:
-                lo = values[y, x]
-                if (st & ATTENUATED) == 0:
+            r = st & REASON_MASK
+            k = r == VALID
+            known[y, x] = k
+            cu += 0 if k else 1
+            cm += 1 if (not k and (st & RECONSTRUCTED) == 0) else 0
+            if with_bounds:
+                v = np.float32(values[y, x])
+                lo = v if r == CLIPPED else nan
+                if r == CLIPPED and (st & ATTENUATED) == 0:   # saturated ND neighbours imply more (issue 8)
                     m = _clip_lower_at(values, state, y, x, h, w)
                     if m == m and m > lo:
                         lo = m
-            elif reason == DARK:
-                hi = values[y, x]
-            lower[y, x] = lo
-            upper[y, x] = hi
+                lower[y, x] = lo
+                upper[y, x] = v if r == DARK else nan
+        n_miss += cm
+        n_unknown += cu
+    return n_miss, n_unknown
+
+
+def prepare(values: np.ndarray, state: np.ndarray, known: np.ndarray | None = None,
+            lower: np.ndarray | None = None, upper: np.ndarray | None = None, with_bounds: bool = True):
+    """Everything reconstruction needs from an HDR frame in one parallel pass: returns
+    (n_missing, known, lower, upper) = (count of `missing_mask`, `known_mask`, `bounds`); lower/upper
+    are None when `with_bounds` is False. Output arrays may be passed in (no per-frame allocation)."""
+    n_miss, _, known, lower, upper = _prepare(values, state, known, lower, upper, with_bounds)
+    return n_miss, known, lower, upper
+
+
+def _prepare(values, state, known, lower, upper, with_bounds):
+    h, w = state.shape
+    if known is None:
+        known = np.empty((h, w), np.bool_)
+    if with_bounds:
+        if lower is None:
+            lower = np.empty((h, w), np.float32)
+        if upper is None:
+            upper = np.empty((h, w), np.float32)
+        lo_a, hi_a = lower, upper
+    else:
+        lower = upper = None
+        lo_a = hi_a = np.empty((1, 1), np.float32)
+    for name, a, dt in (("known", known, np.bool_), ("lower", lo_a, np.float32), ("upper", hi_a, np.float32)):
+        if a.dtype != dt or (a.shape != (h, w) and a.shape != (1, 1)):
+            raise ValueError(f"{name} must be a {np.dtype(dt).name} array of shape {(h, w)}")
+    n_miss, n_unknown = _prepare_kernel(values, state, known, lo_a, hi_a, bool(with_bounds))
+    return int(n_miss), int(n_unknown), known, lower, upper
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _write_back_kernel(values, state, result, flag):
+    h, w = state.shape
+    n = 0
+    for y in prange(h):
+        c = 0
+        for x in range(w):
+            st = state[y, x]
+            m = (st & REASON_MASK) != VALID and (st & RECONSTRUCTED) == 0
+            values[y, x] = result[y, x] if m else values[y, x]
+            state[y, x] = (st | flag) if m else st
+            c += 1 if m else 0
+        n += c
+    return n
+
+
+def write_back(values: np.ndarray, state: np.ndarray, result: np.ndarray) -> int:
+    """Copy `result` into `values` at the missing pixels (`missing_mask`) and set their RECONSTRUCTED
+    bit, in one pass (in place; `result` may be `values`). Returns the number of pixels written."""
+    return int(_write_back_kernel(values, state, result, np.uint8(RECONSTRUCTED)))
 
 
 def clip_lower_bound(values: np.ndarray, state: np.ndarray, lower: np.ndarray) -> np.ndarray:

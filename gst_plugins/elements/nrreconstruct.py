@@ -64,6 +64,7 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         self._preset = Choice("preset", PRESETS, "balanced")
         self._post_stats = False   # off by default: unread bus messages would pile up (issue 9)
         self._info = None
+        self._noise = None
         self._frames = 0
         self.set_in_place(True)
         self.set_passthrough(False)
@@ -160,6 +161,7 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     def do_set_caps(self, incaps, outcaps):
         try:
             self._info = HdrInfo.from_caps(incaps)
+            self._noise = None              # the profile may have changed with the caps
             self.gst_debug(f"caps {incaps.to_string()}")
             return True
         except Exception as e:  # noqa: BLE001
@@ -173,31 +175,26 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
             if self._info is None:
                 self.post_error("no caps negotiated before the first buffer", kind="negotiation")
                 return Gst.FlowReturn.NOT_NEGOTIATED
-            from nrhdr_core import reconstruction, validity
+            from nrhdr_core import reconstruction
             self._count_gap(buf)
             t0 = time.perf_counter()
-            method, preset, rung = p.method, p.preset, None
+            picked = {"method": p.method, "preset": p.preset, "rung": None, "budget": None}
+
+            def choose(share):  # method=auto: the most accurate rung that fits the frame period (issue 7)
+                if p.method != "auto":
+                    return p.method, p.preset
+                budget = self._budget()
+                rung = self._auto.choose(budget, share)
+                picked.update(method=rung.method, preset=rung.preset or p.preset, rung=rung, budget=budget)
+                return picked["method"], picked["preset"]
+
             with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
-                missing = validity.missing_mask(state)
-                n_miss = int(np.count_nonzero(missing))
-                share = n_miss / float(self._info.pixels)
-                if n_miss and method == "auto":
-                    budget = self._budget()
-                    rung = self._auto.choose(budget, share)
-                    method, preset = rung.method, rung.preset or p.preset
-                if n_miss:
-                    known = validity.known_mask(state)
-                    lower = upper = None
-                    if p.use_bounds:
-                        lower, upper = validity.bounds(values, state)
-                    # hook (issue 11): once reconstruct() takes out=, pass out=values and drop the copy
-                    noisy, noise = self._noisy_inputs(state)      # issue 8 (helper "hdr")
-                    out = reconstruction.reconstruct(values, known, method=method, preset=preset,
-                                                     lower=lower, upper=upper, noisy=noisy, noise=noise)
-                    if out.shape != values.shape:
-                        raise ValueError(f"reconstruction returned shape {out.shape}, expected {values.shape}")
-                    np.copyto(values, out, where=missing)          # measured pixels untouched
-                    np.bitwise_or(state, np.uint8(validity.RECONSTRUCTED), out=state, where=missing)
+                # one fused pass for known mask + bounds, in place, measured pixels untouched (perf, #7);
+                # NOISY pixels fused with the profile's noise model (issue 8)
+                n_miss = reconstruction.reconstruct_frame(values, state, method=choose, preset=p.preset,
+                                                          use_bounds=p.use_bounds, noise=self._noise_model())
+            method, preset, rung, budget = picked["method"], picked["preset"], picked["rung"], picked["budget"]
+            share = n_miss / float(self._info.pixels)
             dt = time.perf_counter() - t0
             if self.gst_debug_enabled(Gst.DebugLevel.LOG):  # per-frame line (GST_DEBUG=nrreconstruct:6)
                 self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: " + (
@@ -214,39 +211,20 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         except Exception as e:  # noqa: BLE001
             return self.post_exception(f"frame {self._frames} (method={p.method}, preset={p.preset})", e)
 
-    def _noisy_inputs(self, state):
-        """NOISY pixels (nrvalidity dark-policy=weighted) and the noise model to fuse them with: the
-        profile named in the caps, else the default sensor's noise (issue 8, helper "hdr")."""
-        from nrhdr_core import validity
-        noisy = validity.noisy_mask(state)
-        if not noisy.any():
-            return None, None
-        noise = None
-        if self._info.profile:
-            from ._common import load_profile
-            try:
-                noise = load_profile(self._info.profile)
-            except ValueError:
-                noise = None
-        return noisy, noise if noise is not None else validity.default_noise()
-
-    def _count_gap(self, buf) -> None:
-        """Frames skipped upstream (QoS drops in earlier elements, frames lost at a live source): PTS
-        gaps of more than one frame duration."""
-        pts, dur = buf.pts, buf.duration
-        last, self._last_pts = self._last_pts, pts
-        if (last is None or pts == Gst.CLOCK_TIME_NONE or dur == Gst.CLOCK_TIME_NONE or dur == 0
-                or pts <= last):
-            return
-        self._skipped += max(int(round((pts - last) / dur)) - 1, 0)
-
-    def _budget(self) -> float:
-        """Seconds per frame for method=auto: budget-ms, else BUDGET_SHARE of the frame period."""
-        if self._budget_ms > 0:
-            return self._budget_ms / 1e3
-        i = self._info
-        period = i.fps_d / i.fps_n if i.fps_n > 0 else 1 / 30
-        return BUDGET_SHARE * period
+    def _noise_model(self):
+        """The noise model NOISY pixels (nrvalidity dark-policy=weighted) are fused with: the profile
+        named in the caps, else the default sensor's noise (issue 8). Loaded once per caps."""
+        if self._noise is None:
+            from nrhdr_core import validity
+            noise = None
+            if self._info.profile:
+                from ._common import load_profile
+                try:
+                    noise = load_profile(self._info.profile)
+                except ValueError:
+                    noise = None
+            self._noise = noise if noise is not None else validity.default_noise()
+        return self._noise
 
     def _post_frame_stats(self, missing: float, method: str, seconds: float, chosen: str = "",
                           preset: str = "") -> None:

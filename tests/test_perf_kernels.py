@@ -1,0 +1,388 @@
+"""The fused/parallel per-frame kernels (issue 7 item 3) against the previous numpy/serial implementations:
+same numbers on random and edge inputs (all known, all missing, one known pixel, 1 x N, odd sizes), in
+place and out of place, for any thread count. No timing here (benchmarks/stages.py measures speed)."""
+import numpy as np
+import numba
+import pytest
+from scipy import ndimage
+
+from nrhdr_core import crosstalk, fse, profile as profiles, reconstruction as R, validity as V
+
+SHAPES = [(1, 1), (1, 9), (9, 1), (2, 2), (3, 5), (17, 33), (40, 63)]
+SHARES = [0.0, 0.01, 0.5, 0.99]
+
+
+def _masks(rng, shape):
+    """Known masks: random at several missing shares, all missing, a single known pixel."""
+    out = [rng.random(shape) >= p for p in SHARES]
+    one = np.zeros(shape, bool)
+    one[rng.integers(shape[0]), rng.integers(shape[1])] = True
+    out.append(one)
+    out.append(np.zeros(shape, bool))
+    return out
+
+
+@pytest.fixture
+def threads():
+    """Run the body at 1 and at the default thread count; restore afterwards."""
+    old = numba.get_num_threads()
+    yield [1, old] if old > 1 else [1]
+    numba.set_num_threads(old)
+
+
+# ---- pull-push -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("shape", SHAPES + [(64, 64), (101, 77), (600, 480)])   # 600x480: parallel levels
+def test_preview_bit_exact_with_the_serial_reference(shape, rng, threads):
+    for k in _masks(rng, shape):
+        if not k.any():
+            continue
+        v = (rng.random(shape, dtype=np.float32) * 1000 - 100).astype(np.float32)
+        ref = R._preview_reference(v, k)
+        for t in threads:
+            numba.set_num_threads(t)
+            assert np.array_equal(R._preview(v, k), ref)
+            inplace = v.copy()
+            assert R._preview(inplace, k, out=inplace) is inplace
+            assert np.array_equal(inplace, ref)
+
+
+def test_preview_ignores_nan_at_missing_pixels(rng):
+    """Values under missing pixels are never read (the serial version multiplied them by weight 0)."""
+    v = rng.random((20, 30), dtype=np.float32)
+    k = rng.random(v.shape) < 0.5
+    a = R._preview(v, k)
+    v2 = v.copy()
+    v2[~k] = np.nan
+    assert np.array_equal(R._preview(v2, k), a) and np.isfinite(a).all()
+
+
+# ---- nearest -----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("shape", SHAPES + [(64, 64), (101, 77)])
+def test_nearest_is_an_exact_nearest_known_pixel(shape, rng, threads):
+    """Each output is the value of a known pixel at the exact Euclidean distance scipy's EDT reports
+    (ties may pick another pixel at the same distance)."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    v = (yy * 1000 + xx).astype(np.float32)         # the value encodes the source position
+    for k in _masks(rng, shape):
+        if not k.any():
+            continue
+        d_ref = ndimage.distance_transform_edt(~k) ** 2
+        for t in threads:
+            numba.set_num_threads(t)
+            out = R._nearest(v, k)
+            sy, sx = (out // 1000).astype(int), (out % 1000).astype(int)
+            assert k[sy, sx].all()
+            assert np.allclose((sy - yy) ** 2 + (sx - xx) ** 2, d_ref)
+            assert np.array_equal(out[k], v[k])
+            inplace = v.copy()
+            R._nearest(inplace, k, inplace)
+            assert np.array_equal(inplace, out)
+
+
+# ---- dispatcher ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("method", ["preview", "nearest", "linear"])
+def test_reconstruct_out_in_place_equals_out_of_place(method, rng):
+    v = rng.random((30, 41), dtype=np.float32) * 50
+    k = rng.random(v.shape) < 0.5
+    lo = np.where(~k & (rng.random(v.shape) < 0.3), 40.0, np.nan).astype(np.float32)
+    hi = np.where(~k & (rng.random(v.shape) < 0.3), 5.0, np.nan).astype(np.float32)
+    a = R.reconstruct(v, k, method=method, lower=lo, upper=hi)
+    buf = np.empty_like(v)
+    b = R.reconstruct(v, k, method=method, lower=lo, upper=hi, out=buf)
+    c = v.copy()
+    R.reconstruct(c, k, method=method, lower=lo, upper=hi, out=c)
+    assert b is buf and np.array_equal(a, b) and np.array_equal(a, c)
+    # the previous dispatcher's numpy passes: known restored, then max/min with the bounds
+    ref = R._preview_reference(v, k) if method == "preview" else a.copy()
+    if method == "preview":
+        ref[k] = v[k]
+        m = ~k & ~np.isnan(lo)
+        ref[m] = np.maximum(ref[m], lo[m])
+        m = ~k & ~np.isnan(hi)
+        ref[m] = np.minimum(ref[m], hi[m])
+        assert np.array_equal(a, ref)
+    assert np.array_equal(a[k], v[k])
+    with pytest.raises(ValueError, match="out must be"):
+        R.reconstruct(v, k, method=method, out=np.empty(v.shape, np.float64))
+
+
+def test_reconstruct_validation_still_rejects_bad_data(rng):
+    v = rng.random((6, 7)).astype(np.float64)
+    k = np.ones(v.shape, bool)
+    k[0, 0] = False
+    v[1, 1] = np.inf
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        R.reconstruct(v, k, method="preview")
+    v[1, 1] = 0.5
+    v[0, 0] = np.nan                                   # a missing pixel may hold anything
+    assert np.isfinite(R.reconstruct(v, k, method="preview")).all()
+    lo = np.full(v.shape, np.nan, np.float32)
+    lo[2, 2] = -np.inf
+    with pytest.raises(ValueError, match="Inf"):
+        R.reconstruct(v, k, method="preview", lower=lo)
+
+
+# ---- validity ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("shape", SHAPES)
+def test_prepare_known_bounds_write_back_equal_numpy(shape, rng, threads):
+    st = rng.integers(0, 256, shape).astype(np.uint8)
+    v = rng.standard_normal(shape).astype(np.float32)
+    reason = st & V.REASON_MASK
+    miss = (reason != V.VALID) & ((st & V.RECONSTRUCTED) == 0)
+    lo_ref = np.where(reason == V.CLIPPED, v, np.nan).astype(np.float32)
+    hi_ref = np.where(reason == V.DARK, v, np.nan).astype(np.float32)
+    res = rng.standard_normal(shape).astype(np.float32)
+    for t in threads:
+        numba.set_num_threads(t)
+        n, k, lo, hi = V.prepare(v, st)
+        assert n == miss.sum() and np.array_equal(k, reason == V.VALID)
+        assert np.array_equal(lo, lo_ref, equal_nan=True) and np.array_equal(hi, hi_ref, equal_nan=True)
+        n2, _, lo2, hi2 = V.prepare(v, st, with_bounds=False)
+        assert n2 == n and lo2 is None and hi2 is None
+        assert np.array_equal(V.known_mask(st), reason == V.VALID)
+        b = V.bounds(v, st)
+        assert np.array_equal(b[0], lo_ref, equal_nan=True) and np.array_equal(b[1], hi_ref, equal_nan=True)
+        vv, ss = v.copy(), st.copy()
+        assert V.write_back(vv, ss, res) == miss.sum()
+        assert np.array_equal(vv, np.where(miss, res, v))
+        assert np.array_equal(ss, np.where(miss, st | V.RECONSTRUCTED, st))
+
+
+def test_prepare_fills_given_arrays_and_checks_them(rng):
+    st = rng.integers(0, 8, (5, 6)).astype(np.uint8)
+    v = rng.random((5, 6), dtype=np.float32)
+    k, lo, hi = np.empty((5, 6), bool), np.empty((5, 6), np.float32), np.empty((5, 6), np.float32)
+    _, k2, lo2, hi2 = V.prepare(v, st, known=k, lower=lo, upper=hi)
+    assert k2 is k and lo2 is lo and hi2 is hi
+    with pytest.raises(ValueError, match="lower"):
+        V.prepare(v, st, lower=np.empty((5, 6), np.float64))
+
+
+def _element_reference(values, state, method, use_bounds):
+    """nrreconstruct's frame path before the fused version (numpy passes)."""
+    values, state = values.copy(), state.copy()
+    missing = V.missing_mask(state)
+    if missing.any():
+        known = (state & V.REASON_MASK) == V.VALID
+        lower = upper = None
+        if use_bounds:
+            reason = state & V.REASON_MASK
+            lower = np.where(reason == V.CLIPPED, values, np.nan).astype(np.float32)
+            upper = np.where(reason == V.DARK, values, np.nan).astype(np.float32)
+        out = R.reconstruct(values, known, method=method, lower=lower, upper=upper)
+        np.copyto(values, out, where=missing)
+        np.bitwise_or(state, np.uint8(V.RECONSTRUCTED), out=state, where=missing)
+    return values, state
+
+
+@pytest.mark.parametrize("method", ["preview", "nearest", "fse"])
+@pytest.mark.parametrize("use_bounds", [True, False])
+def test_reconstruct_frame_equals_the_element_path(method, use_bounds, rng):
+    h, w = 24, 37
+    v = rng.random((h, w), dtype=np.float32) * 100
+    st = rng.choice(np.array([V.VALID, V.CLIPPED, V.DARK, V.DISCARDED], np.uint8), (h, w), p=[.5, .2, .2, .1])
+    st |= np.where(rng.random((h, w)) < 0.5, V.ATTENUATED, 0).astype(np.uint8)
+    for already in (False, True):
+        s = st.copy()
+        if already:   # some pixels reconstructed earlier: kept as they are
+            s[(st & V.REASON_MASK != V.VALID) & (rng.random((h, w)) < 0.3)] |= V.RECONSTRUCTED
+        ref_v, ref_s = _element_reference(v, s, method, use_bounds)
+        vv, ss = v.copy(), s.copy()
+        n = R.reconstruct_frame(vv, ss, method=method, preset="preview", use_bounds=use_bounds) \
+            if method == "fse" else R.reconstruct_frame(vv, ss, method=method, use_bounds=use_bounds)
+        assert n == V.missing_mask(s).sum()
+        if method == "fse":
+            ref_v, ref_s = _element_reference_fse(v, s, use_bounds)
+        assert np.array_equal(vv, ref_v) and np.array_equal(ss, ref_s)
+    full = np.zeros((h, w), np.uint8)
+    vv = v.copy()
+    assert R.reconstruct_frame(vv, full, method=method) == 0 and np.array_equal(vv, v)
+
+
+def _element_reference_fse(v, s, use_bounds):
+    values, state = v.copy(), s.copy()
+    missing = V.missing_mask(state)
+    known = (state & V.REASON_MASK) == V.VALID
+    lower = upper = None
+    if use_bounds:
+        lower, upper = V.bounds(values, state)
+    out = R.reconstruct(values, known, method="fse", preset="preview", lower=lower, upper=upper)
+    np.copyto(values, out, where=missing)
+    np.bitwise_or(state, np.uint8(V.RECONSTRUCTED), out=state, where=missing)
+    return values, state
+
+
+# ---- crosstalk lut ---------------------------------------------------------------------------------------------
+def _lut_eval_reference(codes, n, knot_flux, clip_rel, cflux, m):
+    """The previous per-pixel LUT evaluation (binary search), in float32 like the kernel."""
+    f32 = np.float32
+    if n < 2:
+        return f32(0.0), False
+    c0, c1 = codes[0], codes[1]
+    if m <= c0:
+        return f32(knot_flux[0]) + (m - c0) * (f32(knot_flux[1]) - f32(knot_flux[0])) / max(c1 - c0, f32(1e-3)), True
+    last_c = codes[n - 1]
+    if m <= last_c:
+        lo, hi = 1, n - 1
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if codes[mid] >= m:
+                hi = mid
+            else:
+                lo = mid + 1
+        c, pc = codes[lo], codes[lo - 1]
+        f, pf = f32(knot_flux[lo]), f32(knot_flux[lo - 1])
+        return pf + (m - pc) * (f - pf) / max(c - pc, f32(1e-3)), True
+    prev_f = f32(knot_flux[n - 1])
+    if cflux == cflux and clip_rel > last_c and m <= clip_rel:
+        return prev_f + (m - last_c) * (cflux - prev_f) / (clip_rel - last_c), True
+    return f32(0.0), False
+
+
+def test_crosstalk_lut_equals_the_binary_search_reference(rng, threads):
+    h, w, kn = 13, 17, 9
+    prof = profiles.default(h, w)
+    top = float(prof.clip_code) - float(prof.black_level)
+    flux = np.concatenate([[0.0], top * prof.nd * np.geomspace(1e-3, 1.0, kn - 1)])
+    s = np.where(prof.mask, prof.nd, 1.0)[:, :, None]
+    codes = (flux[None, None, :] / s * (1.0 + 0.05 * rng.standard_normal((h, w)))[:, :, None]).astype(np.float32)
+    q, qs, qo = crosstalk.quantize_codes(codes, int(prof.clip_code) + 1)
+    n_knots = rng.integers(0, kn + 1, (h, w)).astype(np.int32)
+    clip_flux = np.where(rng.random((h, w)) < 0.5, np.nan, 1.3 * top).astype(np.float32)
+    calib = crosstalk.CrosstalkCalibration(
+        codes_q=q, qscale=qs, qoffset=qo, n_knots=n_knots, knot_flux=flux, clip_flux=clip_flux,
+        nd=float(prof.nd), black_level=float(prof.black_level), clip_code=int(prof.clip_code),
+        sig_e=np.array([0.0, 1.0], np.float32), sigma=np.zeros((8, 2), np.float32),
+        alpha=np.ones((h, w), np.float32))
+    px = prof.replace(crosstalk=calib)
+    # codes from below the dark level to above the clip level, every state
+    scale = np.where(prof.mask, prof.nd, 1.0).astype(np.float32)
+    v0 = (rng.uniform(-20, top * 1.2, (h, w)).astype(np.float32) * scale).astype(np.float32)
+    st0 = rng.choice(np.array([V.VALID, V.CLIPPED, V.DARK, V.DISCARDED], np.uint8), (h, w), p=[.7, .1, .1, .1])
+    st0 |= np.where(prof.mask, V.ATTENUATED, 0).astype(np.uint8)
+    # reference
+    cq = q.astype(np.float32) * np.float32(qs) - np.float32(qo)
+    clip_rel = np.float32(float(prof.clip_code) - float(prof.black_level))
+    v_ref, s_ref = v0.copy(), st0.copy()
+    for y in range(h):
+        for x in range(w):
+            r = st0[y, x] & 0x0F
+            sc = scale[y, x]
+            if r == V.VALID:
+                f, ok = _lut_eval_reference(cq[y, x], n_knots[y, x], flux, clip_rel, clip_flux[y, x], v0[y, x] / sc)
+                if ok:
+                    v_ref[y, x] = f
+                else:
+                    s_ref[y, x] = (st0[y, x] & 0xF0) | V.UNCALIBRATED
+            elif r == V.CLIPPED:
+                if clip_flux[y, x] == clip_flux[y, x] and clip_flux[y, x] < v0[y, x]:
+                    v_ref[y, x] = clip_flux[y, x]
+            elif r == V.DARK:
+                f, ok = _lut_eval_reference(cq[y, x], n_knots[y, x], flux, clip_rel, clip_flux[y, x], v0[y, x] / sc)
+                if ok and f > 0:
+                    v_ref[y, x] = f
+    for t in threads:
+        numba.set_num_threads(t)
+        vv, ss = v0.copy(), st0.copy()
+        crosstalk.correct(vv, ss, px, mode="lut")
+        assert np.array_equal(ss, s_ref)
+        assert np.array_equal(vv, v_ref)
+
+
+# ---- fse wrapper passes -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("shape", SHAPES)
+def test_fse_wrapper_passes_equal_numpy(shape, rng, threads):
+    for k in _masks(rng, shape):
+        v = (rng.random(shape) * 200 - 50).astype(np.float32)
+        for t in threads:
+            numba.set_num_threads(t)
+            nk, kmin, kmax, minpos = fse._stats(v, k)
+            assert nk == k.sum()
+            if k.any():
+                assert kmin == v[k].min() and kmax == v[k].max()
+                pos = v[k][v[k] > 0]
+                assert minpos == (pos.min() if pos.size else 0.0)
+            for logd in (False, True):
+                work, state = fse._prep(v, k, logd, np.float32(0.5))
+                assert np.array_equal(state, k.astype(np.uint8))
+                exp = np.where(k, np.log2(np.maximum(v, np.float32(0.5))) if logd else v, 0).astype(np.float32)
+                np.testing.assert_allclose(work, exp, rtol=1e-6)
+                out = np.zeros_like(v)
+                st2 = state.copy()
+                st2[~k] = np.where(rng.random((~k).sum()) < 0.5, 2, 0)
+                left = fse._finish(out, work, st2, logd)
+                assert left == (st2 == 0).sum()
+                rec = st2 == 2
+                np.testing.assert_allclose(out[rec], (2.0 ** work[rec]) if logd else work[rec], rtol=1e-6)
+
+
+def test_fse_result_does_not_depend_on_thread_count(rng, threads):
+    v = rng.random((320, 328), dtype=np.float32) * 255   # large enough for the multi-thread path
+    k = rng.random(v.shape) < 0.5
+    outs = []
+    for t in threads:
+        numba.set_num_threads(t)
+        outs.append(fse.fse_reconstruct(v, k, preset="fast"))
+    assert all(np.array_equal(outs[0], o) for o in outs[1:])
+
+
+# ---- tone mapping ---------------------------------------------------------------------------------------------
+def test_fast_log_tonemap_matches_the_libm_kernel(rng):
+    import math
+    from nrhdr_core import tonemap
+    v = np.exp(rng.uniform(np.log(1e-4), np.log(5e4), (61, 67))).astype(np.float32)
+    v[::7, ::5] = np.nan
+    v[::11, ::3] = -2.0
+    v[0, :5] = [0.0, 1e-30, 26000.0, 26000.0 * (1 + 1e-7), np.inf]
+    for dt, om in ((np.uint8, 255.0), (np.uint16, 65535.0)):
+        for q in (1000.0, 100.0, 2.0):
+            a, b = np.empty(v.shape, dt), np.empty(v.shape, dt)
+            args = (np.float32(1 / 26000.0), np.float32(q), np.float32(1 / math.log1p(q)), np.float32(om))
+            tonemap._log_kernel(v, *args, a)
+            tonemap._log_kernel_fast(v, *args, b)
+            d = np.abs(a.astype(int) - b.astype(int))
+            assert d.max() <= (0 if dt == np.uint8 else 1) and (d > 0).mean() < 1e-3
+
+
+def test_import_sets_passive_openmp_wait_unless_the_user_chose():
+    """Spinning OpenMP workers steal one of the two cores between parallel regions (docs/BENCHMARKS.md)."""
+    import os
+    import subprocess
+    import sys
+    code = "import os, nrhdr_core; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "PASSIVE"
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "ACTIVE"
+
+
+def test_crosstalk_lut_walk_equals_the_mode0_correction_kernel(rng, threads):
+    """The lut pass (knot search walking from the row's previous knot) against `_correct_kernel` in mode 0
+    (binary search) on a smooth frame with noise, every state, odd size."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import stages
+    h, w = 37, 131
+    prof = profiles.default(h, w)
+    px = prof.replace(crosstalk=stages.synthetic_calibration(prof, 24, seed=3))
+    cal = px.crosstalk
+    top = float(prof.clip_code) - float(prof.black_level)
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = np.exp(np.log(top * 3) * (xx / w)) * (1 + 0.1 * rng.standard_normal((h, w)))
+    v0 = np.where(prof.mask, base, base / prof.nd).astype(np.float32) * np.where(prof.mask, prof.nd, 1).astype(np.float32)
+    st0 = rng.choice(np.array([V.VALID, V.CLIPPED, V.DARK, V.DISCARDED], np.uint8), (h, w), p=[.7, .1, .1, .1])
+    st0 |= np.where(prof.mask, V.ATTENUATED, 0).astype(np.uint8)
+    args = (cal.codes_q, cal.n_knots, np.float32(cal.qscale), np.float32(cal.qoffset), cal.knot_flux,
+            np.float32(float(cal.clip_code) - float(cal.black_level)), cal.clip_flux, float(prof.nd))
+    ref_v, ref_s = v0.copy(), st0.copy()
+    crosstalk._correct_kernel(ref_v, ref_s, v0.copy(), v0.copy(), *args, 0, crosstalk.DIRS, cal.sig_e, cal.sigma,
+                              cal.alpha, 0, np.zeros((8, 1, 1), np.float32), np.float32(np.inf))
+    for t in threads:
+        numba.set_num_threads(t)
+        vv, ss = v0.copy(), st0.copy()
+        crosstalk.correct(vv, ss, px, mode="lut")
+        assert np.array_equal(vv, ref_v) and np.array_equal(ss, ref_s)
