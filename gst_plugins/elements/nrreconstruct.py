@@ -211,6 +211,24 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         except Exception as e:  # noqa: BLE001
             return self.post_exception(f"frame {self._frames} (method={p.method}, preset={p.preset})", e)
 
+    def _count_gap(self, buf) -> None:
+        """Frames skipped upstream (QoS drops in earlier elements, frames lost at a live source): PTS
+        gaps of more than one frame duration."""
+        pts, dur = buf.pts, buf.duration
+        last, self._last_pts = self._last_pts, pts
+        if (last is None or pts == Gst.CLOCK_TIME_NONE or dur == Gst.CLOCK_TIME_NONE or dur == 0
+                or pts <= last):
+            return
+        self._skipped += max(int(round((pts - last) / dur)) - 1, 0)
+
+    def _budget(self) -> float:
+        """Seconds per frame for method=auto: budget-ms, else BUDGET_SHARE of the frame period."""
+        if self._budget_ms > 0:
+            return self._budget_ms / 1e3
+        i = self._info
+        period = i.fps_d / i.fps_n if i.fps_n > 0 else 1 / 30
+        return BUDGET_SHARE * period
+
     def _noise_model(self):
         """The noise model NOISY pixels (nrvalidity dark-policy=weighted) are fused with: the profile
         named in the caps, else the default sensor's noise (issue 8). Loaded once per caps."""
