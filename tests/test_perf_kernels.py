@@ -131,6 +131,7 @@ def test_prepare_known_bounds_write_back_equal_numpy(shape, rng, threads):
     reason = st & V.REASON_MASK
     miss = (reason != V.VALID) & ((st & V.RECONSTRUCTED) == 0)
     lo_ref = np.where(reason == V.CLIPPED, v, np.nan).astype(np.float32)
+    V.clip_lower_bound(v, st, lo_ref)     # issue 8: clipped regular pixels amid clipped ND pixels
     hi_ref = np.where(reason == V.DARK, v, np.nan).astype(np.float32)
     res = rng.standard_normal(shape).astype(np.float32)
     for t in threads:
@@ -169,6 +170,7 @@ def _element_reference(values, state, method, use_bounds):
         if use_bounds:
             reason = state & V.REASON_MASK
             lower = np.where(reason == V.CLIPPED, values, np.nan).astype(np.float32)
+            V.clip_lower_bound(values, state, lower)   # issue 8: the neighbour rule of validity.bounds
             upper = np.where(reason == V.DARK, values, np.nan).astype(np.float32)
         out = R.reconstruct(values, known, method=method, lower=lower, upper=upper)
         np.copyto(values, out, where=missing)
