@@ -11,6 +11,7 @@ Nothing is compiled at import time; kernels compile on first call (``cache=True`
 from __future__ import annotations
 
 import math
+import threading
 import warnings
 
 import numpy as np
@@ -1424,6 +1425,21 @@ def _fse(values, known, lower, upper, preset, inplace, params):
     return out
 
 
+_SCRATCH = threading.local()
+
+
+def _scratch(h, w):
+    """Per-thread working arrays of the fused passes, reused frame after frame (no per-frame allocation
+    and page faults; issue 7 item 3): work, state, row max/min, lower, upper. Nothing returned to the
+    caller lives in them."""
+    s = getattr(_SCRATCH, "s", None)
+    if s is None or s[0].shape != (h, w):
+        s = _SCRATCH.s = (np.empty((h, w), np.float32), np.empty((h, w), np.uint8),
+                          np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+                          np.empty((h, w), np.float32), np.empty((h, w), np.float32))
+    return s
+
+
 def _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos):
     """Working image, state and merged log-domain bounds for the log domain with the local bound
     (`_prep_local`, `_bounds_local`); the log-range scale of the block kernels."""
@@ -1442,16 +1458,11 @@ def _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos):
     if lw is not None or up is not None:
         use_lo, use_hi = _bound_flags(dummy if lw is None else lw, dummy if up is None else up,
                                       lw is not None, up is not None)
-    work = np.empty((h, w), np.float32)
-    state = np.empty((h, w), np.uint8)
-    hmx = np.empty((h, w), np.float32)
-    hmn = np.empty((h, w), np.float32)
+    work, state, hmx, hmn, lo, hi = _scratch(h, w)
     r = int(p["local_bound"]) // 2
     cf = np.float32(c)
     ff = np.float32(floor)
     _prep_local(v32, k, cf, ff, r, work, state, hmx, hmn)
-    lo = np.empty((h, w), np.float32)
-    hi = np.empty((h, w), np.float32)
     _bounds_local(hmx, hmn, r, np.float32(p["local_margin"]), dummy if lw is None else lw,
                   dummy if up is None else up, use_lo, use_hi, cf, ff, lo, hi)
     wr = math.log2(max(kmax, 0.0) + c) - math.log2(max(max(kmin, 0.0) + c, floor))
