@@ -323,11 +323,14 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
     if n < 2:
         return np.float32(0.0), False
     c0 = np.float32(codes_q[y, x, 0]) * qs - qo
-    c1 = np.float32(codes_q[y, x, 1]) * qs - qo
     if m <= c0:
-        # below the pixel's dark level: follow the first segment (dark subtraction)
-        return np.float32(knot_flux[0]) + (m - c0) * (np.float32(knot_flux[1]) - np.float32(knot_flux[0])) \
-            / max(c1 - c0, np.float32(1e-3)), True
+        # below the pixel's first (dark) knot: between (black level, flux 0) and the first knot, never
+        # negative. (Extrapolating the first segment divided by c1 - c0, ~1 DN for attenuated pixels, and
+        # sent codes inside the dark noise to -24000 DN.)
+        f0 = max(np.float32(knot_flux[0]), np.float32(0.0))
+        if c0 > 0:
+            return f0 * (max(m, np.float32(0.0)) / c0), True
+        return f0, True
     last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
     if m <= last_c:
         # binary search: first knot k >= 1 with code >= m

@@ -221,7 +221,9 @@ def _lut_eval_reference(codes, n, knot_flux, clip_rel, cflux, m):
         return f32(0.0), False
     c0, c1 = codes[0], codes[1]
     if m <= c0:
-        return f32(knot_flux[0]) + (m - c0) * (f32(knot_flux[1]) - f32(knot_flux[0])) / max(c1 - c0, f32(1e-3)), True
+        # below the first (dark) knot: between (black, 0) and the first knot, never negative (helper perf2)
+        f0 = max(f32(knot_flux[0]), f32(0.0))
+        return (f0 * (max(m, f32(0.0)) / c0) if c0 > 0 else f0), True
     last_c = codes[n - 1]
     if m <= last_c:
         lo, hi = 1, n - 1
