@@ -501,3 +501,26 @@ def test_clamp_kernel_parallel_equals_serial(shape, rng, threads):
                 got = out0.copy()
                 assert R._clamp_kernel(got, v, k, lo, use) == nref
                 assert np.array_equal(got, ref, equal_nan=True)
+
+
+def test_lut_count_search_equals_the_binary_search_at_the_knots(rng):
+    """`_lut_eval_count` (quantised threshold + count) against `_lut_eval` (binary search) for codes exactly
+    at every knot, one float32 step either side, between knots and outside the range (helper perf2)."""
+    h, w, kn = 3, 4, 12
+    flux = np.concatenate([[0.0], 4094.0 * 6.35 * np.geomspace(1e-3, 1.0, kn - 1)])
+    codes = (flux[None, None, :] / 6.35 * (1.0 + 0.05 * rng.standard_normal((h, w)))[:, :, None]).astype(np.float32)
+    codes[0, 0, :] = np.arange(kn) * 0.0625 + 3.0          # knots 1 quantisation step apart
+    q, qs, qo = crosstalk.quantize_codes(codes, 4095)
+    qs, qo = np.float32(qs), np.float32(qo)
+    kf = flux.astype(np.float64)
+    for y in range(h):
+        for x in range(w):
+            for n in (0, 1, 2, 5, kn):
+                cs = q[y, x, :max(n, 1)].astype(np.float32) * qs - qo
+                ms = [cs, np.nextafter(cs, np.float32(np.inf)), np.nextafter(cs, np.float32(-np.inf)),
+                      (cs[:-1] + cs[1:]) / 2 if n > 1 else cs, np.array([-5.0, 1e5], np.float32)]
+                for m in np.concatenate(ms).astype(np.float32):
+                    for cflux in (np.float32(np.nan), np.float32(2e5)):
+                        a = crosstalk._lut_eval_count(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
+                        b = crosstalk._lut_eval(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
+                        assert a[1] == b[1] and (a[0] == b[0] or (np.isnan(a[0]) and np.isnan(b[0])))
