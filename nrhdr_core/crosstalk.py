@@ -355,7 +355,7 @@ def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
     return np.float32(0.0), False
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _lut_eval_count(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
     """`_lut_eval` with the knot found without a data-dependent branch per step (issue 7 item 3): the
     smallest quantised code Q with Q * qs - qo >= m is computed once (that float32 map is monotone in
