@@ -1846,3 +1846,10 @@ def warmup() -> None:
     for preset in ("preview", "balanced"):
         fse_reconstruct(v, k, lower=np.full_like(v, np.nan), upper=np.full_like(v, np.nan),
                         preset=preset)
+    # HDR data (12 stops, a clipped and a dark bound): the log domain's fused passes (issue 7 item 3)
+    hv = (2.0 ** (12.0 * v)).astype(np.float32)
+    lo = np.full_like(v, np.nan)
+    hi = np.full_like(v, np.nan)
+    lo[0, 0] = hv.max()
+    hi[1, 1] = hv.min()
+    fse_reconstruct(hv, k, lower=lo, upper=hi, preset="preview")
