@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     descs = [("anchor: parse only", f"{src} ! fakesink")]
     for m in methods:
         descs.append((f"validity ! crosstalk ! reconstruct {m} ! tonemap",
-                      f"{src} ! {chain} ! nrreconstruct method={m} preset={a.preset} ! nrtonemap ! fakesink"))
+                      f"{src} ! {chain} ! nrreconstruct method={m} preset={a.preset} post-stats=true ! nrtonemap ! fakesink"))
     for _, d in descs[1:]:
         runtime.run_pipeline(d)  # warm numba's on-disk caches for every method
     for name, d in descs:

@@ -11,6 +11,7 @@ Nothing is compiled at import time; kernels compile on first call (``cache=True`
 from __future__ import annotations
 
 import math
+import threading
 import warnings
 
 import numpy as np
@@ -1124,6 +1125,112 @@ def log_offset(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0, lower=None) -
     caller switches to exactly linear above 64 x the range, where the two agree); HDR data (r >= 4) a
     log domain down to the noise floor sigma_dark, a MAD estimate from second differences of three
     horizontally adjacent known pixels among the darkest tenth (~0 for noise-free data).
+    Scales with the data (k * values -> k * c).
+    The same statistics on the same row-strided subsample as the numpy version
+    (:func:`_log_offset_reference`), gathered by numba kernels without full-frame temporaries (issue 7
+    item 3): the same c."""
+    v = np.asarray(v)
+    k = np.asarray(k, dtype=bool)
+    h, w = v.shape
+    step = max(1, (h * w) // 400_000)        # a row-strided subsample is plenty for percentiles
+    v32 = np.ascontiguousarray(v, np.float32) if v.dtype != np.float64 else np.ascontiguousarray(v)
+    k = np.ascontiguousarray(k)
+    nrows = (h + step - 1) // step
+    buf = np.empty(nrows * w, np.float64)
+    n = _lo_gather(v32, k, step, buf)
+    if n < 2:
+        return 0.0
+    kv = buf[:n]
+    lo10, p50, p999 = np.percentile(kv, [10.0, 50.0, 99.9])
+    if not p50 > 0.0:
+        p50 = float(np.mean(np.abs(kv)))
+        if not p50 > 0.0:
+            return 0.0
+    top = float(p999)
+    if lower is not None:
+        lw = np.asarray(lower, np.float32)
+        if lw.size > 1:
+            found, mx = _finite_max(np.ascontiguousarray(lw).reshape(1, -1) if lw.ndim != 2
+                                    else np.ascontiguousarray(lw))
+            if found:
+                top = max(top, float(mx))
+    r = math.log2(max(top, p50) / p50)
+    c = p50 * 2.0 ** min(12.0 - 5.0 * r, 60.0)
+    if w >= 3:
+        nd = _lo_dark(v32, k, step, float(lo10), buf)
+        if nd >= 16:
+            sd = 1.4826 * float(np.median(buf[:nd])) / math.sqrt(6.0)
+            c = max(c, noise_k * sd)
+    return float(c)
+
+
+@njit(cache=True, nogil=True)
+def _lo_gather(v, k, step, buf):
+    """Known values of every `step`-th row, as float64, into buf; their count."""
+    h, w = v.shape
+    n = 0
+    for y in range(0, h, step):
+        for x in range(w):
+            if k[y, x]:
+                buf[n] = np.float64(v[y, x])
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _lo_dark(v, k, step, lo10, buf):
+    """|a - 2 m + b| of three horizontally adjacent known pixels (every `step`-th row) whose middle m is
+    <= lo10, into buf; their count."""
+    h, w = v.shape
+    n = 0
+    for y in range(0, h, step):
+        for x in range(1, w - 1):
+            if k[y, x - 1] and k[y, x] and k[y, x + 1]:
+                m = np.float64(v[y, x])
+                if m <= lo10:
+                    buf[n] = abs(np.float64(v[y, x - 1]) - 2.0 * m + np.float64(v[y, x + 1]))
+                    n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _finite_max(b):
+    """(any finite value, largest finite value) of a 2-D float32 array (per-row partials)."""
+    h, w = b.shape
+    r_max = np.empty(h, np.float64)
+    r_any = np.zeros(h, np.uint8)
+    for y in prange(h):
+        m = -np.inf
+        f = 0
+        for x in range(w):
+            a = b[y, x]
+            if a - a == 0:
+                f = 1
+                if a > m:
+                    m = a
+        r_max[y] = m
+        r_any[y] = f
+    m = -np.inf
+    f = False
+    for y in range(h):
+        if r_any[y]:
+            f = True
+            m = max(m, r_max[y])
+    return f, m
+
+
+def _log_offset_reference(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0, lower=None) -> float:
+    """The numpy version of :func:`log_offset` (before issue 7 item 3; tests compare). The offset c of the ``auto`` domain log2(x + c) (issue 8; docs/FSE.md "Domain"), from robust
+    statistics of the known values only, so that it moves little with the noise or mask seed:
+
+    c = max(p50 * 2^(12 - 5 r), noise_k * sigma_dark), r = log2(top / p50) (stops of highlights above
+    the median), top = max(p99.9 of the known values, largest lower bound: a clipped pixel implies at
+    least its clip level, so a scene whose highlights all clip is still HDR). The family log2(x + c)
+    is continuous in c and tends to the linear domain as c grows: low-dynamic-range data (8-bit
+    images, r <= 1.5) get c >= 8 x their maximum, i.e. linear (the
+    caller switches to exactly linear above 64 x the range, where the two agree); HDR data (r >= 4) a
+    log domain down to the noise floor sigma_dark, a MAD estimate from second differences of three
+    horizontally adjacent known pixels among the darkest tenth (~0 for noise-free data).
     Scales with the data (k * values -> k * c)."""
     h, w = v.shape
     step = max(1, (h * w) // 400_000)        # a row-strided subsample is plenty for percentiles
@@ -1206,6 +1313,173 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     The output does not depend on the number of threads (each round's blocks read only pixels
     finalised in earlier rounds). See docs/FSE.md.
     """
+    return _fse(values, known, lower, upper, preset, False, params)
+
+
+def _fse(values, known, lower, upper, preset, inplace, params):
+    """`fse_reconstruct`; `inplace`: write the missing pixels into `values` itself when it is a
+    C-contiguous float32 array (the dispatcher's output array) and return it."""
+    p = resolve_params(preset, **params)
+    v = np.asarray(values)
+    k = np.asarray(known, dtype=bool)
+    if v.ndim != 2 or k.shape != v.shape:
+        raise ValueError("values and known must be 2-D arrays of the same shape")
+    v32 = np.ascontiguousarray(v, dtype=np.float32)
+    k = np.ascontiguousarray(k)
+    out = v32 if (inplace and v32 is v) else v32.copy()
+    nk, kmin, kmax, minpos = _stats(v32, k)
+    if nk == v32.size:
+        return out
+    if nk == 0:
+        warnings.warn("fse_reconstruct: no known pixel; output is filled from the bounds or 0",
+                      RuntimeWarning, stacklevel=2)
+        return _fill_without_data(out, ~k, lower, upper)
+    p = _density_params(p, nk / v32.size)
+    if kmin == kmax:
+        # constant known data: the constant is the only model (exact), within the bounds
+        out[~k] = np.float32(kmin)
+        return _fill_bounded(out, ~k, lower if p["use_bounds"] else None, upper if p["use_bounds"] else None)
+    domain = p["domain"]
+    c = 0.0
+    if domain == "auto":
+        domain = "log"
+        if p["log_offset"] is None:
+            c = log_offset(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
+        else:
+            c = float(p["log_offset"])
+        if c >= 64.0 * (float(kmax) - min(float(kmin), 0.0)):
+            domain, c = "linear", 0.0     # log2(x + c) is linear to < 1 % there: use it exactly
+    elif domain == "log" and p["log_offset"] is not None:
+        c = float(p["log_offset"])
+    if domain == "log" and int(p["local_bound"]):
+        # the common HDR case, fused (issue 7 item 3): log2 of data and bounds, the local bound and the
+        # merge in three parallel passes; same bounds as the numpy passes of the reference to float rounding
+        work, state, lo_arr, hi_arr, scale = _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos)
+        use_lo = use_hi = True
+        local = False
+    else:
+        lo_arr, hi_arr, use_lo, use_hi = _bounds(lower, upper, v.shape, p["use_bounds"])
+        floor = 0.0
+        local = False
+        src = v32
+        if domain == "log":
+            if c > 0.0:
+                # log2(max(x, 0) + c): well conditioned down to the offset (no blow-up at black pixels)
+                src = v32 + np.float32(c)
+                floor = c
+            else:
+                floor = 0.5 * minpos if minpos > 0 else 1e-30
+            if use_lo:
+                lo_arr = np.log2(np.maximum(lo_arr + np.float32(c), floor)).astype(np.float32)
+            if use_hi:
+                hi_arr = np.log2(np.maximum(hi_arr + np.float32(c), floor)).astype(np.float32)
+            # sigma relative to the known values' log range, at most log_scale_stops (an almost linear
+            # low-dynamic-range domain then behaves like the linear one)
+            wr = math.log2(max(kmax, 0.0) + c) - math.log2(max(max(kmin, 0.0) + c, floor))
+            scale = float(p["log_scale_stops"]) if not wr > 0 else min(float(p["log_scale_stops"]), wr)
+        elif domain == "local":
+            scale = 1.0 / 0.4   # std relative to 2.5x the local mean ~ std/255 for mid-grey 8-bit data
+            local = True
+        else:
+            rng = float(kmax - kmin)
+            scale = rng if rng > 0 else 1.0
+        work, state = _prep(src, k, domain == "log", np.float32(floor))
+        if int(p["local_bound"]) and domain == "log":
+            llo, lhi = _local_bounds(work, state, int(p["local_bound"]), float(p["local_margin"]),
+                                     domain == "log")
+            lo_arr, hi_arr = _merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, v.shape)
+            use_lo = use_hi = True
+    tables = _tables(p)
+    cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, sizes = tables
+    n = int(p["window"])
+    tile = int(p["max_block"])
+    plan = _plan(work, state, tile, n, sizes, split, scale, local, float(p["edge_penalty"]),
+                 int(p["order_levels"]), int(p["order_slack"]))
+    tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, _nr = plan
+    nthreads = int(get_num_threads())
+    # small jobs run on the calling thread only: fork/join per round would cost more than it gains
+    # (the result is the same for any thread count)
+    if leaf_y.shape[0] * n * n < 400_000:
+        nthreads = 1
+    old = get_num_threads()
+    set_num_threads(nthreads)
+    try:
+        _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
+             leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+             float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
+             int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
+    finally:
+        set_num_threads(old)
+    logd = domain == "log"
+    cf = np.float32(c if logd else 0.0)
+    nleft = _finish_c(out, work, state, cf) if cf > 0 else _finish(out, work, state, logd)
+    if nleft:
+        # blocks whose support held no usable pixel: nearest reconstructed/known value
+        left = state == 0
+        _nearest_fill(work, left)
+        state[left] = 2
+        if cf > 0:
+            _finish_c(out, work, state, cf)
+        else:
+            _finish(out, work, state, logd)
+    return out
+
+
+_SCRATCH = threading.local()
+
+
+def _scratch(h, w):
+    """Per-thread working arrays of the fused passes, reused frame after frame (no per-frame allocation
+    and page faults; issue 7 item 3): work, state, row max/min, lower, upper. Nothing returned to the
+    caller lives in them."""
+    s = getattr(_SCRATCH, "s", None)
+    if s is None or s[0].shape != (h, w):
+        s = _SCRATCH.s = (np.empty((h, w), np.float32), np.empty((h, w), np.uint8),
+                          np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+                          np.empty((h, w), np.float32), np.empty((h, w), np.float32))
+    return s
+
+
+def _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos):
+    """Working image, state and merged log-domain bounds for the log domain with the local bound
+    (`_prep_local`, `_bounds_local`); the log-range scale of the block kernels."""
+    h, w = v32.shape
+    if c > 0.0:
+        floor = c
+    else:
+        floor = 0.5 * minpos if minpos > 0 else 1e-30
+    use = bool(p["use_bounds"])
+    lw = None if (not use or lower is None) else \
+        np.ascontiguousarray(np.broadcast_to(np.asarray(lower, np.float32), (h, w)))
+    up = None if (not use or upper is None) else \
+        np.ascontiguousarray(np.broadcast_to(np.asarray(upper, np.float32), (h, w)))
+    dummy = np.zeros((1, 1), np.float32)
+    use_lo = use_hi = False
+    if lw is not None or up is not None:
+        use_lo, use_hi = _bound_flags(dummy if lw is None else lw, dummy if up is None else up,
+                                      lw is not None, up is not None)
+    work, state, hmx, hmn, lo, hi = _scratch(h, w)
+    r = int(p["local_bound"]) // 2
+    cf = np.float32(c)
+    ff = np.float32(floor)
+    _prep_local(v32, k, cf, ff, r, work, state, hmx, hmn)
+    _bounds_local(hmx, hmn, r, np.float32(p["local_margin"]), dummy if lw is None else lw,
+                  dummy if up is None else up, use_lo, use_hi, cf, ff, lo, hi)
+    wr = math.log2(max(kmax, 0.0) + c) - math.log2(max(max(kmin, 0.0) + c, floor))
+    scale = float(p["log_scale_stops"]) if not wr > 0 else min(float(p["log_scale_stops"]), wr)
+    return work, state, lo, hi, scale
+
+
+def _fse_reconstruct_reference(values, known, lower=None, upper=None, preset: str = "balanced", **params):
+    """The driver before its wrapper passes were fused (issue 7 item 3); tests compare. Reconstruct the pixels where ``known`` is False with FSE; returns float32 (H, W).
+
+    ``values``: finite float (H, W), any scale; ``known``: bool (H, W); known pixels are returned
+    bit-exact. ``lower``/``upper``: optional float arrays (NaN = no bound): a missing pixel's
+    reconstruction is clamped to ``[lower, upper]`` (clipped pixels: >= clip level; dark pixels:
+    <= threshold). ``preset`` selects one of :data:`FSE_PRESETS`, ``**params`` override entries.
+    The output does not depend on the number of threads (each round's blocks read only pixels
+    finalised in earlier rounds). See docs/FSE.md.
+    """
     p = resolve_params(preset, **params)
     v = np.asarray(values)
     k = np.asarray(known, dtype=bool)
@@ -1231,7 +1505,7 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     if domain == "auto":
         domain = "log"
         if p["log_offset"] is None:
-            c = log_offset(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
+            c = _log_offset_reference(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
         else:
             c = float(p["log_offset"])
         if c >= 64.0 * (float(kmax) - min(float(kmin), 0.0)):
@@ -1437,6 +1711,133 @@ def _fill_without_data(out, miss, lower, upper):
     return out
 
 
+# ---- fused wrapper passes of the log domain with the local bound (issue 7 item 3) -----------------------
+# The numpy passes of `_fse_reconstruct_reference` (offset add, log2 of the data and of both bounds, the
+# masked 5 x 5 min/max filters, the merge and the clip to finite sentinels, exp2 and the offset after the
+# blocks) in three parallel row loops. Min/max are exact; the log2 of the bounds is libm's (numpy's SIMD
+# log2 differs from it by at most 1 ulp on ~1 % of the values): the same bounds to float rounding.
+
+@njit(cache=True, nogil=True, parallel=True)
+def _bound_flags(lower, upper, has_lo, has_hi):
+    """(any finite lower, any finite upper): whether the data's bounds are used at all (`_bounds`)."""
+    h, w = lower.shape if has_lo else upper.shape
+    r_lo = np.zeros(h, np.uint8)
+    r_hi = np.zeros(h, np.uint8)
+    for y in prange(h):
+        if has_lo:
+            for x in range(w):
+                a = lower[y, x]
+                if a - a == 0:
+                    r_lo[y] = 1
+                    break
+        if has_hi:
+            for x in range(w):
+                a = upper[y, x]
+                if a - a == 0:
+                    r_hi[y] = 1
+                    break
+    return bool(r_lo.any()), bool(r_hi.any())
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _prep_local(v, k, c, floor, r, work, state, hmx, hmn):
+    """work = log2(max(v + c, floor)) at known pixels (state 1), 0 elsewhere (state 0); hmx/hmn: max/min
+    of the known work values in the 2r + 1 wide row window (edges replicated, like scipy's "nearest"),
+    -/+ float32 max where there is none."""
+    h, w = v.shape
+    big = np.float32(3.4028234663852886e38)
+    nch = min(h, 64)
+    for ch in prange(nch):
+        mrow = np.empty(w + 2 * r, np.float32)     # masked row, edges replicated (one per chunk)
+        nrow = np.empty(w + 2 * r, np.float32)
+        for y in range(ch * h // nch, (ch + 1) * h // nch):
+            for x in range(w):
+                kk = k[y, x]
+                a = np.float32(math.log2(max(v[y, x] + c, floor))) if kk else np.float32(0.0)
+                state[y, x] = 1 if kk else 0
+                work[y, x] = a
+                mrow[x + r] = a if kk else -big
+                nrow[x + r] = a if kk else big
+            for i in range(r):
+                mrow[i] = mrow[r]
+                nrow[i] = nrow[r]
+                mrow[w + r + i] = mrow[w + r - 1]
+                nrow[w + r + i] = nrow[w + r - 1]
+            for x in range(w):
+                hmx[y, x] = mrow[x]
+                hmn[y, x] = nrow[x]
+            for d in range(1, 2 * r + 1):
+                for x in range(w):
+                    hmx[y, x] = max(hmx[y, x], mrow[x + d])
+                    hmn[y, x] = min(hmn[y, x], nrow[x + d])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, lo, hi):
+    """Log-domain bounds of every pixel: the local bound (column window over hmx/hmn, widened by
+    `margin` stops, `_local_bounds`) narrowed by the data's bounds log2(max(b + c, floor)) with the
+    data's bound winning (`_merge_bounds`), clipped to +-1e38 (finite sentinels for the fastmath
+    block kernels)."""
+    h, w = hmx.shape
+    big = np.float32(3.4028234663852886e38)
+    sent = np.float32(1e38)
+    inf = np.float32(np.inf)
+    lfl = np.float32(math.log2(floor))
+    nch = min(h, 64)
+    for ch in prange(nch):
+        cmx = np.empty(w, np.float32)      # column-window max/min of one row (one per chunk)
+        cmn = np.empty(w, np.float32)
+        for y in range(ch * h // nch, (ch + 1) * h // nch):
+            y0 = max(y - r, 0)
+            for x in range(w):
+                cmx[x] = hmx[y0, x]
+                cmn[x] = hmn[y0, x]
+            for dy in range(-r + 1, r + 1):
+                yy = min(max(y + dy, 0), h - 1)
+                for x in range(w):
+                    cmx[x] = max(cmx[x], hmx[yy, x])
+                    cmn[x] = min(cmn[x], hmn[yy, x])
+            for x in range(w):
+                mx = cmx[x]
+                mn = cmn[x]
+                none = mx < mn
+                llo = -inf if none else mn - margin
+                lhi = inf if none else mx + margin
+                dlo = -inf
+                if use_lo:
+                    a = lower[y, x]
+                    # NaN (no bound) -> -inf -> log2(floor), as in the reference; log2 only where bounded
+                    dlo = lfl if a != a else np.float32(math.log2(max(a + c, floor)))
+                dhi = inf
+                if use_hi:
+                    b = upper[y, x]
+                    if b == b:
+                        dhi = np.float32(math.log2(max(b + c, floor)))
+                a = max(dlo, llo)
+                b = min(dhi, lhi)
+                a = min(a, dhi)
+                b = max(b, a)
+                lo[y, x] = min(max(a, -sent), sent)
+                hi[y, x] = min(max(b, -sent), sent)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _finish_c(out, work, state, c):
+    """`_finish` in the log domain with the offset: out = 2^work - c at reconstructed pixels."""
+    h, w = out.shape
+    left = 0
+    for y in prange(h):
+        n = 0
+        for x in range(w):
+            s = state[y, x]
+            if s == 2:
+                out[y, x] = np.float32(2.0 ** np.float64(work[y, x])) - c
+            elif s == 0:
+                n += 1
+        left += n
+    return left
+
+
 def warmup() -> None:
     """Compile the kernels on a tiny image (call from an element's ``do_start``)."""
     rng = np.random.default_rng(0)
@@ -1445,3 +1846,10 @@ def warmup() -> None:
     for preset in ("preview", "balanced"):
         fse_reconstruct(v, k, lower=np.full_like(v, np.nan), upper=np.full_like(v, np.nan),
                         preset=preset)
+    # HDR data (12 stops, a clipped and a dark bound): the log domain's fused passes (issue 7 item 3)
+    hv = (2.0 ** (12.0 * v)).astype(np.float32)
+    lo = np.full_like(v, np.nan)
+    hi = np.full_like(v, np.nan)
+    lo[0, 0] = hv.max()
+    hi[1, 1] = hv.min()
+    fse_reconstruct(hv, k, lower=lo, upper=hi, preset="preview")

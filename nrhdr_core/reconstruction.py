@@ -94,8 +94,9 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
                       ReconstructionWarning, stacklevel=2)
         return _fill_from_bounds(out, lower, upper)
     if method == "fse":
-        from .fse import fse_reconstruct
-        res = fse_reconstruct(out, k, lower=lower, upper=upper, preset=preset, **params)
+        from .fse import _fse
+        # in place: FSE writes only the missing pixels of `out` (issue 7 item 3: no copy back)
+        res = _fse(out, k, lower, upper, preset, True, params)
     else:
         if params:
             raise ValueError(f"method {method!r} takes no parameters, got {sorted(params)}")
@@ -214,8 +215,56 @@ def _clamp_to_data(out, v, k, miss, lower):
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _clamp_kernel(out, v, k, lower, use_lower):
+    """`_clamp_kernel_reference` in two parallel row passes (min/max per row, reduced in row order:
+    exact, independent of the thread count); the number of non-finite missing pixels (left as they are)."""
+    h, w = out.shape
+    r_lo = np.empty(h, np.float32)
+    r_hi = np.empty(h, np.float32)
+    for y in prange(h):
+        lo = np.float32(np.inf)
+        hi = np.float32(-np.inf)
+        for x in range(w):
+            if k[y, x]:
+                a = v[y, x]
+                lo = min(lo, a)
+                hi = max(hi, a)
+        r_lo[y] = lo
+        r_hi[y] = hi
+    lo = np.float32(np.inf)
+    hi = np.float32(-np.inf)
+    for y in range(h):
+        lo = min(lo, r_lo[y])
+        hi = max(hi, r_hi[y])
+    flo = min(lo, np.float32(0.0))
+    nbad = 0
+    for y in prange(h):
+        nb = 0
+        for x in range(w):
+            if k[y, x]:
+                continue
+            a = out[y, x]
+            if not np.isfinite(a):
+                nb += 1
+                continue
+            top = hi
+            if use_lower:
+                b = lower[y, x]
+                if b == b and b > top:
+                    top = b
+            if a < flo:
+                a = flo
+            if a > top:
+                a = top
+            out[y, x] = a
+        nbad += nb
+    return nbad
+
+
+@njit(cache=True, nogil=True)
+def _clamp_kernel_reference(out, v, k, lower, use_lower):
+    """The serial clamp (before issue 7 item 3); tests compare."""
     h, w = out.shape
     lo = np.inf
     hi = -np.inf

@@ -296,3 +296,43 @@ def test_kernel_mode_drops_pixels_dominated_by_clipped_neighbours():
     v2, s2 = v.copy(), s.copy()
     crosstalk.correct(v2, s2, p, mode="kernel", clip_share=None)
     assert s2[2, 2] == validity.VALID and abs(v2[2, 2] - 20.0) < abs(v[2, 2] - 20.0)
+
+
+@pytest.mark.parametrize("mode", ["lut", "kernel"])
+@pytest.mark.parametrize("f0", [0.0, 40.0])
+def test_codes_below_the_first_knot_are_never_negative(mode, f0):
+    """Codes inside the dark noise, below a pixel's first (dark) knot, map into [0, first knot's flux],
+    monotone in the code: the first segment of an attenuated pixel spans ~1 DN of code for a large flux
+    step, and extrapolating it sent such codes to -24000 DN. Analytic: between (black, 0) and the first
+    knot (c0, f0)."""
+    mask = np.ones((8, 8), bool)
+    nd = 6.35
+    p = profile.make(mask, nd=nd, clip_code=4094, l_min=10.0, full_well=1e5)
+    codes = np.zeros((8, 8, 3), np.float32)
+    codes[:, :, 0] = 3.0                   # dark level 3 DN above black
+    codes[:, :, 1] = 4.0                   # first segment: 1 DN of code ...
+    codes[:, :, 2] = 600.0
+    q, qs, qo = crosstalk.quantize_codes(codes, 4095)
+    cal = crosstalk.CrosstalkCalibration(
+        codes_q=q, qscale=qs, qoffset=qo, n_knots=np.full((8, 8), 3, np.int32),
+        knot_flux=np.array([f0, 5000.0, 30000.0], np.float64),   # ... for 5000 DN of flux
+        clip_flux=np.full((8, 8), np.nan, np.float32), nd=nd, black_level=0.0, clip_code=4094,
+        sig_e=np.array([0.0, 1.0], np.float32), sigma=np.zeros((8, 2), np.float32),
+        alpha=np.ones((8, 8), np.float32))
+    p = p.replace(crosstalk=cal)
+    m = np.linspace(-20.0, 2.99, 64).reshape(8, 8).astype(np.float32)   # codes above black, all <= c0
+    v = m * np.float32(nd)                                               # attenuated: values scaled by ND
+    s = np.full((8, 8), validity.VALID | validity.ATTENUATED, np.uint8)
+    crosstalk.correct(v, s, p, mode=mode)
+    assert np.all((s & validity.REASON_MASK) == validity.VALID)
+    assert np.all(v >= 0.0) and np.all(v <= f0 + 1e-3)
+    flat = v.ravel()
+    assert np.all(np.diff(flat) >= 0.0)                                  # monotone in the code
+    c0 = float(cal.codes()[0, 0, 0])                                    # 3 DN as stored (quantised)
+    np.testing.assert_allclose(flat, f0 * np.clip(m.ravel(), 0, None) / c0, rtol=1e-5, atol=1e-3)
+    # DARK pixels (an upper bound) below the first knot: never negative either
+    v2 = m * np.float32(nd)
+    s2 = np.full((8, 8), validity.DARK | validity.ATTENUATED, np.uint8)
+    crosstalk.correct(v2, s2, p, mode=mode)
+    assert np.all(v2 >= np.minimum(m * np.float32(nd), 0.0))   # kept (f <= 0) or replaced by f > 0
+    assert np.all(v2[v2 != m * np.float32(nd)] > 0.0)

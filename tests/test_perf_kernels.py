@@ -223,7 +223,9 @@ def _lut_eval_reference(codes, n, knot_flux, clip_rel, cflux, m):
         return f32(0.0), False
     c0, c1 = codes[0], codes[1]
     if m <= c0:
-        return f32(knot_flux[0]) + (m - c0) * (f32(knot_flux[1]) - f32(knot_flux[0])) / max(c1 - c0, f32(1e-3)), True
+        # below the first (dark) knot: between (black, 0) and the first knot, never negative (helper perf2)
+        f0 = max(f32(knot_flux[0]), f32(0.0))
+        return (f0 * (max(m, f32(0.0)) / c0) if c0 > 0 else f0), True
     last_c = codes[n - 1]
     if m <= last_c:
         lo, hi = 1, n - 1
@@ -388,3 +390,139 @@ def test_crosstalk_lut_walk_equals_the_mode0_correction_kernel(rng, threads):
         vv, ss = v0.copy(), st0.copy()
         crosstalk.correct(vv, ss, px, mode="lut")
         assert np.array_equal(vv, ref_v) and np.array_equal(ss, ref_s)
+
+
+# ---- fse driver: fused log-domain wrapper passes (issue 7 item 3, helper perf2) -------------------------------
+def _hdr_capture(h, w, seed):
+    """A sensor capture of the synthetic HDR scene (clipped and dark pixels with their bounds, read and shot
+    noise): values, known mask, lower, upper as the element hands them to `reconstruct`."""
+    from nrhdr_core import sensor, simulate
+    from nrhdr_core.scene import synthetic_hdr_scene
+    from nrhdr_core.simulate import Motion
+    scene = synthetic_hdr_scene(max(h, 600), max(w, 800))
+    prof = profiles.default(h, w)
+    flux = simulate.view(scene, h, w, 0.3, Motion()) * np.float32(simulate.exposure_scale(scene, prof, 0.0))
+    raw = sensor.capture(flux, prof, np.random.default_rng(seed))
+    values, state = V.classify(raw, prof)
+    lo, hi = V.bounds(values, state)
+    return values, V.known_mask(state), lo, hi, flux
+
+
+def _hdr_cases(rng):
+    v, k, lo, hi, flux = _hdr_capture(96, 136, 3)
+    yield v, k, lo, hi                                   # the sensor case: clipped + dark pixels, bounds
+    yield v, k, None, None                               # no bounds
+    yield v, k, np.full_like(lo, np.nan), hi             # lower all NaN (not used), upper used
+    kr = rng.random(v.shape) < 0.3                       # sparse known (sparse_below: 32 x 32 window)
+    yield flux.astype(np.float32), kr, None, None
+    yield (v * np.float32(1e-3)).astype(np.float32), k, lo * np.float32(1e-3), hi * np.float32(1e-3)  # scale
+
+
+def test_log_offset_equals_the_numpy_statistics(rng):
+    """Same statistics, same subsample: the same offset c, bit for bit (8-bit data, HDR data, big frames)."""
+    cases = [(v, k, lo) for v, k, lo, _hi in _hdr_cases(rng)]
+    img8 = np.floor(rng.random((50, 70)) * 256).astype(np.float32)
+    cases.append((img8, rng.random(img8.shape) < 0.6, None))
+    big = (2.0 ** (rng.random((700, 640)) * 14)).astype(np.float32)      # step 1 -> strided rows (step > 1)
+    cases.append((big, rng.random(big.shape) < 0.5, None))
+    cases.append((big[:, :2].copy(), rng.random((700, 2)) < 0.5, None))  # narrower than a 3-pixel triple
+    for v, k, lo in cases:
+        assert fse.log_offset(v, k, 2.0, lo) == fse._log_offset_reference(v, k, 2.0, lo)
+
+
+@pytest.mark.parametrize("preset", ["fast", "preview", "balanced"])
+def test_fse_fused_driver_equals_the_reference(preset, rng, threads):
+    """The fused driver against the numpy passes it replaces: the same output to float rounding (the log2 of
+    the bounds is libm's instead of numpy's SIMD one: <= 1 ulp), known pixels bit-exact, the same PSNR."""
+    for v, k, lo, hi in _hdr_cases(rng):
+        ref = fse._fse_reconstruct_reference(v, k, lo, hi, preset=preset)
+        for t in threads:
+            numba.set_num_threads(t)
+            out = fse.fse_reconstruct(v, k, lo, hi, preset=preset)
+            assert np.array_equal(out[k], v[k])
+            np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6 * float(np.abs(v).max()))
+
+
+def test_fse_local_bound_passes_equal_scipy(rng, threads):
+    """`_prep_local` + `_bounds_local` against scipy's min/max filters and `_merge_bounds` (the reference's
+    passes), at the frame edges and where no known pixel is near."""
+    for shape in [(1, 1), (1, 9), (9, 1), (3, 5), (17, 33), (40, 63)]:
+        for k in _masks(rng, shape):
+            v = (2.0 ** (rng.random(shape) * 12)).astype(np.float32)
+            lo = np.where(rng.random(shape) < 0.1, v * 2, np.nan).astype(np.float32)
+            hi = np.where(rng.random(shape) < 0.1, v * 0.5, np.nan).astype(np.float32)
+            c, floor = np.float32(3.0), np.float32(3.0)
+            for size in (3, 5, 9):
+                work_r, state_r = fse._prep(v + c, k, True, floor)
+                llo, lhi = fse._local_bounds(work_r, state_r, size, 1.0, True)
+                lor = np.log2(np.maximum(np.where(np.isnan(lo), -np.inf, lo) + c, floor)).astype(np.float32)
+                hir = np.log2(np.maximum(np.where(np.isnan(hi), np.inf, hi) + c, floor)).astype(np.float32)
+                elo, ehi = fse._merge_bounds(lor, hir, True, True, llo, lhi, shape)
+                for t in threads:
+                    numba.set_num_threads(t)
+                    work, state = np.empty(shape, np.float32), np.empty(shape, np.uint8)
+                    a, b = np.empty(shape, np.float32), np.empty(shape, np.float32)
+                    fse._prep_local(v, k, c, floor, size // 2, work, state, a, b)
+                    assert np.array_equal(state, state_r)
+                    np.testing.assert_allclose(work, work_r, rtol=1e-6)
+                    glo, ghi = np.empty(shape, np.float32), np.empty(shape, np.float32)
+                    fse._bounds_local(a, b, size // 2, np.float32(1.0), lo, hi, True, True, c, floor, glo, ghi)
+                    np.testing.assert_allclose(glo, elo, rtol=1e-6)
+                    np.testing.assert_allclose(ghi, ehi, rtol=1e-6)
+
+
+def test_reconstruct_fse_in_place_equals_the_previous_composition(rng):
+    """The dispatcher now lets FSE write into its output array and clamps in parallel: the same result as
+    the previous composition (FSE copy, copy of the missing pixels, serial clamp to the data, bounds)."""
+    for v, k, lo, hi in _hdr_cases(rng):
+        res = fse._fse_reconstruct_reference(v, k, lo, hi, preset="fast")
+        exp = v.copy()
+        R._copy_missing(res, k, exp)
+        lw = np.zeros((1, 1), np.float32) if lo is None else lo
+        assert R._clamp_kernel_reference(exp, v, k, lw, lo is not None) == 0
+        R._apply_bounds(exp, ~k, lo, hi)
+        out = R.reconstruct(v, k, method="fse", preset="fast", lower=lo, upper=hi)
+        np.testing.assert_allclose(out, exp, rtol=1e-5, atol=1e-6 * float(np.abs(v).max()))
+        inplace = v.copy()
+        assert R.reconstruct(inplace, k, method="fse", preset="fast", lower=lo, upper=hi, out=inplace) is inplace
+        assert np.array_equal(inplace, out)
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_clamp_kernel_parallel_equals_serial(shape, rng, threads):
+    for k in _masks(rng, shape):
+        v = (rng.random(shape) * 200 - 50).astype(np.float32)
+        out0 = (rng.random(shape) * 600 - 300).astype(np.float32)
+        out0[rng.random(shape) < 0.05] = np.nan
+        lo = np.where(rng.random(shape) < 0.2, rng.random(shape) * 400, np.nan).astype(np.float32)
+        for use in (False, True):
+            ref = out0.copy()
+            nref = R._clamp_kernel_reference(ref, v, k, lo, use)
+            for t in threads:
+                numba.set_num_threads(t)
+                got = out0.copy()
+                assert R._clamp_kernel(got, v, k, lo, use) == nref
+                assert np.array_equal(got, ref, equal_nan=True)
+
+
+def test_lut_count_search_equals_the_binary_search_at_the_knots(rng):
+    """`_lut_eval_count` (quantised threshold + count) against `_lut_eval` (binary search) for codes exactly
+    at every knot, one float32 step either side, between knots and outside the range (helper perf2)."""
+    h, w, kn = 3, 4, 12
+    flux = np.concatenate([[0.0], 4094.0 * 6.35 * np.geomspace(1e-3, 1.0, kn - 1)])
+    codes = (flux[None, None, :] / 6.35 * (1.0 + 0.05 * rng.standard_normal((h, w)))[:, :, None]).astype(np.float32)
+    codes[0, 0, :] = np.arange(kn) * 0.0625 + 3.0          # knots 1 quantisation step apart
+    q, qs, qo = crosstalk.quantize_codes(codes, 4095)
+    qs, qo = np.float32(qs), np.float32(qo)
+    kf = flux.astype(np.float64)
+    for y in range(h):
+        for x in range(w):
+            for n in (0, 1, 2, 5, kn):
+                cs = q[y, x, :max(n, 1)].astype(np.float32) * qs - qo
+                ms = [cs, np.nextafter(cs, np.float32(np.inf)), np.nextafter(cs, np.float32(-np.inf)),
+                      (cs[:-1] + cs[1:]) / 2 if n > 1 else cs, np.array([-5.0, 1e5], np.float32)]
+                for m in np.concatenate(ms).astype(np.float32):
+                    for cflux in (np.float32(np.nan), np.float32(2e5)):
+                        a = crosstalk._lut_eval_count(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
+                        b = crosstalk._lut_eval(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
+                        assert a[1] == b[1] and (a[0] == b[0] or (np.isnan(a[0]) and np.isnan(b[0])))
