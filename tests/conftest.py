@@ -8,6 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# matplotlib's wheel bundles its own FreeType; loaded after GStreamer has loaded the system one (through
+# its plugins), importing matplotlib.ft2font aborts the process ("Fatal Python error: Aborted" in
+# matplotlib._mathtext_data). Tests mix both in one process, so load matplotlib's first.
+import matplotlib  # noqa: E402
+matplotlib.use("Agg")
+import matplotlib.ft2font  # noqa: E402,F401
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
