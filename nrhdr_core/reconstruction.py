@@ -135,46 +135,48 @@ def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int
 
 
 
-@njit(cache=True, nogil=True)
-def _known_integrals(values, known):
-    """Integral images (count, sum, sum of squares) of the known pixels, float64, (h+1, w+1)."""
-    h, w = values.shape
-    c = np.zeros((h + 1, w + 1), np.float64)
-    s1 = np.zeros((h + 1, w + 1), np.float64)
-    s2 = np.zeros((h + 1, w + 1), np.float64)
-    for y in range(h):
-        rc = 0.0
-        r1 = 0.0
-        r2 = 0.0
-        for x in range(w):
-            if known[y, x]:
-                a = np.float64(values[y, x])
-                rc += 1.0
-                r1 += a
-                r2 += a * a
-            c[y + 1, x + 1] = c[y, x + 1] + rc
-            s1[y + 1, x + 1] = s1[y, x + 1] + r1
-            s2[y + 1, x + 1] = s2[y, x + 1] + r2
-    return c, s1, s2
-
-
 @njit(cache=True, nogil=True, parallel=True)
 def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r):
+    """`fuse_noisy`'s per-pixel pass: count, sum and sum of squares of the known pixels in the
+    (2r+1)^2 window around each noisy pixel, from column sums of the row's vertical window (parallel
+    over rows; rows without a noisy pixel cost one scan)."""
     h, w = out.shape
-    c, s1, s2 = _known_integrals(values, known)
     for y in prange(h):
+        has = False
+        for x in range(w):
+            if noisy[y, x]:
+                has = True
+                break
+        if not has:
+            continue
         y0 = max(y - r, 0)
         y1 = min(y + r + 1, h)
+        cn = np.zeros(w, np.float64)
+        c1 = np.zeros(w, np.float64)
+        c2 = np.zeros(w, np.float64)
+        for yy in range(y0, y1):
+            for x in range(w):
+                kf = 1.0 if known[yy, x] else 0.0
+                a = np.float64(values[yy, x]) * kf
+                cn[x] += kf
+                c1[x] += a
+                c2[x] += a * a
         for x in range(w):
             if not noisy[y, x]:
                 continue
             x0 = max(x - r, 0)
             x1 = min(x + r + 1, w)
-            n = c[y1, x1] - c[y0, x1] - c[y1, x0] + c[y0, x0]
+            n = 0.0
+            t1 = 0.0
+            t2 = 0.0
+            for xx in range(x0, x1):
+                n += cn[xx]
+                t1 += c1[xx]
+                t2 += c2[xx]
             excess = 0.0
             if n > 0.5:
-                mean = (s1[y1, x1] - s1[y0, x1] - s1[y1, x0] + s1[y0, x0]) / n
-                var = (s2[y1, x1] - s2[y0, x1] - s2[y1, x0] + s2[y0, x0]) / n - mean * mean
+                mean = t1 / n
+                var = t2 / n - mean * mean
                 excess = var - (gain * max(mean, 0.0) + floor)
                 if excess < 0.0:
                     excess = 0.0

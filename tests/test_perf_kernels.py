@@ -526,3 +526,42 @@ def test_lut_count_search_equals_the_binary_search_at_the_knots(rng):
                         a = crosstalk._lut_eval_count(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
                         b = crosstalk._lut_eval(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
                         assert a[1] == b[1] and (a[0] == b[0] or (np.isnan(a[0]) and np.isnan(b[0])))
+
+
+def _fuse_reference(out, values, known, noisy, noise, texture=1.0, size=5):
+    """fuse_noisy written with numpy/scipy window sums (float64), the formula of its docstring."""
+    from scipy import ndimage
+    kf = known.astype(np.float64)
+    a = values.astype(np.float64) * kf
+    box = lambda x: ndimage.uniform_filter(x, size, mode="constant", cval=0.0) * size * size  # noqa: E731
+    n, t1, t2 = box(kf), box(a), box(a * a)
+    g = float(noise.gain)
+    floor = g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0.5, t1 / np.maximum(n, 1), 0.0)
+        var = np.where(n > 0.5, t2 / np.maximum(n, 1) - mean * mean, 0.0)
+    excess = np.where(n > 0.5, np.maximum(var - (g * np.maximum(mean, 0.0) + floor), 0.0), 0.0)
+    gv = out.astype(np.float64)
+    gp = np.maximum(gv, 0.0)
+    var_g = (g * gp + floor) / 4.0 + texture * excess
+    var_m = noise.nd * g * gp + noise.nd ** 2 * floor
+    f = gv + var_g / (var_g + var_m) * (values.astype(np.float64) - gv)
+    res = out.copy()
+    res[noisy] = np.maximum(f, 0.0)[noisy].astype(np.float32)
+    return res
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 40), (37, 29), (64, 80)])
+def test_fuse_noisy_equals_the_window_formula(shape, rng, threads):
+    from types import SimpleNamespace
+    noise = SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35)
+    values = (rng.random(shape) * 3000).astype(np.float32)
+    known = rng.random(shape) < 0.5
+    noisy = ~known & (rng.random(shape) < 0.6)
+    out0 = (values + rng.standard_normal(shape).astype(np.float32) * 50).astype(np.float32)
+    ref = _fuse_reference(out0, values, known, noisy, noise)
+    for t in threads:
+        numba.set_num_threads(t)
+        got = R.fuse_noisy(out0.copy(), values, known, noisy, noise)
+        np.testing.assert_allclose(got, ref, rtol=2e-6, atol=1e-3)
+        assert np.array_equal(got[~noisy], out0[~noisy])
