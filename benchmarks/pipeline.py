@@ -163,7 +163,7 @@ def live_runs(a, clip_dir, prof_path, chain) -> None:
         preset = preset or a.preset
         desc = (f"nrcamsrc name=cam location={clip_dir} loop=true fps={a.fps} num-buffers={n} ! "
                 f"queue leaky=downstream max-size-buffers=1 ! {chain} ! nrreconstruct method={method} "
-                f"preset={preset} ! nrtonemap ! fakesink name=out sync=true qos=true max-lateness=20000000")
+                f"preset={preset} post-stats=true ! nrtonemap ! fakesink name=out sync=true qos=true max-lateness=20000000")
         p = Gst.parse_launch(desc)
         bus = p.get_bus()
         stats = []
