@@ -1316,9 +1316,11 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     return _fse(values, known, lower, upper, preset, False, params)
 
 
-def _fse(values, known, lower, upper, preset, inplace, params):
+def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
     """`fse_reconstruct`; `inplace`: write the missing pixels into `values` itself when it is a
-    C-contiguous float32 array (the dispatcher's output array) and return it."""
+    C-contiguous float32 array (the dispatcher's output array) and return it. `fused=False`: the driver
+    before its wrapper passes were fused (issue 7 item 3: numpy offset statistics, numpy log2 of the
+    bounds, scipy local bound, serial finish), kept as `_fse_reconstruct_reference` for the tests."""
     p = resolve_params(preset, **params)
     v = np.asarray(values)
     k = np.asarray(known, dtype=bool)
@@ -1344,14 +1346,15 @@ def _fse(values, known, lower, upper, preset, inplace, params):
     if domain == "auto":
         domain = "log"
         if p["log_offset"] is None:
-            c = log_offset(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
+            c = (log_offset if fused else _log_offset_reference)(
+                v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
         else:
             c = float(p["log_offset"])
         if c >= 64.0 * (float(kmax) - min(float(kmin), 0.0)):
             domain, c = "linear", 0.0     # log2(x + c) is linear to < 1 % there: use it exactly
     elif domain == "log" and p["log_offset"] is not None:
         c = float(p["log_offset"])
-    if domain == "log" and int(p["local_bound"]):
+    if fused and domain == "log" and int(p["local_bound"]):
         # the common HDR case, fused (issue 7 item 3): log2 of data and bounds, the local bound and the
         # merge in three parallel passes; same bounds as the numpy passes of the reference to float rounding
         work, state, lo_arr, hi_arr, scale = _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos)
@@ -1412,16 +1415,19 @@ def _fse(values, known, lower, upper, preset, inplace, params):
         set_num_threads(old)
     logd = domain == "log"
     cf = np.float32(c if logd else 0.0)
-    nleft = _finish_c(out, work, state, cf) if cf > 0 else _finish(out, work, state, logd)
+    fused_c = fused and cf > 0
+    nleft = _finish_c(out, work, state, cf) if fused_c else _finish(out, work, state, logd)
     if nleft:
         # blocks whose support held no usable pixel: nearest reconstructed/known value
         left = state == 0
         _nearest_fill(work, left)
         state[left] = 2
-        if cf > 0:
+        if fused_c:
             _finish_c(out, work, state, cf)
         else:
             _finish(out, work, state, logd)
+    if cf > 0 and not fused:
+        out[~k] -= cf
     return out
 
 
@@ -1471,110 +1477,9 @@ def _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos):
 
 
 def _fse_reconstruct_reference(values, known, lower=None, upper=None, preset: str = "balanced", **params):
-    """The driver before its wrapper passes were fused (issue 7 item 3); tests compare. Reconstruct the pixels where ``known`` is False with FSE; returns float32 (H, W).
-
-    ``values``: finite float (H, W), any scale; ``known``: bool (H, W); known pixels are returned
-    bit-exact. ``lower``/``upper``: optional float arrays (NaN = no bound): a missing pixel's
-    reconstruction is clamped to ``[lower, upper]`` (clipped pixels: >= clip level; dark pixels:
-    <= threshold). ``preset`` selects one of :data:`FSE_PRESETS`, ``**params`` override entries.
-    The output does not depend on the number of threads (each round's blocks read only pixels
-    finalised in earlier rounds). See docs/FSE.md.
-    """
-    p = resolve_params(preset, **params)
-    v = np.asarray(values)
-    k = np.asarray(known, dtype=bool)
-    if v.ndim != 2 or k.shape != v.shape:
-        raise ValueError("values and known must be 2-D arrays of the same shape")
-    v32 = np.ascontiguousarray(v, dtype=np.float32)
-    k = np.ascontiguousarray(k)
-    out = v32.copy()
-    nk, kmin, kmax, minpos = _stats(v32, k)
-    if nk == v32.size:
-        return out
-    if nk == 0:
-        warnings.warn("fse_reconstruct: no known pixel; output is filled from the bounds or 0",
-                      RuntimeWarning, stacklevel=2)
-        return _fill_without_data(out, ~k, lower, upper)
-    p = _density_params(p, nk / v32.size)
-    if kmin == kmax:
-        # constant known data: the constant is the only model (exact), within the bounds
-        out[~k] = np.float32(kmin)
-        return _fill_bounded(out, ~k, lower if p["use_bounds"] else None, upper if p["use_bounds"] else None)
-    domain = p["domain"]
-    c = 0.0
-    if domain == "auto":
-        domain = "log"
-        if p["log_offset"] is None:
-            c = _log_offset_reference(v32, k, float(p["offset_noise_k"]), lower if p["use_bounds"] else None)
-        else:
-            c = float(p["log_offset"])
-        if c >= 64.0 * (float(kmax) - min(float(kmin), 0.0)):
-            domain, c = "linear", 0.0     # log2(x + c) is linear to < 1 % there: use it exactly
-    elif domain == "log" and p["log_offset"] is not None:
-        c = float(p["log_offset"])
-    lo_arr, hi_arr, use_lo, use_hi = _bounds(lower, upper, v.shape, p["use_bounds"])
-    floor = 0.0
-    local = False
-    src = v32
-    if domain == "log":
-        if c > 0.0:
-            # log2(max(x, 0) + c): well conditioned down to the offset (no blow-up at black pixels)
-            src = v32 + np.float32(c)
-            floor = c
-        else:
-            floor = 0.5 * minpos if minpos > 0 else 1e-30
-        if use_lo:
-            lo_arr = np.log2(np.maximum(lo_arr + np.float32(c), floor)).astype(np.float32)
-        if use_hi:
-            hi_arr = np.log2(np.maximum(hi_arr + np.float32(c), floor)).astype(np.float32)
-        # sigma relative to the known values' log range, at most log_scale_stops (an almost linear
-        # low-dynamic-range domain then behaves like the linear one)
-        wr = math.log2(max(kmax, 0.0) + c) - math.log2(max(max(kmin, 0.0) + c, floor))
-        scale = float(p["log_scale_stops"]) if not wr > 0 else min(float(p["log_scale_stops"]), wr)
-    elif domain == "local":
-        scale = 1.0 / 0.4   # std relative to 2.5x the local mean ~ std/255 for mid-grey 8-bit data
-        local = True
-    else:
-        rng = float(kmax - kmin)
-        scale = rng if rng > 0 else 1.0
-    work, state = _prep(src, k, domain == "log", np.float32(floor))
-    if int(p["local_bound"]) and domain == "log":
-        llo, lhi = _local_bounds(work, state, int(p["local_bound"]), float(p["local_margin"]),
-                                 domain == "log")
-        lo_arr, hi_arr = _merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, v.shape)
-        use_lo = use_hi = True
-    tables = _tables(p)
-    cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, sizes = tables
-    n = int(p["window"])
-    tile = int(p["max_block"])
-    plan = _plan(work, state, tile, n, sizes, split, scale, local, float(p["edge_penalty"]),
-                 int(p["order_levels"]), int(p["order_slack"]))
-    tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, _nr = plan
-    nthreads = int(get_num_threads())
-    # small jobs run on the calling thread only: fork/join per round would cost more than it gains
-    # (the result is the same for any thread count)
-    if leaf_y.shape[0] * n * n < 400_000:
-        nthreads = 1
-    old = get_num_threads()
-    set_num_threads(nthreads)
-    try:
-        _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
-             leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
-             float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
-             int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
-    finally:
-        set_num_threads(old)
-    nleft = _finish(out, work, state, domain == "log")
-    if nleft:
-        # blocks whose support held no usable pixel: nearest reconstructed/known value
-        left = state == 0
-        _nearest_fill(work, left)
-        state[left] = 2
-        _finish(out, work, state, domain == "log")
-    if domain == "log" and c > 0.0:
-        miss = ~k
-        out[miss] -= np.float32(c)
-    return out
+    """`fse_reconstruct` with the driver before its wrapper passes were fused (issue 7 item 3); the
+    tests compare the two."""
+    return _fse(values, known, lower, upper, preset, False, params, fused=False)
 
 
 def _fill_bounded(out, miss, lower, upper):
@@ -1779,7 +1684,6 @@ def _bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, l
     data's bound winning (`_merge_bounds`), clipped to +-1e38 (finite sentinels for the fastmath
     block kernels)."""
     h, w = hmx.shape
-    big = np.float32(3.4028234663852886e38)
     sent = np.float32(1e38)
     inf = np.float32(np.inf)
     lfl = np.float32(math.log2(floor))
