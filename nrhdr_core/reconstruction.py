@@ -772,34 +772,46 @@ def _pp_pull0(vals, known, zv, kf, pv, pw, o1, h1, w1):
                 pw[base + x1] = c
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pp_pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1):
+    """One coarse pixel of the pull: sum of the 2 x 2 children, normalised once its weight exceeds 1."""
+    one = np.float32(1.0)
+    s = np.float32(0.0)
+    c = np.float32(0.0)
+    for y in range(2 * y1, min(2 * y1 + 2, h0)):
+        for x in range(2 * x1, min(2 * x1 + 2, w0)):
+            s += pv[o0 + y * w0 + x]
+            c += pw[o0 + y * w0 + x]
+    if c > one:
+        s = s / c
+        c = one
+    pv[o1 + y1 * w1 + x1] = s
+    pw[o1 + y1 * w1 + x1] = c
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pp_push_at(pv, pw, o0, w0, o1, w1, y, x):
+    """One fine pixel of the push: an under-weighted pixel takes its parent's normalised value."""
+    one = np.float32(1.0)
+    i0 = o0 + y * w0 + x
+    if pw[i0] < one:
+        i1 = o1 + (y // 2) * w1 + x // 2
+        pv[i0] = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
+    pw[i0] = one
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _pp_pull(pv, pw, o0, h0, w0, o1, h1, w1):
-    one = np.float32(1.0)
     for y1 in prange(h1):
         for x1 in range(w1):
-            s = np.float32(0.0)
-            c = np.float32(0.0)
-            for y in range(2 * y1, min(2 * y1 + 2, h0)):
-                for x in range(2 * x1, min(2 * x1 + 2, w0)):
-                    s += pv[o0 + y * w0 + x]
-                    c += pw[o0 + y * w0 + x]
-            if c > one:
-                s = s / c
-                c = one
-            pv[o1 + y1 * w1 + x1] = s
-            pw[o1 + y1 * w1 + x1] = c
+            _pp_pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _pp_push(pv, pw, o0, h0, w0, o1, w1):
-    one = np.float32(1.0)
     for y in prange(h0):
         for x in range(w0):
-            i0 = o0 + y * w0 + x
-            if pw[i0] < one:
-                i1 = o1 + (y // 2) * w1 + x // 2
-                pv[i0] = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
-            pw[i0] = one
+            _pp_push_at(pv, pw, o0, w0, o1, w1, y, x)
 
 
 @njit(cache=True, nogil=True)
@@ -901,33 +913,18 @@ _PP_SERIAL = 1 << 16
 def _pp_small_levels(pv, pw, hs, ws, off, first, levels):
     """Pull from level `first` to the top and push back down to `first`, serially (same arithmetic as
     `_pp_pull` / `_pp_push`)."""
-    one = np.float32(1.0)
     for lv in range(first, levels):
         o0, h0, w0 = off[lv], hs[lv], ws[lv]
         o1, h1, w1 = off[lv + 1], hs[lv + 1], ws[lv + 1]
         for y1 in range(h1):
             for x1 in range(w1):
-                sv = np.float32(0.0)
-                c = np.float32(0.0)
-                for y in range(2 * y1, min(2 * y1 + 2, h0)):
-                    for x in range(2 * x1, min(2 * x1 + 2, w0)):
-                        sv += pv[o0 + y * w0 + x]
-                        c += pw[o0 + y * w0 + x]
-                if c > one:
-                    sv = sv / c
-                    c = one
-                pv[o1 + y1 * w1 + x1] = sv
-                pw[o1 + y1 * w1 + x1] = c
+                _pp_pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
     for lv in range(levels - 1, first - 1, -1):
         o0, h0, w0 = off[lv], hs[lv], ws[lv]
         o1, w1 = off[lv + 1], ws[lv + 1]
         for y in range(h0):
             for x in range(w0):
-                i0 = o0 + y * w0 + x
-                if pw[i0] < one:
-                    i1 = o1 + (y // 2) * w1 + x // 2
-                    pv[i0] = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
-                pw[i0] = one
+                _pp_push_at(pv, pw, o0, w0, o1, w1, y, x)
 
 
 def warmup(method: str | None = None) -> None:

@@ -565,3 +565,13 @@ def test_fuse_noisy_equals_the_window_formula(shape, rng, threads):
         got = R.fuse_noisy(out0.copy(), values, known, noisy, noise)
         np.testing.assert_allclose(got, ref, rtol=2e-6, atol=1e-3)
         assert np.array_equal(got[~noisy], out0[~noisy])
+
+
+def test_preview_parallel_pyramid_levels_bit_exact(rng, threads):
+    """600 x 800: the first pyramid levels run in the parallel kernels, the rest in the serial call."""
+    v = (rng.random((600, 800), dtype=np.float32) * 1000).astype(np.float32)
+    k = rng.random((600, 800)) < 0.4
+    ref = R._preview_reference(v, k)
+    for t in threads:
+        numba.set_num_threads(t)
+        assert np.array_equal(R._preview(v, k), ref)
