@@ -422,13 +422,6 @@ def _clamp_missing(out, miss, b, is_lower):
             out[y, x] = r
 
 
-def _nearest_reference(out, k):
-    """scipy's exact Euclidean distance transform with indices (the previous release; tests compare)."""
-    from scipy import ndimage
-    idx = ndimage.distance_transform_edt(~k, return_distances=False, return_indices=True)
-    return out[idx[0], idx[1]]
-
-
 def _nearest(out, k, dst=None):
     """Value of the nearest known pixel (exact Euclidean distance; ties may pick another pixel at the
     same distance than scipy), by a separable distance transform with argmin tracking (Felzenszwalb &
