@@ -22,7 +22,6 @@ sensor model.
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -248,7 +247,7 @@ def _write_flats(out: Path, prof, sensor_model, exposures, frames_per_exposure, 
 
 
 # ======================================================================================================
-# Calibration math
+# Calibration: the steps of paper sections 3.2, 4.1 and 4.2, in the order `calibrate` runs them
 # ======================================================================================================
 
 def _neighbour_indicators(mask: np.ndarray, want_regular: bool) -> np.ndarray:
@@ -288,6 +287,539 @@ def _slope_through_origin(t, y, ok):
     return float(np.sum(t * y) / np.sum(t * t))
 
 
+def _trimmed_mean(v):
+    """Mean without the 0.5 % largest values (hot pixels); a mean, not a median: the variance of a few
+    frames is chi-square skewed."""
+    v = v.ravel()
+    if v.size == 0:
+        return float("nan")
+    return float(np.mean(v[v <= np.percentile(v, 99.5)]))
+
+
+def check_mask(sweep: FlatSweep, mask, mask_name: str = "mask") -> np.ndarray:
+    """The ND mask as bool (True = attenuated); CalibrationError unless it fits the frames and holds both
+    kinds of pixel."""
+    mask = np.asarray(mask, bool)
+    H, W = sweep.shape
+    if mask.shape != (H, W):
+        raise CalibrationError(f"{mask_name}: mask is {mask.shape[1]}x{mask.shape[0]} but the frames in "
+                               f"{sweep.folder} are {W}x{H}")
+    if mask.all() or not mask.any():
+        raise CalibrationError(f"{mask_name}: the mask must contain both attenuated (255) and regular (0) "
+                               f"pixels")
+    return mask
+
+
+# ---- step 1: sensor levels (black level, clip code, clipped pixels) -------------------------------------
+
+@dataclasses.dataclass
+class SensorLevels:
+    """Black and clip levels of the sweep and each pixel's signal above its dark code."""
+    black: float                   # black level (DN)
+    dark: np.ndarray               # (H, W) per-pixel dark code (DN)
+    clip_code: int
+    bit_depth: int
+    max_code: int
+    top: float                     # DN_max of the paper (4.1): clip code above black
+    signal: np.ndarray             # (E, H, W) float32 mean code minus the pixel's dark code
+    unclipped: np.ndarray          # (E, H, W) not clipped at that exposure (once clipped, stays clipped)
+    lit: np.ndarray                # (E,) exposure > 0
+    var_reg: np.ndarray            # (E,) temporal variance of the regular pixels (trimmed mean)
+
+
+def sensor_levels(sweep: FlatSweep, mask: np.ndarray, clip_code: int | None = None,
+                  bit_depth: int | None = None) -> SensorLevels:
+    """Black level (the dark frame, else the regular pixels extrapolated to zero exposure) and clip code
+    (just below the saturated frames, found where the temporal variance collapses; EMVA 1288 style)."""
+    where = str(sweep.folder)
+    t = sweep.exposures.astype(np.float64)
+    mean, maxc, tvar = sweep.mean, sweep.maxcode, sweep.tvar
+    reg = ~mask
+    max_seen = int(maxc.max())
+    if bit_depth is None:
+        bit_depth = next(b for b in (8, 10, 12, 14, 16) if (1 << b) - 1 >= max_seen)
+    max_code = (1 << bit_depth) - 1
+    first_lit = 1 if t[0] == 0 else 0
+    hot = np.mean(maxc[0] >= max(max_seen - 3, 1))
+    if hot > 0.5 or np.mean(maxc[first_lit] >= max(max_seen - 3, 1)) > 0.9:
+        raise CalibrationError(f"{where}: the sweep is saturated everywhere: already at the shortest exposure "
+                               f"({t[first_lit]:g} s) most pixels sit at the largest code {max_seen}; the "
+                               f"sweep must start dark")
+    if t[0] == 0:
+        dark = mean[0].astype(np.float64)
+        black = float(np.median(dark))
+    else:
+        m0, m1 = float(np.median(mean[0][reg])), float(np.median(mean[1][reg]))
+        black = m0 - t[0] * (m1 - m0) / (t[1] - t[0])
+        dark = np.full(sweep.shape, black)
+    black = float(max(black, 0.0))
+    var_reg = np.array([_trimmed_mean(tvar[i][reg]) for i in range(len(t))])
+    if clip_code is None:
+        clip_code = _clip_code_from_saturation(sweep, reg, var_reg, max_code)
+    clip_code = int(clip_code)
+    if not (black + 10 < clip_code <= max_code):
+        raise CalibrationError(f"{where}: inconsistent levels: black {black:.1f}, clip code {clip_code}, "
+                               f"{bit_depth}-bit data")
+    unclipped = np.logical_and.accumulate(maxc < clip_code, axis=0)      # (E, H, W), once clipped stays
+    lit = t > 0
+    if np.mean(unclipped[np.argmax(lit)][reg]) < 0.5:
+        raise CalibrationError(f"{where}: the sweep is saturated everywhere: at the shortest exposure with "
+                               f"light ({t[np.argmax(lit)]:g} s) most regular pixels are already clipped")
+    signal = mean - dark[None].astype(np.float32)
+    return SensorLevels(black, dark, clip_code, bit_depth, max_code, clip_code - black, signal, unclipped,
+                        lit, var_reg)
+
+
+def _clip_code_from_saturation(sweep: FlatSweep, reg, var_reg, max_code) -> int:
+    """Clip code: 3 sigma below the 1st percentile of the regular pixels at the longest exposure, which
+    must be saturated (their temporal variance has collapsed below a quarter of its peak)."""
+    t = sweep.exposures
+    if not (var_reg[-1] < 0.25 * var_reg.max()):
+        raise CalibrationError(f"{sweep.folder}: the sweep does not reach saturation: the regular pixels' "
+                               f"temporal variance at the longest exposure ({t[-1]:g} s) is still "
+                               f"{var_reg[-1]:.1f} DN^2 (peak {var_reg.max():.1f}); extend the sweep beyond "
+                               f"saturation or pass --clip-code")
+    sat = sweep.mean[-1][reg]
+    sig = math.sqrt(float(np.median(sweep.tvar[-1][reg])))
+    return int(min(max_code - 1, math.floor(np.percentile(sat, 1) - 3 * sig)))
+
+
+# ---- step 2: photon transfer (EMVA 1288) ----------------------------------------------------------------
+
+@dataclasses.dataclass
+class PhotonTransfer:
+    gain: float                    # DN per electron
+    read_noise: float              # electrons
+    full_well: float               # electrons
+
+
+def photon_transfer(sweep: FlatSweep, mask: np.ndarray, lv: SensorLevels) -> PhotonTransfer:
+    """System gain, read noise and full well from the photon transfer curve of the unclipped regular
+    pixels (EMVA 1288): temporal variance = gain x signal + (gain x read noise)^2 + 1/12, fitted where the
+    signal is below 70 % of DN_max."""
+    reg = ~mask
+    t = sweep.exposures
+    d, unclipped = lv.signal, lv.unclipped
+    E = len(t)
+    mu = np.array([float(np.median(d[i][reg & unclipped[i]])) if np.any(reg & unclipped[i]) else np.nan
+                   for i in range(E)])
+    var_unc = np.array([_trimmed_mean(sweep.tvar[i][reg & unclipped[i]]) for i in range(E)])
+    ptc = np.isfinite(mu) & (mu < 0.7 * lv.top) & (var_unc > 0)
+    gain, read_noise = 4095.0 / 8000.0, 2.0
+    if ptc.sum() >= 3:
+        k, v0 = np.polyfit(mu[ptc], var_unc[ptc], 1)
+        if k > 0 and math.isfinite(k):
+            gain = float(k)
+            read_noise = math.sqrt(max(float(lv.var_reg[0] if t[0] == 0 else v0) - 1.0 / 12.0, 0.0)) / gain
+    # the ADC may clip before the full well: the full well is at least the saturated level (+ margin)
+    sat_level = float(np.median(sweep.mean[-1][reg])) - lv.black
+    full_well = max(sat_level, lv.top + 3.0 * read_noise * gain + 1.0) / gain
+    return PhotonTransfer(gain, read_noise, full_well)
+
+
+# ---- step 3: reference curves (paper 3.2) ---------------------------------------------------------------
+
+@dataclasses.dataclass
+class ReferenceCurves:
+    """The two references of paper 3.2 per exposure (signal above dark, NaN where unavailable)."""
+    att: np.ndarray                # (E,) attenuated pixel with only attenuated neighbours (regression intercept)
+    reg: np.ndarray                # (E,) regular pixel with only regular neighbours (regression intercept)
+    spill: np.ndarray              # (E, 8) extra signal of an attenuated pixel per regular neighbour, by direction
+    frac_att: np.ndarray           # (E,) share of the attenuated pixels not clipped
+    frac_reg: np.ndarray
+    paper_att: np.ndarray          # (E,) the paper's literal references: mean of the selected pixels
+    paper_reg: np.ndarray
+    paper_att_sel: np.ndarray      # (H, W) the paper's attenuated reference pixels
+    paper_rule: str
+    ind_reg: np.ndarray            # (8, H, W) regular-neighbour indicators (for attenuated targets)
+    ind_att: np.ndarray            # (8, H, W) attenuated-neighbour indicators (for regular targets)
+    inner: np.ndarray              # (H, W) not on the sensor's outer ring
+
+
+def reference_curves(lv: SensorLevels, mask: np.ndarray, min_rows: int = 30) -> ReferenceCurves:
+    """The attenuated reference (paper 3.2: attenuated pixels with only attenuated neighbours, fallback one
+    regular neighbour) and the regular one (regular pixels with at most one attenuated neighbour). Besides
+    the paper's averages, at each exposure every pixel's signal is regressed on which of its 8 neighbours
+    are of the other kind: the intercept is the reference from all pixels instead of a few, and for the
+    attenuated pixels the 8 slopes are the spill of a regular neighbour per direction (kernel mode)."""
+    H, W = mask.shape
+    reg = ~mask
+    inner = np.zeros((H, W), bool)
+    inner[1:-1, 1:-1] = True
+    ind_reg = _neighbour_indicators(mask, True)       # for attenuated targets
+    ind_att = _neighbour_indicators(mask, False)      # for regular targets
+    att_idx, reg_idx = np.nonzero(mask & inner), np.nonzero(reg & inner)
+    Xa = np.column_stack([np.ones(att_idx[0].size)] + [ind_reg[k][att_idx] for k in range(8)])
+    Xr = np.column_stack([np.ones(reg_idx[0].size)] + [ind_att[k][reg_idx] for k in range(8)])
+    n_regnb, n_attnb = ind_reg.sum(0), ind_att.sum(0)
+    E = len(lv.lit)
+    h0, H0, paper_att, paper_reg = (np.full(E, np.nan) for _ in range(4))
+    b = np.full((E, 8), np.nan)
+    frac_att, frac_reg = np.zeros(E), np.zeros(E)
+    sel0 = mask & inner & (n_regnb == 0)
+    only_att = sel0.sum() >= 10
+    paper_att_sel = sel0 if only_att else (mask & inner & (n_regnb <= 1))
+    paper_reg_sel = reg & inner & (n_attnb <= 1)
+    for i in range(E):
+        if not lv.lit[i]:
+            h0[i] = H0[i] = paper_att[i] = paper_reg[i] = 0.0
+            b[i] = 0.0
+            continue
+        d, u = lv.signal[i], lv.unclipped[i]
+        ua = u[att_idx]
+        frac_att[i] = ua.mean()
+        if ua.sum() >= min_rows:
+            h0[i], b[i] = _attenuated_regression(Xa[ua], d[att_idx][ua], b[i])
+        ur = u[reg_idx]
+        frac_reg[i] = ur.mean()
+        if ur.sum() >= min_rows:
+            H0[i] = _robust_lstsq(Xr[ur], d[reg_idx][ur])[0]
+        for sel, out in ((paper_att_sel, paper_att), (paper_reg_sel, paper_reg)):
+            s = sel & u
+            if s.sum() >= 3:
+                out[i] = float(np.mean(d[s]))
+    # tiny sensors: where the regression is impossible, the paper's references
+    h0 = np.where(np.isfinite(h0), h0, paper_att)
+    H0 = np.where(np.isfinite(H0), H0, paper_reg)
+    rule = "only attenuated neighbours" if only_att else "at most one regular neighbour"
+    return ReferenceCurves(h0, H0, b, frac_att, frac_reg, paper_att, paper_reg, paper_att_sel, rule,
+                           ind_reg, ind_att, inner)
+
+
+def _attenuated_regression(X, y, spill_nan):
+    """(intercept, 8 spills) of y ~ X; with too few pixels per direction, the median of the pixels without
+    a regular neighbour (NaN if none) and no spills."""
+    if np.all(X[:, 1:].sum(0) >= 5):
+        c = _robust_lstsq(X, y)
+        return c[0], c[1:]
+    alone = X[:, 1:].sum(1) == 0
+    return (float(np.median(y[alone])) if np.any(alone) else np.nan), spill_nan
+
+
+# ---- step 4: ND factor (paper 3.2, Eq. 1) ---------------------------------------------------------------
+
+@dataclasses.dataclass
+class NDFactor:
+    nd: float                      # ratio of the two references' slopes over exposure
+    nd_paper: float                # the same from the paper's literal references (NaN if unavailable)
+    kappa_reg: float               # slope of the regular reference (DN/s): flux = kappa_reg x exposure
+
+
+def nd_factor(t: np.ndarray, refs: ReferenceCurves, top: float, where: str = "flats") -> NDFactor:
+    """ND = slope of the regular reference over exposure / slope of the attenuated one (paper 3.2), each a
+    least-squares line through the origin over the exposures where nearly all pixels of its kind are
+    unclipped (relaxed step by step for coarse sweeps) and the reference is well above the noise."""
+    t = np.asarray(t, np.float64)
+    lo_lim = max(20.0, 0.01 * top)
+    for need in (0.99, 0.95, 0.8, 0.0):
+        ok_r = np.isfinite(refs.reg) & (refs.reg > lo_lim) & (refs.reg < 0.7 * top) & (refs.frac_reg >= need)
+        if ok_r.any():
+            break
+    for need in (0.99, 0.95, 0.8, 0.0):
+        ok_a = np.isfinite(refs.att) & (refs.att > lo_lim / 2) & (refs.att < 0.8 * top) & (refs.frac_att >= need)
+        if ok_a.any():
+            break
+    kappa_reg = _slope_through_origin(t, refs.reg, ok_r)
+    kappa_att = _slope_through_origin(t, refs.att, ok_a)
+    if not (kappa_reg > 0 and kappa_att > 0):
+        raise CalibrationError(f"{where}: cannot measure the ND factor: need an exposure where the regular "
+                               f"pixels are between {lo_lim:.0f} and {0.7 * top:.0f} DN and one where the "
+                               f"attenuated pixels are between {lo_lim / 2:.0f} and {0.8 * top:.0f} DN, all "
+                               f"unclipped (found {int(ok_r.sum())} and {int(ok_a.sum())}); use a denser sweep")
+    nd = kappa_reg / kappa_att
+    pr = np.isfinite(refs.paper_reg) & (refs.paper_reg > lo_lim) & (refs.paper_reg < 0.7 * top)
+    pa = np.isfinite(refs.paper_att) & (refs.paper_att > lo_lim / 2) & (refs.paper_att < 0.8 * top)
+    nd_paper = _slope_through_origin(t, refs.paper_reg, pr) / _slope_through_origin(t, refs.paper_att, pa)
+    if nd < 1:
+        raise CalibrationError(f"{where}: measured ND {nd:.3f} < 1: is the mask inverted (255 must mark "
+                               f"attenuated pixels)?")
+    return NDFactor(nd, nd_paper, kappa_reg)
+
+
+# ---- step 5: per-direction spill table (kernel mode, beyond the paper) ----------------------------------
+
+def spill_table(flux: np.ndarray, refs: ReferenceCurves, lit: np.ndarray, nd: float):
+    """(fe, sigma): sigma[d, j] is the signal a source of flux fe[j] spills into its neighbour in direction
+    d. The regression's slope b_d(F) is the spill of a regular source minus that of an attenuated one
+    (F / ND), so sigma(F) = b(F) + sigma(F / ND), unrolled from the dimmest exposure; beyond the table it
+    continues with the slope of its last quarter (far beyond the knee spill and blooming are linear)."""
+    okb = lit & np.all(np.isfinite(refs.spill), axis=1) & (refs.frac_att >= 0.9)
+    fe = flux[okb]
+    bb = refs.spill[okb]
+    order = np.argsort(fe)
+    fe, bb = fe[order], bb[order]
+    sigma = np.zeros((8, fe.size))
+    for j in range(fe.size):
+        lowf = fe[j] / nd
+        if j == 0 or lowf <= fe[0]:
+            base = bb[0] * nd / (nd - 1) if nd > 1.0001 else bb[0]
+            prev = base * (lowf / fe[0]) if fe.size else 0.0
+            sigma[:, j] = bb[j] + prev if j > 0 else base
+        else:
+            prev = np.array([np.interp(lowf, fe[:j], sigma[k, :j]) for k in range(8)])
+            sigma[:, j] = bb[j] + prev
+    if fe.size < 2:
+        return np.array([0.0, 1.0]), np.zeros((8, 2))
+    # a brighter source never spills less; beyond the table (where the regression would be biased by the
+    # pixels that clip first) continue with the slope of its last quarter
+    sigma = np.maximum.accumulate(sigma, axis=1)
+    kk = max(3, fe.size // 4) if fe.size >= 3 else fe.size
+    xs = fe[-kk:] - fe[-kk:].mean()
+    slope_end = np.maximum((sigma[:, -kk:] - sigma[:, -kk:].mean(1, keepdims=True)) @ xs
+                           / max(float(xs @ xs), 1e-12), 0.0)
+    f_far = fe[-1] * 100.0
+    fe = np.append(fe, f_far)
+    sigma = np.concatenate([sigma, (sigma[:, -1] + slope_end * (f_far - fe[-2]))[:, None]], axis=1)
+    return fe, sigma
+
+
+# ---- step 6: each pixel's curve (paper 3.2: a correction per pixel and code value) -----------------------
+
+@dataclasses.dataclass
+class PixelFit:
+    gain: np.ndarray               # (H, W) own-signal gain g (PRNU, flat-field non-uniformity)
+    alpha: np.ndarray              # (H, W) float32 crosstalk amplitude against the population
+    quad: np.ndarray               # (H, W) mild non-linearity c
+    model: np.ndarray              # (E, H, W) float32 the fitted curve at every exposure
+    chi2: np.ndarray               # (H, W) reduced chi^2 of the fit over the pixel's unclipped exposures
+    n_fit: np.ndarray              # (H, W) number of those exposures
+
+
+def _direct_signal(mask, flux_i, nd):
+    """A pixel's own signal without crosstalk (Eq. 2): F for a regular pixel, F / ND for an attenuated one."""
+    return np.where(mask, flux_i / nd, flux_i)
+
+
+def pixel_model(sweep: FlatSweep, mask, lv: SensorLevels, ptc: PhotonTransfer, refs: ReferenceCurves,
+                flux, nd, fe, sigma, prior_g=0.02, prior_alpha=0.5, prior_c=0.0002) -> PixelFit:
+    """Per pixel: d = g E + alpha Y + c E^2 / DN_max over its unclipped lit exposures, E its direct signal,
+    Y the population crosstalk of its neighbourhood from the spill table; weighted by the inverse noise of
+    each mean (photon transfer), Gaussian priors g ~ 1 +- prior_g, alpha ~ 1 +- prior_alpha, c ~ 0 +-
+    prior_c. In the linear range Y is proportional to E, so the priors split a pixel's excess mostly into
+    crosstalk, as it should."""
+    E, (H, W) = len(flux), mask.shape
+    A, r, Ys = _pixel_normal_equations(sweep, mask, lv, ptc, refs, flux, nd, fe, sigma)
+    # priors, in units of the parameters: the data term is in DN^2 / variance
+    A[:, :, 0, 0] += 1.0 / prior_g ** 2
+    r[:, :, 0] += 1.0 / prior_g ** 2
+    A[:, :, 1, 1] += 1.0 / prior_alpha ** 2
+    r[:, :, 1] += 1.0 / prior_alpha ** 2
+    A[:, :, 2, 2] += 1.0 / prior_c ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        try:
+            coef = np.linalg.solve(A, r[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            coef = np.stack([np.ones((H, W)), np.ones((H, W)), np.zeros((H, W))], -1)
+    del A, r
+    coef = np.where(np.isfinite(coef), coef, np.array([1.0, 1.0, 0.0]))
+    gfit, alpha, qfit = coef[..., 0], np.clip(coef[..., 1], 0.0, 5.0), coef[..., 2]
+    chi, cnt = np.zeros((H, W)), np.zeros((H, W))
+    for i in range(E):
+        if not lv.lit[i]:
+            continue
+        u = lv.unclipped[i]
+        Ep = _direct_signal(mask, flux[i], nd)
+        fit = gfit * Ep + alpha * Ys[i] + qfit * Ep * Ep / lv.top
+        # noise of the mean from the photon transfer curve (a few frames' own variance is too noisy)
+        var = (ptc.gain * np.maximum(fit, 0) + (ptc.read_noise * ptc.gain) ** 2 + 1.0 / 12) / sweep.frames[i] + 0.05
+        chi += np.where(u, (lv.signal[i] - fit) ** 2 / var, 0)
+        cnt += u
+        Ys[i] = fit                                     # reuse: the model curve
+    return PixelFit(gfit, alpha.astype(np.float32), qfit, Ys, chi / np.maximum(cnt, 1), cnt)
+
+
+def _pixel_normal_equations(sweep, mask, lv, ptc, refs, flux, nd, fe, sigma):
+    """(A (H, W, 3, 3), r (H, W, 3), Y (E, H, W) float32) of pixel_model's weighted least squares; Y is each
+    pixel's population crosstalk (spill of its regular neighbours into it, or its own into them)."""
+    E, (H, W) = len(flux), mask.shape
+    reg = ~mask
+    b_model = np.zeros((E, 8))
+    for i in range(E):
+        if lv.lit[i]:
+            b_model[i] = _spill_np(fe, sigma, flux[i]) - _spill_np(fe, sigma, flux[i] / nd)
+    A, r = np.zeros((H, W, 3, 3)), np.zeros((H, W, 3))
+    Ys = np.zeros((E, H, W), np.float32)
+    for i in range(E):
+        if not lv.lit[i]:
+            continue
+        Y = (np.tensordot(b_model[i], refs.ind_reg, axes=1) * mask
+             - np.tensordot(b_model[i], refs.ind_att, axes=1) * reg)
+        Ys[i] = Y
+        Ep = _direct_signal(mask, flux[i], nd)
+        wgt = np.where(lv.unclipped[i], sweep.frames[i] / (ptc.gain * np.maximum(Ep, 0)
+                                                            + (ptc.read_noise * ptc.gain) ** 2 + 1.0 / 12), 0)
+        basis = (Ep, Y, Ep * Ep / lv.top)
+        for j in range(3):
+            r[:, :, j] += wgt * basis[j] * lv.signal[i]
+            for k in range(j, 3):
+                A[:, :, j, k] += wgt * basis[j] * basis[k]
+    for j in range(3):
+        for k in range(j):
+            A[:, :, j, k] = A[:, :, k, j]
+    return A, r, Ys
+
+
+def pixel_curves(lv: SensorLevels, fit: PixelFit, smooth_chi2: float = 1.5, smooth_taps: int = 5):
+    """(curve (E, H, W) float32, smooth_ok (H, W)): each pixel's signal at every exposure. Where the model
+    explains the pixel's unclipped exposures within their noise (reduced chi^2 < smooth_chi2, at least 3)
+    the model itself (it averages the flats' noise over all exposures); otherwise the model plus the pixel's
+    residual averaged over `smooth_taps` neighbouring exposures (keeps systematic deviations); beyond
+    clipping the model (for the clip point)."""
+    E = len(lv.lit)
+    lit, d, unclipped, Ys = lv.lit, lv.signal, lv.unclipped, fit.model
+    smooth_ok = (fit.n_fit >= 3) & (fit.chi2 < smooth_chi2)
+    res = np.where(unclipped & lit[:, None, None], d - Ys, 0).astype(np.float32)
+    wgt = (unclipped & lit[:, None, None]).astype(np.float32)
+    rs = np.zeros_like(res)
+    ws = np.zeros_like(wgt)
+    for sh in range(-smooth_taps // 2 + 1, smooth_taps // 2 + 1):
+        lo, hi = max(0, -sh), min(E, E - sh)
+        rs[lo:hi] += res[lo + sh:hi + sh]
+        ws[lo:hi] += wgt[lo + sh:hi + sh]
+    curve = np.where(smooth_ok[None], Ys, Ys + rs / np.maximum(ws, 1)).astype(np.float32)
+    curve = np.where(unclipped, curve, Ys)
+    curve[~lit] = d[~lit]
+    return curve, smooth_ok
+
+
+# ---- step 7: per-pixel LUT (paper 3.2) and clipping points (paper 4.1) ---------------------------------
+
+@dataclasses.dataclass
+class PixelLUT:
+    codes: np.ndarray              # (K, H, W) float32 code above black at each knot, strictly increasing
+    knot_flux: np.ndarray          # (K,) flux (regular DN) of each knot
+    n_knots: np.ndarray            # (H, W) int32 leading unclipped knots (0: defective, uncalibrated)
+    defective: np.ndarray          # (H, W)
+
+
+def pixel_lut(curve: np.ndarray, lv: SensorLevels, flux: np.ndarray, pixel_gain: np.ndarray) -> PixelLUT:
+    """Each pixel's code at every exposure (at most MAX_KNOTS, evenly picked) mapped to that exposure's
+    flux: the compensation LUT of paper 3.2, inverted by nrcrosstalk. A synthetic dark knot when the sweep
+    has no dark frame; defective pixels (gain g outside 0.25..4: dead, stuck) get no knots."""
+    E = len(flux)
+    H, W = lv.dark.shape
+    idx = np.arange(E)
+    if E > MAX_KNOTS:
+        idx = np.unique(np.round(np.linspace(0, E - 1, MAX_KNOTS)).astype(int))
+    Ek = idx.size
+    codes = (curve[idx] + (lv.dark - lv.black)[None]).astype(np.float32)                # code above black
+    if lv.lit[0]:                                                          # synthetic dark knot
+        codes = np.concatenate([(lv.dark - lv.black)[None].astype(np.float32), codes])
+        kflux = np.concatenate([[0.0], flux[idx]])
+        unc = np.concatenate([np.ones((1, H, W), bool), lv.unclipped[idx]])
+        Ek += 1
+    else:
+        kflux = flux[idx].copy()
+        unc = lv.unclipped[idx].copy()
+        unc[0] = True
+    n_knots = unc.sum(0).astype(np.int32)                                  # leading unclipped knots
+    defective = ~np.isfinite(pixel_gain) | (pixel_gain < 0.25) | (pixel_gain > 4.0)
+    n_knots[defective] = 0
+    codes = np.maximum.accumulate(codes, axis=0) + (np.arange(Ek, dtype=np.float32) * 1e-3)[:, None, None]
+    return PixelLUT(codes, kflux, n_knots, defective)
+
+
+def clip_points(lut: PixelLUT, sweep: FlatSweep, mask: np.ndarray, lv: SensorLevels, ptc: PhotonTransfer,
+                flux: np.ndarray) -> np.ndarray:
+    """(H, W) float32 flux at which each pixel reaches DN_max (NaN: never clipped in the sweep, or
+    uncalibrated): paper 4.1's clipping point, DN_valid x ND in regular DN. Extrapolated from the last
+    knots (a line, or a parabola through the last three where the curve bends up near the neighbours'
+    saturation), within the last unclipped and the first clipped exposure; where that first clipped
+    exposure is only partly clipped, from its un-censored mean instead."""
+    codes, kflux, nk, top = lut.codes, lut.knot_flux, lut.n_knots, lv.top
+    Ek = codes.shape[0]
+    at = lambda k: np.clip(k, 0, Ek - 1)                                  # noqa: E731
+    lastc = np.take_along_axis(codes, at(nk - 1)[None], 0)[0]
+    prevc = np.take_along_axis(codes, at(nk - 2)[None], 0)[0]
+    pc = np.take_along_axis(codes, at(nk - 3)[None], 0)[0]
+    lastf, prevf, nextf, pf = kflux[at(nk - 1)], kflux[at(nk - 2)], kflux[at(nk)], kflux[at(nk - 3)]
+    slope = (lastf - prevf) / np.maximum(lastc - prevc, 1e-3)
+    est = lastf + (top - lastc) * slope
+    # parabola c(F) = lastc + (F - lastf) * (s1 + curv * (F - prevf)) = top, only bending up
+    s1 = (lastc - prevc) / np.maximum(lastf - prevf, 1e-9)
+    s0 = (prevc - pc) / np.maximum(prevf - pf, 1e-9)
+    curv = (s1 - s0) / np.maximum(lastf - pf, 1e-9)          # second divided difference
+    curv = np.where(nk >= 3, np.maximum(curv, 0.0), 0.0)
+    b_ = s1 + curv * (lastf - prevf)
+    c_ = lastc - top
+    disc = np.maximum(b_ * b_ - 4 * curv * c_, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xq = np.where(curv > 1e-15, (-b_ + np.sqrt(disc)) / (2 * curv), -c_ / np.maximum(b_, 1e-9))
+    est = np.where(np.isfinite(xq) & (xq >= 0), lastf + xq, est)
+    est = np.clip(est, lastf, nextf)
+    good = (nk < Ek) & (nk >= 2) & ~lut.defective
+    _clip_from_partly_clipped(est, good, lastc, lastf, sweep, mask, lv, ptc, flux)
+    clip_flux = np.full(nk.shape, np.nan, np.float32)
+    clip_flux[good] = est[good]
+    return clip_flux
+
+
+def _clip_from_partly_clipped(est, good, lastc, lastf, sweep, mask, lv, ptc, flux) -> None:
+    """Refine `est` in place where the first clipped exposure is only partly clipped: its mean code is
+    the mean of a Gaussian censored at the saturation code; un-censor it (photon-transfer noise) and
+    interpolate between the last unclipped knot and that point."""
+    E = len(flux)
+    jf = np.clip(lv.unclipped.sum(0), 0, E - 1)                            # first clipped exposure
+    f_j = flux[jf]
+    f_next = flux[np.clip(jf + 1, 0, E - 1)]
+    m_j = np.take_along_axis(sweep.mean, jf[None], 0)[0].astype(np.float64) - lv.black
+    s_rel = float(np.median(sweep.mean[-1][~mask])) - lv.black
+    sig = np.sqrt(ptc.gain * max(s_rel, 1.0) + (ptc.read_noise * ptc.gain) ** 2 + 1.0 / 12)
+    partial = good & (m_j < s_rel - 0.05 * sig) & (m_j > lastc)
+    if not partial.any():
+        return
+    mu = _uncensor_mean(m_j[partial], s_rel, sig)
+    lc, lf = lastc[partial], lastf[partial]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e2 = lf + (lv.top - lc) * (f_j[partial] - lf) / (mu - lc)
+    ok2 = np.isfinite(e2) & (mu > lc + 1e-3)
+    est_p = est[partial]
+    est_p[ok2] = np.clip(e2[ok2], lf[ok2], f_next[partial][ok2])
+    est[partial] = est_p
+
+
+# ---- step 8: effective ND (paper 4.1, Eq. 8), valid-pixel ratio and dynamic-range gain (paper 4.2) ----
+
+def effective_nd(clip_flux: np.ndarray, top: float) -> np.ndarray:
+    """ND_eff(m, n) = DN_valid(m, n) x ND / DN_max = DN_scaled(m, n) / DN_max (Eq. 8): a pixel's clipping
+    point in regular DN (clip_points) over DN_max. NaN where the pixel never clipped."""
+    return clip_flux / top
+
+
+def valid_pixel_ratio(mask, clip_flux, lmin_flux, flux):
+    """(grid, ratio): the share of valid pixels over flux (paper Fig. 8b, 4.2), from each pixel's limits: a
+    regular pixel is valid below its clipping point, an attenuated one between the flux where it reaches
+    l_min and its clipping point. `grid`: 400 fluxes, log-spaced over the sweep's lit range."""
+    fmax = float(np.nanmax(flux))
+    lit = flux[flux > 0]
+    grid = np.geomspace(max(float(lit.min()), 1e-3), fmax, 400)
+    cf = np.where(np.isfinite(clip_flux), clip_flux, np.inf)
+    reg_clip = np.sort(cf[~mask])
+    att_clip = np.sort(cf[mask])
+    att_lmin = np.sort(np.where(np.isfinite(lmin_flux), lmin_flux, np.inf)[mask])
+    n = mask.size
+    valid = (reg_clip.size - np.searchsorted(reg_clip, grid, side="right")) \
+        + np.searchsorted(att_lmin, grid, side="right") - np.searchsorted(att_clip, grid, side="right")
+    return grid, valid / n
+
+
+def dynamic_range_gain(grid, ratio, level, top):
+    """(stops, DN_scaled) of paper 4.2: the largest flux DN_scaled where the valid ratio is still >= level
+    (bright side, log-interpolated), and the gain log2(DN_scaled / DN_max); (None, None) if never reached."""
+    above = np.nonzero(ratio >= level)[0]
+    if above.size == 0:
+        return None, None
+    j = above[-1]
+    if j + 1 >= grid.size:
+        return None, None
+    r0, r1 = ratio[j], ratio[j + 1]
+    f0, f1 = math.log(grid[j]), math.log(grid[j + 1])
+    f = math.exp(f0 + (f1 - f0) * (r0 - level) / max(r0 - r1, 1e-12))
+    return math.log2(f / top), f
+
+
+# ---- calibrate: the steps in order ----------------------------------------------------------------------
+
 @dataclasses.dataclass
 class CalibrationResult:
     profile: profiles.CameraProfile
@@ -307,396 +839,89 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
               mask_name: str = "mask", progress: bool = True, smooth_chi2: float = 1.5,
               smooth_taps: int = 5, prior_g: float = 0.02, prior_alpha: float = 0.5,
               prior_c: float = 0.0002) -> CalibrationResult:
-    """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep."""
+    """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep: the steps of
+    paper 3.2, 4.1 and 4.2 (module doc), each a function of this module."""
     from tqdm import tqdm
-    mask = np.asarray(mask, bool)
-    E = len(sweep.exposures)
-    H, W = sweep.shape
+    mask = check_mask(sweep, mask, mask_name)
     where = str(sweep.folder)
-    if mask.shape != (H, W):
-        raise CalibrationError(f"{mask_name}: mask is {mask.shape[1]}x{mask.shape[0]} but the frames in "
-                               f"{where} are {W}x{H}")
-    if mask.all() or not mask.any():
-        raise CalibrationError(f"{mask_name}: the mask must contain both attenuated (255) and regular (0) "
-                               f"pixels")
-    steps = tqdm(total=7, desc="calibrating", unit="step", disable=not progress, file=sys.stderr)
-    t = sweep.exposures.astype(np.float64)
-    mean, maxc, tvar = sweep.mean, sweep.maxcode, sweep.tvar
-    reg = ~mask
-    max_seen = int(maxc.max())
-    if bit_depth is None:
-        bit_depth = next(b for b in (8, 10, 12, 14, 16) if (1 << b) - 1 >= max_seen)
-    max_code = (1 << bit_depth) - 1
+    with tqdm(total=6, desc="calibrating", unit="step", disable=not progress, file=sys.stderr) as bar:
+        lv = sensor_levels(sweep, mask, clip_code, bit_depth)
+        ptc = photon_transfer(sweep, mask, lv)                                      # EMVA 1288
+        bar.update(1)
+        refs = reference_curves(lv, mask)                                           # paper 3.2
+        bar.update(1)
+        ndf = nd_factor(sweep.exposures, refs, lv.top, where)                       # paper 3.2, Eq. 1
+        flux = ndf.kappa_reg * sweep.exposures.astype(np.float64)                   # (E,) regular DN
+        fe, sigma = spill_table(flux, refs, lv.lit, ndf.nd)                         # kernel mode
+        bar.update(1)
+        fit = pixel_model(sweep, mask, lv, ptc, refs, flux, ndf.nd, fe, sigma, prior_g, prior_alpha, prior_c)
+        curve, smooth_ok = pixel_curves(lv, fit, smooth_chi2, smooth_taps)
+        bar.update(1)
+        lut = pixel_lut(curve, lv, flux, fit.gain)                                  # paper 3.2
+        del curve
+        clip_flux = clip_points(lut, sweep, mask, lv, ptc, flux)                    # paper 4.1
+        bar.update(1)
+        prof = _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, fit.alpha, l_min, name, where)
+        nd_eff_map = effective_nd(clip_flux, lv.top)                                # paper 4.1, Eq. 8
+        lmin_flux = _flux_at_code(lut.codes, lut.knot_flux, lut.n_knots, prof.l_min)
+        rf, ratio = valid_pixel_ratio(mask, clip_flux, lmin_flux, flux)             # paper 4.2, Fig. 8b
+        gains = [dynamic_range_gain(rf, ratio, level, lv.top) for level in (0.4, 0.2)]   # paper 4.2
+        bar.update(1)
+    examples = _example_pixels(mask, refs, nd_eff_map)
+    summary = _summary(sweep, mask, lv, ptc, refs, ndf, lut, nd_eff_map, examples, gains, fe, sigma, prof,
+                       nd_nominal, smooth_ok)
+    prof.crosstalk.info = {k: summary[k] for k in ("nd", "nd_eff_median", "dr_gain_stops_40",
+                                                   "dr_gain_stops_20", "exposures", "frames", "kernel_estimate")}
+    # for the plot: the paper's reference (no selection bias until its pixels clip themselves)
+    ref_att = np.where(np.isfinite(refs.paper_att), refs.paper_att, refs.att)
+    return CalibrationResult(prof, summary, flux, ref_att, refs.reg, nd_eff_map[mask], rf, ratio,
+                             _measured_ratio(sweep, prof), examples)
 
-    # ---- saturated everywhere? ------------------------------------------------------------------
-    first_lit = 1 if t[0] == 0 else 0
-    hot = np.mean(maxc[0] >= max(max_seen - 3, 1))
-    if hot > 0.5 or np.mean(maxc[first_lit] >= max(max_seen - 3, 1)) > 0.9:
-        raise CalibrationError(f"{where}: the sweep is saturated everywhere: already at the shortest exposure "
-                               f"({t[first_lit]:g} s) most pixels sit at the largest code {max_seen}; the "
-                               f"sweep must start dark")
 
-    # ---- black level, dark per pixel ------------------------------------------------------------
-    if t[0] == 0:
-        dark = mean[0].astype(np.float64)
-        black = float(np.median(dark))
-    else:
-        m0, m1 = float(np.median(mean[0][reg])), float(np.median(mean[1][reg]))
-        black = m0 - t[0] * (m1 - m0) / (t[1] - t[0])
-        dark = np.full((H, W), black)
-    black = float(max(black, 0.0))
-
-    # ---- saturation, clip code ------------------------------------------------------------------
-    # mean (not median: the variance of a few frames is chi-square skewed) over the regular pixels,
-    # without the 0.5 % most extreme (hot pixels)
-    def _tmean(v):
-        v = v.ravel()
-        if v.size == 0:
-            return float("nan")
-        return float(np.mean(v[v <= np.percentile(v, 99.5)]))
-    var_reg = np.array([_tmean(tvar[i][reg]) for i in range(E)])
-    if clip_code is None:
-        if not (var_reg[-1] < 0.25 * var_reg.max()):
-            raise CalibrationError(f"{where}: the sweep does not reach saturation: the regular pixels' temporal "
-                                   f"variance at the longest exposure ({t[-1]:g} s) is still "
-                                   f"{var_reg[-1]:.1f} DN^2 (peak {var_reg.max():.1f}); extend the sweep beyond "
-                                   f"saturation or pass --clip-code")
-        sat = mean[-1][reg]
-        sig = math.sqrt(float(np.median(tvar[-1][reg])))
-        clip_code = int(min(max_code - 1, math.floor(np.percentile(sat, 1) - 3 * sig)))
-    clip_code = int(clip_code)
-    if not (black + 10 < clip_code <= max_code):
-        raise CalibrationError(f"{where}: inconsistent levels: black {black:.1f}, clip code {clip_code}, "
-                               f"{bit_depth}-bit data")
-    top = clip_code - black
-    unclipped = np.logical_and.accumulate(maxc < clip_code, axis=0)      # (E, H, W), once clipped stays
-    lit = t > 0
-    if np.mean(unclipped[np.argmax(lit)][reg]) < 0.5:
-        raise CalibrationError(f"{where}: the sweep is saturated everywhere: at the shortest exposure with "
-                               f"light ({t[np.argmax(lit)]:g} s) most regular pixels are already clipped")
-    steps.update(1)
-
-    # ---- photon transfer (EMVA 1288): gain, read noise, full well -------------------------------
-    d = mean - dark[None].astype(np.float32)                             # (E, H, W) dark-subtracted
-    mu = np.array([float(np.median(d[i][reg & unclipped[i]])) if np.any(reg & unclipped[i]) else np.nan
-                   for i in range(E)])
-    var_unc = np.array([_tmean(tvar[i][reg & unclipped[i]]) for i in range(E)])
-    ptc = np.isfinite(mu) & (mu < 0.7 * top) & (var_unc > 0)
-    gain, read_noise = 4095.0 / 8000.0, 2.0
-    if ptc.sum() >= 3:
-        k, v0 = np.polyfit(mu[ptc], var_unc[ptc], 1)
-        if k > 0 and math.isfinite(k):
-            gain = float(k)
-            read_noise = math.sqrt(max(float(var_reg[0] if t[0] == 0 else v0) - 1.0 / 12.0, 0.0)) / gain
-    # the ADC may clip before the full well: the full well is at least the saturated level (+ margin)
-    sat_level = float(np.median(mean[-1][reg])) - black
-    full_well = max(sat_level, top + 3.0 * read_noise * gain + 1.0) / gain
-    steps.update(1)
-
-    # ---- references: regression on neighbour configuration ---------------------------------------
-    border = np.zeros((H, W), bool)
-    border[1:-1, 1:-1] = True
-    ind_reg = _neighbour_indicators(mask, True)       # for attenuated targets
-    ind_att = _neighbour_indicators(mask, False)      # for regular targets
-    att_idx = np.nonzero(mask & border)
-    reg_idx = np.nonzero(reg & border)
-    Xa = np.column_stack([np.ones(att_idx[0].size)] + [ind_reg[k][att_idx] for k in range(8)])
-    Xr = np.column_stack([np.ones(reg_idx[0].size)] + [ind_att[k][reg_idx] for k in range(8)])
-    n_regnb = ind_reg.sum(0)
-    n_attnb = ind_att.sum(0)
-    h0 = np.full(E, np.nan)
-    H0 = np.full(E, np.nan)
-    b = np.full((E, 8), np.nan)
-    frac_att = np.zeros(E)
-    frac_reg = np.zeros(E)
-    paper_att = np.full(E, np.nan)
-    paper_reg = np.full(E, np.nan)
-    sel0 = mask & border & (n_regnb == 0)
-    paper_att_sel = sel0 if sel0.sum() >= 10 else (mask & border & (n_regnb <= 1))
-    paper_reg_sel = reg & border & (n_attnb <= 1)
-    min_rows = 30
-    for i in range(E):
-        if not lit[i]:
-            h0[i] = H0[i] = paper_att[i] = paper_reg[i] = 0.0
-            b[i] = 0.0
-            continue
-        ua = unclipped[i][att_idx]
-        frac_att[i] = ua.mean()
-        if ua.sum() >= min_rows:
-            ya = d[i][att_idx][ua]
-            Xs = Xa[ua]
-            if np.all(Xs[:, 1:].sum(0) >= 5):
-                c = _robust_lstsq(Xs, ya)
-                h0[i], b[i] = c[0], c[1:]
-            else:
-                h0[i] = float(np.median(ya[Xs[:, 1:].sum(1) == 0])) if np.any(Xs[:, 1:].sum(1) == 0) else np.nan
-        ur = unclipped[i][reg_idx]
-        frac_reg[i] = ur.mean()
-        if ur.sum() >= min_rows:
-            H0[i] = _robust_lstsq(Xr[ur], d[i][reg_idx][ur])[0]
-        s = paper_att_sel & unclipped[i]
-        if s.sum() >= 3:
-            paper_att[i] = float(np.mean(d[i][s]))
-        s = paper_reg_sel & unclipped[i]
-        if s.sum() >= 3:
-            paper_reg[i] = float(np.mean(d[i][s]))
-    # tiny sensors: where the regression is impossible, the paper's references
-    h0 = np.where(np.isfinite(h0), h0, paper_att)
-    H0 = np.where(np.isfinite(H0), H0, paper_reg)
-    steps.update(1)
-
-    # ---- ND from the two references' slopes over exposure -----------------------------------------
-    lo_lim = max(20.0, 0.01 * top)
-    # (only where nearly all pixels of the kind are unclipped: the clipped ones would bias the regression)
-    # (progressively relaxed for sweeps too coarse to have such exposures)
-    for need in (0.99, 0.95, 0.8, 0.0):
-        ok_r = np.isfinite(H0) & (H0 > lo_lim) & (H0 < 0.7 * top) & (frac_reg >= need)
-        if ok_r.any():
-            break
-    for need in (0.99, 0.95, 0.8, 0.0):
-        ok_a = np.isfinite(h0) & (h0 > lo_lim / 2) & (h0 < 0.8 * top) & (frac_att >= need)
-        if ok_a.any():
-            break
-    kappa_reg = _slope_through_origin(t, H0, ok_r)
-    kappa_att = _slope_through_origin(t, h0, ok_a)
-    if not (kappa_reg > 0 and kappa_att > 0):
-        raise CalibrationError(f"{where}: cannot measure the ND factor: need an exposure where the regular "
-                               f"pixels are between {lo_lim:.0f} and {0.7 * top:.0f} DN and one where the "
-                               f"attenuated pixels are between {lo_lim / 2:.0f} and {0.8 * top:.0f} DN, all "
-                               f"unclipped (found {int(ok_r.sum())} and {int(ok_a.sum())}); use a denser sweep")
-    nd = kappa_reg / kappa_att
-    pr = np.isfinite(paper_reg) & (paper_reg > lo_lim) & (paper_reg < 0.7 * top)
-    pa = np.isfinite(paper_att) & (paper_att > lo_lim / 2) & (paper_att < 0.8 * top)
-    nd_paper = _slope_through_origin(t, paper_reg, pr) / _slope_through_origin(t, paper_att, pa)
-    if nd < 1:
-        raise CalibrationError(f"{where}: measured ND {nd:.3f} < 1: is the mask inverted (255 must mark "
-                               f"attenuated pixels)?")
-    flux = kappa_reg * t                                                  # (E,) regular DN
-    steps.update(1)
-
-    # ---- kernel mode: per-direction spill sigma_d(e), per-pixel amplitude alpha ---------------------
-    okb = lit & np.all(np.isfinite(b), axis=1) & (frac_att >= 0.9)
-    fe = flux[okb]
-    bb = b[okb]
-    order = np.argsort(fe)
-    fe, bb = fe[order], bb[order]
-    sigma = np.zeros((8, fe.size))
-    for j in range(fe.size):
-        lowf = fe[j] / nd
-        if j == 0 or lowf <= fe[0]:
-            base = bb[0] * nd / (nd - 1) if nd > 1.0001 else bb[0]
-            prev = base * (lowf / fe[0]) if fe.size else 0.0
-            sigma[:, j] = bb[j] + prev if j > 0 else base
-        else:
-            prev = np.array([np.interp(lowf, fe[:j], sigma[k, :j]) for k in range(8)])
-            sigma[:, j] = bb[j] + prev
-    if fe.size < 2:
-        fe = np.array([0.0, 1.0])
-        sigma = np.zeros((8, 2))
-    else:
-        # a brighter source never spills less; beyond the table (where the regression would be biased by
-        # the pixels that clip first) continue with the slope of its last quarter (optical spill and
-        # blooming are both linear in the source signal far above the knee)
-        sigma = np.maximum.accumulate(sigma, axis=1)
-        kk = max(3, fe.size // 4) if fe.size >= 3 else fe.size
-        xs = fe[-kk:] - fe[-kk:].mean()
-        slope_end = np.maximum((sigma[:, -kk:] - sigma[:, -kk:].mean(1, keepdims=True)) @ xs
-                               / max(float(xs @ xs), 1e-12), 0.0)
-        f_far = fe[-1] * 100.0
-        fe = np.append(fe, f_far)
-        sigma = np.concatenate([sigma, (sigma[:, -1] + slope_end * (f_far - fe[-2]))[:, None]], axis=1)
-    # population model of every pixel's curve: b_d at every exposure from the spill table
-    b_model = np.zeros((E, 8))
-    for i in range(E):
-        if lit[i]:
-            b_model[i] = _spill_np(fe, sigma, flux[i]) - _spill_np(fe, sigma, flux[i] / nd)
-    # per pixel: d_p = g * E_p + alpha * Y_p over its unclipped lit exposures (ridge towards alpha = 1);
-    # g absorbs PRNU, alpha the pixel's crosstalk amplitude (non-uniform mask)
-    # basis per pixel: E_p (own signal), Y_p (population crosstalk for its neighbourhood), E_p^2 / top
-    # (mild per-pixel non-linearity). Weighted by the inverse noise of each mean (photon transfer curve),
-    # with Gaussian priors: gain g ~ 1 +- prior_g (PRNU, flat-field non-uniformity), alpha ~ 1 +- prior_alpha
-    # (a glued mask varies a lot), c ~ 0 +- prior_c. In the linear range Y is proportional to E, so the prior
-    # decides how a pixel's excess splits between PRNU and crosstalk: mostly crosstalk, as it should.
-    A = np.zeros((H, W, 3, 3))
-    r = np.zeros((H, W, 3))
-    Ys = np.zeros((E, H, W), np.float32)
-    for i in range(E):
-        if not lit[i]:
-            continue
-        u = unclipped[i]
-        Y = np.tensordot(b_model[i], ind_reg, axes=1) * mask - np.tensordot(b_model[i], ind_att, axes=1) * reg
-        Ys[i] = Y
-        Ep = np.where(mask, flux[i] / nd, flux[i])
-        wgt = np.where(u, sweep.frames[i] / (gain * np.maximum(Ep, 0) + (read_noise * gain) ** 2 + 1.0 / 12), 0)
-        basis = (Ep, Y, Ep * Ep / top)
-        for j in range(3):
-            r[:, :, j] += wgt * basis[j] * d[i]
-            for k in range(j, 3):
-                A[:, :, j, k] += wgt * basis[j] * basis[k]
-    for j in range(3):
-        for k in range(j):
-            A[:, :, j, k] = A[:, :, k, j]
-    # priors, in units of the parameters: the data term is in DN^2 / variance
-    A[:, :, 0, 0] += 1.0 / prior_g ** 2
-    r[:, :, 0] += 1.0 / prior_g ** 2
-    A[:, :, 1, 1] += 1.0 / prior_alpha ** 2
-    r[:, :, 1] += 1.0 / prior_alpha ** 2
-    A[:, :, 2, 2] += 1.0 / prior_c ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        try:
-            coef = np.linalg.solve(A, r[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            coef = np.stack([np.ones((H, W)), np.ones((H, W)), np.zeros((H, W))], -1)
-    coef = np.where(np.isfinite(coef), coef, np.array([1.0, 1.0, 0.0]))
-    gfit, alpha, qfit = coef[..., 0], np.clip(coef[..., 1], 0.0, 5.0), coef[..., 2]
-    del A, r
-    # smoothed curves: where the 3-parameter model explains a pixel's knots within the measurement noise,
-    # its LUT uses the model (averages the flats' noise over all exposures); otherwise the raw means
-    chi = np.zeros((H, W))
-    cnt = np.zeros((H, W))
-    for i in range(E):
-        if not lit[i]:
-            continue
-        u = unclipped[i]
-        Ep = np.where(mask, flux[i] / nd, flux[i])
-        fit = gfit * Ep + alpha * Ys[i] + qfit * Ep * Ep / top
-        # noise of the mean from the photon transfer curve (a few frames' own variance is too noisy)
-        var = (gain * np.maximum(fit, 0) + (read_noise * gain) ** 2 + 1.0 / 12) / sweep.frames[i] + 0.05
-        chi += np.where(u, (d[i] - fit) ** 2 / var, 0)
-        cnt += u
-        Ys[i] = fit                                     # reuse: the model curve
-    smooth_ok = (cnt >= 3) & (chi / np.maximum(cnt, 1) < smooth_chi2)
-    alpha = alpha.astype(np.float32)
-    # the model plus the pixel's residual averaged over neighbouring exposures (5 taps, valid knots only):
-    # keeps systematic deviations from the model, averages the flats' noise
-    res = np.where(unclipped & lit[:, None, None], d - Ys, 0).astype(np.float32)
-    wgt = (unclipped & lit[:, None, None]).astype(np.float32)
-    rs = np.zeros_like(res)
-    ws = np.zeros_like(wgt)
-    for sh in range(-smooth_taps // 2 + 1, smooth_taps // 2 + 1):
-        lo, hi = max(0, -sh), min(E, E - sh)
-        rs[lo:hi] += res[lo + sh:hi + sh]
-        ws[lo:hi] += wgt[lo + sh:hi + sh]
-    curve = np.where(smooth_ok[None], Ys, Ys + rs / np.maximum(ws, 1)).astype(np.float32)
-    curve = np.where(unclipped, curve, Ys)          # beyond clipping: the model (for the clip point)
-    curve[~lit] = d[~lit]
-    del res, wgt, rs, ws
-    del Ys
-    steps.update(1)
-
-    # ---- per-pixel LUT knots ------------------------------------------------------------------------
-    idx = np.arange(E)
-    if E > MAX_KNOTS:
-        keep = np.unique(np.round(np.linspace(0, E - 1, MAX_KNOTS)).astype(int))
-        idx = keep
-    Ek = idx.size
-    codes = (curve[idx] + (dark - black)[None]).astype(np.float32)                        # code above black
-    if t[0] != 0:                                                          # synthetic dark knot
-        codes = np.concatenate([(dark - black)[None].astype(np.float32), codes])
-        kflux = np.concatenate([[0.0], flux[idx]])
-        unc = np.concatenate([np.ones((1, H, W), bool), unclipped[idx]])
-        Ek += 1
-    else:
-        kflux = flux[idx].copy()
-        unc = unclipped[idx].copy()
-        unc[0] = True
-    n_knots = unc.sum(0).astype(np.int32)                                  # leading unclipped knots
-    # defective pixels (dead, stuck, or a response far from their kind's): no calibration -> UNCALIBRATED
-    defective = ~np.isfinite(gfit) | (gfit < 0.25) | (gfit > 4.0)
-    n_knots[defective] = 0
-    # strictly increasing codes
-    codes = np.maximum.accumulate(codes, axis=0) + (np.arange(Ek, dtype=np.float32) * 1e-3)[:, None, None]
-    # clipping point: extrapolate the last knots (straight line, or a parabola through the last three where
-    # the curve bends up), bounded by the last unclipped and the first clipped exposure
-    clip_flux = np.full((H, W), np.nan, np.float32)
-    ncl = n_knots < Ek
-    nk = n_knots
-    lastc = np.take_along_axis(codes, np.clip(nk - 1, 0, Ek - 1)[None], 0)[0]
-    prevc = np.take_along_axis(codes, np.clip(nk - 2, 0, Ek - 1)[None], 0)[0]
-    lastf = kflux[np.clip(nk - 1, 0, Ek - 1)]
-    prevf = kflux[np.clip(nk - 2, 0, Ek - 1)]
-    nextf = kflux[np.clip(nk, 0, Ek - 1)]
-    slope = (lastf - prevf) / np.maximum(lastc - prevc, 1e-3)
-    est = lastf + (top - lastc) * slope
-    # parabola through the last three knots (the curve bends up near the neighbours' saturation)
-    pc = np.take_along_axis(codes, np.clip(nk - 3, 0, Ek - 1)[None], 0)[0]
-    pf = kflux[np.clip(nk - 3, 0, Ek - 1)]
-    s1 = (lastc - prevc) / np.maximum(lastf - prevf, 1e-9)
-    s0 = (prevc - pc) / np.maximum(prevf - pf, 1e-9)
-    curv = (s1 - s0) / np.maximum(lastf - pf, 1e-9)          # second divided difference
-    curv = np.where(nk >= 3, np.maximum(curv, 0.0), 0.0)     # only bending up; else linear
-    # c(F) = lastc + (F - lastf) * (s1 + curv * (F - prevf)) = top
-    a_ = curv
-    b_ = s1 + curv * (lastf - prevf)
-    c_ = lastc - top
-    disc = np.maximum(b_ * b_ - 4 * a_ * c_, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xq = np.where(a_ > 1e-15, (-b_ + np.sqrt(disc)) / (2 * a_), -c_ / np.maximum(b_, 1e-9))
-    est = np.where(np.isfinite(xq) & (xq >= 0), lastf + xq, est)
-    est = np.clip(est, lastf, nextf)
-    # better, where the first clipped exposure is only partly clipped: its mean code is the mean of a
-    # Gaussian censored at the saturation code S; un-censor it (photon-transfer noise) and interpolate
-    # between the last unclipped knot and that point
-    jf = np.clip(unclipped.sum(0), 0, E - 1)                               # first clipped exposure
-    f_j = flux[jf]
-    f_next = flux[np.clip(jf + 1, 0, E - 1)]
-    m_j = np.take_along_axis(mean, jf[None], 0)[0].astype(np.float64) - black
-    s_rel = float(np.median(mean[-1][reg])) - black
-    sig = np.sqrt(gain * max(s_rel, 1.0) + (read_noise * gain) ** 2 + 1.0 / 12)
-    partial = ncl & (nk >= 2) & ~defective & (m_j < s_rel - 0.05 * sig) & (m_j > lastc)
-    if partial.any():
-        mu = _uncensor_mean(m_j[partial], s_rel, sig)
-        lc, lf = lastc[partial], lastf[partial]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            e2 = lf + (top - lc) * (f_j[partial] - lf) / (mu - lc)
-        ok2 = np.isfinite(e2) & (mu > lc + 1e-3)
-        est_p = est[partial]
-        est_p[ok2] = np.clip(e2[ok2], lf[ok2], f_next[partial][ok2])
-        est[partial] = est_p
-    good = ncl & (nk >= 2) & ~defective
-    clip_flux[good] = est[good]
-    codes_t = np.ascontiguousarray(np.moveaxis(codes, 0, -1))              # (H, W, K)
-    q, qs, qo = crosstalk.quantize_codes(codes_t, max_code)
-    steps.update(1)
-    steps.close()
-
+def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_min, name, where):
+    """The camera profile with its crosstalk calibration (crosstalk.CrosstalkCalibration)."""
+    codes_t = np.ascontiguousarray(np.moveaxis(lut.codes, 0, -1))          # (H, W, K)
+    q, qs, qo = crosstalk.quantize_codes(codes_t, lv.max_code)
     calib = crosstalk.CrosstalkCalibration(
-        codes_q=q, qscale=qs, qoffset=qo, n_knots=n_knots, knot_flux=kflux.astype(np.float64),
-        clip_flux=clip_flux, nd=float(nd), black_level=black, clip_code=clip_code,
+        codes_q=q, qscale=qs, qoffset=qo, n_knots=lut.n_knots, knot_flux=lut.knot_flux.astype(np.float64),
+        clip_flux=clip_flux, nd=float(ndf.nd), black_level=lv.black, clip_code=lv.clip_code,
         sig_e=fe.astype(np.float32), sigma=sigma.astype(np.float32), alpha=alpha, info={})
     try:
-        prof = profiles.make(mask, nd=float(nd), bit_depth=int(bit_depth), clip_code=int(clip_code),
-                             black_level=float(black), gain=float(gain), read_noise=float(read_noise),
-                             full_well=float(full_well), l_min=float(min(l_min, 0.5 * top)), name=name,
+        return profiles.make(mask, nd=float(ndf.nd), bit_depth=int(lv.bit_depth), clip_code=int(lv.clip_code),
+                             black_level=float(lv.black), gain=float(ptc.gain), read_noise=float(ptc.read_noise),
+                             full_well=float(ptc.full_well), l_min=float(min(l_min, 0.5 * lv.top)), name=name,
                              crosstalk=calib)
     except profiles.ProfileError as e:
         raise CalibrationError(f"{where}: calibrated parameters are inconsistent: {e}") from None
 
-    # ---- effective ND (Eq. 8), valid ratio (Fig. 8b), DR gain (4.2) ---------------------------------
-    nd_eff_map = clip_flux / top
-    nd_eff = nd_eff_map[mask]
-    valid_nd = nd_eff[np.isfinite(nd_eff)]
-    lmin_flux = _flux_at_code(codes, kflux, n_knots, prof.l_min)
-    rf, ratio = _valid_ratio_curve(mask, clip_flux, lmin_flux, flux)
-    meas = _measured_ratio(sweep, prof)
-    g40, f40 = _dr_gain(rf, ratio, 0.4, top)
-    g20, f20 = _dr_gain(rf, ratio, 0.2, top)
-    # example pixels: attenuated pixels near the centre with the most regular neighbours
+
+def _example_pixels(mask, refs, nd_eff_map):
+    """Paper Fig. 7's exemplary pixels: two attenuated pixels near the centre with the most regular
+    neighbours that clip within the sweep."""
+    H, W = mask.shape
     cy, cx = H // 2, W // 2
-    score = np.where(mask & border & np.isfinite(nd_eff_map), n_regnb, -1).astype(float)
+    score = np.where(mask & refs.inner & np.isfinite(nd_eff_map), refs.ind_reg.sum(0), -1).astype(float)
     yy, xx = np.mgrid[0:H, 0:W]
     score -= 1e-3 * np.hypot(yy - cy, xx - cx) / max(H, W)
     ex = np.argsort(score.ravel())[::-1][:2]
-    examples = [(int(e // W), int(e % W)) for e in ex if score.ravel()[e] >= 0]
-    k_eff = _kernel_estimate(fe, sigma, top)
-    uncal = int(np.sum(n_knots < 2))
+    return [(int(e // W), int(e % W)) for e in ex if score.ravel()[e] >= 0]
+
+
+def _summary(sweep, mask, lv, ptc, refs, ndf, lut, nd_eff_map, examples, gains, fe, sigma, prof,
+             nd_nominal, smooth_ok) -> dict:
+    """The calibration's figures (printed by `nrhdr calibrate`, saved in the profile's info)."""
+    H, W = mask.shape
+    nd, top = ndf.nd, lv.top
+    nd_eff = nd_eff_map[mask]
+    valid_nd = nd_eff[np.isfinite(nd_eff)]
+    (g40, f40), (g20, f20) = gains
     summary = {
-        "flats": str(sweep.folder), "width": W, "height": H, "exposures": int(E),
-        "frames": int(sweep.frames.sum()), "bit_depth": int(bit_depth), "black_level": round(black, 3),
-        "clip_code": int(clip_code), "gain_dn_per_e": round(gain, 6), "read_noise_e": round(read_noise, 3),
-        "full_well_e": round(full_well, 1),
+        "flats": str(sweep.folder), "width": W, "height": H, "exposures": int(len(sweep.exposures)),
+        "frames": int(sweep.frames.sum()), "bit_depth": int(lv.bit_depth), "black_level": round(lv.black, 3),
+        "clip_code": int(lv.clip_code), "gain_dn_per_e": round(ptc.gain, 6),
+        "read_noise_e": round(ptc.read_noise, 3), "full_well_e": round(ptc.full_well, 1),
         "nd": round(float(nd), 4), "nd_stops": round(math.log2(nd), 3),
-        "nd_paper_references": round(float(nd_paper), 4) if math.isfinite(nd_paper) else None,
+        "nd_paper_references": round(float(ndf.nd_paper), 4) if math.isfinite(ndf.nd_paper) else None,
         "nd_nominal": nd_nominal,
         "nd_eff_median": round(float(np.median(valid_nd)), 4) if valid_nd.size else None,
         "nd_eff_p5": round(float(np.percentile(valid_nd, 5)), 4) if valid_nd.size else None,
@@ -710,23 +935,20 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         "dn_scaled_40": round(f40, 1) if f40 is not None else None,
         "dn_scaled_20": round(f20, 1) if f20 is not None else None,
         "dn_max": round(top, 2), "l_min": prof.l_min,
-        "reference_pixels_paper": int(paper_att_sel.sum()),
-        "reference_paper_rule": "only attenuated neighbours" if sel0.sum() >= 10 else "at most one regular neighbour",
-        "kernel_estimate": k_eff,
-        "pixels_without_calibration": uncal,
-        "defective_pixels": int(defective.sum()),
-        "lut_knots": int(Ek),
+        "reference_pixels_paper": int(refs.paper_att_sel.sum()),
+        "reference_paper_rule": refs.paper_rule,
+        "kernel_estimate": _kernel_estimate(fe, sigma, top),
+        "pixels_without_calibration": int(np.sum(lut.n_knots < 2)),
+        "defective_pixels": int(lut.defective.sum()),
+        "lut_knots": int(lut.codes.shape[0]),
         "lut_smoothed_pct": round(float(np.mean(smooth_ok)) * 100, 2),
     }
     if nd_nominal:
         summary["nd_vs_nominal_pct"] = round(100 * (nd / nd_nominal - 1), 2)
-    calib.info = {k: summary[k] for k in ("nd", "nd_eff_median", "dr_gain_stops_40", "dr_gain_stops_20",
-                                          "exposures", "frames", "kernel_estimate")}
-    # for the plot: the paper's reference (pixels with only attenuated neighbours: no selection bias until
-    # they clip themselves)
-    ref_att = np.where(np.isfinite(paper_att), paper_att, h0)
-    return CalibrationResult(prof, summary, flux, ref_att, H0, nd_eff, rf, ratio, meas, examples)
+    return summary
 
+
+# ---- helpers of the steps ----------------------------------------------------------------------------
 
 def _uncensor_mean(m, s, sig, iters: int = 40):
     """Mean mu of a Gaussian (sd `sig`) whose samples are clipped at `s`, from the clipped samples' mean `m`
@@ -776,20 +998,6 @@ def _flux_at_code(codes, kflux, n_knots, level):
     return out
 
 
-def _valid_ratio_curve(mask, clip_flux, lmin_flux, flux):
-    fmax = float(np.nanmax(flux))
-    lit = flux[flux > 0]
-    grid = np.geomspace(max(float(lit.min()), 1e-3), fmax, 400)
-    cf = np.where(np.isfinite(clip_flux), clip_flux, np.inf)
-    reg_clip = np.sort(cf[~mask])
-    att_clip = np.sort(cf[mask])
-    att_lmin = np.sort(np.where(np.isfinite(lmin_flux), lmin_flux, np.inf)[mask])
-    n = mask.size
-    valid = (reg_clip.size - np.searchsorted(reg_clip, grid, side="right")) \
-        + np.searchsorted(att_lmin, grid, side="right") - np.searchsorted(att_clip, grid, side="right")
-    return grid, valid / n
-
-
 def _measured_ratio(sweep, prof):
     from . import validity
     out = np.zeros(len(sweep.exposures))
@@ -799,20 +1007,6 @@ def _measured_ratio(sweep, prof):
         _, st = validity.classify(raw, prof, mode="threshold")
         out[i] = validity.valid_ratio(st)
     return out
-
-
-def _dr_gain(grid, ratio, level, top):
-    """Largest flux where the valid ratio is still >= level (on the bright side), in f-stops over DN_max."""
-    above = np.nonzero(ratio >= level)[0]
-    if above.size == 0:
-        return None, None
-    j = above[-1]
-    if j + 1 >= grid.size:
-        return None, None
-    r0, r1 = ratio[j], ratio[j + 1]
-    f0, f1 = math.log(grid[j]), math.log(grid[j + 1])
-    f = math.exp(f0 + (f1 - f0) * (r0 - level) / max(r0 - r1, 1e-12))
-    return math.log2(f / top), f
 
 
 def _kernel_estimate(fe, sigma, top):
@@ -901,7 +1095,7 @@ def write_plots(res: CalibrationResult, prefix) -> list[Path]:
 
 
 # ======================================================================================================
-# CLI
+# The whole calibration from files (`nrhdr calibrate`, gst_plugins/cli/calibration.py)
 # ======================================================================================================
 
 def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None,
@@ -924,89 +1118,3 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
     if plots:
         res.summary["plots"] = [str(p) for p in write_plots(res, out.parent / f"{out.stem}_calib")]
     return res.summary
-
-
-def _cmd_calibrate(a) -> int:
-    try:
-        s = run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
-                          clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
-                          progress=not a.quiet, overwrite=a.force)
-    except (CalibrationError, io.OutputExistsError) as e:
-        print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
-        return 2
-    if a.json:
-        print(json.dumps(s, indent=2))
-    else:
-        print(f"wrote {s['profile']}: ND {s['nd']:.3f} ({s['nd_stops']:.2f} stops)"
-              + (f", nominal {s['nd_nominal']} ({s['nd_vs_nominal_pct']:+.1f} %)" if s.get("nd_nominal") else ""))
-        print(f"  black {s['black_level']:.1f}, clip code {s['clip_code']}, gain {s['gain_dn_per_e']:.4f} DN/e-, "
-              f"read noise {s['read_noise_e']:.2f} e-, full well {s['full_well_e']:.0f} e-")
-        print(f"  effective ND (Eq. 8): median {s['nd_eff_median']}, 5-95 % {s['nd_eff_p5']} .. {s['nd_eff_p95']}")
-        print(f"  dynamic-range gain: {s['dr_gain_stops_40']} stops at 40 % known, {s['dr_gain_stops_20']} "
-              f"stops at 20 % known (paper: 2.1 / 2.4)")
-        for p in s.get("plots", []):
-            print(f"  plot {p}")
-    return 0
-
-
-def _cmd_simulate_flats(a) -> int:
-    try:
-        if a.profile:
-            prof = profiles.load(a.profile)
-        else:
-            prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd)
-        model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.sensor_seed)
-    except (ValueError, profiles.ProfileError) as e:
-        print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
-        return 2
-    try:
-        exp = default_exposures(a.exposures, nd=prof.nd)
-        truth = simulate_flats(a.output, prof, model, exposures=exp, frames_per_exposure=a.frames,
-                               seed=a.seed, fmt=a.format, progress=not a.quiet, overwrite=a.force)
-    except (ValueError, io.OutputExistsError) as e:
-        print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
-        return 2
-    print(f"wrote {len(exp) * a.frames} flat frames ({len(exp)} exposures x {a.frames}) to {a.output}/ "
-          f"with exposures.csv, mask.png and truth.json (ND {truth['nd']}, sensor model {a.sensor_model})")
-    print(f"calibrate: nrhdr calibrate {a.output} --mask {Path(a.output) / 'mask.png'} -o camera.json")
-    return 0
-
-
-def register_cli(sub) -> None:
-    p = sub.add_parser("calibrate", help="crosstalk/ND calibration from a flat-field sweep (paper 3.2, 4)",
-                       description="Calibrate ND, crosstalk LUT and neighbour kernel from a folder of flat "
-                                   "frames + exposures.csv (file,exposure_s); writes a camera profile, plots "
-                                   "and a summary.")
-    p.add_argument("flats", help="folder with 16-bit TIFF/PNG frames and exposures.csv")
-    p.add_argument("--mask", required=True, help="ND mask PNG (255 = attenuated)")
-    p.add_argument("-o", "--output", required=True, help="camera profile JSON to write")
-    p.add_argument("--nd-nominal", type=float, help="nominal ND factor (reported against the measured one)")
-    p.add_argument("--l-min", type=float, default=100.0, help="l_min for the profile and the valid ratio")
-    p.add_argument("--clip-code", type=int, help="override the clip code (default: from the saturated frames)")
-    p.add_argument("--bit-depth", type=int, help="ADC bits (default: from the largest code)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--no-plots", action="store_true")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--force", action="store_true",
-                   help="replace an existing profile (and its mask, calibration, plots) at --output")
-    p.set_defaults(func=_cmd_calibrate)
-
-    p = sub.add_parser("simulate-flats", help="write a simulated flat-field sweep (for calibrate)")
-    p.add_argument("output", help="folder to write")
-    p.add_argument("--profile", help="camera profile to simulate (default: the paper-like default)")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
-    p.add_argument("--nd", type=float, default=6.35)
-    p.add_argument("--mask-seed", type=int, default=0)
-    p.add_argument("--sensor-model", default="prototype", help=f"one of {crosstalk.PRESETS}")
-    p.add_argument("--exposures", type=int, default=40, help="number of exposures (incl. dark)")
-    p.add_argument("--frames", type=int, default=4, help="frames per exposure")
-    p.add_argument("--format", choices=("tiff", "png"), default="tiff")
-    p.add_argument("--seed", type=int, default=0, help="noise seed")
-    p.add_argument("--sensor-seed", type=int, default=0,
-                   help="seed of the sensor's pixel-to-pixel variation: use the same value with "
-                        "'nrhdr simulate --sensor-seed' to calibrate the sensor that recorded a clip")
-    p.add_argument("-q", "--quiet", action="store_true")
-    p.add_argument("--force", action="store_true",
-                   help="replace the sweep files in an existing folder (other files there are kept)")
-    p.set_defaults(func=_cmd_simulate_flats)

@@ -3,7 +3,6 @@
 Truth comes from what we put into the simulated sensor (ND, kernel), never from recorded outputs."""
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import shutil
@@ -161,10 +160,8 @@ def test_natural_scene_error_reduced(linear_cal):
 # ---- CLI ---------------------------------------------------------------------------------------------
 
 def _parser():
-    ap = argparse.ArgumentParser()
-    sub = ap.add_subparsers(dest="cmd")
-    calibration.register_cli(sub)
-    return ap
+    from gst_plugins import cli
+    return cli.build_parser()
 
 
 def test_cli_calibrate_json(linear_sweep, tmp_path, capsys):
@@ -350,3 +347,165 @@ def test_effective_nd_matches_the_known_kernel(linear_cal):
     rel = np.abs(est / truth - 1)
     assert np.median(rel) < 0.01 and np.percentile(rel, 95) < 0.04
     assert s["nd_eff_median"] == pytest.approx(float(np.median(truth)), rel=0.02)
+
+
+# ---- each calibration step alone, against an analytic sweep (paper 3.2, 4.1, 4.2) ------------------------
+
+GAIN, READ, BLACK = 0.5, 3.0, 64.0
+
+
+def _shift0(a, dy, dx):
+    """out[y, x] = a[y + dy, x + dx], zero outside (written here, independent of crosstalk._shift)."""
+    p = np.pad(a, 1)
+    return p[1 + dy:1 + dy + a.shape[0], 1 + dx:1 + dx + a.shape[1]]
+
+
+def _analytic_signal(mask, F, nd, kernel):
+    """Noise-free signal of a conserving linear crosstalk kernel: each pixel keeps its direct light (F or
+    F / ND, Eq. 2) minus what it sends to its neighbours plus what it receives from them."""
+    e = np.where(mask, F / nd, F).astype(np.float64)
+    out = e.copy()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            k = kernel[1 + dy, 1 + dx]
+            if (dy or dx) and k:
+                out += k * _shift0(e, dy, dx)                                     # from the source p + d
+                out -= k * e * _shift0(np.ones_like(e), -dy, -dx)                 # to the target p - d
+    return out
+
+
+def _analytic_sweep(mask, nd=ND, kernel=None, exposures=None, rate=4094.0 / 0.01):
+    """A FlatSweep built directly (no simulator, no files): 12-bit, black BLACK, saturation at 4095,
+    temporal variance on the photon transfer curve gain x signal + (gain x read)^2 + 1/12."""
+    kernel = np.zeros((3, 3)) if kernel is None else kernel
+    t = calibration.default_exposures(30, nd=nd) if exposures is None else np.asarray(exposures, float)
+    sig = np.stack([_analytic_signal(mask, rate * ti, nd, kernel) for ti in t])
+    code = np.minimum(BLACK + sig, 4095.0)
+    sat = code >= 4095.0
+    tvar = np.where(sat, 0.0, GAIN * sig + (GAIN * READ) ** 2 + 1.0 / 12)
+    return calibration.FlatSweep(folder=calibration.Path("analytic"), exposures=t,
+                                 mean=code.astype(np.float32), maxcode=np.ceil(code).astype(np.uint16),
+                                 tvar=tvar.astype(np.float32), frames=np.full(t.size, 8)), rate
+
+
+def _mask(h=40, w=48, seed=5):
+    return profile.default(h, w, seed=seed).mask
+
+
+def test_step_sensor_levels_black_and_clip_code():
+    mask = _mask()
+    sweep, rate = _analytic_sweep(mask)
+    lv = calibration.sensor_levels(sweep, mask)
+    assert lv.black == BLACK and lv.bit_depth == 12
+    assert lv.clip_code == 4094                      # saturation at 4095: the largest code still unclipped
+    assert lv.top == 4094 - BLACK
+    F = rate * sweep.exposures[:, None, None]
+    direct = np.where(mask, F / ND, F)               # no crosstalk: the signal is the direct light
+    expect_unclipped = BLACK + direct < 4094
+    assert np.array_equal(lv.unclipped, expect_unclipped)
+
+
+def test_step_photon_transfer_recovers_gain_and_read_noise():
+    mask = _mask()
+    sweep, _ = _analytic_sweep(mask)
+    lv = calibration.sensor_levels(sweep, mask)
+    ptc = calibration.photon_transfer(sweep, mask, lv)
+    assert ptc.gain == pytest.approx(GAIN, rel=1e-4)
+    assert ptc.read_noise == pytest.approx(READ, rel=1e-4)
+    assert ptc.full_well * ptc.gain >= lv.top        # the full well holds at least DN_max
+
+
+def test_step_reference_curves_are_the_crosstalk_free_pixels():
+    """Conserving linear kernel (asymmetric, to test the directions): the attenuated reference (an attenuated
+    pixel with only attenuated neighbours) is F / ND, the regular one F, and the spill of a regular neighbour
+    in direction d is K_d (F - F / ND)."""
+    mask = _mask()
+    kernel = crosstalk.make_kernel(0.012, 0.008, 0.002)
+    kernel[0, 1] = 0.015                             # more from above than from below
+    sweep, rate = _analytic_sweep(mask, kernel=kernel)
+    lv = calibration.sensor_levels(sweep, mask)
+    refs = calibration.reference_curves(lv, mask)
+    F = rate * sweep.exposures
+    ok = (refs.frac_att == 1) & (refs.frac_reg == 1) & (F > 0)
+    assert ok.sum() >= 5
+    np.testing.assert_allclose(refs.att[ok], F[ok] / ND, rtol=1e-4)
+    np.testing.assert_allclose(refs.reg[ok], F[ok], rtol=1e-4)
+    for d, (dy, dx) in enumerate(crosstalk.DIRS):
+        np.testing.assert_allclose(refs.spill[ok, d], kernel[1 + dy, 1 + dx] * F[ok] * (1 - 1 / ND),
+                                   rtol=1e-3, atol=1e-3)
+
+
+def _refs(t, reg, att):
+    """Reference curves given by hand (all pixels unclipped)."""
+    E = len(t)
+    return calibration.ReferenceCurves(att=att, reg=reg, spill=np.zeros((E, 8)), frac_att=np.ones(E),
+                                       frac_reg=np.ones(E), paper_att=att, paper_reg=reg,
+                                       paper_att_sel=np.zeros((2, 2), bool), paper_rule="", ind_reg=None,
+                                       ind_att=None, inner=None)
+
+
+def test_step_nd_factor_is_the_ratio_of_the_reference_slopes():
+    t = np.linspace(0, 0.06, 25)
+    reg = np.where(t < 0.01, 409400 * t, np.nan)                # unavailable once clipped
+    att = 409400 * t / 6.35
+    ndf = calibration.nd_factor(t, _refs(t, reg, att), top=4094.0)
+    assert ndf.nd == pytest.approx(6.35, rel=1e-9) and ndf.kappa_reg == pytest.approx(409400, rel=1e-9)
+    with pytest.raises(calibration.CalibrationError, match="cannot measure the ND factor"):
+        calibration.nd_factor(t, _refs(t, reg, np.full_like(t, np.nan)), top=4094.0)
+    with pytest.raises(calibration.CalibrationError, match="inverted"):
+        calibration.nd_factor(t, _refs(t, att, reg), top=4094.0)
+
+
+def test_step_spill_table_of_a_linear_kernel_is_linear():
+    """b_d(F) = K_d (F - F / ND) at every exposure: the unrolled table is sigma_d(F) = K_d F."""
+    t = np.linspace(0, 0.01, 12)
+    F = 409400 * t
+    k = np.array([0.002, 0.01, 0.003, 0.012, 0.012, 0.003, 0.01, 0.002])
+    refs = _refs(t, F, F / ND)
+    refs.spill = k[None] * (F - F / ND)[:, None]
+    fe, sigma = calibration.spill_table(F, refs, t > 0, ND)
+    np.testing.assert_allclose(sigma, k[:, None] * fe[None], rtol=1e-9)
+
+
+def test_step_lut_clip_points_and_effective_nd_without_crosstalk():
+    """No crosstalk: each pixel's LUT is its direct response (code = F or F / ND), a regular pixel clips at
+    DN_max and an attenuated one at ND x DN_max, so ND_eff (Eq. 8) = ND for every attenuated pixel."""
+    mask = _mask()
+    sweep, rate = _analytic_sweep(mask, exposures=np.linspace(0, 0.01 * ND * 1.3, 60))
+    lv = calibration.sensor_levels(sweep, mask)
+    ptc = calibration.photon_transfer(sweep, mask, lv)
+    flux = rate * sweep.exposures
+    lut = calibration.pixel_lut(lv.signal.copy(), lv, flux, np.ones(mask.shape))
+    direct = np.where(mask[None], lut.knot_flux[:, None, None] / ND, lut.knot_flux[:, None, None])
+    k = np.arange(lut.codes.shape[0])[:, None, None] < lut.n_knots[None]
+    np.testing.assert_allclose(lut.codes[k], direct[k], atol=0.1)
+    clip = calibration.clip_points(lut, sweep, mask, lv, ptc, flux)
+    top = 4094 - BLACK
+    np.testing.assert_allclose(clip[~mask], top, rtol=1e-4)
+    np.testing.assert_allclose(calibration.effective_nd(clip, top)[mask], ND, rtol=1e-4)
+
+
+def test_step_effective_nd_paper_example():
+    """Eq. 8 with the paper's pixel 1: DN_valid 2500, ND 6.35, DN_max 4094 -> ND_eff 3.87."""
+    dn_scaled = np.float32(2500 * 6.35)
+    assert calibration.effective_nd(dn_scaled, 4094.0) == pytest.approx(3.877, abs=1e-3)
+
+
+def test_step_valid_pixel_ratio_and_dynamic_range_gain():
+    """Half the pixels attenuated, reaching l_min at 635 DN and clipping uniformly between 10000 and 30000
+    DN; regular pixels clip at 4094: the valid ratio is 1 between 635 and 4094, then 0.5 falling linearly
+    to 0, so 40 % known is reached at 14000 DN and 20 % at 22000 DN (section 4.2)."""
+    n = 4000
+    mask = np.zeros((2, n), bool)
+    mask[1] = True
+    clip = np.full((2, n), 4094.0, np.float32)
+    clip[1] = np.linspace(10000, 30000, n)
+    lmin = np.full((2, n), 635.0)
+    flux = np.geomspace(1, 40000, 40)
+    grid, ratio = calibration.valid_pixel_ratio(mask, clip, lmin, flux)
+    assert np.all(ratio[(grid > 700) & (grid < 4000)] == 1.0)
+    assert np.all(ratio[grid < 600] == 0.5)
+    for level, f in ((0.4, 14000.0), (0.2, 22000.0)):
+        stops, dn_scaled = calibration.dynamic_range_gain(grid, ratio, level, 4094.0)
+        assert dn_scaled == pytest.approx(f, rel=0.01)
+        assert stops == pytest.approx(np.log2(f / 4094.0), abs=0.015)

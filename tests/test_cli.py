@@ -28,3 +28,31 @@ def test_bad_scene_file_exits_2(tmp_path, capsys):
     rc = cli.main(["simulate", str(tmp_path / "none.exr"), "-o", str(tmp_path / "c"), "--frames", "1"])
     assert rc == 2
     assert "none.exr" in capsys.readouterr().err
+
+
+def test_nrhdr_core_imports_no_argparse():
+    """The command line lives in gst_plugins/cli/ only: no nrhdr_core module imports argparse (#13)."""
+    import ast
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / "nrhdr_core"
+    found = []
+    for f in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text(), str(f))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            found += [f"{f.name}:{node.lineno}" for n in names if n.split(".")[0] == "argparse"]
+    assert len(list(root.rglob("*.py"))) > 10 and not found, found
+
+
+def test_command_table_lists_every_subcommand():
+    """`cli.COMMANDS` is the one list of subcommands: the parser holds exactly those, each with its
+    command function in the module the table names."""
+    import argparse
+    import importlib
+    ap = cli.build_parser()
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    assert list(sub.choices) == [name for name, _ in cli.COMMANDS]
+    for name, module in cli.COMMANDS:
+        mod = importlib.import_module(f"gst_plugins.cli.{module}")
+        func = sub.choices[name].get_default("func")
+        assert func.__module__ == mod.__name__ and func.__name__ == "cmd_" + name.replace("-", "_")

@@ -17,7 +17,7 @@ defaults are pipelines/raw_to_exr.sh's (METHOD=fse PRESET=fast MODE=threshold, n
 so the files equal that pipeline's bit for bit."""
 
 
-def register_cli(sub) -> None:
+def add_batch(sub) -> None:
     from nrhdr_core import chain
     p = sub.add_parser("batch", help="reprocess a raw clip into OpenEXR frames on a Dask cluster",
                        description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -1,8 +1,7 @@
-"""The `nrhdr` command: simulate a camera, run and inspect the GStreamer elements, the demo, the paper's
-SNR analysis and (from `nrhdr_core.calibration`) crosstalk calibration. `nrhdr --help` lists it all."""
+"""`nrhdr simulate`, `nrhdr profile`, `nrhdr demo`: simulated clips and camera profiles, and the demo
+that runs the whole chain on one (nrhdr_core.simulate, nrhdr_core.profile)."""
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -59,16 +58,6 @@ def cmd_profile(a) -> int:
     return 0
 
 
-def cmd_launch(a) -> int:
-    from . import runtime
-    return runtime.launch(a.args)
-
-
-def cmd_inspect(a) -> int:
-    from . import runtime
-    return runtime.inspect(a.args)
-
-
 def rawvideoparse(clip: dict) -> str:
     """rawvideoparse for a clip's GRAY16_LE file: rows are unpadded (GStreamer's default stride would
     round odd widths up to 4 bytes)."""
@@ -113,7 +102,7 @@ def _run_demo(a, out: Path):
     """The demo in folder `out` (a staging folder); returns (rc, summary lines)."""
     import numpy as np
     from nrhdr_core import io, metrics, scene, simulate
-    from . import runtime
+    from .. import runtime
     for sub in ("exr", "png"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     print(f"nrhdr demo: simulating {a.frames} frames {a.width}x{a.height} of the synthesised HDR scene")
@@ -158,14 +147,6 @@ def _run_demo(a, out: Path):
     return 0, lines
 
 
-def cmd_snr(a) -> int:
-    from nrhdr_core import analysis
-    paths = analysis.run_snr_analysis(a.output, nd=a.nd, l_min=a.l_min, seed=a.seed)
-    for p in paths:
-        print(f"wrote {p}")
-    return 0
-
-
 def _add_sensor_args(p, profile_opt=True):
     g = p.add_argument_group("sensor (ignored with --profile)")
     if profile_opt:
@@ -180,11 +161,8 @@ def _add_sensor_args(p, profile_opt=True):
     g.add_argument("--l-min", type=float, default=100.0, help="threshold for attenuated pixels (2.3)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="nrhdr", description=__doc__)
-    ap.add_argument("--version", action="version", version=f"nrhdr {__import__('nrhdr_core').__version__}")
-    sub = ap.add_subparsers(dest="command", required=True)
 
+def add_simulate(sub) -> None:
     p = sub.add_parser("simulate", help="turn an HDR scene into raw sensor video (clip folder)")
     p.add_argument("scene", nargs="?", default="synthetic",
                    help="OpenEXR / Radiance .hdr / PNG scene, or 'synthetic' (default)")
@@ -208,20 +186,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sensor_args(p)
     p.set_defaults(func=cmd_simulate)
 
+
+def add_profile(sub) -> None:
     p = sub.add_parser("profile", help="write a camera profile (mask PNG + JSON)")
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--force", action="store_true", help="replace an existing profile (JSON and mask PNG)")
     _add_sensor_args(p, profile_opt=False)
     p.set_defaults(func=cmd_profile)
 
-    p = sub.add_parser("launch", help="gst-launch-1.0 with the nrhdr elements found",
-                       prefix_chars="\0")
-    p.add_argument("args", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_launch)
-    p = sub.add_parser("inspect", help="gst-inspect-1.0 with the nrhdr elements found", prefix_chars="\0")
-    p.add_argument("args", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_inspect)
 
+def add_demo(sub) -> None:
     p = sub.add_parser("demo", help="simulate a clip of a synthesised scene and run the whole chain")
     p.add_argument("-o", "--output", default="demo_out")
     p.add_argument("--frames", type=int, default=60)
@@ -233,41 +207,3 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the demo's files (clip/, exr/frame_*, png/frame_*) in an existing folder; "
                         "other files there are kept")
     p.set_defaults(func=cmd_demo)
-
-    p = sub.add_parser("snr", help="the paper's SNR and valid-pixel analysis (Fig. 3, 4, 5) as plots")
-    p.add_argument("-o", "--output", default="snr_out")
-    p.add_argument("--nd", type=float, default=6.35)
-    p.add_argument("--l-min", type=float, default=100.0)
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=cmd_snr)
-
-    from . import cli_env; cli_env.register_cli(sub)  # noqa: E702  (issue 11: `nrhdr env`)
-    from . import cli_live
-    cli_live.register_cli(sub)  # nrhdr warmup (issue #7)
-    from .cli_figures import register_cli as register_figures
-    register_figures(sub)                                              # nrhdr figures (issue 10)
-    from . import cli_batch  # `nrhdr batch` (issue #12)
-    cli_batch.register_cli(sub)
-    try:
-        from nrhdr_core import calibration
-        if hasattr(calibration, "register_cli"):
-            calibration.register_cli(sub)
-    except ImportError:
-        pass
-    return ap
-
-
-def main(argv=None) -> int:
-    ap = build_parser()
-    a = ap.parse_args(argv)
-    try:
-        return int(a.func(a) or 0)
-    except KeyboardInterrupt:
-        return 130
-    except (ValueError, OSError) as e:
-        print(f"nrhdr {a.command}: error: {e}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -99,7 +99,7 @@ def cmd_warmup(a) -> int:
     return 0
 
 
-def register_cli(sub) -> None:
+def add_warmup(sub) -> None:
     p = sub.add_parser("warmup", help="compile the numba kernels of the chain once (numba cache), so "
                                       "pipelines start at full speed")
     p.add_argument("--check", action="store_true",

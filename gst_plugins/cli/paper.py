@@ -1,8 +1,25 @@
-"""`nrhdr figures`: the paper's Figs. 2-10 regenerated with the numbers beside the paper's (issue 10;
-code in nrhdr_core.figures)."""
+"""`nrhdr snr`: the paper's SNR and valid-pixel analysis (nrhdr_core.analysis); `nrhdr figures`: the paper's
+Figs. 2-10 regenerated with the numbers beside the paper's (issue 10; code in nrhdr_core.figures)."""
 from __future__ import annotations
 
 import sys
+
+
+def cmd_snr(a) -> int:
+    from nrhdr_core import analysis
+    paths = analysis.run_snr_analysis(a.output, nd=a.nd, l_min=a.l_min, seed=a.seed)
+    for p in paths:
+        print(f"wrote {p}")
+    return 0
+
+
+def add_snr(sub) -> None:
+    p = sub.add_parser("snr", help="the paper's SNR and valid-pixel analysis (Fig. 3, 4, 5) as plots")
+    p.add_argument("-o", "--output", default="snr_out")
+    p.add_argument("--nd", type=float, default=6.35)
+    p.add_argument("--l-min", type=float, default=100.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_snr)
 
 
 def cmd_figures(a) -> int:
@@ -21,7 +38,7 @@ def cmd_figures(a) -> int:
     return 0
 
 
-def register_cli(sub) -> None:
+def add_figures(sub) -> None:
     p = sub.add_parser("figures", help="the paper's Figs. 2-10 as PNG + figures.json + index.md (paper vs ours)",
                        description="Regenerate the paper's figures from simulation: Fig. 2 (mask spectra, "
                                    "aliasing), 3-5 (ideal camera SNR, known pixels, FSE), 6b (crosstalk), "

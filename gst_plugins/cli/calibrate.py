@@ -1,0 +1,99 @@
+"""`nrhdr calibrate`: crosstalk, ND and sensor calibration from a flat-field sweep (nrhdr_core.calibration,
+paper 3.2, 4; docs/CROSSTALK.md); `nrhdr simulate-flats`: a simulated sweep to calibrate."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def cmd_calibrate(a) -> int:
+    from nrhdr_core import calibration, io
+    try:
+        s = calibration.run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
+                                      clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
+                                      progress=not a.quiet, overwrite=a.force)
+    except (calibration.CalibrationError, io.OutputExistsError) as e:
+        print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        print(json.dumps(s, indent=2))
+    else:
+        print(f"wrote {s['profile']}: ND {s['nd']:.3f} ({s['nd_stops']:.2f} stops)"
+              + (f", nominal {s['nd_nominal']} ({s['nd_vs_nominal_pct']:+.1f} %)" if s.get("nd_nominal") else ""))
+        print(f"  black {s['black_level']:.1f}, clip code {s['clip_code']}, gain {s['gain_dn_per_e']:.4f} DN/e-, "
+              f"read noise {s['read_noise_e']:.2f} e-, full well {s['full_well_e']:.0f} e-")
+        print(f"  effective ND (Eq. 8): median {s['nd_eff_median']}, 5-95 % {s['nd_eff_p5']} .. {s['nd_eff_p95']}")
+        print(f"  dynamic-range gain: {s['dr_gain_stops_40']} stops at 40 % known, {s['dr_gain_stops_20']} "
+              f"stops at 20 % known (paper: 2.1 / 2.4)")
+        for p in s.get("plots", []):
+            print(f"  plot {p}")
+    return 0
+
+
+def cmd_simulate_flats(a) -> int:
+    from nrhdr_core import calibration, crosstalk, io
+    from nrhdr_core import profile as profiles
+    try:
+        if a.profile:
+            prof = profiles.load(a.profile)
+        else:
+            prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd)
+        model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.sensor_seed)
+    except (ValueError, profiles.ProfileError) as e:
+        print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        exp = calibration.default_exposures(a.exposures, nd=prof.nd)
+        truth = calibration.simulate_flats(a.output, prof, model, exposures=exp, frames_per_exposure=a.frames,
+                                           seed=a.seed, fmt=a.format, progress=not a.quiet, overwrite=a.force)
+    except (ValueError, io.OutputExistsError) as e:
+        print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {len(exp) * a.frames} flat frames ({len(exp)} exposures x {a.frames}) to {a.output}/ "
+          f"with exposures.csv, mask.png and truth.json (ND {truth['nd']}, sensor model {a.sensor_model})")
+    print(f"calibrate: nrhdr calibrate {a.output} --mask {Path(a.output) / 'mask.png'} -o camera.json")
+    return 0
+
+
+def add_calibrate(sub) -> None:
+    p = sub.add_parser("calibrate", help="crosstalk/ND calibration from a flat-field sweep (paper 3.2, 4)",
+                       description="Calibrate ND, crosstalk LUT and neighbour kernel from a folder of flat "
+                                   "frames + exposures.csv (file,exposure_s); writes a camera profile, plots "
+                                   "and a summary.")
+    p.add_argument("flats", help="folder with 16-bit TIFF/PNG frames and exposures.csv")
+    p.add_argument("--mask", required=True, help="ND mask PNG (255 = attenuated)")
+    p.add_argument("-o", "--output", required=True, help="camera profile JSON to write")
+    p.add_argument("--nd-nominal", type=float, help="nominal ND factor (reported against the measured one)")
+    p.add_argument("--l-min", type=float, default=100.0, help="l_min for the profile and the valid ratio")
+    p.add_argument("--clip-code", type=int, help="override the clip code (default: from the saturated frames)")
+    p.add_argument("--bit-depth", type=int, help="ADC bits (default: from the largest code)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing profile (and its mask, calibration, plots) at --output")
+    p.set_defaults(func=cmd_calibrate)
+
+
+def add_simulate_flats(sub) -> None:
+    from nrhdr_core import crosstalk
+    p = sub.add_parser("simulate-flats", help="write a simulated flat-field sweep (for calibrate)")
+    p.add_argument("output", help="folder to write")
+    p.add_argument("--profile", help="camera profile to simulate (default: the paper-like default)")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--nd", type=float, default=6.35)
+    p.add_argument("--mask-seed", type=int, default=0)
+    p.add_argument("--sensor-model", default="prototype", help=f"one of {crosstalk.PRESETS}")
+    p.add_argument("--exposures", type=int, default=40, help="number of exposures (incl. dark)")
+    p.add_argument("--frames", type=int, default=4, help="frames per exposure")
+    p.add_argument("--format", choices=("tiff", "png"), default="tiff")
+    p.add_argument("--seed", type=int, default=0, help="noise seed")
+    p.add_argument("--sensor-seed", type=int, default=0,
+                   help="seed of the sensor's pixel-to-pixel variation: use the same value with "
+                        "'nrhdr simulate --sensor-seed' to calibrate the sensor that recorded a clip")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("--force", action="store_true",
+                   help="replace the sweep files in an existing folder (other files there are kept)")
+    p.set_defaults(func=cmd_simulate_flats)
