@@ -441,7 +441,9 @@ def reference_curves(lv: SensorLevels, mask: np.ndarray, min_rows: int = 30) -> 
     regular neighbour) and the regular one (regular pixels with at most one attenuated neighbour). Besides
     the paper's averages, at each exposure every pixel's signal is regressed on which of its 8 neighbours
     are of the other kind: the intercept is the reference from all pixels instead of a few, and for the
-    attenuated pixels the 8 slopes are the spill of a regular neighbour per direction (kernel mode)."""
+    attenuated pixels the 8 slopes are the spill of a regular neighbour per direction (kernel mode). On a
+    regular mask (every interior pixel of a kind has the same neighbours) that regression cannot separate
+    the reference from the spill; there the sensor's outer ring does (_ring_reference)."""
     H, W = mask.shape
     reg = ~mask
     inner = np.zeros((H, W), bool)
@@ -460,6 +462,7 @@ def reference_curves(lv: SensorLevels, mask: np.ndarray, min_rows: int = 30) -> 
     only_att = sel0.sum() >= 10
     paper_att_sel = sel0 if only_att else (mask & inner & (n_regnb <= 1))
     paper_reg_sel = reg & inner & (n_attnb <= 1)
+    regular_mask = att_idx[0].size > 0 and reg_idx[0].size > 0 and not (np.ptp(Xa, 0).any() or np.ptp(Xr, 0).any())
     for i in range(E):
         if not lv.lit[i]:
             h0[i] = H0[i] = paper_att[i] = paper_reg[i] = 0.0
@@ -468,12 +471,16 @@ def reference_curves(lv: SensorLevels, mask: np.ndarray, min_rows: int = 30) -> 
         d, u = lv.signal[i], lv.unclipped[i]
         ua = u[att_idx]
         frac_att[i] = ua.mean()
-        if ua.sum() >= min_rows:
-            h0[i], b[i] = _attenuated_regression(Xa[ua], d[att_idx][ua], b[i])
         ur = u[reg_idx]
         frac_reg[i] = ur.mean()
-        if ur.sum() >= min_rows:
-            H0[i] = _robust_lstsq(Xr[ur], d[reg_idx][ur])[0]
+        if regular_mask:
+            h0[i], b[i] = _ring_reference(d, u, mask, ind_reg, inner, min_rows)
+            H0[i] = _ring_reference(d, u, reg, ind_att, inner, min_rows)[0]
+        else:
+            if ua.sum() >= min_rows:
+                h0[i], b[i] = _attenuated_regression(Xa[ua], d[att_idx][ua], b[i])
+            if ur.sum() >= min_rows:
+                H0[i] = _robust_lstsq(Xr[ur], d[reg_idx][ur])[0]
         for sel, out in ((paper_att_sel, paper_att), (paper_reg_sel, paper_reg)):
             s = sel & u
             if s.sum() >= 3:
@@ -494,6 +501,54 @@ def _attenuated_regression(X, y, spill_nan):
         return c[0], c[1:]
     alone = X[:, 1:].sum(1) == 0
     return (float(np.median(y[alone])) if np.any(alone) else np.nan), spill_nan
+
+
+# The four sides of the sensor's outer ring: (name, directions of the neighbours its pixels lack).
+_SIDES = (("top", lambda dy, dx: dy == -1), ("bottom", lambda dy, dx: dy == 1),
+          ("left", lambda dy, dx: dx == -1), ("right", lambda dy, dx: dx == 1))
+
+
+def _ring_reference(d, u, kind, ind, inner, min_rows, iters: int = 20):
+    """(reference, (8,) spill per direction) at one exposure on a regular mask, from the sensor's outer ring:
+    a ring pixel lacks the neighbours beyond the edge, so it gets less crosstalk (or, regular, loses less)
+    than the interior pixels of its kind. With d_int(p) = ref + s(p) C inside (C: the crosstalk of the
+    full neighbourhood, s(p): its smooth amplitude over the sensor, e.g. glue thickness) a quadratic
+    trend P(p) fitted to the interior and extrapolated to the ring gives each side's deficit
+    Delta_side = P - d = s_side c_side, and since the sides' missing neighbours add up to the whole
+    neighbourhood, sum_side Delta_side (P_c - ref) / (P_side - ref) = P_c - ref (P_c: the interior mean),
+    solved for ref by fixed-point iteration. Missing neighbours are taken as of the pixel's own kind (no
+    net crosstalk with it, as for a conserving kernel). NaN where too few pixels are unclipped."""
+    H, W = kind.shape
+    nan = (np.nan, np.full(8, np.nan))
+    yy, xx = np.mgrid[0:H, 0:W]
+    xn, yn = xx / max(W - 1, 1) - 0.5, yy / max(H - 1, 1) - 0.5
+    basis = np.stack([np.ones((H, W)), xn, yn, xn * xn, xn * yn, yn * yn], -1)
+    si = kind & inner & u
+    if si.sum() < max(min_rows, 12):
+        return nan
+    P = basis @ _robust_lstsq(basis[si], d[si].astype(np.float64))
+    pc = float(np.mean(P[si]))
+    other = [k for k in range(8) if ind[k][kind & inner].max() > 0]          # neighbours of the other kind
+    corner = ((yy == 0) | (yy == H - 1)) & ((xx == 0) | (xx == W - 1))
+    sides = []
+    for name, lacks in _SIDES:
+        dirs = [k for k in other if lacks(*crosstalk.DIRS[k])]
+        ring = {"top": yy == 0, "bottom": yy == H - 1, "left": xx == 0, "right": xx == W - 1}[name]
+        sel = ring & ~corner & kind & u
+        if dirs and sel.sum() >= 5:
+            sides.append((dirs, float(np.mean(P[sel] - d[sel])), float(np.mean(P[sel]))))
+    if sorted(k for dirs, _, _ in sides for k in dirs) != sorted(other):      # each neighbour exactly once
+        return nan
+    ref = pc - sum(delta for _, delta, _ in sides)
+    for _ in range(iters):                                                    # amplitude of each side
+        rho = [(pc - ref) / (ps - ref) if abs(ps - ref) > 1e-6 * max(abs(pc), 1.0) else 1.0
+               for _, _, ps in sides]
+        rho = [r if 0.25 < r < 4.0 else 1.0 for r in rho]
+        ref = pc - sum(delta * r for (_, delta, _), r in zip(sides, rho))
+    spill = np.zeros(8)
+    for (dirs, delta, _), r in zip(sides, rho):
+        spill[dirs] = delta * r / len(dirs)
+    return ref, spill
 
 
 # ---- step 4: ND factor (paper 3.2, Eq. 1) ---------------------------------------------------------------
