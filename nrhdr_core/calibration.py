@@ -5,20 +5,21 @@ frames per exposure, uniform illumination, from dark (exposure 0 recommended) to
 what a user captures with the real camera; `simulate_flats` / `nrhdr simulate-flats` writes one from the
 sensor model.
 
-`calibrate` follows the paper:
-1. average the frames of each exposure (temporal noise from the frame-to-frame variance, EMVA 1288 style:
-   system gain, read noise, full well, black level, clip code);
-2. the reference curve from the attenuated pixels least affected by crosstalk. The paper averages the
-   attenuated pixels with only attenuated neighbours (fallback: one regular neighbour); we also fit, at each
-   exposure, every attenuated pixel's code against which of its 8 neighbours are regular and take the
-   intercept (= an attenuated pixel with only attenuated neighbours, from all pixels instead of a few) and the
-   8 coefficients (the spill of a regular neighbour in each direction, used by the kernel mode);
-3. the ND factor from a second reference, the regular pixels (paper: at most one attenuated neighbour; here
-   the same regression's intercept), as the ratio of the two references' slopes over exposure;
-4. each pixel's LUT: its mean code at every exposure where it is not clipped, mapped to the flux of that
-   exposure (the reference), plus its clipping point;
-5. the effective ND per attenuated pixel (Eq. 8) and its histogram (Fig. 8a), the ratio of valid pixels over
-   flux (Fig. 8b) and the dynamic-range gain at 40 % and 20 % known pixels (section 4.2).
+`calibrate` is the paper's steps in order, one function each (`read_flats` averages the frames first):
+1. `sensor_levels`, `photon_transfer`: black level, clip code, which pixels are clipped; system gain, read
+   noise and full well from the temporal noise (EMVA 1288 photon transfer);
+2. `reference_curves` (3.2): the attenuated reference (pixels least affected by crosstalk: the paper averages
+   attenuated pixels with only attenuated neighbours, fallback one regular neighbour; we also regress, at
+   each exposure, every pixel's code on which of its 8 neighbours are of the other kind and take the
+   intercept, from all pixels instead of a few, and the 8 slopes: the spill per direction) and the regular
+   one; on a regular mask (checkerboard) from the sensor's outer ring;
+3. `nd_factor` (3.2, Eq. 1): the ratio of the two references' slopes over exposure; `spill_table`: the
+   spill of a source per direction and signal (kernel mode, beyond the paper);
+4. `pixel_model`, `pixel_curves`, `pixel_lut`, `clip_points` (3.2, 4.1): each pixel's LUT, its code at every
+   exposure where it is not clipped mapped to that exposure's flux, and its clipping point;
+5. `effective_nd` (4.1, Eq. 8; Fig. 8a), `valid_pixel_ratio` (4.2, Fig. 8b), `dynamic_range_gain` (4.2: at
+   40 % and 20 % known pixels).
+The command line is gst_plugins/cli/calibrate.py (`run_calibrate` here is the whole command as a function).
 """
 from __future__ import annotations
 
