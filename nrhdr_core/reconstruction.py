@@ -148,22 +148,24 @@ def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int
 def _fuse_add_row(values, known, noisy, yy, sgn, c, est):
     """Add (sgn = 1) or remove (-1) row yy to the column sums c: the texture window's known count, sum
     and sum of squares (rows 0-2), or, `est`, the estimate window's known count and sum and NOISY count
-    and sum (rows 3-6). Branchless: the masks are random."""
+    and sum (rows 3-6). Branchless loops (the masks are random), one per case so both vectorise."""
     w = values.shape[1]
-    for x in range(w):
-        kf = np.float64(known[yy, x])
-        a = np.float64(values[yy, x])
-        ka = kf * a
-        if est:
+    if est:
+        for x in range(w):
+            kf = np.float64(known[yy, x])
             zf = np.float64(noisy[yy, x]) * (1.0 - kf)
+            a = np.float64(values[yy, x])
             c[3, x] += sgn * kf
-            c[4, x] += sgn * ka
+            c[4, x] += sgn * kf * a
             c[5, x] += sgn * zf
             c[6, x] += sgn * zf * a
-        else:
+    else:
+        for x in range(w):
+            kf = np.float64(known[yy, x])
+            ka = kf * np.float64(values[yy, x])
             c[0, x] += sgn * kf
             c[1, x] += sgn * ka
-            c[2, x] += sgn * ka * a
+            c[2, x] += sgn * ka * np.float64(values[yy, x])
 
 
 @njit(cache=True, nogil=True, inline="always")
