@@ -247,9 +247,10 @@ def dark_split(scenes) -> int:
             nd_, reg = dark & mask, dark & ~mask
             t64 = t.astype(np.float64)
             vm = validity.measurement_variance(t, prof)
+            fuse = reconstruction.fuse_noisy
             rows = [("unmodified camera", v0),
-                    ("chain: FSE + noise fusion accurate (default)", reconstruction.fuse_noisy(g.copy(), v, k, nz, prof)),
-                    ("chain: FSE + noise fusion fast", reconstruction.fuse_noisy(g.copy(), v, k, nz, prof, setting="fast")),
+                    ("chain: FSE + noise fusion accurate (default)", fuse(g.copy(), v, k, nz, prof)),
+                    ("chain: FSE + noise fusion fast", fuse(g.copy(), v, k, nz, prof, setting="fast")),
                     ("ND measurement alone", np.where(nz, v, g)),
                     ("FSE interpolation alone (NOISY missing)", g)]
             for name, gi in (("oracle fusion of the FSE interpolation", g),
@@ -260,7 +261,8 @@ def dark_split(scenes) -> int:
             rows.append(("FSE from noise-free regular pixels alone", np.where(k, v, gt)))
             for name, o in rows:
                 add(name, t64, np.asarray(o, np.float64), nd_, reg)
-        print(f"#### {pattern} mask\n\n| estimate | ND pixels | regular pixels | whole dark region |\n|---|---|---|---|")
+        print(f"#### {pattern} mask\n\n| estimate | ND pixels | regular pixels | whole dark region |\n"
+              "|---|---|---|---|")
         f = lambda sse, n: 10 * np.log10(peak ** 2 / (sse / n)) if n else float("nan")
         for name, (e1, n1, e2, n2) in acc.items():
             print(f"| {name} | {f(e1, n1):.2f} | {f(e2, n2):.2f} | {f(e1 + e2, n1 + n2):.2f} |")
