@@ -117,76 +117,132 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     return _apply_bounds(out, miss, lower, upper)
 
 
-def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int = 5):
-    """Inverse-variance fusion of the reconstruction g with a noisy measurement m at `noisy` pixels
-    (issue 8, beyond the paper): g + w (m - g), w = var_g / (var_g + var_m). var_m: the sensor's noise
-    at level g for an attenuated pixel (`validity.measurement_variance`, Eq. 4-7); var_g: the
-    reconstruction's own error, modelled as the regular-pixel noise at g over the ~4 neighbours it is
-    interpolated from plus `texture` x the known neighbours' variance in excess of their noise (size x
-    size window): in flat areas the estimate wins, at edges and fine detail the measurement. In place
-    on `out` (numba, only the noisy pixels cost anything)."""
+FUSION_SETTINGS = ("fast", "accurate")
+_FUSE_ROWS = 64            # rows per parallel chunk of `_fuse_kernel` (its window sums slide down a chunk)
+
+
+def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int = 5,
+               setting: str = "accurate"):
+    """Inverse-variance fusion of an estimate e with the noisy measurement m at `noisy` pixels (issue 8,
+    beyond the paper): e + w (m - e), w = var_e / (var_e + var_m), var_m the sensor's noise at level g
+    (the reconstruction) for an attenuated pixel (`validity.measurement_variance`, Eq. 4-7). Both
+    settings add to var_e `texture` x the variance of the known pixels of the size x size window in
+    excess of their noise: in flat areas the estimate wins, at edges and fine detail the measurement.
+    "fast": e = g, var_e = the regular-pixel noise at g over the ~4 neighbours it is interpolated from.
+    "accurate" (default): e = the inverse-variance weighted mean of the measured 3 x 3 neighbours,
+    known pixels weighted 1 / (regular noise at g), the other NOISY pixels 1 / var_m (the noisy
+    ND samples are measurements for their neighbours too, not only for their own pixel); var_e =
+    1 / (sum of the weights); it reaches the inverse-variance bound of those samples on flat fields
+    (docs/BENCHMARKS.md "Dark regions (issue 8, helper dark)": +0.38 dB at the dark ND pixels of the
+    shared scenes for about +19 % of the fast setting's time). `size`: the texture window. In place on
+    `out`; numba, window sums slide down chunks of rows."""
+    if setting not in FUSION_SETTINGS:
+        raise ValueError(f"noise fusion setting must be one of {FUSION_SETTINGS}, got {setting!r}")
     g = float(noise.gain)
     floor = g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0
     _fuse_kernel(out, np.ascontiguousarray(values, np.float32), np.ascontiguousarray(known),
                  np.ascontiguousarray(noisy), np.float32(g), np.float32(floor), np.float32(noise.nd),
-                 np.float32(texture), int(size) // 2)
+                 np.float32(texture), int(size) // 2, setting == "accurate", _FUSE_ROWS)
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _fuse_add_row(values, known, noisy, yy, sgn, c, est):
+    """Add (sgn = 1) or remove (-1) row yy to the column sums c: the texture window's known count, sum
+    and sum of squares (rows 0-2), or, `est`, the estimate window's known count and sum and NOISY count
+    and sum (rows 3-6). Branchless loops (the masks are random), one per case so both vectorise."""
+    w = values.shape[1]
+    if est:
+        for x in range(w):
+            kf = np.float64(known[yy, x])
+            zf = np.float64(noisy[yy, x]) * (1.0 - kf)
+            a = np.float64(values[yy, x])
+            c[3, x] += sgn * kf
+            c[4, x] += sgn * kf * a
+            c[5, x] += sgn * zf
+            c[6, x] += sgn * zf * a
+    else:
+        for x in range(w):
+            kf = np.float64(known[yy, x])
+            ka = kf * np.float64(values[yy, x])
+            c[0, x] += sgn * kf
+            c[1, x] += sgn * ka
+            c[2, x] += sgn * ka * np.float64(values[yy, x])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fuse_slide(values, known, noisy, y, ya, r, h, c, est):
+    """Column sums of the rows y - r .. y + r: built at the chunk's first row ya, then slid by one row."""
+    if y == ya:
+        for yy in range(max(ya - r, 0), min(ya + r + 1, h)):
+            _fuse_add_row(values, known, noisy, yy, 1.0, c, est)
+    else:
+        if y + r < h:
+            _fuse_add_row(values, known, noisy, y + r, 1.0, c, est)
+        if y - r - 1 >= 0:
+            _fuse_add_row(values, known, noisy, y - r - 1, -1.0, c, est)
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r):
-    """`fuse_noisy`'s per-pixel pass: count, sum and sum of squares of the known pixels in the
-    (2r+1)^2 window around each noisy pixel, from column sums of the row's vertical window (parallel
-    over rows; rows without a noisy pixel cost one scan)."""
+def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, rows):
+    """`fuse_noisy`'s pass: (2r+1)^2 window sums of the known pixels (count, sum, sum of squares) and,
+    `joint`, 3 x 3 window sums of the known and the NOISY pixels (count, sum) at every noisy pixel,
+    from column sums that slide down each chunk of `rows` rows (parallel over chunks, one scratch per
+    chunk; rows without a noisy pixel cost the slide only)."""
     h, w = out.shape
-    for y in prange(h):
-        has = False
-        for x in range(w):
-            if noisy[y, x]:
-                has = True
-                break
-        if not has:
-            continue
-        y0 = max(y - r, 0)
-        y1 = min(y + r + 1, h)
-        cn = np.zeros(w, np.float64)
-        c1 = np.zeros(w, np.float64)
-        c2 = np.zeros(w, np.float64)
-        for yy in range(y0, y1):
+    nch = (h + rows - 1) // rows
+    for ci in prange(nch):
+        ya = ci * rows
+        yb = min(ya + rows, h)
+        c = np.zeros((7, w), np.float64)
+        for y in range(ya, yb):
+            _fuse_slide(values, known, noisy, y, ya, r, h, c, False)
+            if joint:
+                _fuse_slide(values, known, noisy, y, ya, 1, h, c, True)
             for x in range(w):
-                kf = 1.0 if known[yy, x] else 0.0
-                a = np.float64(values[yy, x]) * kf
-                cn[x] += kf
-                c1[x] += a
-                c2[x] += a * a
-        for x in range(w):
-            if not noisy[y, x]:
-                continue
-            x0 = max(x - r, 0)
-            x1 = min(x + r + 1, w)
-            n = 0.0
-            t1 = 0.0
-            t2 = 0.0
-            for xx in range(x0, x1):
-                n += cn[xx]
-                t1 += c1[xx]
-                t2 += c2[xx]
-            excess = 0.0
-            if n > 0.5:
-                mean = t1 / n
-                var = t2 / n - mean * mean
-                excess = var - (gain * max(mean, 0.0) + floor)
-                if excess < 0.0:
-                    excess = 0.0
-            gv = np.float64(out[y, x])
-            gp = max(gv, 0.0)
-            var_g = (gain * gp + floor) / 4.0 + texture * excess
-            var_m = nd * gain * gp + nd * nd * floor
-            wgt = var_g / (var_g + var_m)
-            f = gv + wgt * (np.float64(values[y, x]) - gv)
-            out[y, x] = np.float32(f if f > 0.0 else 0.0)
+                if not noisy[y, x]:
+                    continue
+                n = 0.0
+                t1 = 0.0
+                t2 = 0.0
+                for xx in range(max(x - r, 0), min(x + r + 1, w)):
+                    n += c[0, xx]
+                    t1 += c[1, xx]
+                    t2 += c[2, xx]
+                m = np.float64(values[y, x])
+                gv = np.float64(out[y, x])
+                gp = max(gv, 0.0)
+                var_r = gain * gp + floor
+                var_m = nd * gain * gp + nd * nd * floor
+                excess = 0.0
+                if n > 0.5:
+                    mean = t1 / n
+                    var = t2 / n - mean * mean
+                    excess = var - (gain * max(mean, 0.0) + floor)
+                    if excess < 0.0:
+                        excess = 0.0
+                e = gv
+                var_e = var_r / 4.0 + texture * excess
+                if joint:
+                    kn = 0.0
+                    ks = 0.0
+                    zn = 0.0
+                    zs = 0.0
+                    for xx in range(max(x - 1, 0), min(x + 2, w)):
+                        kn += c[3, xx]
+                        ks += c[4, xx]
+                        zn += c[5, xx]
+                        zs += c[6, xx]
+                    if not known[y, x]:     # the pixel's own measurement enters below, not its estimate
+                        zn -= 1.0
+                        zs -= m
+                    sw = kn / var_r + zn / var_m
+                    if sw > 0.5 / var_m:
+                        e = (ks / var_r + zs / var_m) / sw
+                        var_e = 1.0 / sw + texture * excess
+                wgt = var_e / (var_e + var_m)
+                f = e + wgt * (m - e)
+                out[y, x] = np.float32(f if f > 0.0 else 0.0)
 
 
 def _fill_from_bounds(out, lower, upper):

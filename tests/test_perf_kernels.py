@@ -562,7 +562,7 @@ def test_fuse_noisy_equals_the_window_formula(shape, rng, threads):
     ref = _fuse_reference(out0, values, known, noisy, noise)
     for t in threads:
         numba.set_num_threads(t)
-        got = R.fuse_noisy(out0.copy(), values, known, noisy, noise)
+        got = R.fuse_noisy(out0.copy(), values, known, noisy, noise, setting="fast")   # issue 8: the formula above
         np.testing.assert_allclose(got, ref, rtol=2e-6, atol=1e-3)
         assert np.array_equal(got[~noisy], out0[~noisy])
 
