@@ -18,7 +18,7 @@ import warnings
 import numpy as np
 from numba import njit, prange
 
-from .validity import clip_lower_row, row_has_clipped_regular  # the clip rule, for the fused preview pass
+from .validity import clip_lower_row  # the clip rule, for the fused preview pass
 
 METHODS = ("fse", "linear", "nearest", "preview")
 
@@ -1069,6 +1069,7 @@ def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng)
         hi = kmin
         for yy in range(y, min(y + 2, h)):
             ccl = 0
+            ccr = 0
             for x in range(w):
                 st = state[yy, x]
                 r = st & 0x0F
@@ -1080,24 +1081,21 @@ def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng)
                 cm += np.int64(~k & ((st & 0x40) == 0))
                 cn += np.int64(nz)
                 ccl += np.int64(r == 1)
+                ccr += np.int64((st & 0x8F) == 1)
                 i = vi[yy, x]
                 cb += np.int64((i & 0x7F800000) == 0x7F800000)
                 key = _f32_key(i)
                 lo = min(lo, key if k else kmax)
                 hi = max(hi, key if k else kmin)
             if ccl:
-                if row_has_clipped_regular(state, yy):
+                if ccr:
                     clip_lower_row(values, state, yy, lower[yy])
-                for x in range(w):
+                for x in range(w):   # branch-free: clipped pixels get max(value, rule), others scratch
                     st = state[yy, x]
-                    if (st & 0x0F) != 1:
-                        continue
-                    b = values[yy, x]
-                    if (st & 0x80) == 0:
-                        m = lower[yy, x]
-                        if m == m and m > b:
-                            b = m
-                    lower[yy, x] = b
+                    v = values[yy, x]
+                    m = lower[yy, x]
+                    b = m if (((st & 0x80) == 0) & (m == m) & (m > v) & (ccr > 0)) else v
+                    lower[yy, x] = b if (st & 0x0F) == 1 else m
         cnt[y1, 0] = cm
         cnt[y1, 1] = cu
         cnt[y1, 2] = cn
@@ -1181,7 +1179,6 @@ def _pvf_fill(values, state, known, noisy, lower, pv, o1, w1, flo, top0, use_bou
     zero = np.float32(0.0)
     ninf = np.float32(-np.inf)
     pinf = np.float32(np.inf)
-    gi = g.view(np.int32)
     nbad = 0
     for y in prange(h):
         if cnt[y // 2, 0] == 0:
@@ -1226,8 +1223,8 @@ def _pvf_fill(values, state, known, noisy, lower, pv, o1, w1, flo, top0, use_bou
             st = state[y, x]
             r = st & 0x0F
             m = (r != 0) & ((st & 0x40) == 0)
-            fin = (gi[y, x] & 0x7F800000) != 0x7F800000
             a = g[y, x]
+            fin = a - a == zero
             lb = lower[y, x]
             v = values[y, x]
             bb = lb if (use_bounds & (r == 1)) else ninf
