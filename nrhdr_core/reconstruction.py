@@ -950,6 +950,13 @@ def warmup(method: str | None = None) -> None:
         state[2, 2] = validity.DARK
         reconstruct_frame(v.copy(), state, method=method, preset="preview", use_bounds=True)
         reconstruct_frame(v.copy(), state.copy(), method=method, preset="preview", use_bounds=False)
+        # the element's frame with NOISY pixels fused (nrvalidity dark-policy=weighted, issue 8)
+        state = np.full((4, 4), validity.ATTENUATED | validity.CLIPPED, np.uint8)
+        state[0, :] = validity.VALID
+        state[1, 1] = validity.CLIPPED
+        state[2, 2] = validity.ATTENUATED | validity.NOISY
+        reconstruct_frame(v.copy() + 1, state, method=method, preset="preview", use_bounds=True,
+                          noise=SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
 
 
 # ---- whole-frame entry point for elements (issue 7 item 3): no per-frame allocation --------------------
