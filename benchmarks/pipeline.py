@@ -16,6 +16,8 @@ reconstruction, NOISY fusion, write-back, in place), which is what the element c
 from __future__ import annotations
 
 import argparse
+import atexit
+import shutil
 import statistics
 import sys
 import tempfile
@@ -62,6 +64,7 @@ def main(argv=None) -> int:
     methods = a.methods.split(",")
     W, H = a.width, a.height
     tmp = Path(tempfile.mkdtemp(prefix="nrhdr-bench-"))
+    atexit.register(shutil.rmtree, tmp, True)   # clips, flats and calibration: ~0.9 GB at 1080p
     prof = profile.default(H, W, seed=1)
     from nrhdr_core import realtime
     sc, scene_name = realtime.load_scene(a.scene) if a.scene != "synthetic" else (scene.synthetic_hdr_scene(),
