@@ -1054,9 +1054,9 @@ def _f32_key(i):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng):
+def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng, use_bounds):
     """Pass 1 (per pair of rows): known = reason VALID; noisy = NOISY and not RECONSTRUCTED; lower =
-    the CLIPPED pixels' lower bound (`validity.bounds`; other entries are scratch); cnt[y1] = (missing,
+    the CLIPPED pixels' lower bound (`validity.bounds`, with `use_bounds`; other entries are scratch); cnt[y1] = (missing,
     not VALID, noisy, non-finite values); rng[y1] = keys (`_f32_key`) of the min and max known value;
     level 1 of the pull-push pyramid = `_pp_pull0`'s capped 2 x 2 sums (same summation order). The
     per-pixel loops are branch-free (they vectorise)."""
@@ -1094,7 +1094,7 @@ def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng)
                 key = _f32_key(i)
                 lo = min(lo, key if k else kmax)
                 hi = max(hi, key if k else kmin)
-            if ccl:
+            if ccl and use_bounds:
                 if ccr:
                     clip_lower_row(values, state, yy, lower[yy])
                 for x in range(w):   # branch-free: clipped pixels get max(value, rule), others scratch
@@ -1281,7 +1281,7 @@ def _preview_frame(values, state, method, use_bounds, noise):
     known, noisy, lower, g, cnt, rng = _pvf_scratch(h, w)
     pv, pw, hs, ws, off, _, _ = _pyramid(h, w)
     levels = hs.shape[0] - 1
-    _pvf_pull0(values, state, known, noisy, lower, pv, pw, off[1], hs[1], ws[1], cnt, rng)
+    _pvf_pull0(values, state, known, noisy, lower, pv, pw, off[1], hs[1], ws[1], cnt, rng, bool(use_bounds))
     tot = cnt.sum(axis=0)
     n_miss, n_unknown, n_noisy, n_bad = (int(t) for t in tot)
     if n_miss == 0:
