@@ -6,10 +6,18 @@ rendered and dropped and the latency the pipeline reports, per reconstruction se
 
     .venv/bin/python benchmarks/pipeline.py [--frames 30] [--methods preview,linear,fse]
     .venv/bin/python benchmarks/pipeline.py --width 1920 --height 1080 --methods preview,fse --live
+    .venv/bin/python benchmarks/pipeline.py --width 1920 --height 1080 --methods preview \
+        --scene ../shared/data/hdr/MtTamWest.exr --live --live-methods preview,auto
+
+`--scene`: an HDR file (big clipped areas: MtTamWest.exr) instead of the synthesised scene, for every clip.
+The stage rows include nrreconstruct's own frame path (`reconstruction.reconstruct_frame`: masks, bounds,
+reconstruction, NOISY fusion, write-back, in place), which is what the element costs per frame.
 """
 from __future__ import annotations
 
 import argparse
+import atexit
+import shutil
 import statistics
 import sys
 import tempfile
@@ -50,19 +58,25 @@ def main(argv=None) -> int:
     ap.add_argument("--live-seconds", type=float, default=5.0, help="length of each live run")
     ap.add_argument("--fps", type=int, default=30, help="frame rate of the live runs")
     ap.add_argument("--skip-stages", action="store_true", help="only the pipelines")
+    ap.add_argument("--scene", default="synthetic",
+                    help="HDR scene file for the clips (default: the synthesised scene)")
     a = ap.parse_args(argv)
     methods = a.methods.split(",")
     W, H = a.width, a.height
     tmp = Path(tempfile.mkdtemp(prefix="nrhdr-bench-"))
+    atexit.register(shutil.rmtree, tmp, True)   # clips, flats and calibration: ~0.9 GB at 1080p
     prof = profile.default(H, W, seed=1)
-    info = simulate.simulate_clip(scene.synthetic_hdr_scene(), tmp / "clip", prof, frames=a.frames,
-                                  seed=1, progress=False)
+    from nrhdr_core import realtime
+    sc, scene_name = realtime.load_scene(a.scene) if a.scene != "synthetic" else (scene.synthetic_hdr_scene(),
+                                                                                  "synthetic")
+    info = simulate.simulate_clip(sc, tmp / "clip", prof, frames=a.frames, seed=1, progress=False)
     raw = np.fromfile(tmp / "clip" / "clip.raw", dtype="<u2").reshape(-1, H, W)
     r0 = np.ascontiguousarray(raw[a.frames // 2])
     v, s = validity.classify(r0, prof)
     known = validity.known_mask(s)
     lo, up = validity.bounds(v, s)
-    print(f"# nrhdr pipeline benchmark: {W}x{H}, {100 * (1 - known.mean()):.1f} % missing in the test frame")
+    print(f"# nrhdr pipeline benchmark: {W}x{H}, scene {scene_name}, {100 * (1 - known.mean()):.1f} % missing "
+          f"in the test frame")
     print("\n## core stages, median ms per frame (anchor: copying one float32 frame)\n")
     print("| stage | ms/frame | frames/s | x anchor |")
     print("|---|---|---|---|")
@@ -85,7 +99,7 @@ def main(argv=None) -> int:
         cprof = profile.load(tmp / "cal" / "cam.json")
         cprof_path = tmp / "cal" / "cam.json"
         from nrhdr_core import sensor
-        rx = sensor.capture(simulate.view(scene.synthetic_hdr_scene(), H, W, 0.5, simulate.Motion())
+        rx = sensor.capture(simulate.view(sc, H, W, 0.5, simulate.Motion())
                             * np.float32(info["exposure_scale"]), cprof, np.random.default_rng(3), model)
         cv, cs = validity.classify(rx, cprof)
         for mode in ("lut", "kernel"):
@@ -97,6 +111,27 @@ def main(argv=None) -> int:
         rows.append((f"nrreconstruct method={m}" + (f" preset={a.preset}" if m == "fse" else ""),
                      tm(lambda: reconstruction.reconstruct(v, known, method=m, lower=lo, upper=up, **kw),
                             rep)))
+    # nrreconstruct's frame as the element runs it (nrvalidity's default dark-policy=weighted: NOISY pixels
+    # fused with the profile's noise), in place on a fresh copy of the classified frame each call
+    vw_, sw_ = validity.classify(r0, prof, dark_policy="weighted")
+    vw, sw = vw_.copy(), sw_.copy()
+
+    def frame(m, kw):
+        np.copyto(vw, vw_)
+        np.copyto(sw, sw_)
+        reconstruction.reconstruct_frame(vw, sw, method=m, noise=prof, **kw)
+    copy2 = tm(lambda: (np.copyto(vw, vw_), np.copyto(sw, sw_)))
+    for m in methods:
+        if m not in ("preview", "fse"):
+            continue
+        kw = {"preset": a.preset} if m == "fse" else {}
+        t = tm(lambda: frame(m, kw), 3 if m == "fse" else 7)
+        rows.append((f"nrreconstruct method={m}" + (f" preset={a.preset}" if m == "fse" else "")
+                     + " (element frame path, NOISY fusion)", t - copy2))
+        if m == "preview" and hasattr(reconstruction, "_reconstruct_frame_general"):
+            t = tm(lambda: (np.copyto(vw, vw_), np.copyto(sw, sw_), reconstruction._reconstruct_frame_general(
+                vw, sw, "preview", "fast", True, prof)), 7)
+            rows.append(("nrreconstruct method=preview (the general frame path it replaced)", t - copy2))
     out8 = np.empty((H, W), np.uint8)
     rows.append(("nrtonemap (GRAY8)", tm(lambda: tonemap.log_tonemap(v, prof.white, out=out8))))
     for name, t in rows if not a.skip_stages else []:
@@ -108,7 +143,7 @@ def main(argv=None) -> int:
         print(f"\n(pipelines skipped: {e})")
         return 0
     if cprof_path is not None:  # the pipelines read a clip of the crosstalk sensor with its calibration
-        simulate.simulate_clip(scene.synthetic_hdr_scene(), tmp / "xclip", cprof, frames=a.frames, seed=1,
+        simulate.simulate_clip(sc, tmp / "xclip", cprof, frames=a.frames, seed=1,
                                sensor_model=model, progress=False)
         clip_dir, prof_path, xt = tmp / "xclip", cprof_path, "nrcrosstalk mode=lut (calibrated)"
     else:

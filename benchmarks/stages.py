@@ -103,6 +103,9 @@ def main(argv=None):
                     help="uniform random missing share for the reconstruction stages (default: the scene's)")
     ap.add_argument("--scene", default=str(DATA / "hdr" / "MtTamWest.exr"))
     ap.add_argument("--knots", type=int, default=40)
+    ap.add_argument("--dark-policy", default="weighted", choices=("weighted", "threshold"),
+                    help="nrvalidity's dark policy for the frame stages (default weighted, the elements' "
+                         "default: NOISY pixels fused with the profile's noise, issue 8)")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--fse-repeat", type=int, default=3)
     ap.add_argument("--skip", default="", help="comma-separated stage names to skip (e.g. nearest,fse_fast)")
@@ -225,6 +228,37 @@ def main(argv=None):
             kw = {} if preset is None else {"preset": preset}
             rec(f"frame_{name}", timeit(lambda m=method, kw=kw: reconstruction.reconstruct_frame(vw, sw, method=m, **kw),
                                         a.repeat if method != "fse" else a.fse_repeat, frame_setup))
+        # nrreconstruct's frame exactly as the element runs it (issue 7): states from nrvalidity's default
+        # dark policy, NOISY pixels fused with the profile's noise; the fused preview path against the
+        # general path (prepare, reconstruct, write-back) it replaced, same bits, same run
+        if a.missing is None:
+            vn, sn = validity.classify(raw, prof, dark_policy=a.dark_policy)
+        else:
+            vn, sn = v1, s1
+        res["noisy_share"] = round(float(np.mean(validity.noisy_mask(sn))), 4)
+        print(f"  (dark policy {a.dark_policy}: missing share {np.mean(validity.missing_mask(sn)):.3f}, "
+              f"NOISY share {res['noisy_share']:.3f})")
+
+        def frame_setup_n():
+            np.copyto(vw, vn)
+            np.copyto(sw, sn)
+        rec("element_preview (fused)", timeit(
+            lambda: reconstruction.reconstruct_frame(vw, sw, method="preview", noise=prof), a.repeat, frame_setup_n))
+        rec("element_preview (general)", timeit(
+            lambda: reconstruction._reconstruct_frame_general(vw, sw, "preview", "balanced", True, prof),
+            a.repeat, frame_setup_n))
+        if hasattr(reconstruction, "_preview_frame"):
+            rec("element_preview no fusion", timeit(
+                lambda: reconstruction.reconstruct_frame(vw, sw, method="preview"), a.repeat, frame_setup_n))
+            nz = validity.noisy_mask(sn)
+            kn = validity.known_mask(sn)
+            g = vn.copy()
+            if nz.any():
+                rec("  of which fuse_noisy", timeit(
+                    lambda: reconstruction.fuse_noisy(g, vn, kn, nz, prof), a.repeat))
+            vv0, ss0 = vn.copy(), np.zeros_like(sn)
+            rec("element_preview none missing", timeit(
+                lambda: reconstruction.reconstruct_frame(vv0, ss0, method="preview", noise=prof), a.repeat))
 
     # ---- tone mapping --------------------------------------------------------------------------------
     img8 = np.empty((h, w), np.uint8)
@@ -233,6 +267,8 @@ def main(argv=None):
     chain = ["classify", "crosstalk_lut", "prep_numpy (mask+bounds)", "preview", "writeback_numpy", "tonemap"]
     if "frame_preview" in ms:
         chain = ["classify", "crosstalk_lut", "frame_preview", "tonemap"]
+    if "element_preview (fused)" in ms:
+        chain = ["classify", "crosstalk_lut", "element_preview (fused)", "tonemap"]
     if all(c in ms for c in chain):
         tot = sum(ms[c] for c in chain)
         res["chain_preview_ms"] = round(tot, 2)

@@ -18,6 +18,8 @@ import warnings
 import numpy as np
 from numba import njit, prange
 
+from .validity import clip_lower_row  # the clip rule, for the fused preview pass
+
 METHODS = ("fse", "linear", "nearest", "preview")
 
 
@@ -1004,6 +1006,13 @@ def warmup(method: str | None = None) -> None:
         state[2, 2] = validity.DARK
         reconstruct_frame(v.copy(), state, method=method, preset="preview", use_bounds=True)
         reconstruct_frame(v.copy(), state.copy(), method=method, preset="preview", use_bounds=False)
+        # the element's frame with NOISY pixels fused (nrvalidity dark-policy=weighted, issue 8)
+        state = np.full((4, 4), validity.ATTENUATED | validity.CLIPPED, np.uint8)
+        state[0, :] = validity.VALID
+        state[1, 1] = validity.CLIPPED
+        state[2, 2] = validity.ATTENUATED | validity.NOISY
+        reconstruct_frame(v.copy() + 1, state, method=method, preset="preview", use_bounds=True,
+                          noise=SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
 
 
 # ---- whole-frame entry point for elements (issue 7 item 3): no per-frame allocation --------------------
@@ -1030,7 +1039,24 @@ def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", prese
     `method` may be a callable `f(missing_share) -> (method, preset)`, called once the frame's missing
     share is known (only when something is missing): how `nrreconstruct method=auto` picks per frame.
     This is the one per-frame path of nrreconstruct and of `chain.process_frame` (batch), so both give
-    the same bits. Returns the number of pixels filled (0: nothing to do, nothing touched)."""
+    the same bits. Returns the number of pixels filled (0: nothing to do, nothing touched).
+    The preview (fixed, or chosen by a callable `method`) runs in three fused passes over the frame
+    (`_preview_frame`, same bits as the general path)."""
+    if (method == "preview" or callable(method)) and not params and values.ndim == 2 \
+            and values.dtype == np.float32 and values.flags.c_contiguous and values.flags.writeable \
+            and isinstance(state, np.ndarray) and state.dtype == np.uint8 and state.shape == values.shape \
+            and state.flags.c_contiguous and state.flags.writeable:
+        r = _preview_frame(values, state, method, use_bounds, noise)
+        if isinstance(r, int):
+            return r
+        if isinstance(r, tuple):
+            method, preset = r
+    return _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, **params)
+
+
+def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, **params) -> int:
+    """`reconstruct_frame` for every method: prepare, `reconstruct`, write-back (the reference of the
+    fused preview path)."""
     from . import validity
     h, w = values.shape
     known, lower, upper, res = _frame_scratch(h, w, use_bounds)
@@ -1051,3 +1077,297 @@ def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", prese
     out = reconstruct(values, known, method=method, preset=preset, lower=lower, upper=upper, out=target,
                       noisy=noisy, noise=noise if noisy is not None else None, **params)
     return validity.write_back(values, state, out)
+
+
+# ---- the element's preview frame path in three fused passes (issue 7 item 3) ----------------------------
+# `reconstruct_frame(method="preview")` gives exactly the bits of the general path (prepare, `reconstruct`
+# with its data-range clamp, noise fusion and bounds, write-back), in three passes over the frame instead
+# of about ten and without a frame-sized temporary:
+#   1. `_pvf_pull0`: known / NOISY masks, the clip bounds (neighbour rule only in rows with a clipped
+#      regular pixel), counts, range of the known values, and the pyramid's level 1, straight from the
+#      values and states (no level-0 copy);
+#   2. the pyramid levels (`_pp_pull`, `_pp_small_levels`, `_pp_push`, as `_preview`);
+#   3. `_pvf_fill`: per missing pixel the 3 x 3 fill (else the level-1 value), clamp to the data range,
+#      bounds, written into the frame with the RECONSTRUCTED bit; rows with nothing missing are skipped.
+# NOISY pixels go through `fuse_noisy` (issue 8) from a scratch plane, then `_pvf_put_noisy`. A frame with
+# a non-finite value or no known pixel takes the general path (its errors and warnings).
+
+def _pvf_scratch(h, w):
+    """Per-thread planes reused frame after frame: known, noisy, lower bound, fusion scratch, row stats."""
+    s = getattr(_FRAME, "pv", None)
+    if s is None or s[0].shape != (h, w):
+        h1 = (h + 1) // 2
+        s = _FRAME.pv = (np.empty((h, w), np.bool_), np.empty((h, w), np.bool_), np.empty((h, w), np.float32),
+                         np.empty((h, w), np.float32), np.empty((h1, 4), np.int64), np.empty((h1, 2), np.int32))
+    return s
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _f32_key(i):
+    """Order-preserving int32 key of float32 bits (an involution): integer min/max vectorise where
+    float ones do not; same order as the floats (-0 sorts below +0)."""
+    return i ^ ((i >> 31) & 0x7FFFFFFF)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng, use_bounds):
+    """Pass 1 (per pair of rows): known = reason VALID; noisy = NOISY and not RECONSTRUCTED; lower =
+    the CLIPPED pixels' lower bound (`validity.bounds`, with `use_bounds`; other entries are scratch); cnt[y1] = (missing,
+    not VALID, noisy, non-finite values); rng[y1] = keys (`_f32_key`) of the min and max known value;
+    level 1 of the pull-push pyramid = `_pp_pull0`'s capped 2 x 2 sums (same summation order). The
+    per-pixel loops are branch-free (they vectorise)."""
+    h, w = values.shape
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    vi = values.view(np.int32)
+    kmax = np.int32(0x7FFFFFFF)
+    kmin = np.int32(-0x7FFFFFFF - 1)
+    for y1 in prange(h1):
+        y = 2 * y1
+        cm = 0
+        cu = 0
+        cn = 0
+        cb = 0
+        lo = kmax
+        hi = kmin
+        for yy in range(y, min(y + 2, h)):
+            ccl = 0
+            ccr = 0
+            for x in range(w):
+                st = state[yy, x]
+                r = st & 0x0F
+                k = r == 0
+                known[yy, x] = k
+                nz = (st & 0x4F) == 5
+                noisy[yy, x] = nz
+                cu += np.int64(~k)
+                cm += np.int64(~k & ((st & 0x40) == 0))
+                cn += np.int64(nz)
+                ccl += np.int64(r == 1)
+                ccr += np.int64((st & 0x8F) == 1)
+                i = vi[yy, x]
+                cb += np.int64((i & 0x7F800000) == 0x7F800000)
+                key = _f32_key(i)
+                lo = min(lo, key if k else kmax)
+                hi = max(hi, key if k else kmin)
+            if ccl and use_bounds:
+                if ccr:
+                    clip_lower_row(values, state, yy, lower[yy])
+                for x in range(w):   # branch-free: clipped pixels get max(value, rule), others scratch
+                    st = state[yy, x]
+                    v = values[yy, x]
+                    m = lower[yy, x]
+                    b = m if (((st & 0x80) == 0) & (m == m) & (m > v) & (ccr > 0)) else v
+                    lower[yy, x] = b if (st & 0x0F) == 1 else m
+        cnt[y1, 0] = cm
+        cnt[y1, 1] = cu
+        cnt[y1, 2] = cn
+        cnt[y1, 3] = cb
+        rng[y1, 0] = lo
+        rng[y1, 1] = hi
+        base = o1 + y1 * w1
+        if y + 1 < h:
+            for x1 in range(w // 2):
+                x = 2 * x1
+                k00 = one if known[y, x] else zero
+                k01 = one if known[y, x + 1] else zero
+                k10 = one if known[y + 1, x] else zero
+                k11 = one if known[y + 1, x + 1] else zero
+                s = zero + values[y, x] * k00
+                s = s + values[y, x + 1] * k01
+                s = s + values[y + 1, x] * k10
+                s = s + values[y + 1, x + 1] * k11
+                c = zero + k00
+                c = c + k01
+                c = c + k10
+                c = c + k11
+                d = c if c > one else one
+                pv[base + x1] = s / d
+                pw[base + x1] = c if c < one else one
+            if w % 2:
+                x = w - 1
+                k00 = one if known[y, x] else zero
+                k10 = one if known[y + 1, x] else zero
+                s = zero + values[y, x] * k00 + values[y + 1, x] * k10
+                c = zero + k00 + k10
+                pv[base + w // 2] = s / c if c > one else s
+                pw[base + w // 2] = c if c < one else one
+        else:
+            for x1 in range(w1):
+                s = zero
+                c = zero
+                for x in range(2 * x1, min(2 * x1 + 2, w)):
+                    kk = one if known[y, x] else zero
+                    s += values[y, x] * kk
+                    c += kk
+                if c > one:
+                    s = s / c
+                    c = one
+                pv[base + x1] = s
+                pw[base + x1] = c
+
+
+@njit(cache=True, nogil=True)
+def _pvf_fill_px(values, known, pv, o1, w1, y, x):
+    """`_pp_fill_px` for a missing pixel: weighted mean of its known 8-neighbours, else level 1."""
+    h, w = values.shape
+    acc = np.float32(0.0)
+    wsum = np.float32(0.0)
+    for dy in range(-1, 2):
+        yy = y + dy
+        if yy < 0 or yy >= h:
+            continue
+        for dx in range(-1, 2):
+            xx = x + dx
+            if xx < 0 or xx >= w or not known[yy, xx]:
+                continue
+            wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
+            acc += wt * values[yy, xx]
+            wsum += wt
+    return acc / wsum if wsum > 0 else pv[o1 + (y // 2) * w1 + x // 2]
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _pvf_fill(values, state, known, noisy, lower, pv, o1, w1, flo, top0, use_bounds, fuse, g, cnt, flag):
+    """Pass 3, per row with a missing pixel: g = `_pp_fill`'s value (3 x 3 weighted mean of the known
+    neighbours, else level 1; the interior branch-free as `_pp_fill`, known values times 0/1 weights),
+    then for the missing pixels `_clamp_kernel`'s data range [flo, top0 or the lower bound] and
+    `_clamp_missing2`'s bounds, written into the frame with `flag`; with `fuse`, NOISY pixels keep their
+    measurement and their estimate stays in g for the fusion. A non-finite estimate is not written
+    (noisy cleared too) and counted (the general path then finishes the frame). Reads the values only
+    at known pixels and at the pixel itself (the others times weight 0), so it works in place."""
+    h, w = values.shape
+    two = np.float32(2.0)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    ninf = np.float32(-np.inf)
+    pinf = np.float32(np.inf)
+    nbad = 0
+    for y in prange(h):
+        if cnt[y // 2, 0] == 0:
+            continue
+        if y == 0 or y == h - 1 or w < 3:
+            for x in range(w):
+                g[y, x] = _pvf_fill_px(values, known, pv, o1, w1, y, x)
+        else:
+            for x in range(1, w - 1):
+                k00 = one if known[y - 1, x - 1] else zero
+                k01 = one if known[y - 1, x] else zero
+                k02 = one if known[y - 1, x + 1] else zero
+                k10 = one if known[y, x - 1] else zero
+                k12 = one if known[y, x + 1] else zero
+                k20 = one if known[y + 1, x - 1] else zero
+                k21 = one if known[y + 1, x] else zero
+                k22 = one if known[y + 1, x + 1] else zero
+                acc = zero + values[y - 1, x - 1] * k00
+                acc = acc + two * (values[y - 1, x] * k01)
+                acc = acc + values[y - 1, x + 1] * k02
+                acc = acc + two * (values[y, x - 1] * k10)
+                acc = acc + two * (values[y, x + 1] * k12)
+                acc = acc + values[y + 1, x - 1] * k20
+                acc = acc + two * (values[y + 1, x] * k21)
+                acc = acc + values[y + 1, x + 1] * k22
+                ws = zero + k00
+                ws = ws + two * k01
+                ws = ws + k02
+                ws = ws + two * k10
+                ws = ws + two * k12
+                ws = ws + k20
+                ws = ws + two * k21
+                ws = ws + k22
+                g[y, x] = acc / ws
+            for x in range(1, w - 1):
+                if ws_zero(g[y, x]):
+                    g[y, x] = pv[o1 + (y // 2) * w1 + x // 2]
+            g[y, 0] = _pvf_fill_px(values, known, pv, o1, w1, y, 0)
+            g[y, w - 1] = _pvf_fill_px(values, known, pv, o1, w1, y, w - 1)
+        nb = 0
+        for x in range(w):
+            st = state[y, x]
+            r = st & 0x0F
+            m = (r != 0) & ((st & 0x40) == 0)
+            a = g[y, x]
+            fin = a - a == zero
+            lb = lower[y, x]
+            v = values[y, x]
+            bb = lb if (use_bounds & (r == 1)) else ninf
+            top = bb if bb > top0 else top0
+            a = flo if a < flo else a
+            a = top if a > top else a
+            isn = fuse & (r == 5)
+            if use_bounds:
+                a = bb if bb > a else a
+                u = v if r == 2 else pinf
+                a = u if u < a else a
+            wr = m & fin & ~isn
+            g[y, x] = a
+            values[y, x] = a if wr else v
+            state[y, x] = (st | flag) if wr else st
+            noisy[y, x] = noisy[y, x] & fin
+            nb += np.int64(m & ~fin)
+        nbad += nb
+    return nbad
+
+
+@njit(cache=True, nogil=True, inline="always")
+def ws_zero(a):
+    """The interior fill's 0/0 (no known neighbour): NaN."""
+    return a != a
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _pvf_put_noisy(values, state, noisy, g, cnt, flag):
+    """The fused NOISY pixels into the frame with `flag` (rows without one skipped)."""
+    h, w = values.shape
+    for y in prange(h):
+        if cnt[y // 2, 2] == 0:
+            continue
+        for x in range(w):
+            if noisy[y, x]:
+                values[y, x] = g[y, x]
+                state[y, x] = state[y, x] | flag
+
+
+def _preview_frame(values, state, method, use_bounds, noise):
+    """`reconstruct_frame` for the preview (fused passes above). Returns the pixels filled, or
+    (method, preset) when a callable `method` chose something else, or None when the general path must
+    do the frame (non-finite values, no known pixel); nothing is written then."""
+    from . import validity
+    h, w = values.shape
+    known, noisy, lower, g, cnt, rng = _pvf_scratch(h, w)
+    pv, pw, hs, ws, off, _, _ = _pyramid(h, w)
+    levels = hs.shape[0] - 1
+    _pvf_pull0(values, state, known, noisy, lower, pv, pw, off[1], hs[1], ws[1], cnt, rng, bool(use_bounds))
+    tot = cnt.sum(axis=0)
+    n_miss, n_unknown, n_noisy, n_bad = (int(t) for t in tot)
+    if n_miss == 0:
+        return 0
+    if n_bad or n_unknown == h * w:
+        return None
+    if callable(method):
+        method, preset = method(n_miss / float(h * w))
+        if method != "preview":
+            return method, preset
+    small = 1
+    while small < levels and hs[small] * ws[small] >= _PP_SERIAL:
+        small += 1
+    for lv in range(1, small):
+        _pp_pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+    _pp_small_levels(pv, pw, hs, ws, off, small, levels)
+    for lv in range(small - 1, 0, -1):
+        _pp_push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+    keys = np.array([rng[:, 0].min(), rng[:, 1].max()], np.int32)
+    lo, hi = (keys ^ ((keys >> 31) & 0x7FFFFFFF)).view(np.float32)
+    lo = np.float32(min(lo, np.float32(0.0)))
+    fuse = noise is not None and n_noisy > 0
+    flag = np.uint8(validity.RECONSTRUCTED)
+    nbad = _pvf_fill(values, state, known, noisy, lower, pv, off[1], ws[1], lo, hi, bool(use_bounds), fuse,
+                     g, cnt, flag)
+    if fuse:
+        fuse_noisy(g, values, known, noisy, noise)
+        _pvf_put_noisy(values, state, noisy, g, cnt, flag)
+    n = n_miss - nbad
+    if nbad:
+        # never seen (a fill that overflows float32): the general path fills what is left, as it would
+        n += _reconstruct_frame_general(values, state, "preview", "balanced", use_bounds, noise)
+    return n

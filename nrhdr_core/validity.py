@@ -92,12 +92,15 @@ def _known_kernel(state, known):
 @njit(cache=True, nogil=True, parallel=True)
 def _prepare_kernel(values, state, known, lower, upper, with_bounds):
     """One pass: known mask, bounds, counts of missing (not VALID, not RECONSTRUCTED) and of
-    not-VALID pixels."""
+    not-VALID pixels. The clipped-neighbour bound is computed per row from column aggregates
+    (`clip_lower_row`), only in rows that have a clipped regular pixel (issue 7)."""
     h, w = state.shape
     nan = np.float32(np.nan)
     n_miss = 0
     n_unknown = 0
     for y in prange(h):
+        if with_bounds and row_has_clipped_regular(state, y):
+            clip_lower_row(values, state, y, lower[y])   # lower[y, x] = the rule's bound (NaN: none)
         cm = 0
         cu = 0
         for x in range(w):
@@ -111,7 +114,7 @@ def _prepare_kernel(values, state, known, lower, upper, with_bounds):
                 v = np.float32(values[y, x])
                 lo = v if r == CLIPPED else nan
                 if r == CLIPPED and (st & ATTENUATED) == 0:   # saturated ND neighbours imply more (issue 8)
-                    m = _clip_lower_at(values, state, y, x, h, w)
+                    m = lower[y, x]
                     if m == m and m > lo:
                         lo = m
                 lower[y, x] = lo
@@ -119,6 +122,85 @@ def _prepare_kernel(values, state, known, lower, upper, with_bounds):
         n_miss += cm
         n_unknown += cu
     return n_miss, n_unknown
+
+
+@njit(cache=True, nogil=True, inline="always")
+def row_has_clipped_regular(state, y):
+    """True if row y has a clipped pixel without ND filter (the only pixels the neighbour rule raises)."""
+    w = state.shape[1]
+    for x in range(w):
+        if (state[y, x] & (ATTENUATED | REASON_MASK)) == CLIPPED:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def clip_lower_row(values, state, y, mrow):
+    """`_clip_lower_at` for every clipped regular pixel of row y, written into mrow[x] (other entries
+    of mrow are overwritten with scratch values): the 3 x 3 test from per-column aggregates of rows
+    y-1..y+1 (count of attenuated pixels, any of them not clipped, smallest clipped value), branch-free
+    so it vectorises; the rare pixel without an attenuated 3 x 3 neighbour takes the 5 x 5 scan. Same
+    result as `_clip_lower_at` (a minimum does not depend on the scan order; issue 7)."""
+    h, w = state.shape
+    natt = np.zeros(w, np.int32)
+    bad = np.zeros(w, np.int32)
+    mn = np.full(w, np.inf, np.float32)
+    n3 = np.empty(w, np.int32)
+    for yy in range(max(y - 1, 0), min(y + 2, h)):
+        _clip_columns(values, state, yy, natt, bad, mn)
+    none = _clip_combine(state, y, natt, bad, mn, n3, mrow)
+    x = 0
+    while none and x < w:         # no attenuated pixel in the 3 x 3 (a few per row at most): 5 x 5
+        if n3[x] == 0 and (state[y, x] & (ATTENUATED | REASON_MASK)) == CLIPPED:
+            mrow[x] = _clip_lower_at(values, state, y, x, h, w)
+            none -= 1
+        x += 1
+
+
+@njit(cache=True, nogil=True)
+def _clip_columns(values, state, yy, natt, bad, mn):
+    """Add row yy to the column aggregates of `clip_lower_row` (branch-free)."""
+    w = state.shape[1]
+    for x in range(w):
+        s2 = state[yy, x]
+        att = (s2 & ATTENUATED) != 0
+        cl = (s2 & REASON_MASK) == CLIPPED
+        natt[x] += np.int32(att)
+        bad[x] |= np.int32(att & ~cl)
+        v = np.float32(values[yy, x])
+        mx = mn[x]
+        mn[x] = v if (att & cl & (v < mx)) else mx
+
+
+@njit(cache=True, nogil=True)
+def _clip_combine(state, y, natt, bad, mn, n3, mrow):
+    """3-column windows of the aggregates: mrow = their minimum when all attenuated pixels are clipped,
+    else NaN; n3 = attenuated count; returns how many clipped regular pixels of row y have none."""
+    w = natt.shape[0]
+    nan = np.float32(np.nan)
+    none = 0
+    for x in range(1, w - 1):     # interior, branch-free (vectorises)
+        n = natt[x - 1] + natt[x] + natt[x + 1]
+        bd = bad[x - 1] | bad[x] | bad[x + 1]
+        m = mn[x - 1]
+        m = mn[x] if mn[x] < m else m
+        m = mn[x + 1] if mn[x + 1] < m else m
+        mrow[x] = nan if ((bd != 0) | (n == 0)) else m
+        n3[x] = n
+        none += np.int32((n == 0) & ((state[y, x] & (ATTENUATED | REASON_MASK)) == CLIPPED))
+    for e in range(2 if w > 1 else 1):   # the two ends
+        x = 0 if e == 0 else w - 1
+        xa = x - 1 if x > 0 else x
+        xb = x + 1 if x + 1 < w else x
+        n = natt[x] + (natt[xa] if xa < x else 0) + (natt[xb] if xb > x else 0)
+        bd = bad[xa] | bad[x] | bad[xb]
+        m = mn[xa]
+        m = mn[x] if mn[x] < m else m
+        m = mn[xb] if mn[xb] < m else m
+        mrow[x] = nan if ((bd != 0) | (n == 0)) else m
+        n3[x] = n
+        none += np.int32((n == 0) & ((state[y, x] & (ATTENUATED | REASON_MASK)) == CLIPPED))
+    return none
 
 
 def prepare(values: np.ndarray, state: np.ndarray, known: np.ndarray | None = None,

@@ -334,8 +334,8 @@ def test_reconstruct_error_is_posted_not_swallowed(gst, tiny_clip, monkeypatch):
         raise RuntimeError("synthetic failure")
 
     def before(i, pipeline):
-        if i == 0:  # after start (whose warm-up calls the real function)
-            monkeypatch.setattr(reconstruction, "reconstruct", boom)
+        if i == 0:  # after start (whose warm-up calls the real function); the element's frame path
+            monkeypatch.setattr(reconstruction, "reconstruct_frame", boom)
 
     r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method=preview",
                    raw_caps(prof.width, prof.height), raw_buffers(raws), before_push=before)

@@ -575,3 +575,89 @@ def test_preview_parallel_pyramid_levels_bit_exact(rng, threads):
     for t in threads:
         numba.set_num_threads(t)
         assert np.array_equal(R._preview(v, k), ref)
+
+
+# ---- the element's fused preview frame path (issue 7 item 3) ----------------------------------------------------
+def _noise():
+    from types import SimpleNamespace
+    return SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35)
+
+
+def _both_paths(v, s, use_bounds, noise, method="preview"):
+    """(n, values, state) of reconstruct_frame (fused preview) and of the general path it replaced."""
+    a_v, a_s = v.copy(), s.copy()
+    na = R.reconstruct_frame(a_v, a_s, method=method, use_bounds=use_bounds, noise=noise)
+    b_v, b_s = v.copy(), s.copy()
+    nb = R._reconstruct_frame_general(b_v, b_s, "preview", "balanced", use_bounds, noise)
+    return (na, a_v, a_s), (nb, b_v, b_s)
+
+
+@pytest.mark.parametrize("shape", SHAPES + [(101, 77)])
+def test_preview_frame_equals_the_general_path(shape, rng, threads):
+    """Masks, NOISY fusion, clip bounds (with the clipped-neighbour rule), data-range clamp, earlier
+    RECONSTRUCTED pixels kept: the fused passes give the general path's bits, any thread count."""
+    h, w = shape
+    reasons = np.array([V.VALID, V.CLIPPED, V.DARK, V.DISCARDED, V.NOISY], np.uint8)
+    for p in ([.5, .2, .1, .1, .1], [.1, .6, .1, .1, .1], [.02, .9, .03, .03, .02], [0, .5, .5, 0, 0]):
+        v = (rng.random(shape, dtype=np.float32) * 100 - 5).astype(np.float32)
+        st = rng.choice(reasons, shape, p=p) | np.where(rng.random(shape) < 0.5, V.ATTENUATED, 0).astype(np.uint8)
+        for already in (False, True):
+            s = st.copy()
+            if already:
+                s[(st & V.REASON_MASK != V.VALID) & (rng.random(shape) < 0.3)] |= V.RECONSTRUCTED
+            for t in threads:
+                numba.set_num_threads(t)
+                for use_bounds in (True, False):
+                    for noise in (_noise(), None):
+                        with __import__("warnings").catch_warnings():
+                            __import__("warnings").simplefilter("ignore", R.ReconstructionWarning)
+                            (na, av, as_), (nb, bv, bs) = _both_paths(v, s, use_bounds, noise)
+                        assert na == nb == V.missing_mask(s).sum()
+                        assert np.array_equal(av, bv) and np.array_equal(as_, bs)
+
+
+def test_preview_frame_on_a_simulated_frame_equals_the_general_path(rng):
+    """A frame of the sensor model with big clipped areas (bright sky of the synthetic scene, ND pixels
+    clipped too) and dark NOISY pixels, as nrvalidity dark-policy=weighted makes it."""
+    from nrhdr_core import profile as P, scene, sensor, simulate
+    h, w = 270, 480
+    prof = P.default(h, w, seed=1)
+    sc = scene.synthetic_hdr_scene(400, 600)
+    flux = simulate.view(sc, h, w, 0.3, simulate.Motion()) * np.float32(simulate.exposure_scale(sc, prof, 2.0))
+    raw = sensor.capture(flux, prof, rng)
+    v, s = V.classify(raw, prof, dark_policy="weighted")
+    r = s & V.REASON_MASK
+    assert (r == V.NOISY).any() and ((s & 0x8F) == V.CLIPPED).sum() > 1000      # the cases this test is for
+    for use_bounds in (False, True):
+        (na, av, as_), (nb, bv, bs) = _both_paths(v, s, use_bounds, prof)
+        assert na == nb > 0 and np.array_equal(av, bv) and np.array_equal(as_, bs)
+    calls = []
+
+    def choose(share):
+        calls.append(share)
+        return "preview", "fast"
+    vv, ss = v.copy(), s.copy()
+    assert R.reconstruct_frame(vv, ss, method=choose, noise=prof) == nb and len(calls) == 1
+    assert np.array_equal(vv, bv) and abs(calls[0] - V.missing_mask(s).mean()) < 1e-12
+
+
+def test_preview_frame_hands_odd_frames_to_the_general_path(rng):
+    """Non-finite values (the general path's errors), no known pixel (its warning), a fill that
+    overflows float32 (its nearest-pixel repair), a method chosen per frame that is not the preview."""
+    v = rng.random((20, 30), dtype=np.float32)
+    s = np.where(rng.random(v.shape) < 0.4, V.DISCARDED, V.VALID).astype(np.uint8)
+    bad = v.copy()
+    ky, kx = np.nonzero(s == V.VALID)
+    bad[ky[0], kx[0]] = np.nan
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        R.reconstruct_frame(bad, s.copy(), method="preview")
+    with pytest.warns(R.ReconstructionWarning):
+        R.reconstruct_frame(v.copy(), np.full(v.shape, V.CLIPPED, np.uint8), method="preview")
+    huge = np.where(s == V.VALID, np.float32(3e38), np.float32(0)).astype(np.float32)
+    (na, av, as_), (nb, bv, bs) = _both_paths(huge, s, True, None)
+    assert na == nb and np.array_equal(av, bv) and np.array_equal(as_, bs) and np.isfinite(av).all()
+    vv, ss = v.copy(), s.copy()
+    n = R.reconstruct_frame(vv, ss, method=lambda share: ("nearest", "fast"))
+    ref_v, ref_s = v.copy(), s.copy()
+    assert n == R._reconstruct_frame_general(ref_v, ref_s, "nearest", "fast", True, None)
+    assert np.array_equal(vv, ref_v) and np.array_equal(ss, ref_s)

@@ -191,7 +191,10 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
             with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
                 # one fused pass for known mask + bounds, in place, measured pixels untouched (perf, #7);
                 # NOISY pixels fused with the profile's noise model (issue 8)
-                n_miss = reconstruction.reconstruct_frame(values, state, method=choose, preset=p.preset,
+                # a fixed method goes by name (the preview's fused path; no share callback needed)
+                n_miss = reconstruction.reconstruct_frame(values, state,
+                                                          method=choose if p.method == "auto" else p.method,
+                                                          preset=p.preset,
                                                           use_bounds=p.use_bounds, noise=self._noise_model())
             method, preset, rung, budget = picked["method"], picked["preset"], picked["rung"], picked["budget"]
             share = n_miss / float(self._info.pixels)
