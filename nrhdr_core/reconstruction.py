@@ -16,7 +16,7 @@ import threading
 import warnings
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
 
@@ -144,7 +144,7 @@ def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int
     floor = g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0
     _fuse_kernel(out, np.ascontiguousarray(values, np.float32), np.ascontiguousarray(known),
                  np.ascontiguousarray(noisy), np.float32(g), np.float32(floor), np.float32(noise.nd),
-                 np.float32(texture), int(size) // 2, setting == "accurate", _FUSE_ROWS)
+                 np.float32(texture), int(size) // 2, setting == "accurate", _FUSE_ROWS, get_num_threads())
     return out
 
 
@@ -186,14 +186,21 @@ def _fuse_slide(values, known, noisy, y, ya, r, h, c, est):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, rows):
+def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, rows, nt):
     """`fuse_noisy`'s pass: (2r+1)^2 window sums of the known pixels (count, sum, sum of squares) and,
     `joint`, 3 x 3 window sums of the known and the NOISY pixels (count, sum) at every noisy pixel,
     from column sums that slide down each chunk of `rows` rows (parallel over chunks, one scratch per
-    chunk; rows without a noisy pixel cost the slide only)."""
+    chunk; rows without a noisy pixel cost the slide only). `nt`: the thread count the chunks are
+    interleaved over (passed in: calling get_num_threads inside would stop numba caching the kernel)."""
     h, w = out.shape
     nch = (h + rows - 1) // rows
-    for ci in prange(nch):
+    per = (nch + nt - 1) // nt
+    for i in prange(per * nt):
+        # prange hands each thread one contiguous run of i: interleave the chunks over the threads
+        # (thread t gets chunks t, t + nt, ...) so dark areas at one end of the frame are shared
+        ci = (i % per) * nt + i // per
+        if ci >= nch:
+            continue
         ya = ci * rows
         yb = min(ya + rows, h)
         c = np.zeros((7, w), np.float64)
