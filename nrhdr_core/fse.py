@@ -16,6 +16,8 @@ import warnings
 
 import numpy as np
 from numba import njit, prange, get_num_threads, set_num_threads
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
 
@@ -850,12 +852,29 @@ def _make_block_kernel(n_fixed):
 _block16 = _make_block_kernel(16)
 _block = _make_block_kernel(0)
 
+@intrinsic
+def _fetch_add(typingctx, counter, i):
+    """counter[i] += 1 as one atomic operation; returns the value before (dynamic scheduling)."""
+    sig = types.int64(counter, i)
+
+    def codegen(context, builder, signature, args):
+        aryty, ity = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = context.cast(builder, args[1], ity, types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx])
+        return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1), "monotonic")
+
+    return sig, codegen
+
+
 @njit(cache=True, nogil=True)
-def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, q0, q1, qs,
+def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
             round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t, tw_c, tw_s,
-            bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact):
-    """The tiles round_tiles[r0 + q], q in range(q0, q1, qs), on one thread. The scratch is owned by
-    this call (a few kB): no views of arrays shared with the other threads in the per-block calls."""
+            prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact):
+    """The tiles of round r on one thread: each thread takes the next unprocessed tile of the round
+    (``counter[r]``, atomic), so both threads stay busy whatever the tiles cost and however the OS
+    schedules them (a static split waits for the slower thread). The scratch is owned by this call (a
+    few kB): no views of arrays shared with the other threads in the per-block calls."""
     hh = n // 2 + 1
     nsel = iter_max + 2
     hp = cos_t.shape[1]
@@ -875,53 +894,53 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     sel_v = np.zeros(nsel, np.int64)
     sel_r = np.zeros(nsel, np.float32)
     sel_i = np.zeros(nsel, np.float32)
-    if n == 16:
-        # the common window: the kernel specialised for n = 16 (a compile-time constant)
-        for q in range(q0, q1, qs):
-            t = round_tiles[r0 + q]
-            for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
-                lv = leaf_l[li]
+    while True:
+        q = _fetch_add(counter, r)
+        if q >= cntr:
+            return
+        t = round_tiles[r0 + q]
+        for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
+            lv = leaf_l[li]
+            if n == 16:     # the common window: the kernel specialised for n = 16
                 _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                          leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
                          tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                          local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                          sel_u, sel_v, sel_r, sel_i)
-        return
-    for q in range(q0, q1, qs):
-        t = round_tiles[r0 + q]
-        for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
-            lv = leaf_l[li]
-            _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                   leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
-                   tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                   local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
-                   sel_u, sel_v, sel_r, sel_i)
+            else:
+                _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
+                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
+                       tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                       local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                       sel_u, sel_v, sel_r, sel_i)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
-         leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+         leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
          delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads):
+    """The rounds one after the other; the tiles of a round on ``nthreads`` threads."""
     h, w = img.shape
     tw_tiles = (w + tile - 1) // tile
     tshift = 0
     while (1 << tshift) < tile:
         tshift += 1
     nround = round_ptr.shape[0] - 1
+    counter = np.zeros(max(nround, 1), np.int64)
     for r in range(nround):
         r0 = round_ptr[r]
         cntr = round_ptr[r + 1] - r0
         if nthreads == 1:
-            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, 0, cntr, 1,
+            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
                     round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
-                    tw_c, tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
+                    tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
                     pair_exact)
             continue
         for th in prange(nthreads):
-            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, th, cntr,
-                    nthreads, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t,
-                    sin_t, tw_c, tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                    local, pair_exact)
+            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
+                    round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
+                    tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
+                    pair_exact)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1222,7 +1241,7 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
     set_num_threads(nthreads)
     try:
         _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
-             leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+             leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
              float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
              int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
     finally:
