@@ -605,7 +605,9 @@ def _forward_dft(wbuf, xbuf, n, cos_t, sin_t, wr, wi, t1r, t1i, t2r, t2i):
 def _row_maxima(n, en, rm):
     """rm[v] = max_u en[v, u] with four independent running maxima (n is a multiple of 4): a single
     chain of scalar max operations was latency-bound and kept the update loop from vectorising
-    (measured 209 -> 116 ns per pair update at n = 16; the maximum is exact, so the same result)."""
+    (measured 209 -> 116 ns per pair update at n = 16). The maximum is exact; the energies, now computed
+    by vectorised code, may differ from the scalar ones by float rounding (FMA contraction), which can
+    flip a near-tie bin choice: outputs within float rounding, PSNR within 0.001 dB (docs/BENCHMARKS.md)."""
     hh = n // 2 + 1
     for v in range(hh):
         m0 = en[v, 0]
