@@ -16,6 +16,8 @@ import warnings
 
 import numpy as np
 from numba import njit, prange, get_num_threads, set_num_threads
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
 
@@ -236,15 +238,11 @@ def _area_sigma(c, s1, s2, y, x, b, n, h, w, scale, local):
 
 
 @njit(cache=True, nogil=True)
-def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels, slack):
-    """Quadtree leaves per tile (only leaves with missing pixels) and the round of every tile.
-
-    Returns (tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_lvl, n_rounds)."""
+def _missing_per_tile(state, tile):
+    """Missing pixels (state 0) of every tile x tile tile, row-major tiles."""
     h, w = state.shape
-    th = (h + tile - 1) // tile
     tw = (w + tile - 1) // tile
-    nt = th * tw
-    miss = np.zeros(nt, np.int64)
+    miss = np.zeros(((h + tile - 1) // tile) * tw, np.int64)
     for y in range(h):
         base = (y // tile) * tw
         for tx in range(tw):
@@ -252,6 +250,28 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels,
             for x in range(tx * tile, min(tx * tile + tile, w)):
                 c += 1 if state[y, x] == 0 else 0
             miss[base + tx] += c
+    return miss
+
+
+@njit(cache=True, nogil=True)
+def _any_missing(state, y, x, b):
+    h, w = state.shape
+    for yy in range(y, min(y + b, h)):
+        for xx in range(x, min(x + b, w)):
+            if state[yy, xx] == 0:
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _quadtree_leaves(img, state, tile, n, sizes, split, scale, local, miss):
+    """Quadtree leaves of every tile, depth-first in z-order (Genser et al.: a block of size b is a leaf
+    when the sigma of its support area is below split[b], else it is split down to the smallest size);
+    only blocks with a missing pixel are kept: blocks with nothing missing cost nothing.
+    Returns (leaf_ptr, leaf_y, leaf_x, leaf_lvl)."""
+    h, w = state.shape
+    tw = (w + tile - 1) // tile
+    nt = miss.shape[0]
     need_sigma = False
     for i in range(sizes.shape[0] - 1):
         if split[i] > 0.0:
@@ -262,7 +282,6 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels,
         c = np.zeros((1, 1))
         s1 = c
         s2 = c
-    # leaves: depth-first, z-order inside the tile
     cap = 16
     for t in range(nt):
         if miss[t] > 0:
@@ -279,11 +298,8 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels,
         leaf_ptr[t] = nl
         if miss[t] == 0:
             continue
-        ty = (t // tw) * tile
-        tx = (t % tw) * tile
-        sp = 0
-        sy[0] = ty
-        sx[0] = tx
+        sy[0] = (t // tw) * tile
+        sx[0] = (t % tw) * tile
         sl[0] = 0
         sp = 1
         while sp > 0:
@@ -292,26 +308,11 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels,
             x = sx[sp]
             lv = sl[sp]
             b = sizes[lv]
-            if y >= h or x >= w:
-                continue
-            # any missing pixel in this block?
-            anym = False
-            for yy in range(y, min(y + b, h)):
-                for xx in range(x, min(x + b, w)):
-                    if state[yy, xx] == 0:
-                        anym = True
-                        break
-                if anym:
-                    break
-            if not anym:
+            if y >= h or x >= w or not _any_missing(state, y, x, b):
                 continue
             leaf = lv == sizes.shape[0] - 1
-            if not leaf:
-                if split[lv] <= 0.0:
-                    leaf = False
-                else:
-                    sg = _area_sigma(c, s1, s2, y, x, b, n, h, w, scale, local)
-                    leaf = sg < split[lv]
+            if not leaf and split[lv] > 0.0:
+                leaf = _area_sigma(c, s1, s2, y, x, b, n, h, w, scale, local) < split[lv]
             if leaf:
                 leaf_y[nl] = y
                 leaf_x[nl] = x
@@ -322,21 +323,29 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels,
                 # push in reverse so that the top-left child is processed first
                 sy[sp] = y + hb
                 sx[sp] = x + hb
-                sl[sp] = lv + 1
                 sy[sp + 1] = y + hb
                 sx[sp + 1] = x
-                sl[sp + 1] = lv + 1
                 sy[sp + 2] = y
                 sx[sp + 2] = x + hb
-                sl[sp + 2] = lv + 1
                 sy[sp + 3] = y
                 sx[sp + 3] = x
-                sl[sp + 3] = lv + 1
+                for q in range(4):
+                    sl[sp + q] = lv + 1
                 sp += 4
     leaf_ptr[nt] = nl
-    # rounds: priority = missing share of the 3x3 tile neighbourhood (not yet reconstructed),
-    # out-of-image neighbours count as missing * edge_penalty; a round is a greedy set of
-    # mutually non-adjacent tiles of the lowest priority level.
+    return leaf_ptr, leaf_y[:nl], leaf_x[:nl], leaf_l[:nl]
+
+
+@njit(cache=True, nogil=True)
+def _rounds(miss, h, w, tile, edge_penalty, levels, slack):
+    """Processing order by neighbour availability (Genser et al., PCS 2018): a tile's priority is the
+    missing share of its 3 x 3 tile neighbourhood (not yet reconstructed; out-of-image neighbours count
+    ``edge_penalty``), quantised to ``levels``; a round is a greedy set of mutually non-adjacent tiles
+    with level <= lowest + ``slack``, so its tiles are independent. Returns (tile_round, round_ptr,
+    round_tiles, n_rounds)."""
+    th = (h + tile - 1) // tile
+    tw = (w + tile - 1) // tile
+    nt = th * tw
     tile_round = np.full(nt, -1, np.int64)
     rem = 0
     for t in range(nt):
@@ -400,648 +409,484 @@ def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels,
             rem -= 1
         r += 1
     round_ptr[r] = k
-    return tile_round, round_ptr[: r + 1], round_tiles[:k], leaf_ptr, leaf_y[:nl], leaf_x[:nl], leaf_l[:nl], r
-
-
-# --------------------------------------------------------------------------------------------------
-# One block
-# --------------------------------------------------------------------------------------------------
-@njit(cache=True, nogil=True, fastmath=True)
-def _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
-           by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
-           delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
-           wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i):
-    """Reconstruct the missing pixels of block (by, bx, b) in place. Returns False if its support
-    area has no usable pixel (left for the fallback)."""
-    h, w = img.shape
-    hh = n // 2 + 1
-    nmask = n - 1
-    o = (n - b) // 2
-    ay = by - o
-    ax = bx - o
-    # ---- gather weights and values (pixels of same-round tiles are never read) ----
-    sw = 0.0
-    swf = 0.0
-    cnt = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    for i in range(n):
-        y = ay + i
-        # (direct 2-D indexing, no row views: a view costs an atomic reference-count update on the
-        # array shared by all threads)
-        if y < 0 or y >= h:
-            for j in range(n):
-                wbuf[i, j] = 0.0
-                xbuf[i, j] = 0.0
-            continue
-        j0 = max(0, -ax)
-        j1 = min(n, w - ax)
-        for j in range(j0):
-            wbuf[i, j] = 0.0
-            xbuf[i, j] = 0.0
-        for j in range(j1, n):
-            wbuf[i, j] = 0.0
-            xbuf[i, j] = 0.0
-        tbase = (y >> tshift) * tw_tiles
-        tsz = 1 << tshift
-        tc0 = (ax + j0) >> tshift
-        if ((ax + j1 - 1) >> tshift) - tc0 <= 2:
-            # common case (window spans <= 3 tile columns): the same-round rule of the three columns
-            # as selects, one branch-free pass over the row that vectorises
-            d0 = np.float32(0.0)
-            d1 = np.float32(0.0)
-            d2 = np.float32(0.0)
-            tt = tbase + tc0
-            if tt == t_self or tile_round[tt] < r_cur:
-                d0 = np.float32(delta)
-            if tc0 + 1 < tw_tiles and (tt + 1 == t_self or tile_round[tt + 1] < r_cur):
-                d1 = np.float32(delta)
-            if tc0 + 2 < tw_tiles and (tt + 2 == t_self or tile_round[tt + 2] < r_cur):
-                d2 = np.float32(delta)
-            e0 = ((tc0 + 1) << tshift) - ax
-            e1 = e0 + (1 << tshift)
-            for jj in range(j0, j1):
-                xx = ax + jj
-                dwt = d0 if jj < e0 else (d1 if jj < e1 else d2)
-                st = state[y, xx]
-                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
-                wv = fs * rho_tab[lvl, i, jj]
-                wbuf[i, jj] = wv
-                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
-            continue
-        j = j0
-        while j < j1:
-            # one segment per tile column: the same-round rule is decided once per segment
-            x = ax + j
-            tt = tbase + (x >> tshift)
-            allowed = tt == t_self or tile_round[tt] < r_cur
-            dwt = np.float32(delta) if allowed else np.float32(0.0)
-            je = min(j1, j + tsz - (x & (tsz - 1)))
-            # branch-free (random masks make the state unpredictable): selects instead of branches
-            for jj in range(j, je):
-                xx = ax + jj
-                st = state[y, xx]
-                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
-                wv = fs * rho_tab[lvl, i, jj]
-                wbuf[i, jj] = wv
-                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
-            j = je
-    # sums in a separate pass: pure reductions vectorise (no stores in the loop)
-    for i in range(n):
-        for j in range(n):
-            wv = wbuf[i, j]
-            fv = xbuf[i, j]
-            sw += wv
-            swf += wv * fv
-            cnt += 1.0 if wv > 0.0 else 0.0
-            s1 += fv
-            s2 += fv * fv
-    if sw <= 0.0:
-        return False
-    mean = swf / sw
-    # texture-adaptive iteration count from the (unweighted) std of the usable pixels
-    m1 = s1 / cnt
-    var = s2 / cnt - m1 * m1
-    if var < 0.0:
-        var = 0.0
-    sc = scale
-    if local:
-        sc = abs(m1) * scale
-    sigma = 0.0
-    if sc > 0.0:
-        sigma = math.sqrt(var) / sc
-    nit = int(round(iter_c * sigma))
-    if nit < iter_min:
-        nit = iter_min
-    if nit > iter_max:
-        nit = iter_max
-    fm = np.float32(mean)
-    for i in range(n):
-        for j in range(n):
-            xbuf[i, j] = wbuf[i, j] * (xbuf[i, j] - fm)
-    # ---- forward DFT of w and w*f, separable, as dot products (reductions vectorise without the
-    # runtime alias checks that short in-place loops over several arrays need) ----
-    # rows (real input -> half spectrum v < hh): T(i, v) = sum_j x(i, j) e^{-i 2 pi j v / N}, stored
-    # transposed [v, i] in the (not yet used) W grids: wr[v] / wr[n + v] = re / im of DFT(w),
-    # wi[v] / wi[n + v] = re / im of DFT(w (f - mean))
-    for i in range(n):
-        for v in range(hh):
-            s_wc = np.float32(0.0)
-            s_ws = np.float32(0.0)
-            s_xc = np.float32(0.0)
-            s_xs = np.float32(0.0)
-            for j in range(n):
-                a = wbuf[i, j]
-                bb = xbuf[i, j]
-                c = cos_t[v, j]
-                sn = sin_t[v, j]
-                s_wc += a * c
-                s_ws += a * sn
-                s_xc += bb * c
-                s_xs += bb * sn
-            wr[v, i] = s_wc
-            wr[n + v, i] = -s_ws
-            wi[v, i] = s_xc
-            wi[n + v, i] = -s_xs
-    # columns (complex): X(u, v) = sum_i T(i, v) e^{-i 2 pi u i / N} -> t1 (w) / t2 (w (f - mean)) [u, v]
-    for v in range(hh):
-        for u in range(n):
-            a1 = np.float32(0.0)
-            a2 = np.float32(0.0)
-            a3 = np.float32(0.0)
-            a4 = np.float32(0.0)
-            for i in range(n):
-                c = cos_t[u, i]
-                sn = sin_t[u, i]
-                q1r = wr[v, i]
-                q1i = wr[n + v, i]
-                q2r = wi[v, i]
-                q2i = wi[n + v, i]
-                a1 += q1r * c + q1i * sn
-                a2 += q1i * c - q1r * sn
-                a3 += q2r * c + q2i * sn
-                a4 += q2i * c - q2r * sn
-            t1r[u, v] = a1
-            t1i[u, v] = a2
-            t2r[u, v] = a3
-            t2i[u, v] = a4
-    # Transposed layout for the iterations: R[v, u] (v = half-spectrum index, u full, contiguous);
-    # W on a doubled periodic grid W[v', u'] (v', u' in 0..2n) so that W(j - k) and W(j + k) are
-    # contiguous slices without modulo.
-    for u in range(n):
-        un = (n - u) % n
-        for v in range(hh):
-            a = t1r[u, v]
-            bq = t1i[u, v]
-            wr[v, u] = a
-            wi[v, u] = bq
-            wr[v, u + n] = a
-            wi[v, u + n] = bq
-            wr[v + n, u] = a
-            wi[v + n, u] = bq
-            wr[v + n, u + n] = a
-            wi[v + n, u + n] = bq
-            if 0 < v < n - v:
-                wr[n - v, un] = a
-                wi[n - v, un] = -bq
-                wr[n - v, un + n] = a
-                wi[n - v, un + n] = -bq
-                wr[2 * n - v, un] = a
-                wi[2 * n - v, un] = -bq
-                wr[2 * n - v, un + n] = a
-                wi[2 * n - v, un + n] = -bq
-    for v in range(hh):
-        mx = np.float32(0.0)
-        for u in range(n):
-            a = t2r[u, v]
-            bq = t2i[u, v]
-            rr[v, u] = a
-            ri[v, u] = bq
-            e = (a * a + bq * bq) * prior2[v, u]
-            en[v, u] = e
-            mx = max(mx, e)
-        rm[v] = mx
-    w0 = wr[0, 0]
-    g = np.float32(gamma) / w0
-    # ---- iterations: select bin, add conjugate pair, update residual spectrum in place ----
-    it = 0
-    ns = 0
-    while it < nit:
-        kv = 0
-        best = rm[0]
-        for v in range(1, hh):
-            if rm[v] > best:
-                best = rm[v]
-                kv = v
-        if best <= 0.0:
-            break
-        ku = 0
-        for u in range(n):
-            if en[kv, u] == best:
-                ku = u
-                break
-        cr = rr[kv, ku] * g
-        ci = ri[kv, ku] * g
-        selfm = ((ku == 0) or (2 * ku == n)) and ((kv == 0) or (2 * kv == n))
-        if pair_exact and not selfm:
-            # weighted least-squares projection onto the real pair {phi_k, phi_-k}:
-            # R = c W(0) + conj(c) W(2k)
-            w2r = wr[2 * kv, 2 * ku]
-            w2i = wi[2 * kv, 2 * ku]
-            den = w0 * w0 - (w2r * w2r + w2i * w2i)
-            if den > 1e-3 * w0 * w0:
-                r0 = rr[kv, ku]
-                i0 = ri[kv, ku]
-                gg = np.float32(gamma) / den
-                cr = (r0 * w0 - (r0 * w2r + i0 * w2i)) * gg
-                ci = (i0 * w0 - (r0 * w2i - i0 * w2r)) * gg
-        if selfm:
-            ci = np.float32(0.0)
-            u1 = n - ku
-            for v in range(hh):
-                v1 = v - kv + n
-                mx = np.float32(0.0)
-                for u in range(n):
-                    nr = rr[v, u] - cr * wr[v1, u1 + u]
-                    ni = ri[v, u] - cr * wi[v1, u1 + u]
-                    rr[v, u] = nr
-                    ri[v, u] = ni
-                    e = (nr * nr + ni * ni) * prior2[v, u]
-                    en[v, u] = e
-                    mx = max(mx, e)
-                rm[v] = mx
-            it += 1
-        else:
-            u1 = n - ku
-            for v in range(hh):
-                v1 = v - kv + n
-                v2 = v + kv
-                mx = np.float32(0.0)
-                for u in range(n):
-                    a = wr[v1, u1 + u]
-                    bq = wi[v1, u1 + u]
-                    a2 = wr[v2, ku + u]
-                    b2 = wi[v2, ku + u]
-                    nr = rr[v, u] - (cr * (a + a2) + ci * (b2 - bq))
-                    ni = ri[v, u] - (cr * (bq + b2) + ci * (a - a2))
-                    rr[v, u] = nr
-                    ri[v, u] = ni
-                    e = (nr * nr + ni * ni) * prior2[v, u]
-                    en[v, u] = e
-                    mx = max(mx, e)
-                rm[v] = mx
-            it += 2
-        sel_u[ns] = ku
-        sel_v[ns] = kv
-        sel_r[ns] = cr if selfm else 2.0 * cr
-        sel_i[ns] = ci if selfm else 2.0 * ci
-        ns += 1
-    # ---- synthesis of the block only: g(m) = mean + sum Re(c e^{+i 2 pi k m / N}) ----
-    # separable phases: Re(c e^{i(a + b)}) = cos b (c_r cos a - c_i sin a) - sin b (c_r sin a + c_i cos a),
-    # a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j) / N per column; accumulated over the
-    # selected coefficients for the whole b x b block in xbuf (free after the DFT), vectorised over j
-    for i in range(b):
-        for j in range(b):
-            xbuf[i, j] = 0.0
-    for q in range(ns):
-        cq = sel_r[q]
-        sq = sel_i[q]
-        uq = sel_u[q]
-        vq = sel_v[q]
-        for j in range(b):
-            ph = (vq * (o + j)) & nmask   # n is a power of two
-            t1r[0, j] = tw_c[ph]
-            t1r[1, j] = tw_s[ph]
-        for i in range(b):
-            ph = (uq * (o + i)) & nmask
-            ca = tw_c[ph]
-            sa = tw_s[ph]
-            pp = cq * ca - sq * sa
-            qq = cq * sa + sq * ca
-            for j in range(b):
-                xbuf[i, j] += pp * t1r[0, j] - qq * t1r[1, j]
-    for i in range(b):
-        y = by + i
-        if y >= h:
-            break
-        for j in range(b):
-            x = bx + j
-            if x >= w:
-                break
-            if state[y, x] != 0:
-                continue
-            val = np.float32(mean + xbuf[i, j])
-            if use_lo and val < lo[y, x]:
-                val = lo[y, x]
-            if use_hi and val > hi[y, x]:
-                val = hi[y, x]
-            img[y, x] = val
-            state[y, x] = 2
-    return True
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
-           by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
-           delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
-           wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i):
-    """``_block`` for the 16 x 16 window (a verbatim copy with ``n`` a compile-time constant: fixed trip
-    counts let LLVM unroll and vectorise the short loops; measured ~4x on the gather). Reconstruct the missing pixels of block (by, bx, b) in place. Returns False if its support
-    area has no usable pixel (left for the fallback)."""
-    n = 16
-    h, w = img.shape
-    hh = n // 2 + 1
-    nmask = n - 1
-    o = (n - b) // 2
-    ay = by - o
-    ax = bx - o
-    # ---- gather weights and values (pixels of same-round tiles are never read) ----
-    sw = 0.0
-    swf = 0.0
-    cnt = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    for i in range(n):
-        y = ay + i
-        # (direct 2-D indexing, no row views: a view costs an atomic reference-count update on the
-        # array shared by all threads)
-        if y < 0 or y >= h:
-            for j in range(n):
-                wbuf[i, j] = 0.0
-                xbuf[i, j] = 0.0
-            continue
-        j0 = max(0, -ax)
-        j1 = min(n, w - ax)
-        for j in range(j0):
-            wbuf[i, j] = 0.0
-            xbuf[i, j] = 0.0
-        for j in range(j1, n):
-            wbuf[i, j] = 0.0
-            xbuf[i, j] = 0.0
-        tbase = (y >> tshift) * tw_tiles
-        tsz = 1 << tshift
-        tc0 = (ax + j0) >> tshift
-        if ((ax + j1 - 1) >> tshift) - tc0 <= 2:
-            # common case (window spans <= 3 tile columns): the same-round rule of the three columns
-            # as selects, one branch-free pass over the row that vectorises
-            d0 = np.float32(0.0)
-            d1 = np.float32(0.0)
-            d2 = np.float32(0.0)
-            tt = tbase + tc0
-            if tt == t_self or tile_round[tt] < r_cur:
-                d0 = np.float32(delta)
-            if tc0 + 1 < tw_tiles and (tt + 1 == t_self or tile_round[tt + 1] < r_cur):
-                d1 = np.float32(delta)
-            if tc0 + 2 < tw_tiles and (tt + 2 == t_self or tile_round[tt + 2] < r_cur):
-                d2 = np.float32(delta)
-            e0 = ((tc0 + 1) << tshift) - ax
-            e1 = e0 + (1 << tshift)
-            for jj in range(j0, j1):
-                xx = ax + jj
-                dwt = d0 if jj < e0 else (d1 if jj < e1 else d2)
-                st = state[y, xx]
-                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
-                wv = fs * rho_tab[lvl, i, jj]
-                wbuf[i, jj] = wv
-                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
-            continue
-        j = j0
-        while j < j1:
-            # one segment per tile column: the same-round rule is decided once per segment
-            x = ax + j
-            tt = tbase + (x >> tshift)
-            allowed = tt == t_self or tile_round[tt] < r_cur
-            dwt = np.float32(delta) if allowed else np.float32(0.0)
-            je = min(j1, j + tsz - (x & (tsz - 1)))
-            # branch-free (random masks make the state unpredictable): selects instead of branches
-            for jj in range(j, je):
-                xx = ax + jj
-                st = state[y, xx]
-                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
-                wv = fs * rho_tab[lvl, i, jj]
-                wbuf[i, jj] = wv
-                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
-            j = je
-    # sums in a separate pass: pure reductions vectorise (no stores in the loop)
-    for i in range(n):
-        for j in range(n):
-            wv = wbuf[i, j]
-            fv = xbuf[i, j]
-            sw += wv
-            swf += wv * fv
-            cnt += 1.0 if wv > 0.0 else 0.0
-            s1 += fv
-            s2 += fv * fv
-    if sw <= 0.0:
-        return False
-    mean = swf / sw
-    # texture-adaptive iteration count from the (unweighted) std of the usable pixels
-    m1 = s1 / cnt
-    var = s2 / cnt - m1 * m1
-    if var < 0.0:
-        var = 0.0
-    sc = scale
-    if local:
-        sc = abs(m1) * scale
-    sigma = 0.0
-    if sc > 0.0:
-        sigma = math.sqrt(var) / sc
-    nit = int(round(iter_c * sigma))
-    if nit < iter_min:
-        nit = iter_min
-    if nit > iter_max:
-        nit = iter_max
-    fm = np.float32(mean)
-    for i in range(n):
-        for j in range(n):
-            xbuf[i, j] = wbuf[i, j] * (xbuf[i, j] - fm)
-    # ---- forward DFT of w and w*f, separable, as dot products (reductions vectorise without the
-    # runtime alias checks that short in-place loops over several arrays need) ----
-    # rows (real input -> half spectrum v < hh): T(i, v) = sum_j x(i, j) e^{-i 2 pi j v / N}, stored
-    # transposed [v, i] in the (not yet used) W grids: wr[v] / wr[n + v] = re / im of DFT(w),
-    # wi[v] / wi[n + v] = re / im of DFT(w (f - mean))
-    for i in range(n):
-        for v in range(hh):
-            s_wc = np.float32(0.0)
-            s_ws = np.float32(0.0)
-            s_xc = np.float32(0.0)
-            s_xs = np.float32(0.0)
-            for j in range(n):
-                a = wbuf[i, j]
-                bb = xbuf[i, j]
-                c = cos_t[v, j]
-                sn = sin_t[v, j]
-                s_wc += a * c
-                s_ws += a * sn
-                s_xc += bb * c
-                s_xs += bb * sn
-            wr[v, i] = s_wc
-            wr[n + v, i] = -s_ws
-            wi[v, i] = s_xc
-            wi[n + v, i] = -s_xs
-    # columns (complex): X(u, v) = sum_i T(i, v) e^{-i 2 pi u i / N} -> t1 (w) / t2 (w (f - mean)) [u, v]
-    for v in range(hh):
-        for u in range(n):
-            a1 = np.float32(0.0)
-            a2 = np.float32(0.0)
-            a3 = np.float32(0.0)
-            a4 = np.float32(0.0)
-            for i in range(n):
-                c = cos_t[u, i]
-                sn = sin_t[u, i]
-                q1r = wr[v, i]
-                q1i = wr[n + v, i]
-                q2r = wi[v, i]
-                q2i = wi[n + v, i]
-                a1 += q1r * c + q1i * sn
-                a2 += q1i * c - q1r * sn
-                a3 += q2r * c + q2i * sn
-                a4 += q2i * c - q2r * sn
-            t1r[u, v] = a1
-            t1i[u, v] = a2
-            t2r[u, v] = a3
-            t2i[u, v] = a4
-    # Transposed layout for the iterations: R[v, u] (v = half-spectrum index, u full, contiguous);
-    # W on a doubled periodic grid W[v', u'] (v', u' in 0..2n) so that W(j - k) and W(j + k) are
-    # contiguous slices without modulo.
-    for u in range(n):
-        un = (n - u) % n
-        for v in range(hh):
-            a = t1r[u, v]
-            bq = t1i[u, v]
-            wr[v, u] = a
-            wi[v, u] = bq
-            wr[v, u + n] = a
-            wi[v, u + n] = bq
-            wr[v + n, u] = a
-            wi[v + n, u] = bq
-            wr[v + n, u + n] = a
-            wi[v + n, u + n] = bq
-            if 0 < v < n - v:
-                wr[n - v, un] = a
-                wi[n - v, un] = -bq
-                wr[n - v, un + n] = a
-                wi[n - v, un + n] = -bq
-                wr[2 * n - v, un] = a
-                wi[2 * n - v, un] = -bq
-                wr[2 * n - v, un + n] = a
-                wi[2 * n - v, un + n] = -bq
-    for v in range(hh):
-        mx = np.float32(0.0)
-        for u in range(n):
-            a = t2r[u, v]
-            bq = t2i[u, v]
-            rr[v, u] = a
-            ri[v, u] = bq
-            e = (a * a + bq * bq) * prior2[v, u]
-            en[v, u] = e
-            mx = max(mx, e)
-        rm[v] = mx
-    w0 = wr[0, 0]
-    g = np.float32(gamma) / w0
-    # ---- iterations: select bin, add conjugate pair, update residual spectrum in place ----
-    it = 0
-    ns = 0
-    while it < nit:
-        kv = 0
-        best = rm[0]
-        for v in range(1, hh):
-            if rm[v] > best:
-                best = rm[v]
-                kv = v
-        if best <= 0.0:
-            break
-        ku = 0
-        for u in range(n):
-            if en[kv, u] == best:
-                ku = u
-                break
-        cr = rr[kv, ku] * g
-        ci = ri[kv, ku] * g
-        selfm = ((ku == 0) or (2 * ku == n)) and ((kv == 0) or (2 * kv == n))
-        if pair_exact and not selfm:
-            # weighted least-squares projection onto the real pair {phi_k, phi_-k}:
-            # R = c W(0) + conj(c) W(2k)
-            w2r = wr[2 * kv, 2 * ku]
-            w2i = wi[2 * kv, 2 * ku]
-            den = w0 * w0 - (w2r * w2r + w2i * w2i)
-            if den > 1e-3 * w0 * w0:
-                r0 = rr[kv, ku]
-                i0 = ri[kv, ku]
-                gg = np.float32(gamma) / den
-                cr = (r0 * w0 - (r0 * w2r + i0 * w2i)) * gg
-                ci = (i0 * w0 - (r0 * w2i - i0 * w2r)) * gg
-        if selfm:
-            ci = np.float32(0.0)
-            u1 = n - ku
-            for v in range(hh):
-                v1 = v - kv + n
-                mx = np.float32(0.0)
-                for u in range(n):
-                    nr = rr[v, u] - cr * wr[v1, u1 + u]
-                    ni = ri[v, u] - cr * wi[v1, u1 + u]
-                    rr[v, u] = nr
-                    ri[v, u] = ni
-                    e = (nr * nr + ni * ni) * prior2[v, u]
-                    en[v, u] = e
-                    mx = max(mx, e)
-                rm[v] = mx
-            it += 1
-        else:
-            u1 = n - ku
-            for v in range(hh):
-                v1 = v - kv + n
-                v2 = v + kv
-                mx = np.float32(0.0)
-                for u in range(n):
-                    a = wr[v1, u1 + u]
-                    bq = wi[v1, u1 + u]
-                    a2 = wr[v2, ku + u]
-                    b2 = wi[v2, ku + u]
-                    nr = rr[v, u] - (cr * (a + a2) + ci * (b2 - bq))
-                    ni = ri[v, u] - (cr * (bq + b2) + ci * (a - a2))
-                    rr[v, u] = nr
-                    ri[v, u] = ni
-                    e = (nr * nr + ni * ni) * prior2[v, u]
-                    en[v, u] = e
-                    mx = max(mx, e)
-                rm[v] = mx
-            it += 2
-        sel_u[ns] = ku
-        sel_v[ns] = kv
-        sel_r[ns] = cr if selfm else 2.0 * cr
-        sel_i[ns] = ci if selfm else 2.0 * ci
-        ns += 1
-    # ---- synthesis of the block only: g(m) = mean + sum Re(c e^{+i 2 pi k m / N}) ----
-    # separable phases: Re(c e^{i(a + b)}) = cos b (c_r cos a - c_i sin a) - sin b (c_r sin a + c_i cos a),
-    # a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j) / N per column; accumulated over the
-    # selected coefficients for the whole b x b block in xbuf (free after the DFT), vectorised over j
-    for i in range(b):
-        for j in range(b):
-            xbuf[i, j] = 0.0
-    for q in range(ns):
-        cq = sel_r[q]
-        sq = sel_i[q]
-        uq = sel_u[q]
-        vq = sel_v[q]
-        for j in range(b):
-            ph = (vq * (o + j)) & nmask   # n is a power of two
-            t1r[0, j] = tw_c[ph]
-            t1r[1, j] = tw_s[ph]
-        for i in range(b):
-            ph = (uq * (o + i)) & nmask
-            ca = tw_c[ph]
-            sa = tw_s[ph]
-            pp = cq * ca - sq * sa
-            qq = cq * sa + sq * ca
-            for j in range(b):
-                xbuf[i, j] += pp * t1r[0, j] - qq * t1r[1, j]
-    for i in range(b):
-        y = by + i
-        if y >= h:
-            break
-        for j in range(b):
-            x = bx + j
-            if x >= w:
-                break
-            if state[y, x] != 0:
-                continue
-            val = np.float32(mean + xbuf[i, j])
-            if use_lo and val < lo[y, x]:
-                val = lo[y, x]
-            if use_hi and val > hi[y, x]:
-                val = hi[y, x]
-            img[y, x] = val
-            state[y, x] = 2
-    return True
+    return tile_round, round_ptr[: r + 1], round_tiles[:k], r
 
 
 @njit(cache=True, nogil=True)
-def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, q0, q1, qs,
+def _plan(img, state, tile, n, sizes, split, scale, local, edge_penalty, levels, slack):
+    """Quadtree leaves per tile (only leaves with missing pixels) and the round of every tile.
+
+    Returns (tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_lvl, n_rounds)."""
+    h, w = state.shape
+    miss = _missing_per_tile(state, tile)
+    leaf_ptr, leaf_y, leaf_x, leaf_l = _quadtree_leaves(img, state, tile, n, sizes, split, scale, local, miss)
+    tile_round, round_ptr, round_tiles, r = _rounds(miss, h, w, tile, edge_penalty, levels, slack)
+    return tile_round, round_ptr, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, r
+
+
+# --------------------------------------------------------------------------------------------------
+# One block: the FSE of Seiler & Kaup (SPL 2010), one step per helper
+# --------------------------------------------------------------------------------------------------
+# The helpers take the window size ``n`` as an argument and are inlined (numba IR, ``inline="always"``)
+# into the block kernel that :func:`_make_block_kernel` builds: in the kernel for the 16 x 16 window
+# ``n`` is the compile-time constant of the factory's closure, so the short loops get fixed trip counts
+# that LLVM unrolls and vectorises (measured ~4x on the gather against a runtime ``n``); the generic
+# kernel gets ``n`` at run time. One source, two specialisations, both cached by numba (its cache keys
+# a closure by the values it closes over).
+_INL = dict(cache=True, nogil=True, fastmath=True, inline="always")
+
+
+@njit(**_INL)
+def _gather(img, state, tile_round, tshift, tw_tiles, t_self, r_cur, ay, ax, lvl, n, rho_tab, delta,
+            wbuf, xbuf):
+    """Step 1, spatial weights w = s * rho^r and values f of the N x N support area whose top-left corner
+    is (ay, ax), into wbuf / xbuf: s = 1 for known pixels, ``delta`` for reconstructed ones of this tile
+    or of a tile of an earlier round (same-round tiles are never read), 0 for missing ones and outside."""
+    h, w = img.shape
+    for i in range(n):
+        y = ay + i
+        # (direct 2-D indexing, no row views: a view costs an atomic reference-count update on the
+        # array shared by all threads)
+        if y < 0 or y >= h:
+            for j in range(n):
+                wbuf[i, j] = 0.0
+                xbuf[i, j] = 0.0
+            continue
+        j0 = max(0, -ax)
+        j1 = min(n, w - ax)
+        for j in range(j0):
+            wbuf[i, j] = 0.0
+            xbuf[i, j] = 0.0
+        for j in range(j1, n):
+            wbuf[i, j] = 0.0
+            xbuf[i, j] = 0.0
+        tbase = (y >> tshift) * tw_tiles
+        tsz = 1 << tshift
+        tc0 = (ax + j0) >> tshift
+        if ((ax + j1 - 1) >> tshift) - tc0 <= 2:
+            # common case (window spans <= 3 tile columns): the same-round rule of the three columns
+            # as selects, one branch-free pass over the row that vectorises
+            d0 = np.float32(0.0)
+            d1 = np.float32(0.0)
+            d2 = np.float32(0.0)
+            tt = tbase + tc0
+            if tt == t_self or tile_round[tt] < r_cur:
+                d0 = np.float32(delta)
+            if tc0 + 1 < tw_tiles and (tt + 1 == t_self or tile_round[tt + 1] < r_cur):
+                d1 = np.float32(delta)
+            if tc0 + 2 < tw_tiles and (tt + 2 == t_self or tile_round[tt + 2] < r_cur):
+                d2 = np.float32(delta)
+            e0 = ((tc0 + 1) << tshift) - ax
+            e1 = e0 + (1 << tshift)
+            for jj in range(j0, j1):
+                xx = ax + jj
+                dwt = d0 if jj < e0 else (d1 if jj < e1 else d2)
+                st = state[y, xx]
+                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
+                wv = fs * rho_tab[lvl, i, jj]
+                wbuf[i, jj] = wv
+                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
+            continue
+        j = j0
+        while j < j1:
+            # one segment per tile column: the same-round rule is decided once per segment
+            x = ax + j
+            tt = tbase + (x >> tshift)
+            allowed = tt == t_self or tile_round[tt] < r_cur
+            dwt = np.float32(delta) if allowed else np.float32(0.0)
+            je = min(j1, j + tsz - (x & (tsz - 1)))
+            # branch-free (random masks make the state unpredictable): selects instead of branches
+            for jj in range(j, je):
+                xx = ax + jj
+                st = state[y, xx]
+                fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
+                wv = fs * rho_tab[lvl, i, jj]
+                wbuf[i, jj] = wv
+                xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
+            j = je
+
+
+@njit(**_INL)
+def _moments(wbuf, xbuf, n):
+    """(sum w, sum w f, count, sum f, sum f^2) over the usable pixels of the area: a pure reduction
+    pass (no stores), which vectorises."""
+    sw = 0.0
+    swf = 0.0
+    cnt = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    for i in range(n):
+        for j in range(n):
+            wv = wbuf[i, j]
+            fv = xbuf[i, j]
+            sw += wv
+            swf += wv * fv
+            cnt += 1.0 if wv > 0.0 else 0.0
+            s1 += fv
+            s2 += fv * fv
+    return sw, swf, cnt, s1, s2
+
+
+@njit(**_INL)
+def _iteration_count(cnt, s1, s2, scale, local, iter_c, iter_min, iter_max):
+    """Texture-adaptive iteration count (Genser et al. 2017): clip(round(iter_c * sigma), iter_min,
+    iter_max), sigma = (unweighted) std of the usable pixels relative to the data scale."""
+    m1 = s1 / cnt
+    var = s2 / cnt - m1 * m1
+    if var < 0.0:
+        var = 0.0
+    sc = scale
+    if local:
+        sc = abs(m1) * scale
+    sigma = 0.0
+    if sc > 0.0:
+        sigma = math.sqrt(var) / sc
+    nit = int(round(iter_c * sigma))
+    if nit < iter_min:
+        nit = iter_min
+    if nit > iter_max:
+        nit = iter_max
+    return nit
+
+
+@njit(**_INL)
+def _forward_dft(wbuf, xbuf, n, cos_t, sin_t, wr, wi, t1r, t1i, t2r, t2i):
+    """Step 2, W = DFT(w) -> (t1r, t1i) and R = DFT(w (f - mean)) -> (t2r, t2i), [u, v] on the half
+    spectrum v < n/2 + 1; xbuf holds w (f - mean). Separable, as dot products (reductions vectorise
+    without the runtime alias checks that short in-place loops over several arrays need)."""
+    hh = n // 2 + 1
+    # rows (real input -> half spectrum v < hh): T(i, v) = sum_j x(i, j) e^{-i 2 pi j v / N}, stored
+    # transposed [v, i] in the (not yet used) W grids: wr[v] / wr[n + v] = re / im of DFT(w),
+    # wi[v] / wi[n + v] = re / im of DFT(w (f - mean))
+    for i in range(n):
+        for v in range(hh):
+            s_wc = np.float32(0.0)
+            s_ws = np.float32(0.0)
+            s_xc = np.float32(0.0)
+            s_xs = np.float32(0.0)
+            for j in range(n):
+                a = wbuf[i, j]
+                bb = xbuf[i, j]
+                c = cos_t[v, j]
+                sn = sin_t[v, j]
+                s_wc += a * c
+                s_ws += a * sn
+                s_xc += bb * c
+                s_xs += bb * sn
+            wr[v, i] = s_wc
+            wr[n + v, i] = -s_ws
+            wi[v, i] = s_xc
+            wi[n + v, i] = -s_xs
+    # columns (complex): X(u, v) = sum_i T(i, v) e^{-i 2 pi u i / N} -> t1 (w) / t2 (w (f - mean)) [u, v]
+    for v in range(hh):
+        for u in range(n):
+            a1 = np.float32(0.0)
+            a2 = np.float32(0.0)
+            a3 = np.float32(0.0)
+            a4 = np.float32(0.0)
+            for i in range(n):
+                c = cos_t[u, i]
+                sn = sin_t[u, i]
+                q1r = wr[v, i]
+                q1i = wr[n + v, i]
+                q2r = wi[v, i]
+                q2i = wi[n + v, i]
+                a1 += q1r * c + q1i * sn
+                a2 += q1i * c - q1r * sn
+                a3 += q2r * c + q2i * sn
+                a4 += q2i * c - q2r * sn
+            t1r[u, v] = a1
+            t1i[u, v] = a2
+            t2r[u, v] = a3
+            t2i[u, v] = a4
+
+
+@njit(**_INL)
+def _row_maxima(n, en, rm):
+    """rm[v] = max_u en[v, u] with four independent running maxima (n is a multiple of 4): a single
+    chain of scalar max operations was latency-bound and kept the update loop from vectorising
+    (measured 209 -> 116 ns per pair update at n = 16). The maximum is exact; the energies, now computed
+    by vectorised code, may differ from the scalar ones by float rounding (FMA contraction), which can
+    flip a near-tie bin choice: outputs within float rounding, PSNR within 0.001 dB (docs/BENCHMARKS.md)."""
+    hh = n // 2 + 1
+    for v in range(hh):
+        m0 = en[v, 0]
+        m1 = en[v, 1]
+        m2 = en[v, 2]
+        m3 = en[v, 3]
+        for u in range(4, n, 4):
+            m0 = max(m0, en[v, u])
+            m1 = max(m1, en[v, u + 1])
+            m2 = max(m2, en[v, u + 2])
+            m3 = max(m3, en[v, u + 3])
+        rm[v] = max(max(m0, m1), max(m2, m3))
+
+
+@njit(**_INL)
+def _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm):
+    """The layout of the iterations: R[v, u] (v = half-spectrum index, u full, contiguous) with its
+    selection energies |R|^2 prior^2 and their per-row maxima; W on a doubled periodic grid W[v', u']
+    (v', u' in 0..2n, conjugate symmetry fills v > n/2) so that W(j - k) and W(j + k) are contiguous
+    slices without modulo."""
+    hh = n // 2 + 1
+    for u in range(n):
+        un = (n - u) % n
+        for v in range(hh):
+            a = t1r[u, v]
+            bq = t1i[u, v]
+            wr[v, u] = a
+            wi[v, u] = bq
+            wr[v, u + n] = a
+            wi[v, u + n] = bq
+            wr[v + n, u] = a
+            wi[v + n, u] = bq
+            wr[v + n, u + n] = a
+            wi[v + n, u + n] = bq
+            if 0 < v < n - v:
+                wr[n - v, un] = a
+                wi[n - v, un] = -bq
+                wr[n - v, un + n] = a
+                wi[n - v, un + n] = -bq
+                wr[2 * n - v, un] = a
+                wi[2 * n - v, un] = -bq
+                wr[2 * n - v, un + n] = a
+                wi[2 * n - v, un + n] = -bq
+    for v in range(hh):
+        for u in range(n):
+            a = t2r[u, v]
+            bq = t2i[u, v]
+            rr[v, u] = a
+            ri[v, u] = bq
+            en[v, u] = (a * a + bq * bq) * prior2[v, u]
+    _row_maxima(n, en, rm)
+
+
+@njit(**_INL)
+def _select_bin(n, en, rm):
+    """Step 3a, basis choice: the half-spectrum bin (kv, ku) of the largest weighted residual energy
+    |R(k)|^2 prior(k)^2 (per-row maxima first, then the row); best = that energy."""
+    hh = n // 2 + 1
+    kv = 0
+    best = rm[0]
+    for v in range(1, hh):
+        if rm[v] > best:
+            best = rm[v]
+            kv = v
+    ku = 0
+    for u in range(n):
+        if en[kv, u] == best:
+            ku = u
+            break
+    return kv, ku, best
+
+
+@njit(**_INL)
+def _pair_projection(kv, ku, w0, gamma, wr, wi, rr, ri, cr, ci):
+    """``pair_exact``: the weighted least-squares projection onto the real pair {phi_k, phi_-k},
+    R = c W(0) + conj(c) W(2k), instead of c = gamma R(k) / W(0); (cr, ci) unchanged when ill-posed."""
+    w2r = wr[2 * kv, 2 * ku]
+    w2i = wi[2 * kv, 2 * ku]
+    den = w0 * w0 - (w2r * w2r + w2i * w2i)
+    if den > 1e-3 * w0 * w0:
+        r0 = rr[kv, ku]
+        i0 = ri[kv, ku]
+        gg = np.float32(gamma) / den
+        cr = (r0 * w0 - (r0 * w2r + i0 * w2i)) * gg
+        ci = (i0 * w0 - (r0 * w2i - i0 * w2r)) * gg
+    return cr, ci
+
+
+@njit(**_INL)
+def _update_self(n, kv, ku, cr, prior2, wr, wi, rr, ri, en, rm):
+    """Step 3c for a self-conjugate bin (DC, Nyquist): R(j) -= c W(j - k), c real; energies refreshed."""
+    hh = n // 2 + 1
+    u1 = n - ku
+    for v in range(hh):
+        v1 = v - kv + n
+        for u in range(n):
+            nr = rr[v, u] - cr * wr[v1, u1 + u]
+            ni = ri[v, u] - cr * wi[v1, u1 + u]
+            rr[v, u] = nr
+            ri[v, u] = ni
+            en[v, u] = (nr * nr + ni * ni) * prior2[v, u]
+    _row_maxima(n, en, rm)
+
+
+@njit(**_INL)
+def _update_pair(n, kv, ku, cr, ci, prior2, wr, wi, rr, ri, en, rm):
+    """Step 3c for a conjugate pair, in the frequency domain without an inverse FFT:
+    R(j) -= c W(j - k) + conj(c) W(j + k) (= DFT(w (f - g)) exactly); energies refreshed."""
+    hh = n // 2 + 1
+    u1 = n - ku
+    for v in range(hh):
+        v1 = v - kv + n
+        v2 = v + kv
+        for u in range(n):
+            a = wr[v1, u1 + u]
+            bq = wi[v1, u1 + u]
+            a2 = wr[v2, ku + u]
+            b2 = wi[v2, ku + u]
+            nr = rr[v, u] - (cr * (a + a2) + ci * (b2 - bq))
+            ni = ri[v, u] - (cr * (bq + b2) + ci * (a - a2))
+            rr[v, u] = nr
+            ri[v, u] = ni
+            en[v, u] = (nr * nr + ni * ni) * prior2[v, u]
+    _row_maxima(n, en, rm)
+
+
+@njit(**_INL)
+def _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i):
+    """Step 3, the iterations: choose the basis function (bin) of largest weighted residual energy,
+    its coefficient c = gamma R(k) / W(0) (gamma: orthogonality-deficiency compensation), add c at k
+    and conj(c) at -k to the model (a pair counts 2 iterations, DC / Nyquist 1), update the residual
+    spectrum. The model's coefficients go to sel_*; returns their count."""
+    w0 = wr[0, 0]
+    g = np.float32(gamma) / w0
+    it = 0
+    ns = 0
+    while it < nit:
+        kv, ku, best = _select_bin(n, en, rm)
+        if best <= 0.0:
+            break
+        cr = rr[kv, ku] * g
+        ci = ri[kv, ku] * g
+        selfm = ((ku == 0) or (2 * ku == n)) and ((kv == 0) or (2 * kv == n))
+        if pair_exact and not selfm:
+            cr, ci = _pair_projection(kv, ku, w0, gamma, wr, wi, rr, ri, cr, ci)
+        if selfm:
+            ci = np.float32(0.0)
+            _update_self(n, kv, ku, cr, prior2, wr, wi, rr, ri, en, rm)
+            it += 1
+        else:
+            _update_pair(n, kv, ku, cr, ci, prior2, wr, wi, rr, ri, en, rm)
+            it += 2
+        sel_u[ns] = ku
+        sel_v[ns] = kv
+        sel_r[ns] = cr if selfm else 2.0 * cr
+        sel_i[ns] = ci if selfm else 2.0 * ci
+        ns += 1
+    return ns
+
+
+@njit(**_INL)
+def _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, ph_buf):
+    """Step 4, the model on the block only: g(m) - mean = sum Re(c e^{+i 2 pi k m / N}) into xbuf[:b, :b]
+    (no inverse FFT). Separable phases: Re(c e^{i(a + b)}) = cos b (c_r cos a - c_i sin a) - sin b
+    (c_r sin a + c_i cos a), a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j) / N per column (rows 0
+    and 1 of ph_buf), vectorised over the block row."""
+    nmask = n - 1
+    o = (n - b) // 2
+    for i in range(b):
+        for j in range(b):
+            xbuf[i, j] = 0.0
+    for q in range(ns):
+        cq = sel_r[q]
+        sq = sel_i[q]
+        uq = sel_u[q]
+        vq = sel_v[q]
+        for j in range(b):
+            ph = (vq * (o + j)) & nmask   # n is a power of two
+            ph_buf[0, j] = tw_c[ph]
+            ph_buf[1, j] = tw_s[ph]
+        for i in range(b):
+            ph = (uq * (o + i)) & nmask
+            ca = tw_c[ph]
+            sa = tw_s[ph]
+            pp = cq * ca - sq * sa
+            qq = cq * sa + sq * ca
+            for j in range(b):
+                xbuf[i, j] += pp * ph_buf[0, j] - qq * ph_buf[1, j]
+
+
+@njit(**_INL)
+def _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf):
+    """Step 5, the block's missing pixels only: mean + model, clamped to [lo, hi] where bounded, become
+    "reconstructed" (state 2, weight delta) for later blocks; known pixels stay bit-exact."""
+    h, w = img.shape
+    for i in range(b):
+        y = by + i
+        if y >= h:
+            break
+        for j in range(b):
+            x = bx + j
+            if x >= w:
+                break
+            if state[y, x] != 0:
+                continue
+            val = np.float32(mean + xbuf[i, j])
+            if use_lo and val < lo[y, x]:
+                val = lo[y, x]
+            if use_hi and val > hi[y, x]:
+                val = hi[y, x]
+            img[y, x] = val
+            state[y, x] = 2
+
+
+def _make_block_kernel(n_fixed):
+    """The block kernel, FSE of one quadtree leaf; ``n_fixed`` > 0: specialised for that window size (a
+    compile-time constant), 0: the window size is the ``n`` argument."""
+
+    @njit(cache=True, nogil=True, fastmath=True)
+    def block_kernel(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
+                     by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
+                     delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
+                     wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i):
+        """Reconstruct the missing pixels of block (by, bx, b) in place (Seiler & Kaup, SPL 2010: weighted
+        projection of the support area onto DFT basis functions, one chosen per iteration, residual
+        updated in the frequency domain). Returns False if its support area has no usable pixel (left
+        for the fallback)."""
+        if n_fixed > 0:
+            n = n_fixed
+        o = (n - b) // 2
+        _gather(img, state, tile_round, tshift, tw_tiles, t_self, r_cur, by - o, bx - o, lvl, n, rho_tab,
+                delta, wbuf, xbuf)
+        sw, swf, cnt, s1, s2 = _moments(wbuf, xbuf, n)
+        if sw <= 0.0:
+            return False
+        mean = swf / sw     # weighted mean removed (ours: translation invariance, float32 conditioning)
+        nit = _iteration_count(cnt, s1, s2, scale, local, iter_c, iter_min, iter_max)
+        fm = np.float32(mean)
+        for i in range(n):
+            for j in range(n):
+                xbuf[i, j] = wbuf[i, j] * (xbuf[i, j] - fm)
+        _forward_dft(wbuf, xbuf, n, cos_t, sin_t, wr, wi, t1r, t1i, t2r, t2i)
+        _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm)
+        ns = _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm,
+                          sel_u, sel_v, sel_r, sel_i)
+        _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, t1r)
+        _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf)
+        return True
+
+    return block_kernel
+
+
+# the common 16 x 16 window (preview, fast, balanced) and any other window
+_block16 = _make_block_kernel(16)
+_block = _make_block_kernel(0)
+
+@intrinsic
+def _fetch_add(typingctx, counter, i):
+    """counter[i] += 1 as one atomic operation; returns the value before (dynamic scheduling)."""
+    sig = types.int64(counter, i)
+
+    def codegen(context, builder, signature, args):
+        aryty, ity = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = context.cast(builder, args[1], ity, types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx])
+        return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1), "monotonic")
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True)
+def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
             round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t, tw_c, tw_s,
-            bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact):
-    """The tiles round_tiles[r0 + q], q in range(q0, q1, qs), on one thread. The scratch is owned by
-    this call (a few kB): no views of arrays shared with the other threads in the per-block calls."""
+            prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact):
+    """The tiles of round r on one thread: each thread takes the next unprocessed tile of the round
+    (``counter[r]``, atomic), so both threads stay busy whatever the tiles cost and however the OS
+    schedules them (a static split waits for the slower thread). The scratch is owned by this call (a
+    few kB): no views of arrays shared with the other threads in the per-block calls."""
     hh = n // 2 + 1
     nsel = iter_max + 2
     hp = cos_t.shape[1]
@@ -1061,53 +906,53 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     sel_v = np.zeros(nsel, np.int64)
     sel_r = np.zeros(nsel, np.float32)
     sel_i = np.zeros(nsel, np.float32)
-    if n == 16:
-        # the common window: the copy of _block with n a compile-time constant
-        for q in range(q0, q1, qs):
-            t = round_tiles[r0 + q]
-            for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
-                lv = leaf_l[li]
-                _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                       leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
-                       tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                       local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
-                       sel_u, sel_v, sel_r, sel_i)
-        return
-    for q in range(q0, q1, qs):
+    while True:
+        q = _fetch_add(counter, r)
+        if q >= cntr:
+            return
         t = round_tiles[r0 + q]
         for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
             lv = leaf_l[li]
-            _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                   leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
-                   tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                   local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
-                   sel_u, sel_v, sel_r, sel_i)
+            if n == 16:     # the common window: the kernel specialised for n = 16
+                _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
+                         leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
+                         tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                         local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                         sel_u, sel_v, sel_r, sel_i)
+            else:
+                _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
+                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
+                       tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                       local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                       sel_u, sel_v, sel_r, sel_i)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
-         leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+         leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
          delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads):
+    """The rounds one after the other; the tiles of a round on ``nthreads`` threads."""
     h, w = img.shape
     tw_tiles = (w + tile - 1) // tile
     tshift = 0
     while (1 << tshift) < tile:
         tshift += 1
     nround = round_ptr.shape[0] - 1
+    counter = np.zeros(max(nround, 1), np.int64)
     for r in range(nround):
         r0 = round_ptr[r]
         cntr = round_ptr[r + 1] - r0
         if nthreads == 1:
-            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, 0, cntr, 1,
+            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
                     round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
-                    tw_c, tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
+                    tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
                     pair_exact)
             continue
         for th in prange(nthreads):
-            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, th, cntr,
-                    nthreads, round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t,
-                    sin_t, tw_c, tw_s, bitrev, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                    local, pair_exact)
+            _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
+                    round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
+                    tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
+                    pair_exact)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1408,7 +1253,7 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
     set_num_threads(nthreads)
     try:
         _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
-             leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, bitrev, prior2,
+             leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
              float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
              int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
     finally:

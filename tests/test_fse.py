@@ -160,3 +160,87 @@ def test_kodak_crop_beats_linear_and_opencv_fsr_fast():
     cv2.xphoto.inpaint(src, known.astype(np.uint8) * 255, dst, cv2.xphoto.INPAINT_FSR_FAST)
     p_cv = psnr(img, dst, 255)
     assert p_fse > p_cv, (p_fse, p_cv)
+
+
+# ---- one block kernel source (issue 13 item 3): the n = 16 specialisation, the generic kernel and an
+# ---- independent numpy FSE of one block (np.fft, complex128, residual by explicit FFT of the update)
+def _numpy_fse_block(img, known, by, bx, b, n, rho, gamma, nit):
+    """Seiler & Kaup's FSE of one block, written from fse-reference.md with np.fft: weights w = known *
+    rho^r, mean removed, c = gamma R(k) / W(0) at the largest |R(k)| prior(k) of the half spectrum,
+    conjugate pair added, R(j) -= c W(j - k) + conj(c) W(j + k); g = mean + Re(IDFT(G))."""
+    o = (n - b) // 2
+    f = img[by - o:by - o + n, bx - o:bx - o + n].astype(np.float64)
+    yy, xx = np.mgrid[0:n, 0:n]
+    r = np.hypot(yy - (n - 1) / 2, xx - (n - 1) / 2)
+    w = known[by - o:by - o + n, bx - o:bx - o + n] * rho ** r
+    mean = np.sum(w * f) / np.sum(w)
+    W = np.fft.fft2(w)
+    R = np.fft.fft2(w * (f - mean))
+    fu = np.minimum(np.arange(n), n - np.arange(n))
+    prior = np.clip(1 - np.sqrt(2) * np.hypot(fu[:, None], fu[None, :]) / n, 0, 1)
+    G = np.zeros((n, n), complex)
+    it = 0
+    while it < nit:
+        e = (np.abs(R) ** 2 * prior ** 2)[:, :n // 2 + 1].T    # [v, u], v-major like the kernel
+        kv, ku = np.unravel_index(np.argmax(e), e.shape)
+        c = gamma * R[ku, kv] / W[0, 0]
+        if ku in (0, n // 2) and kv in (0, n // 2):
+            c = c.real
+            G[ku, kv] += c
+            R = R - c * np.roll(W, (ku, kv), (0, 1))
+            it += 1
+        else:
+            G[ku, kv] += c
+            G[-ku, -kv] += np.conj(c)
+            R = R - c * np.roll(W, (ku, kv), (0, 1)) - np.conj(c) * np.roll(W, (-ku, -kv), (0, 1))
+            it += 2
+    g = mean + np.real(np.fft.ifft2(G)) * n * n
+    return g[o:o + b, o:o + b]
+
+
+def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
+    p = fse.resolve_params("balanced", window=n, max_block=b, min_block=b, rho={b: rho}, gamma=gamma)
+    cos_t, sin_t, tw_c, tw_s, _bitrev, prior2, rho_tab, _split, _sizes = fse._make_tables(p)
+    img = img.copy()
+    state = state.copy()
+    tshift = int(np.log2(b))
+    tw_tiles = -(-img.shape[1] // b)
+    tile_round = np.zeros(-(-img.shape[0] // b) * tw_tiles, np.int64)
+    hh, f32 = n // 2 + 1, np.float32
+    scratch = ([np.zeros((n, n), f32) for _ in range(2)] + [np.zeros((n, n), f32) for _ in range(4)]
+               + [np.zeros((2 * n, 2 * n), f32) for _ in range(2)] + [np.zeros((hh, n), f32) for _ in range(3)]
+               + [np.zeros(hh, f32), np.zeros(nit + 2, np.int64), np.zeros(nit + 2, np.int64),
+                  np.zeros(nit + 2, f32), np.zeros(nit + 2, f32)])
+    dummy = np.zeros((1, 1), f32)
+    ok = kernel(img, state, dummy, dummy, False, False, tile_round, tshift, tw_tiles,
+                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, cos_t, sin_t,
+                tw_c, tw_s, prior2, 0.5, gamma, 0.0, nit, nit, 1.0, False, False, *scratch)
+    assert ok
+    return img, state
+
+
+@pytest.mark.parametrize("n, b", [(16, 8), (16, 4), (32, 8), (8, 4)])
+def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b):
+    """The block kernel (one source, issue 13) against an independent numpy FSE of the same block; for
+    n = 16 the specialised kernel (compile-time n) gives the generic kernel's result to float rounding."""
+    rng = np.random.default_rng(n + b)
+    img = (sinusoids(48, 48) + rng.normal(0, 3, (48, 48))).astype(np.float32)
+    known = rng.random(img.shape) < 0.5
+    state = known.astype(np.uint8)
+    work = np.where(known, img, 0).astype(np.float32)
+    by = bx = 24   # a block inside the image, on the block grid
+    nit, rho, gamma = 12, 0.7, 0.5
+    out, st = _run_block_kernel(fse._block, work, state, by, bx, b, n, rho, gamma, nit)
+    ref = _numpy_fse_block(work, known, by, bx, b, n, rho, gamma, nit)
+    blk = (slice(by, by + b), slice(bx, bx + b))
+    miss = ~known[blk]
+    assert miss.any() and np.all(st[blk][miss] == 2) and np.all(st[blk][~miss] == 1)
+    np.testing.assert_array_equal(out[blk][~miss], work[blk][~miss])      # known pixels untouched
+    np.testing.assert_allclose(out[blk][miss], ref[miss], rtol=0, atol=1e-3 * np.ptp(img))
+    outside = np.ones(img.shape, bool)
+    outside[blk] = False
+    np.testing.assert_array_equal(out[outside], work[outside])            # nothing outside the block
+    if n == 16:
+        out16, st16 = _run_block_kernel(fse._block16, work, state, by, bx, b, n, rho, gamma, nit)
+        np.testing.assert_array_equal(st16, st)
+        np.testing.assert_allclose(out16, out, rtol=1e-6, atol=1e-5)

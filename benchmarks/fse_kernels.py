@@ -1,0 +1,143 @@
+"""FSE before / after in one run (issue 13 item 3, issue 7): the FSE of a git revision (default ``main``)
+against the working tree's, on the same inputs, interleaved call by call.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/fse_kernels.py                 # ~3 min on 2 shared cores
+    PYTHONPATH=. .venv/bin/python benchmarks/fse_kernels.py --before HEAD~1 --repeat 7 --cases hdr1080
+
+The "before" module is ``git show REV:nrhdr_core/fse.py`` imported from a temporary directory (it is
+self-contained: numpy and numba only). Cases:
+  kodak     kodim01 / kodim03 grayscale (768 x 512), 50 % known (uniform random), presets fast, balanced
+  kodak_win kodim01, 50 % known, balanced with a 32 x 32 window (the generic, non-16 kernel)
+  sparse    kodim03, 20 % known, fast (its 32 x 32 window below 40 % known)
+  hdr1080   one 1920 x 1080 HDR frame (MtTamWest through the sensor model, the scene's missing pixels and
+            bounds), presets fast and preview: the nrreconstruct fse stage of issue 7
+  vga       640 x 480 of the same scene, 50 % missing, preset preview (issue 7: >= 30 frames/s)
+Per case: max |after - before| over the image, PSNR of both (Kodak, against the original), and the wall
+time of each (median of ``--repeat`` interleaved calls after one untimed warm-up each; on a shared machine
+only the ratio after / before of one run is meaningful). ``--cpu`` uses the process CPU clock.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from nrhdr_core import fse as fse_after  # noqa: E402
+
+DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+def load_before(rev):
+    src = subprocess.run(["git", "show", f"{rev}:nrhdr_core/fse.py"], cwd=ROOT, check=True,
+                         capture_output=True, text=True).stdout
+    d = Path(tempfile.gettempdir()) / f"nrhdr_fse_before_{os.getuid()}"
+    d.mkdir(exist_ok=True)
+    p = d / "fse_before.py"
+    if not p.exists() or p.read_text() != src:
+        p.write_text(src)
+    spec = importlib.util.spec_from_file_location("fse_before", p)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["fse_before"] = mod      # numba's cache finds the module of its kernels by name
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def psnr(ref, test, peak=255.0):
+    mse = np.mean((np.asarray(ref, np.float64) - np.asarray(test, np.float64)) ** 2)
+    return float("inf") if mse == 0 else float(10 * np.log10(peak * peak / mse))
+
+
+def kodak(i):
+    import cv2
+    p = DATA / "kodak" / f"kodim0{i}.png"
+    if not p.exists():
+        raise SystemExit(f"missing benchmark data {p} (set NRHDR_SHARED_DATA)")
+    return cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+
+
+def hdr_frame(h, w, missing=None):
+    """(values, known, lower, upper) of one HDR frame as nrreconstruct gets it (benchmarks/stages.py)."""
+    from benchmarks.stages import scene_flux
+    from nrhdr_core import sensor, validity
+    flux, prof, _ = scene_flux(h, w, str(DATA / "hdr" / "MtTamWest.exr"))
+    raw = sensor.capture(flux, prof, np.random.default_rng(1))
+    values, state = validity.classify(raw, prof)
+    if missing is not None:
+        miss = np.random.default_rng(3).random((h, w)) < missing
+        return flux.astype(np.float32), ~miss, None, None
+    lo, hi = validity.bounds(values, state)
+    return values, validity.known_mask(state), lo, hi
+
+
+def cases(which):
+    out = []
+    if "kodak" in which:
+        for i in (1, 3):
+            img = kodak(i)
+            k = np.random.default_rng(i).random(img.shape) < 0.5
+            for preset in ("fast", "balanced"):
+                out.append((f"kodim0{i} 50% {preset}", img, k, None, None, preset, {}, img))
+    if "kodak_win" in which:
+        img = kodak(1)
+        k = np.random.default_rng(1).random(img.shape) < 0.5
+        out.append(("kodim01 50% balanced window=32", img, k, None, None, "balanced", {"window": 32}, img))
+    if "sparse" in which:
+        img = kodak(3)
+        k = np.random.default_rng(7).random(img.shape) < 0.2
+        out.append(("kodim03 20% fast (32 x 32 window)", img, k, None, None, "fast", {}, img))
+    if "hdr1080" in which:
+        v, k, lo, hi = hdr_frame(1080, 1920)
+        miss = 1.0 - float(np.mean(k))
+        for preset in ("fast", "preview"):
+            out.append((f"1920x1080 HDR ({miss:.0%} missing) {preset}", v, k, lo, hi, preset, {}, None))
+    if "vga" in which:
+        v, k, lo, hi = hdr_frame(480, 640, missing=0.5)
+        out.append(("640x480 50% missing preview", v, k, lo, hi, "preview", {}, v))
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--before", default="main", help="git revision of the 'before' fse.py")
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--cases", default="kodak,kodak_win,sparse,hdr1080,vga")
+    ap.add_argument("--cpu", action="store_true", help="process CPU clock instead of wall time")
+    a = ap.parse_args(argv)
+    clock = time.process_time if a.cpu else time.perf_counter
+    before = load_before(a.before)
+    mods = {"before": before, "after": fse_after}
+    print(f"FSE {a.before} (before) vs working tree (after); {a.repeat} interleaved calls, median "
+          f"{'CPU' if a.cpu else 'wall'} ms; load {os.getloadavg()[0]:.1f}", flush=True)
+    print("| case | max abs diff | PSNR before | PSNR after | ms before | ms after | after / before |")
+    print("|---|---|---|---|---|---|---|")
+    for name, v, k, lo, hi, preset, kw, truth in cases(set(a.cases.split(","))):
+        res = {}
+        ts = {m: [] for m in mods}
+        for m, mod in mods.items():   # warm-up (compilation) and the outputs
+            res[m] = mod._fse(v, k, lo, hi, preset, False, dict(kw))
+        for _ in range(a.repeat):
+            for m, mod in mods.items():
+                t = clock()
+                mod._fse(v, k, lo, hi, preset, False, dict(kw))
+                ts[m].append(clock() - t)
+        tb, ta = (1e3 * float(np.median(ts[m])) for m in ("before", "after"))
+        d = float(np.max(np.abs(res["after"].astype(np.float64) - res["before"])))
+        pb = pa = "-"
+        if truth is not None:
+            pk = 255.0 if truth.max() <= 255 else float(truth.max())
+            pb, pa = f"{psnr(truth, res['before'], pk):.3f}", f"{psnr(truth, res['after'], pk):.3f}"
+        print(f"| {name} | {d:.3g} | {pb} | {pa} | {tb:.1f} | {ta:.1f} | {ta / tb:.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
