@@ -905,6 +905,14 @@ class _Sensor:
     nd: float
     crosstalk: CrosstalkCalibration
 
+    @property
+    def height(self) -> int:
+        return int(self.mask.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.mask.shape[1])
+
 
 def warmup() -> None:
     """Compile the kernels on a tiny frame (elements call this in do_start, never at import)."""
