@@ -807,22 +807,16 @@ def compact_for(profile) -> CompactLut:
     calib = profile.crosstalk
     if calib is None:
         raise ValueError("the profile has no crosstalk calibration")
-    key = (float(profile.nd), mask_key(profile.mask))
+    mask, nd = profile.mask, float(profile.nd)
+    hit = calib.__dict__.get("_compact")            # (mask object, nd, CompactLut): an O(1) check per frame
+    if hit is not None and hit[0] is mask and hit[1] == nd:
+        return hit[2]
     with _compact_lock:
-        cache = calib.__dict__.setdefault("_compact", {})
-        c = cache.get(key)
-        if c is None:
-            c = compact_lut(calib, profile.mask, float(profile.nd))
-            cache.clear()
-            cache[key] = c
-    return c
-
-
-def mask_key(mask: np.ndarray) -> str:
-    """Checksum of a mask (which pixels the compact LUT's groups were built from)."""
-    import hashlib
-    m = np.ascontiguousarray(np.asarray(mask, bool))
-    return hashlib.sha1(repr(m.shape).encode() + np.packbits(m, axis=None).tobytes()).hexdigest()
+        hit = calib.__dict__.get("_compact")
+        if hit is None or hit[0] is not mask or hit[1] != nd:
+            hit = (mask, nd, compact_lut(calib, mask, nd))
+            calib.__dict__["_compact"] = hit
+    return hit[2]
 
 
 def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", iterations: int = 2,
