@@ -211,6 +211,12 @@ class CrosstalkCalibration:
     def shape(self):
         return self.codes_q.shape[:2]
 
+    def __getstate__(self):
+        # the compact LUT derived from this table (`compact_for`) is not shipped: derived again where used
+        d = dict(self.__dict__)
+        d.pop("_compact", None)
+        return d
+
     def codes(self) -> np.ndarray:
         """(H, W, K) float32 codes above black (invalid knots included)."""
         return self.codes_q.astype(np.float32) * np.float32(self.qscale) - np.float32(self.qoffset)

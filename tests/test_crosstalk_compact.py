@@ -109,3 +109,12 @@ def test_compact_is_cached_per_profile_and_rejects_bad_forms(smooth):
     s = np.zeros(smooth.mask.shape, np.uint8)
     with pytest.raises(ValueError, match="lut form"):
         crosstalk.correct(v, s, smooth, mode="lut", lut="tiny")
+
+
+def test_compact_form_is_not_pickled_with_the_calibration(smooth):
+    """Batch workers receive the profile pickled: the derived compact form (66 MB at 1080p) stays behind."""
+    import pickle
+    crosstalk.compact_for(smooth)
+    cal = pickle.loads(pickle.dumps(smooth.crosstalk))
+    assert "_compact" not in cal.__dict__
+    np.testing.assert_array_equal(cal.codes_q, smooth.crosstalk.codes_q)
