@@ -434,18 +434,23 @@ def _lut_kernel(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, cl
 
 COMPACT_POINTS = 14                 # grid points per pixel (G = 13 segments); + c0 + top = 16 int16 = 32 bytes
 LUT_FORMS = ("full", "compact")
-_TOP_IS_CLIP = 32767                # record[15]: the range ends at the clip code (the usual case)
+# record[14], [15]: the raw uint16 knot codes (codes_q) of the pixel's dark knot and of the top of its range,
+# so that both decode to exactly the full table's floats; [15] may instead be one of (never a knot below clip):
+_TOP_IS_CLIP = 65535                # the range ends at the clip code (the usual case)
+_NO_RANGE = 65534                   # fewer than 2 knots: every code UNCALIBRATED
 
 
 @dataclasses.dataclass(eq=False)
 class CompactLut:
     """Compact form of a `CrosstalkCalibration`'s LUT (`compact_lut`). rec (H, W, 16) int16: the pixel's
-    correction at the grid codes in units of dscale[group] (group 0 regular, 1 attenuated), its dark knot
-    code c0 in 1/16 code, the top of its range in 1/8 code (rounded down) or _TOP_IS_CLIP; codes above
-    black. f0: flux of the dark knot; clip_rel: clip code - black level."""
+    correction at the grid codes in units of dscale[group] (group 0 regular, 1 attenuated), then the raw
+    uint16 knot codes of its dark knot and of its range's top (or _TOP_IS_CLIP / _NO_RANGE), decoded as
+    `q * qscale - qoffset` like the full table's. f0: flux of the dark knot; clip_rel: clip code - black."""
     rec: np.ndarray
     dscale: np.ndarray
     clip_rel: float
+    qscale: float
+    qoffset: float
     f0: float
     nd: float
     info: dict = dataclasses.field(default_factory=dict)
@@ -516,9 +521,7 @@ def _grid_residual(codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, ys,
 
 
 def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk: int = 262144) -> CompactLut:
-    """Derive the compact LUT from the full table (load time, about a second at 1080p). Pixels whose dark
-    knot or range does not fit the record (|c0| >= 2048 codes) get an empty range (UNCALIBRATED), as pixels
-    without calibration."""
+    """Derive the compact LUT from the full table (load time, about a second at 1080p)."""
     h, w = calib.shape
     mask = np.asarray(mask, bool)
     if mask.shape != (h, w):
@@ -543,19 +546,20 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
             dscale[grp] = max(float(np.max(np.abs(d_all[sel]))), 1e-3) / 32000.0
     rec = np.empty((h * w, 16), np.int16)
     rec[:, :COMPACT_POINTS] = np.rint(d_all / dscale[att.astype(np.int64)][:, None]).astype(np.int16)
-    c0, top = rng_all[:, 0], rng_all[:, 1]
-    bad = ~(np.abs(c0) < 2047.0) | ~(top >= 0)
-    rec[:, 14] = np.rint(np.clip(np.nan_to_num(c0), -2047, 2047) * 16).astype(np.int16)
-    at_clip = top >= clip_rel
-    rec[:, 15] = np.where(at_clip, _TOP_IS_CLIP, np.floor(np.clip(np.nan_to_num(top), 0, 4095) * 8)).astype(np.int16)
-    rec[bad, 15] = -1                                   # empty range: every code UNCALIBRATED
+    n = calib.n_knots.reshape(-1).astype(np.int64)
+    cq = calib.codes_q.reshape(h * w, -1)
+    q_last = cq[np.arange(h * w), np.clip(n - 1, 0, cq.shape[1] - 1)].astype(np.int64)
+    top_q = np.where(n < 2, _NO_RANGE, np.where(rng_all[:, 1] >= clip_rel, _TOP_IS_CLIP, q_last))
+    rec[:, 14] = cq[:, 0].view(np.int16)
+    rec[:, 15] = top_q.astype(np.uint16).view(np.int16)
     return CompactLut(rec=rec.reshape(h, w, 16), dscale=dscale, clip_rel=float(clip_rel),
+                      qscale=float(calib.qscale), qoffset=float(calib.qoffset),
                       f0=max(float(calib.knot_flux[0]), 0.0), nd=float(nd),
-                      info={"points": COMPACT_POINTS, "unfit_pixels": int(np.sum(bad))})
+                      info={"points": COMPACT_POINTS, "no_range_pixels": int(np.sum(n < 2))})
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _lut_kernel_compact(values, state, rec, dscale, clip_rel, f0, clip_flux, nd):
+def _lut_kernel_compact(values, state, rec, dscale, clip_rel, qs, qo, f0, clip_flux, nd):
     """`lut` mode in place with the compact LUT: the same state handling as `_lut_kernel`, written without
     data-dependent branches (attenuated and regular pixels alternate at random in the mask)."""
     h, w = values.shape
@@ -576,9 +580,9 @@ def _lut_kernel_compact(values, state, rec, dscale, clip_rel, f0, clip_flux, nd)
             grp = np.int64(st >> 7)              # the ATTENUATED bit: group 1
             s = sc[grp]
             m = v * inv[grp]
-            c0 = np.float32(rec[y, x, 14]) * np.float32(0.0625)
-            tq = rec[y, x, 15]
-            top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * np.float32(0.125)
+            c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
+            tq = np.int64(rec[y, x, 15]) & 0xFFFF
+            top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
             mm = max(min(max(m, c0), top), zero)
             u = np.sqrt(mm * inv_step)
             j = min(np.int64(u), g - 1)
@@ -590,7 +594,7 @@ def _lut_kernel_compact(values, state, rec, dscale, clip_rel, f0, clip_flux, nd)
             fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
             f = fb if m <= c0 else f
             # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
-            ok = (m <= top) & (tq >= 0)
+            ok = (m <= top) & (tq != _NO_RANGE)
             reason = st & 0x0F
             cf = clip_flux[y, x]
             nv = v
@@ -643,7 +647,8 @@ def compact_error(calib: CrosstalkCalibration, compact: CompactLut, mask: np.nda
 
 def _compact_apply(values, state, compact: CompactLut, clip_flux):
     _lut_kernel_compact(values, state, compact.rec, compact.dscale, np.float32(compact.clip_rel),
-                        np.float32(compact.f0), clip_flux, compact.nd)
+                        np.float32(compact.qscale), np.float32(compact.qoffset), np.float32(compact.f0),
+                        clip_flux, compact.nd)
 
 
 @njit(cache=True, nogil=True)
