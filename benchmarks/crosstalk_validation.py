@@ -43,6 +43,7 @@ SCENES_DIR = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "
 MIN_FLUX = 20.0
 SENSORS = ["prototype", "linear", "independent", "independent-nc", "none"]
 DEFAULT_SIZE = (192, 256)
+EVAL_MODES = ("off", "lut", "lut-compact", "kernel")   # lut-compact: the LUT's fast setting (compact form)
 DEFAULT_JSON = ROOT / "benchmarks" / "results" / "crosstalk_validation.json"
 DEFAULT_IMG = ROOT / "docs" / "img"
 PARTIAL_DIR = ROOT / "bench_out" / "crosstalk_validation"
@@ -120,9 +121,12 @@ def errors(values, state, truth, mask, edges):
 def evaluate(raw, cal_prof, truth, mask):
     edges = edge_map(truth)
     res = {}
-    for mode in ("off", "lut", "kernel"):
+    for mode in EVAL_MODES:
         v, s = validity.classify(raw, cal_prof, mode="threshold")
-        crosstalk.correct(v, s, cal_prof, mode=mode)
+        if mode == "lut-compact":   # nrcrosstalk mode=lut lut=compact (the fast setting, issue 7)
+            crosstalk.correct(v, s, cal_prof, mode="lut", lut="compact")
+        else:
+            crosstalk.correct(v, s, cal_prof, mode=mode)
         res[mode] = errors(v, s, truth, mask, edges)
     return res
 
@@ -191,8 +195,10 @@ def report(results):
               "| sensor | mode | flats all | flats att | scenes all | scenes att | scenes att edges | "
               "scenes att (noisy) |", "|---|---|---|---|---|---|---|---|"]
     for r in results:
-        for mode in ("off", "lut", "kernel"):
+        for mode in EVAL_MODES:
             fl = r["flats"]
+            if any(mode not in v for v in fl.values()):
+                continue
             fa = round(float(np.mean([v[mode]["all"]["mean_pct"] for v in fl.values()])), 3)
             ft = [v[mode]["attenuated"]["mean_pct"] for v in fl.values() if v[mode]["attenuated"]["mean_pct"] is not None]
             ft = round(float(np.mean(ft)), 3) if ft else None

@@ -103,8 +103,12 @@ def main(argv=None) -> int:
                             * np.float32(info["exposure_scale"]), cprof, np.random.default_rng(3), model)
         cv, cs = validity.classify(rx, cprof)
         for mode in ("lut", "kernel"):
-            rows.append((f"nrcrosstalk mode={mode} (calibrated prototype sensor)",
+            rows.append((f"nrcrosstalk mode={mode}{' lut=full' if mode == 'lut' else ''} (calibrated prototype sensor)",
                          tm(lambda: crosstalk.correct(cv.copy(), cs.copy(), cprof, mode=mode), 5)))
+        if hasattr(crosstalk, "compact_for"):   # nrcrosstalk's default LUT form (helper lut, issue 7)
+            crosstalk.compact_for(cprof)
+            rows.append(("nrcrosstalk mode=lut lut=compact (calibrated prototype sensor)",
+                         tm(lambda: crosstalk.correct(cv.copy(), cs.copy(), cprof, mode="lut", lut="compact"), 5)))
     for m in methods:
         kw = {"preset": a.preset} if m == "fse" else {}
         rep = 3 if m in ("linear", "fse") else 7

@@ -35,6 +35,7 @@ class ChainSettings:
     l_min: float | None = None       # nrvalidity l-min (None = the profile's; the element's -1)
     dark_policy: str = "weighted"    # nrvalidity dark-policy
     crosstalk: str = "kernel"        # nrcrosstalk mode
+    crosstalk_lut: str = "compact"   # nrcrosstalk lut (mode=lut: compact = fast, full = accurate; issue 7)
     method: str = "fse"              # nrreconstruct method
     preset: str = "fast"             # nrreconstruct preset
     use_bounds: bool = True          # nrreconstruct use-bounds
@@ -44,7 +45,7 @@ class ChainSettings:
 
     def __post_init__(self):
         for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES), ("crosstalk", CROSSTALK_MODES),
-                              ("method", METHODS), ("preset", PRESETS)):
+                              ("crosstalk_lut", ("compact", "full")), ("method", METHODS), ("preset", PRESETS)):
             v = getattr(self, name)
             if v not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {v!r}")
@@ -72,7 +73,7 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
         if (xt.width, xt.height) != (profile.width, profile.height):
             raise ValueError(f"crosstalk profile {xt.path} has a {xt.width}x{xt.height} mask but the frames "
                              f"are {profile.width}x{profile.height}")
-        v2, s2 = crosstalk.correct(values, state, xt, s.crosstalk)
+        v2, s2 = crosstalk.correct(values, state, xt, s.crosstalk, lut=s.crosstalk_lut)
         if v2 is not values:
             values[...] = v2
         if s2 is not state:

@@ -32,6 +32,7 @@ import dataclasses
 import math
 import os
 import tempfile
+import threading
 import zipfile
 from pathlib import Path
 
@@ -209,6 +210,12 @@ class CrosstalkCalibration:
     @property
     def shape(self):
         return self.codes_q.shape[:2]
+
+    def __getstate__(self):
+        # the compact LUT derived from this table (`compact_for`) is not shipped: derived again where used
+        d = dict(self.__dict__)
+        d.pop("_compact", None)
+        return d
 
     def codes(self) -> np.ndarray:
         """(H, W, K) float32 codes above black (invalid knots included)."""
@@ -415,6 +422,235 @@ def _lut_kernel(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, cl
                 values[y, x] = f
 
 
+# ---- compact LUT (issue 7 item 3): the `lut` mode's fast setting -------------------------------------------
+# The full table holds K uint16 knot codes per pixel (K = 40: 166 MB at 1080p) and searches them for every
+# pixel of every frame (~30 ms per 1080p frame on one core). The compact form is derived from it at load
+# time: each pixel's correction D(m) = F(m) / s - m (flux in code units minus the code, s = ND or 1) sampled
+# at COMPACT_POINTS codes m_j = top * (j / G)^2 (dense at low codes, where the curves bend at the dark
+# level), stored as int16 (one scale per pixel group) in a 32-byte record with the pixel's dark knot and the
+# top of its range. Evaluating it is a square root, two reads and a lerp: no search. Error against the full
+# table: `compact_error`, docs/CROSSTALK.md "Compact LUT". (A low-rank model of the same curves, SVD of the
+# pixels x grid matrix, was measured too: rank 8 has about the same error and costs 4x more per pixel.)
+
+COMPACT_POINTS = 14                 # grid points per pixel (G = 13 segments); + c0 + top = 16 int16 = 32 bytes
+LUT_FORMS = ("full", "compact")
+# record[14], [15]: the raw uint16 knot codes (codes_q) of the pixel's dark knot and of the top of its range,
+# so that both decode to exactly the full table's floats; [15] may instead be one of (never a knot below clip):
+_TOP_IS_CLIP = 65535                # the range ends at the clip code (the usual case)
+_NO_RANGE = 65534                   # fewer than 2 knots: every code UNCALIBRATED
+
+
+@dataclasses.dataclass(eq=False)
+class CompactLut:
+    """Compact form of a `CrosstalkCalibration`'s LUT (`compact_lut`). rec (H, W, 16) int16: the pixel's
+    correction at the grid codes in units of dscale[group] (group 0 regular, 1 attenuated), then the raw
+    uint16 knot codes of its dark knot and of its range's top (or _TOP_IS_CLIP / _NO_RANGE), decoded as
+    `q * qscale - qoffset` like the full table's. f0: flux of the dark knot; clip_rel: clip code - black."""
+    rec: np.ndarray
+    dscale: np.ndarray
+    clip_rel: float
+    qscale: float
+    qoffset: float
+    f0: float
+    nd: float
+    info: dict = dataclasses.field(default_factory=dict)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _grid_residual(codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, ys, xs, s_px, gcodes, out, rng_out):
+    """out[i, j] = F(m_j) / s - m_j for pixel (ys[i], xs[i]) at the grid codes m_j = gcodes[j] from its full LUT;
+    below the pixel's dark knot c0 the chord from (c0, 0) to the first grid code above it is continued,
+    above its range its last segment (the compact form's lerp then follows it up to the range's top). rng_out[i] =
+    (c0, top)."""
+    n_pix, g = out.shape
+    for i in prange(n_pix):
+        y = ys[i]
+        x = xs[i]
+        n = n_knots[y, x]
+        s = s_px[i]
+        cf = clip_flux[y, x]
+        if n < 2:
+            for j in range(g):
+                out[i, j] = np.float32(0.0)
+            rng_out[i, 0] = np.float32(0.0)
+            rng_out[i, 1] = np.float32(-1.0)     # empty range: every code is out of range
+            continue
+        c0 = np.float32(codes_q[y, x, 0]) * qs - qo
+        last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
+        top = clip_rel if (cf == cf and clip_rel > last_c) else last_c
+        rng_out[i, 0] = c0
+        rng_out[i, 1] = top
+        first = -1
+        last = -1
+        k = 1                     # merge walk: grid codes and knots both increase (as `_lut_eval`'s search)
+        ck = np.float32(codes_q[y, x, 1]) * qs - qo
+        for j in range(g):
+            m = gcodes[j]
+            if m > c0 and m <= top:
+                if m <= last_c:
+                    while ck < m:
+                        k += 1
+                        ck = np.float32(codes_q[y, x, k]) * qs - qo
+                    pc = np.float32(codes_q[y, x, k - 1]) * qs - qo
+                    pf = np.float32(knot_flux[k - 1])
+                    f = pf + (m - pc) * (np.float32(knot_flux[k]) - pf) / max(ck - pc, np.float32(1e-3))
+                else:
+                    f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m)
+                out[i, j] = f / s - m
+                if first < 0:
+                    first = j
+                last = j
+        if first < 0:      # range narrower than a grid step: evaluate at its top
+            f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, top)
+            for j in range(g):
+                out[i, j] = f / s - top
+            continue
+        mf = gcodes[first]
+        slope = (out[i, first] + mf) / max(mf - c0, np.float32(1e-3))   # F/s per code from (c0, 0)
+        for j in range(first):
+            m = gcodes[j]
+            out[i, j] = (m - c0) * slope - m
+        # above the range (a pixel without clipping point ends at its last knot): its last segment continued,
+        # so that the lerp between the grid codes around its top follows that segment
+        pc = np.float32(codes_q[y, x, n - 2]) * qs - qo
+        pf = np.float32(knot_flux[n - 2])
+        sl = (np.float32(knot_flux[n - 1]) - pf) / max(last_c - pc, np.float32(1e-3))
+        for j in range(last + 1, g):
+            m = gcodes[j]
+            out[i, j] = (np.float32(knot_flux[n - 1]) + (m - last_c) * sl) / s - m
+
+
+def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk: int = 262144) -> CompactLut:
+    """Derive the compact LUT from the full table (load time, about a second at 1080p)."""
+    h, w = calib.shape
+    mask = np.asarray(mask, bool)
+    if mask.shape != (h, w):
+        raise ValueError(f"mask is {mask.shape[1]}x{mask.shape[0]} but the calibration is {w}x{h}")
+    g = COMPACT_POINTS - 1
+    clip_rel = np.float32(float(calib.clip_code) - float(calib.black_level))
+    gcodes = (clip_rel * (np.arange(COMPACT_POINTS) / g) ** 2).astype(np.float32)
+    args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset), calib.knot_flux,
+            clip_rel, calib.clip_flux)
+    d_all = np.empty((h * w, COMPACT_POINTS), np.float32)
+    rng_all = np.empty((h * w, 2), np.float32)
+    ys, xs = np.divmod(np.arange(h * w, dtype=np.int64), w)
+    s_px = np.where(mask.reshape(-1), np.float32(nd), np.float32(1.0))
+    for a in range(0, h * w, chunk):
+        b = min(a + chunk, h * w)
+        _grid_residual(*args, ys[a:b], xs[a:b], s_px[a:b], gcodes, d_all[a:b], rng_all[a:b])
+    att = mask.reshape(-1)
+    dscale = np.ones(2, np.float32)
+    for grp in (0, 1):
+        sel = att == bool(grp)
+        if np.any(sel):
+            dscale[grp] = max(float(np.max(np.abs(d_all[sel]))), 1e-3) / 32000.0
+    rec = np.empty((h * w, 16), np.int16)
+    rec[:, :COMPACT_POINTS] = np.rint(d_all / dscale[att.astype(np.int64)][:, None]).astype(np.int16)
+    n = calib.n_knots.reshape(-1).astype(np.int64)
+    cq = calib.codes_q.reshape(h * w, -1)
+    q_last = cq[np.arange(h * w), np.clip(n - 1, 0, cq.shape[1] - 1)].astype(np.int64)
+    top_q = np.where(n < 2, _NO_RANGE, np.where(rng_all[:, 1] >= clip_rel, _TOP_IS_CLIP, q_last))
+    rec[:, 14] = cq[:, 0].view(np.int16)
+    rec[:, 15] = top_q.astype(np.uint16).view(np.int16)
+    return CompactLut(rec=rec.reshape(h, w, 16), dscale=dscale, clip_rel=float(clip_rel),
+                      qscale=float(calib.qscale), qoffset=float(calib.qoffset),
+                      f0=max(float(calib.knot_flux[0]), 0.0), nd=float(nd),
+                      info={"points": COMPACT_POINTS, "no_range_pixels": int(np.sum(n < 2))})
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _lut_kernel_compact(values, state, rec, dscale, clip_rel, qs, qo, f0, clip_flux, nd):
+    """`lut` mode in place with the compact LUT: the same state handling as `_lut_kernel`, written without
+    data-dependent branches (attenuated and regular pixels alternate at random in the mask)."""
+    h, w = values.shape
+    g = rec.shape[2] - 3
+    inv_step = np.float32(g * g) / clip_rel
+    ndf = np.float32(nd)
+    sc = np.empty(2, np.float32)
+    sc[0] = 1.0
+    sc[1] = ndf
+    inv = np.empty(2, np.float32)
+    inv[0] = 1.0
+    inv[1] = np.float32(1.0) / ndf
+    zero = np.float32(0.0)
+    for y in prange(h):
+        for x in range(w):
+            st = state[y, x]
+            v = values[y, x]
+            grp = np.int64(st >> 7)              # the ATTENUATED bit: group 1
+            s = sc[grp]
+            m = v * inv[grp]
+            c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
+            tq = np.int64(rec[y, x, 15]) & 0xFFFF
+            top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
+            mm = max(min(max(m, c0), top), zero)
+            u = np.sqrt(mm * inv_step)
+            j = min(np.int64(u), g - 1)
+            t = u - np.float32(j)
+            a = np.float32(rec[y, x, j])
+            d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dscale[grp]
+            f = max((mm + d) * s, zero)
+            # below the dark knot: between (black, f0) and the knot, as `_lut_eval`
+            fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
+            f = fb if m <= c0 else f
+            # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
+            ok = (m <= top) & (tq != _NO_RANGE)
+            reason = st & 0x0F
+            cf = clip_flux[y, x]
+            nv = v
+            nv = f if ((reason == _VALID) & ok) | ((reason == _DARK) & ok & (f > zero)) else nv
+            nv = cf if ((reason == _CLIPPED) & (cf < v)) else nv     # NaN clip flux: no change
+            values[y, x] = nv
+            # (reason VALID is 0: st | UNCAL is (st & 0xF0) | UNCAL; arithmetic, not a select: 2x faster)
+            state[y, x] = st | (np.uint8(_UNCAL) * np.uint8((reason == _VALID) & (not ok)))
+
+
+def compact_error(calib: CrosstalkCalibration, compact: CompactLut, mask: np.ndarray, codes_per_pixel: int = 4,
+                  seed: int = 0) -> dict:
+    """Error of the compact LUT against the full table at random codes inside every pixel's calibrated
+    range (uniform in code): abs error in DN (flux units) and relative to the full table's flux, as
+    percentiles, and the peak signal-to-error ratio in dB against the sensor's white (clip flux)."""
+    h, w = calib.shape
+    rng = np.random.default_rng(seed)
+    clip_rel = float(calib.clip_code) - float(calib.black_level)
+    st = np.where(np.asarray(mask, bool), np.uint8(_ATT), np.uint8(0))
+    s = np.where(st != 0, np.float32(compact.nd), np.float32(1.0))
+    errs, rels, fulls = [], [], []
+    n_state = n_all = 0
+    for _ in range(codes_per_pixel):
+        m = (rng.random((h, w)) * clip_rel).astype(np.float32)
+        v1 = m * s
+        s1 = st.copy()
+        v2 = v1.copy()
+        s2 = st.copy()
+        _lut_kernel(v1, s1, calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
+                    calib.knot_flux, np.float32(clip_rel), calib.clip_flux, compact.nd)
+        _compact_apply(v2, s2, compact, calib.clip_flux)
+        both = ((s1 & 0x0F) == _VALID) & ((s2 & 0x0F) == _VALID)
+        e = np.abs(v2[both].astype(np.float64) - v1[both])
+        errs.append(e)
+        rels.append(e / np.maximum(np.abs(v1[both]), 1.0))
+        fulls.append(v1[both])
+        n_state += int(np.sum((s1 & 0x0F) != (s2 & 0x0F)))
+        n_all += int(s1.size)
+    e = np.concatenate(errs)
+    r = np.concatenate(rels)
+    white = float(np.nanmax(calib.clip_flux)) if np.any(np.isfinite(calib.clip_flux)) else float(
+        np.max(np.concatenate(fulls)))
+    rms = float(np.sqrt(np.mean(e * e)))
+    return {"abs_dn_median": float(np.median(e)), "abs_dn_p99": float(np.percentile(e, 99)),
+            "abs_dn_max": float(e.max()), "rel_pct_median": 100 * float(np.median(r)),
+            "rel_pct_p99": 100 * float(np.percentile(r, 99)), "rms_dn": rms,
+            "psnr_db": float(20 * np.log10(white / max(rms, 1e-12))),
+            "state_differs_pct": 100.0 * n_state / max(n_all, 1)}
+
+
+def _compact_apply(values, state, compact: CompactLut, clip_flux):
+    _lut_kernel_compact(values, state, compact.rec, compact.dscale, np.float32(compact.clip_rel),
+                        np.float32(compact.qscale), np.float32(compact.qoffset), np.float32(compact.f0),
+                        clip_flux, compact.nd)
+
+
 @njit(cache=True, nogil=True)
 def _spill_vec(sig_e, sigma, e, out):
     """out[d] = sigma_d(e) for the 8 directions with a single table search: piecewise linear in the table,
@@ -573,14 +809,39 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
             est[y, x] = v
 
 
+_compact_lock = threading.Lock()
+
+
+def compact_for(profile) -> CompactLut:
+    """The compact LUT of a profile's calibration, derived once and kept on the calibration object (the
+    elements call this when they start, so the first frame does not pay for it)."""
+    calib = profile.crosstalk
+    if calib is None:
+        raise ValueError("the profile has no crosstalk calibration")
+    mask, nd = profile.mask, float(profile.nd)
+    hit = calib.__dict__.get("_compact")            # (mask object, nd, CompactLut): an O(1) check per frame
+    if hit is not None and hit[0] is mask and hit[1] == nd:
+        return hit[2]
+    with _compact_lock:
+        hit = calib.__dict__.get("_compact")
+        if hit is None or hit[0] is not mask or hit[1] != nd:
+            hit = (mask, nd, compact_lut(calib, mask, nd))
+            calib.__dict__["_compact"] = hit
+    return hit[2]
+
+
 def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", iterations: int = 2,
-            passes: int = 2, clip_share: float | None = CLIP_SHARE):
+            passes: int = 2, clip_share: float | None = CLIP_SHARE, lut: str = "full"):
     """Correct crosstalk in place (paper 3.2). `values` float32 linear DN (attenuated pixels scaled by ND),
-    `state` uint8 (docs/ARCHITECTURE.md). Identity without a calibration or with mode 'off'. VALID pixels
+    `state` uint8 (docs/ARCHITECTURE.md); `profile`: a camera profile (or anything with its `crosstalk`,
+    `nd` and `mask`). Identity without a calibration or with mode 'off'. VALID pixels
     whose code lies outside their calibrated range become UNCALIBRATED (value left as measured).
-    Returns (values, state)."""
+    `lut` (mode 'lut' only): 'full' = the calibration's per-pixel table (accurate), 'compact' = its
+    compact form (`compact_for`, fast; error: docs/CROSSTALK.md "Compact LUT"). Returns (values, state)."""
     if mode not in MODES:
         raise ValueError(f"crosstalk mode must be one of {MODES}, got {mode!r}")
+    if lut not in LUT_FORMS:
+        raise ValueError(f"crosstalk lut form must be one of {LUT_FORMS}, got {lut!r}")
     calib = getattr(profile, "crosstalk", None)
     if mode == "off" or calib is None:
         return values, state
@@ -596,8 +857,11 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
             calib.knot_flux, clip_rel, calib.clip_flux, nd)
     if mode == "lut":
-        # per pixel, in place (no copy of the frame); knot search walks from the row's previous knot
-        _lut_kernel(values, state, *args)
+        # per pixel, in place (no copy of the frame)
+        if lut == "compact":
+            _compact_apply(values, state, compact_for(profile), calib.clip_flux)
+        else:
+            _lut_kernel(values, state, *args)
         return values, state
     src = values.copy()
     # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
@@ -638,12 +902,29 @@ def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float 
         alpha=np.ones((h, w), np.float32), info={"identity": True})
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Sensor:
+    """What `correct` reads from a camera profile (mask, nd, crosstalk): warmup's stand-in, so that this
+    module never imports profile.py (profile.py imports it for the calibration file; issue 13: no cycle)."""
+    mask: np.ndarray
+    nd: float
+    crosstalk: CrosstalkCalibration
+
+    @property
+    def height(self) -> int:
+        return int(self.mask.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.mask.shape[1])
+
+
 def warmup() -> None:
     """Compile the kernels on a tiny frame (elements call this in do_start, never at import)."""
-    from .profile import make
-    p = make(np.zeros((3, 3), bool))
-    p = p.replace(crosstalk=identity_calibration(p.mask, nd=p.nd, clip_code=p.clip_code))
-    for mode in ("lut", "kernel"):
+    mask = np.zeros((3, 3), bool)
+    mask[1, 1] = True
+    p = _Sensor(mask, 6.35, identity_calibration(mask, nd=6.35, clip_code=4094))
+    for mode, lut in (("lut", "full"), ("lut", "compact"), ("kernel", "full")):
         v = np.ones((3, 3), np.float32) * 10
         s = np.zeros((3, 3), np.uint8)
-        correct(v, s, p, mode=mode)
+        correct(v, s, p, mode=mode, lut=lut)

@@ -355,6 +355,40 @@ def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, mode, 
             state[y, x] = st | np.uint8(reason)
 
 
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _classify_fused_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, weighted, s0, lm, values, state):
+    """Modes 'all' and 'threshold' in one pass, the dark policy included (issue 7: was `_classify_kernel`
+    then a serial `_mark_noisy_kernel` pass over the frame). Same results as those two; written with
+    arithmetic and selects, no data-dependent branches (ND and regular pixels alternate at random)."""
+    h, w = raw.shape
+    ndf = np.float32(nd)
+    bl = np.float32(black)
+    top = np.float32(clip_code) - bl
+    tatt = np.float32(dark_att)
+    treg = np.float32(dark_reg)
+    s0f = np.float32(s0)
+    lmf = np.float32(lm)
+    for y in prange(h):
+        for x in range(w):
+            r = raw[y, x]
+            att = mask[y, x]
+            s = ndf if att else np.float32(1.0)
+            sig = np.float32(r) - bl
+            clipped = r >= clip_code
+            thr = tatt if att else treg
+            dark = (sig < thr) & (not clipped)
+            wa = weighted & att
+            noisy = dark & wa & (sig >= s0f)
+            dval = lmf * s if wa else thr * s          # weighted: below SNR 0 dB the bound is l_min x ND
+            v = sig * s
+            v = dval if (dark & (not noisy)) else v
+            v = top * s if clipped else v
+            values[y, x] = v
+            reason = (np.uint8(CLIPPED) * np.uint8(clipped) + np.uint8(NOISY) * np.uint8(noisy)
+                      + np.uint8(DARK) * np.uint8(dark & (not noisy)))
+            state[y, x] = (np.uint8(ATTENUATED) * np.uint8(att)) | reason
+
+
 class FrameError(ValueError):
     """A raw frame (or argument) classify cannot use: wrong type, shape, mode or l_min; names what is wrong."""
 
@@ -392,10 +426,13 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
             dark_att = lm * WEIGHTED_LEVEL
     else:
         dark_att, dark_reg = s0, s0
-    _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
-                     float(profile.nd), float(dark_att), float(dark_reg), _MODE_ID[mode], values, state)
-    if dark_policy == "weighted" and mode == "threshold":
-        mark_noisy(raw, profile, values, state, lm)
+    if mode == "best":
+        _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
+                         float(profile.nd), float(dark_att), float(dark_reg), _MODE_ID[mode], values, state)
+        return values, state
+    _classify_fused_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
+                           float(profile.nd), float(dark_att), float(dark_reg),
+                           dark_policy == "weighted" and mode == "threshold", float(s0), float(lm), values, state)
     return values, state
 
 
@@ -448,5 +485,6 @@ def warmup() -> None:
     from .profile import make
     p = make(np.array([[True, False], [False, True]]))
     classify(np.zeros((2, 2), np.uint16), p)
+    classify(np.zeros((2, 2), np.uint16), p, mode="best")
     v, s = classify(np.array([[4095, 4095], [3, 4095]], np.uint16), p, dark_policy="weighted")
     bounds(v, s)

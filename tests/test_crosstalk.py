@@ -298,7 +298,7 @@ def test_kernel_mode_drops_pixels_dominated_by_clipped_neighbours():
     assert s2[2, 2] == validity.VALID and abs(v2[2, 2] - 20.0) < abs(v[2, 2] - 20.0)
 
 
-@pytest.mark.parametrize("mode", ["lut", "kernel"])
+@pytest.mark.parametrize("mode", ["lut", "lut-compact", "kernel"])
 @pytest.mark.parametrize("f0", [0.0, 40.0])
 def test_codes_below_the_first_knot_are_never_negative(mode, f0):
     """Codes inside the dark noise, below a pixel's first (dark) knot, map into [0, first knot's flux],
@@ -323,7 +323,8 @@ def test_codes_below_the_first_knot_are_never_negative(mode, f0):
     m = np.linspace(-20.0, 2.99, 64).reshape(8, 8).astype(np.float32)   # codes above black, all <= c0
     v = m * np.float32(nd)                                               # attenuated: values scaled by ND
     s = np.full((8, 8), validity.VALID | validity.ATTENUATED, np.uint8)
-    crosstalk.correct(v, s, p, mode=mode)
+    mode, lut = ("lut", "compact") if mode == "lut-compact" else (mode, "full")
+    crosstalk.correct(v, s, p, mode=mode, lut=lut)
     assert np.all((s & validity.REASON_MASK) == validity.VALID)
     assert np.all(v >= 0.0) and np.all(v <= f0 + 1e-3)
     flat = v.ravel()
@@ -333,6 +334,6 @@ def test_codes_below_the_first_knot_are_never_negative(mode, f0):
     # DARK pixels (an upper bound) below the first knot: never negative either
     v2 = m * np.float32(nd)
     s2 = np.full((8, 8), validity.DARK | validity.ATTENUATED, np.uint8)
-    crosstalk.correct(v2, s2, p, mode=mode)
+    crosstalk.correct(v2, s2, p, mode=mode, lut=lut)
     assert np.all(v2 >= np.minimum(m * np.float32(nd), 0.0))   # kept (f <= 0) or replaced by f > 0
     assert np.all(v2[v2 != m * np.float32(nd)] > 0.0)

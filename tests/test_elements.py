@@ -240,7 +240,7 @@ def test_crosstalk_data_path_calls_core_in_place(gst, tiny_clip, monkeypatch):
     d, prof, raws = tiny_clip
     seen = []
 
-    def fake_correct(values, state, profile, mode="lut"):
+    def fake_correct(values, state, profile, mode="lut", **kw):
         seen.append((mode, values.shape, profile.width))
         values += 1.0
         state |= 0x04

@@ -1,0 +1,59 @@
+"""classify (paper Eq. 3, section 2.3) in one fused pass with the dark policy (issue 7): against a plain numpy
+statement of the rules, on codes at and around every threshold."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nrhdr_core import profile, sensor, validity
+
+
+def _reference(raw, p, mode, dark_policy):
+    """The rules written out in numpy: clipped at clip_code (value = lower bound (clip - black) * s); in
+    'threshold' mode attenuated pixels below l_min (x WEIGHTED_LEVEL when weighted) are DARK with the
+    threshold * s as upper bound, or, weighted, NOISY with their measurement when at or above SNR 0 dB and
+    DARK with l_min * ND below; in 'all' mode every pixel below SNR 0 dB is DARK."""
+    att = p.mask
+    s = np.where(att, np.float32(p.nd), np.float32(1.0))
+    sig = raw.astype(np.float32) - np.float32(p.black_level)
+    s0 = np.float32(sensor.zero_db_signal_dn(p))
+    clipped = raw >= p.clip_code
+    if mode == "threshold":
+        thr = np.where(att, np.float32(p.l_min * (validity.WEIGHTED_LEVEL if dark_policy == "weighted" else 1)),
+                       np.float32(-np.inf))
+    else:
+        thr = np.full(raw.shape, s0, np.float32)
+    dark = ~clipped & (sig < thr)
+    values = sig * s
+    values[dark] = (thr * s)[dark]
+    reason = np.where(clipped, validity.CLIPPED, np.where(dark, validity.DARK, validity.VALID))
+    if mode == "threshold" and dark_policy == "weighted":
+        noisy = dark & att & (sig >= s0)
+        values[dark & att & ~noisy] = np.float32(p.l_min) * np.float32(p.nd)
+        values[noisy] = (sig * s)[noisy]
+        reason = np.where(noisy, validity.NOISY, reason)
+    values[clipped] = ((np.float32(p.clip_code) - np.float32(p.black_level)) * s)[clipped]
+    return values.astype(np.float32), (reason | np.where(att, validity.ATTENUATED, 0)).astype(np.uint8)
+
+
+@pytest.mark.parametrize("mode,policy", [("threshold", "threshold"), ("threshold", "weighted"), ("all", "threshold")])
+def test_fused_classify_matches_the_rules(mode, policy):
+    p = profile.default(48, 64, seed=2, black_level=64.0)
+    rng = np.random.default_rng(7)
+    s0 = sensor.zero_db_signal_dn(p)
+    near = np.array([0, 63, 64, 65, 64 + s0 - 1, 64 + s0, 64 + s0 + 1, 64 + p.l_min - 1, 64 + p.l_min,
+                     64 + 4 * p.l_min - 1, 64 + 4 * p.l_min, 64 + 4 * p.l_min + 1, p.clip_code - 1, p.clip_code,
+                     p.clip_code + 1, 4095])
+    raw = np.where(rng.random(p.mask.shape) < 0.5, rng.choice(near, p.mask.shape),
+                   rng.integers(0, 4096, p.mask.shape)).astype(np.uint16)
+    v, s = validity.classify(raw, p, mode=mode, dark_policy=policy)
+    ev, es = _reference(raw, p, mode, policy)
+    np.testing.assert_array_equal(s, es)
+    np.testing.assert_array_equal(v, ev)
+    if policy == "weighted":
+        assert np.any((s & validity.REASON_MASK) == validity.NOISY)
+        # mark_noisy (public) on the threshold-policy frame of the same level gives the same frame
+        v2, s2 = validity.classify(raw, p, mode=mode, dark_policy="threshold", l_min=p.l_min * validity.WEIGHTED_LEVEL)
+        validity.mark_noisy(raw, p, v2, s2)
+        np.testing.assert_array_equal(s2, s)
+        np.testing.assert_array_equal(v2, v)
