@@ -300,3 +300,23 @@ def test_given_crosstalk_calibration_equals_gstreamer(tmp_path, gst_subprocess_e
         # the calibration was applied: the chain without it gives other values
         v0, _ = chain.process_frame(raws[i], uncalibrated, chain.ChainSettings(method="preview"))
         assert not np.array_equal(io.read_exr(fa)[0], v0)
+    # the accurate LUT setting reaches the chain: batch --crosstalk lut --crosstalk-lut full equals
+    # nrcrosstalk mode=lut lut=full, and differs from the compact (default) table's frames
+    rc, log = nrhdr_batch(clip, "-o", tmp_path / "batch_full", "--workers", "0", "--crosstalk-profile", cal,
+                          "--crosstalk", "lut", "--crosstalk-lut", "full", "--method", "preview",
+                          env=gst_subprocess_env)
+    assert rc == 0, log
+    cmd_full = list(cmd)
+    i = cmd_full.index(f"profile={cal}")
+    cmd_full[i + 1:i + 1] = ["mode=lut", "lut=full"]
+    cmd_full[-1] = f"location={tmp_path / 'gst_full'}/frame_%05d.exr"
+    p = subprocess.run(cmd_full, env=gst_subprocess_env, capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stdout + p.stderr
+    a, b = exr_frames(tmp_path / "batch_full"), exr_frames(tmp_path / "gst_full")
+    assert len(a) == len(b) == 3
+    cal_prof = profile.load(cal)
+    for i, (fa, fb) in enumerate(zip(a, b)):
+        assert_same_exr(fa, fb)
+    compact, _ = chain.process_frame(raws[0], uncalibrated, chain.ChainSettings(
+        method="preview", crosstalk="lut", crosstalk_lut="compact"), crosstalk_profile=cal_prof)
+    assert not np.array_equal(io.read_exr(a[0])[0], compact)

@@ -36,6 +36,8 @@ def add_batch(sub) -> None:
                         "the paper's hard l_min)")
     g.add_argument("--l-min", type=float, default=None, help="nrvalidity l-min (default: the profile's)")
     g.add_argument("--crosstalk", choices=chain.CROSSTALK_MODES, default="kernel", help="nrcrosstalk mode")
+    g.add_argument("--crosstalk-lut", choices=("compact", "full"), default="compact",
+                   help="nrcrosstalk lut (mode=lut): compact = fast, full = the calibration's table (accurate)")
     g.add_argument("--crosstalk-profile", help="profile whose crosstalk calibration to apply (nrcrosstalk "
                                                "profile=; default: the camera profile's)")
     g.add_argument("--method", choices=chain.METHODS, default="fse", help="nrreconstruct method")
@@ -74,7 +76,8 @@ def cmd_batch(a) -> int:
         raise ValueError(f"--threads-per-worker must be >= 1, got {a.threads_per_worker}")
     if a.scheduler and a.workers is not None:
         raise ValueError("--workers starts a local cluster; it cannot go with --scheduler")
-    settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk, method=a.method,
+    settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk,
+                                   crosstalk_lut=a.crosstalk_lut, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, white=a.white,
                                    exposure=a.exposure, contrast=a.contrast)
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames)
