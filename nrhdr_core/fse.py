@@ -904,11 +904,13 @@ def _fetch_add(typingctx, counter, i):
 @njit(cache=True, nogil=True)
 def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
             round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t, tw_c, tw_s,
-            prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, joint, wp, mest):
+            prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, wp, mest):
     """The tiles of round r on one thread: each thread takes the next unprocessed tile of the round
     (``counter[r]``, atomic), so both threads stay busy whatever the tiles cost and however the OS
     schedules them (a static split waits for the slower thread). The scratch is owned by this call (a
-    few kB): no views of arrays shared with the other threads in the per-block calls."""
+    few kB): no views of arrays shared with the other threads in the per-block calls. ``wp``/``mest``
+    None: the plain kernels (numba prunes the joint branch for that signature, so the joint kernels
+    are compiled only when used); arrays: the joint kernels."""
     hh = n // 2 + 1
     nsel = iter_max + 2
     hp = cos_t.shape[1]
@@ -928,6 +930,7 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     sel_v = np.zeros(nsel, np.int64)
     sel_r = np.zeros(nsel, np.float32)
     sel_i = np.zeros(nsel, np.float32)
+    dummy = np.zeros((1, 1), np.float32)
     while True:
         q = _fetch_add(counter, r)
         if q >= cntr:
@@ -935,7 +938,7 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
         t = round_tiles[r0 + q]
         for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
             lv = leaf_l[li]
-            if joint:
+            if wp is not None:
                 if n == 16:     # the common window: the kernel specialised for n = 16
                     _block16j(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                                 leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
@@ -953,19 +956,19 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
                          leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
                          tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                          local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
-                         sel_u, sel_v, sel_r, sel_i, wp, mest)
+                         sel_u, sel_v, sel_r, sel_i, dummy, dummy)
             else:
                 _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                        leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
                        tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                        local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
-                       sel_u, sel_v, sel_r, sel_i, wp, mest)
+                       sel_u, sel_v, sel_r, sel_i, dummy, dummy)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
          leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
-         delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads, joint, wp, mest):
+         delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads, wp, mest):
     """The rounds one after the other; the tiles of a round on ``nthreads`` threads."""
     h, w = img.shape
     tw_tiles = (w + tile - 1) // tile
@@ -981,13 +984,13 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
             _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
                     round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
                     tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
-                    pair_exact, joint, wp, mest)
+                    pair_exact, wp, mest)
             continue
         for th in prange(nthreads):
             _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
                     round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
                     tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
-                    pair_exact, joint, wp, mest)
+                    pair_exact, wp, mest)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1296,7 +1299,7 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
         wp = np.where(noisy, np.minimum(wts, np.float32(1.0)), np.float32(0.0)).astype(np.float32)
         mest = np.zeros_like(work)
     else:
-        wp = mest = np.zeros((1, 1), np.float32)
+        wp = mest = None
     tables = _tables(p)
     cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, sizes = tables
     n = int(p["window"])
@@ -1315,7 +1318,7 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
         _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
              leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
              float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
-             int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads, joint, wp, mest)
+             int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads, wp, mest)
     finally:
         set_num_threads(old)
     logd = domain == "log"
@@ -1670,6 +1673,4 @@ def warmup() -> None:
     lo[0, 0] = hv.max()
     hi[1, 1] = hv.min()
     fse_reconstruct(hv, k, lower=lo, upper=hi, preset="preview")
-    # joint estimation with noisy measurements (reconstruction's default for NOISY pixels)
-    wts = np.where(rng.random((24, 24)) < 0.5, np.float32(0.1), np.float32(0.0))
-    fse_reconstruct(hv, k, lower=lo, upper=hi, preset="balanced", weights=wts)
+    # (the joint estimation with `weights=` is opt-in: its kernels compile on first use, not here)
