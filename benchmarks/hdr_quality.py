@@ -215,7 +215,11 @@ def dark_split(scenes) -> int:
     NOISY pixels missing); an oracle inverse-variance fusion of the FSE estimate g and the measurement m
     with the true error, w = (g - t)^2 / ((g - t)^2 + var_m(t)); the same with g from noise-free
     regular pixels (sampling error only; measured pixels keep their noisy value): how far an
-    interpolate-then-fuse estimator can go."""
+    interpolate-then-fuse estimator can go. Joint FSE (helper dark2): the NOISY measurements enter FSE's
+    fit weighted `reconstruction.noisy_weights` (x JOINT_FACTOR) instead of being missing; alone, with
+    the fusions, a blend, its oracle fusion, and a leave-one-out variant (two FSE runs, each with the
+    NOISY pixels of the even / odd rows as samples and the others estimated: an estimate independent
+    of the pixel's own measurement, fused by the oracle)."""
     h, w = 384, 512
     p0 = profile.make(np.zeros((h, w), bool))
     print("log2 PSNR dB in dark regions (truth < l_min x ND), pooled over "
@@ -259,6 +263,7 @@ def dark_split(scenes) -> int:
                 wgt = e2 / (e2 + vm)
                 rows.append((name, np.where(k, v, np.where(nz, gi + wgt * (v - gi), gi))))
             rows.append(("FSE from noise-free regular pixels alone", np.where(k, v, gt)))
+            rows += _joint_rows(v, k, nz, lo, hi, prof, t64, vm, rows[1][1])
             for name, o in rows:
                 add(name, t64, np.asarray(o, np.float64), nd_, reg)
         print(f"#### {pattern} mask\n\n| estimate | ND pixels | regular pixels | whole dark region |\n"
@@ -268,6 +273,38 @@ def dark_split(scenes) -> int:
             print(f"| {name} | {f(e1, n1):.2f} | {f(e2, n2):.2f} | {f(e1 + e2, n1 + n2):.2f} |")
         print()
     return 0
+
+
+JOINT_FACTOR = 2.0     # measured best of 0.5 / 1 / 2 / 4 for the joint estimate alone (docs/BENCHMARKS.md)
+
+
+def _joint_rows(v, k, nz, lo, hi, prof, t64, vm, acc):
+    """`dark_split`'s joint-FSE rows (issue 8, helper dark2): (name, estimate) pairs."""
+    from nrhdr_core import fse
+    R = reconstruction
+    miss = ~k
+
+    def joint(wts):
+        gj = fse.fse_reconstruct(v, k, lo, hi, weights=wts)
+        return R._apply_bounds(R._clamp_to_data(gj, v, k, miss, lo), miss, lo, hi)
+
+    wts = R.noisy_weights(v, nz, prof, JOINT_FACTOR)
+    gj = joint(wts)
+    half = np.broadcast_to((np.arange(v.shape[0]) % 2 == 0)[:, None], v.shape)     # even / odd rows
+    gl = np.where(half, joint(np.where(half, 0, wts)), joint(np.where(half, wts, 0)))
+
+    def oracle(gi):
+        e2 = (gi.astype(np.float64) - t64) ** 2
+        return np.where(nz, gi + e2 / (e2 + vm) * (v - gi), gi)
+
+    return [(f"joint FSE alone (NOISY weighted x{JOINT_FACTOR:g})", gj),
+            ("joint FSE + noise fusion accurate (reconstruct noisy_joint=2)",
+             R.reconstruct(v, k, lower=lo, upper=hi, noisy=nz, noise=prof, noisy_joint=JOINT_FACTOR)),
+            ("joint FSE + noise fusion fast", R.fuse_noisy(gj.copy(), v, k, nz, prof, setting="fast")),
+            ("0.3 joint FSE + 0.7 accurate fusion (best blend)", np.where(nz, 0.3 * gj + 0.7 * acc, gj)),
+            ("oracle fusion of the joint FSE", oracle(gj)),
+            ("leave-one-out joint FSE alone", gl),
+            ("oracle fusion of the leave-one-out joint FSE", oracle(gl))]
 
 
 def table(rows):

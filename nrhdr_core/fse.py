@@ -239,7 +239,7 @@ def _area_sigma(c, s1, s2, y, x, b, n, h, w, scale, local):
 
 @njit(cache=True, nogil=True)
 def _missing_per_tile(state, tile):
-    """Missing pixels (state 0) of every tile x tile tile, row-major tiles."""
+    """Pixels needing the model (state 0 missing, 3 noisy measurement) of every tile, row-major tiles."""
     h, w = state.shape
     tw = (w + tile - 1) // tile
     miss = np.zeros(((h + tile - 1) // tile) * tw, np.int64)
@@ -248,7 +248,8 @@ def _missing_per_tile(state, tile):
         for tx in range(tw):
             c = 0
             for x in range(tx * tile, min(tx * tile + tile, w)):
-                c += 1 if state[y, x] == 0 else 0
+                st = state[y, x]
+                c += 1 if (st == 0 or st == 3) else 0
             miss[base + tx] += c
     return miss
 
@@ -258,7 +259,8 @@ def _any_missing(state, y, x, b):
     h, w = state.shape
     for yy in range(y, min(y + b, h)):
         for xx in range(x, min(x + b, w)):
-            if state[yy, xx] == 0:
+            st = state[yy, xx]
+            if st == 0 or st == 3:
                 return True
     return False
 
@@ -438,10 +440,11 @@ _INL = dict(cache=True, nogil=True, fastmath=True, inline="always")
 
 @njit(**_INL)
 def _gather(img, state, tile_round, tshift, tw_tiles, t_self, r_cur, ay, ax, lvl, n, rho_tab, delta,
-            wbuf, xbuf):
+            wbuf, xbuf, joint, wp):
     """Step 1, spatial weights w = s * rho^r and values f of the N x N support area whose top-left corner
     is (ay, ax), into wbuf / xbuf: s = 1 for known pixels, ``delta`` for reconstructed ones of this tile
-    or of a tile of an earlier round (same-round tiles are never read), 0 for missing ones and outside."""
+    or of a tile of an earlier round (same-round tiles are never read), 0 for missing ones and outside;
+    `joint` (a compile-time constant of the kernel): ``wp[y, x]`` for noisy measurements (state 3)."""
     h, w = img.shape
     for i in range(n):
         y = ay + i
@@ -483,6 +486,8 @@ def _gather(img, state, tile_round, tshift, tw_tiles, t_self, r_cur, ay, ax, lvl
                 dwt = d0 if jj < e0 else (d1 if jj < e1 else d2)
                 st = state[y, xx]
                 fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
+                if joint:
+                    fs = wp[y, xx] if st == 3 else fs
                 wv = fs * rho_tab[lvl, i, jj]
                 wbuf[i, jj] = wv
                 xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
@@ -500,6 +505,8 @@ def _gather(img, state, tile_round, tshift, tw_tiles, t_self, r_cur, ay, ax, lvl
                 xx = ax + jj
                 st = state[y, xx]
                 fs = np.float32(1.0) if st == 1 else (dwt if st == 2 else np.float32(0.0))
+                if joint:
+                    fs = wp[y, xx] if st == 3 else fs
                 wv = fs * rho_tab[lvl, i, jj]
                 wbuf[i, jj] = wv
                 xbuf[i, jj] = img[y, xx] if wv > 0.0 else np.float32(0.0)
@@ -799,9 +806,10 @@ def _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, ph_buf):
 
 
 @njit(**_INL)
-def _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf):
+def _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf, joint, mest):
     """Step 5, the block's missing pixels only: mean + model, clamped to [lo, hi] where bounded, become
-    "reconstructed" (state 2, weight delta) for later blocks; known pixels stay bit-exact."""
+    "reconstructed" (state 2, weight delta) for later blocks; known pixels stay bit-exact. `joint`: the
+    model at noisy measurements (state 3, which stay measurements for later blocks) goes to ``mest``."""
     h, w = img.shape
     for i in range(b):
         y = by + i
@@ -811,7 +819,15 @@ def _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf):
             x = bx + j
             if x >= w:
                 break
-            if state[y, x] != 0:
+            st = state[y, x]
+            if st != 0:
+                if joint and st == 3:
+                    val = np.float32(mean + xbuf[i, j])
+                    if use_lo and val < lo[y, x]:
+                        val = lo[y, x]
+                    if use_hi and val > hi[y, x]:
+                        val = hi[y, x]
+                    mest[y, x] = val
                 continue
             val = np.float32(mean + xbuf[i, j])
             if use_lo and val < lo[y, x]:
@@ -822,15 +838,18 @@ def _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf):
             state[y, x] = 2
 
 
-def _make_block_kernel(n_fixed):
+def _make_block_kernel(n_fixed, joint=False):
     """The block kernel, FSE of one quadtree leaf; ``n_fixed`` > 0: specialised for that window size (a
-    compile-time constant), 0: the window size is the ``n`` argument."""
+    compile-time constant), 0: the window size is the ``n`` argument. ``joint`` (compile-time): noisy
+    measurements (state 3) enter the fit with the weights ``wp`` and the model there is written to
+    ``mest`` (joint estimation, docs/FSE.md); without it ``wp``/``mest`` are never read."""
 
     @njit(cache=True, nogil=True, fastmath=True)
     def block_kernel(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
                      by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
                      delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
-                     wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i):
+                     wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i,
+                     wp, mest):
         """Reconstruct the missing pixels of block (by, bx, b) in place (Seiler & Kaup, SPL 2010: weighted
         projection of the support area onto DFT basis functions, one chosen per iteration, residual
         updated in the frequency domain). Returns False if its support area has no usable pixel (left
@@ -839,7 +858,7 @@ def _make_block_kernel(n_fixed):
             n = n_fixed
         o = (n - b) // 2
         _gather(img, state, tile_round, tshift, tw_tiles, t_self, r_cur, by - o, bx - o, lvl, n, rho_tab,
-                delta, wbuf, xbuf)
+                delta, wbuf, xbuf, joint, wp)
         sw, swf, cnt, s1, s2 = _moments(wbuf, xbuf, n)
         if sw <= 0.0:
             return False
@@ -854,7 +873,7 @@ def _make_block_kernel(n_fixed):
         ns = _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm,
                           sel_u, sel_v, sel_r, sel_i)
         _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, t1r)
-        _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf)
+        _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf, joint, mest)
         return True
 
     return block_kernel
@@ -863,6 +882,9 @@ def _make_block_kernel(n_fixed):
 # the common 16 x 16 window (preview, fast, balanced) and any other window
 _block16 = _make_block_kernel(16)
 _block = _make_block_kernel(0)
+# joint estimation with noisy measurements (state 3): separate specialisations, the plain ones unchanged
+_block16j = _make_block_kernel(16, True)
+_blockj = _make_block_kernel(0, True)
 
 @intrinsic
 def _fetch_add(typingctx, counter, i):
@@ -882,11 +904,13 @@ def _fetch_add(typingctx, counter, i):
 @njit(cache=True, nogil=True)
 def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
             round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t, tw_c, tw_s,
-            prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact):
+            prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, wp, mest):
     """The tiles of round r on one thread: each thread takes the next unprocessed tile of the round
     (``counter[r]``, atomic), so both threads stay busy whatever the tiles cost and however the OS
     schedules them (a static split waits for the slower thread). The scratch is owned by this call (a
-    few kB): no views of arrays shared with the other threads in the per-block calls."""
+    few kB): no views of arrays shared with the other threads in the per-block calls. ``wp``/``mest``
+    None: the plain kernels (numba prunes the joint branch for that signature, so the joint kernels
+    are compiled only when used); arrays: the joint kernels."""
     hh = n // 2 + 1
     nsel = iter_max + 2
     hp = cos_t.shape[1]
@@ -906,6 +930,7 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     sel_v = np.zeros(nsel, np.int64)
     sel_r = np.zeros(nsel, np.float32)
     sel_i = np.zeros(nsel, np.float32)
+    dummy = np.zeros((1, 1), np.float32)
     while True:
         q = _fetch_add(counter, r)
         if q >= cntr:
@@ -913,24 +938,37 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
         t = round_tiles[r0 + q]
         for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
             lv = leaf_l[li]
-            if n == 16:     # the common window: the kernel specialised for n = 16
+            if wp is not None:
+                if n == 16:     # the common window: the kernel specialised for n = 16
+                    _block16j(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
+                                leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
+                               tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                               local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                               sel_u, sel_v, sel_r, sel_i, wp, mest)
+                else:
+                    _blockj(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
+                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
+                            tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                            local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                            sel_u, sel_v, sel_r, sel_i, wp, mest)
+            elif n == 16:     # the common window: the kernel specialised for n = 16
                 _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                          leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
                          tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                          local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
-                         sel_u, sel_v, sel_r, sel_i)
+                         sel_u, sel_v, sel_r, sel_i, dummy, dummy)
             else:
                 _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                        leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
                        tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                        local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
-                       sel_u, sel_v, sel_r, sel_i)
+                       sel_u, sel_v, sel_r, sel_i, dummy, dummy)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
          leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
-         delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads):
+         delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact, nthreads, wp, mest):
     """The rounds one after the other; the tiles of a round on ``nthreads`` threads."""
     h, w = img.shape
     tw_tiles = (w + tile - 1) // tile
@@ -946,13 +984,13 @@ def _run(img, state, lo, hi, use_lo, use_hi, tile, n, tile_round, round_ptr, rou
             _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
                     round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
                     tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
-                    pair_exact)
+                    pair_exact, wp, mest)
             continue
         for th in prange(nthreads):
             _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
                     round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t,
                     tw_c, tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale, local,
-                    pair_exact)
+                    pair_exact, wp, mest)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1148,7 +1186,7 @@ def _merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, shape):
             np.ascontiguousarray(np.clip(hi, -big, big), np.float32))
 
 
-def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanced", **params):
+def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanced", weights=None, **params):
     """Reconstruct the pixels where ``known`` is False with FSE; returns float32 (H, W).
 
     ``values``: finite float (H, W), any scale; ``known``: bool (H, W); known pixels are returned
@@ -1156,12 +1194,15 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     reconstruction is clamped to ``[lower, upper]`` (clipped pixels: >= clip level; dark pixels:
     <= threshold). ``preset`` selects one of :data:`FSE_PRESETS`, ``**params`` override entries.
     The output does not depend on the number of threads (each round's blocks read only pixels
-    finalised in earlier rounds). See docs/FSE.md.
+    finalised in earlier rounds). ``weights``: optional float (H, W); where a pixel is not known and
+    its weight is > 0 its value is a noisy measurement that enters the model's fit with that weight
+    (known pixels weigh 1; joint estimation, docs/FSE.md "Noisy samples") and is replaced by the
+    model there; None (default) or no such pixel: the plain path, same bits. See docs/FSE.md.
     """
-    return _fse(values, known, lower, upper, preset, False, params)
+    return _fse(values, known, lower, upper, preset, False, params, weights=weights)
 
 
-def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
+def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weights=None):
     """`fse_reconstruct`; `inplace`: write the missing pixels into `values` itself when it is a
     C-contiguous float32 array (the dispatcher's output array) and return it. `fused=False`: the driver
     before its wrapper passes were fused (issue 7 item 3: numpy offset statistics, numpy log2 of the
@@ -1174,6 +1215,14 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
     v32 = np.ascontiguousarray(v, dtype=np.float32)
     k = np.ascontiguousarray(k)
     out = v32 if (inplace and v32 is v) else v32.copy()
+    noisy = None
+    if weights is not None:
+        wts = np.asarray(weights, np.float32)
+        if wts.shape != v.shape:
+            raise ValueError(f"weights shape {wts.shape} differs from values shape {v.shape}")
+        noisy = (wts > 0) & ~k
+        if not noisy.any():
+            noisy = None
     nk, kmin, kmax, minpos = _stats(v32, k)
     if nk == v32.size:
         return out
@@ -1199,10 +1248,12 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
             domain, c = "linear", 0.0     # log2(x + c) is linear to < 1 % there: use it exactly
     elif domain == "log" and p["log_offset"] is not None:
         c = float(p["log_offset"])
+    floor = 0.0
     if fused and domain == "log" and int(p["local_bound"]):
         # the common HDR case, fused (issue 7 item 3): log2 of data and bounds, the local bound and the
         # merge in three parallel passes; same bounds as the numpy passes of the reference to float rounding
         work, state, lo_arr, hi_arr, scale = _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos)
+        floor = c if c > 0.0 else (0.5 * minpos if minpos > 0 else 1e-30)
         use_lo = use_hi = True
         local = False
     else:
@@ -1237,6 +1288,18 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
                                      domain == "log")
             lo_arr, hi_arr = _merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, v.shape)
             use_lo = use_hi = True
+    joint = noisy is not None
+    if joint:
+        # noisy measurements: state 3, their value in the working domain, their weight (`_gather`)
+        state[noisy] = 3
+        mv = v32[noisy]
+        if domain == "log":
+            mv = np.log2(np.maximum(mv + np.float32(c), np.float32(floor)))
+        work[noisy] = mv
+        wp = np.where(noisy, np.minimum(wts, np.float32(1.0)), np.float32(0.0)).astype(np.float32)
+        mest = np.zeros_like(work)
+    else:
+        wp = mest = None
     tables = _tables(p)
     cos_t, sin_t, tw_c, tw_s, bitrev, prior2, rho_tab, split, sizes = tables
     n = int(p["window"])
@@ -1255,7 +1318,7 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
         _run(work, state, lo_arr, hi_arr, use_lo, use_hi, tile, n, tile_round, round_ptr, round_tiles,
              leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
              float(p["delta"]), float(p["gamma"]), float(p["iter_c"]), int(p["iter_min"]),
-             int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads)
+             int(p["iter_max"]), scale, local, bool(p["pair_exact"]), nthreads, wp, mest)
     finally:
         set_num_threads(old)
     logd = domain == "log"
@@ -1271,6 +1334,14 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True):
             _finish_c(out, work, state, cf)
         else:
             _finish(out, work, state, logd)
+    if joint:
+        # the model at the noisy measurements
+        me = mest[noisy]
+        if logd:
+            me = (2.0 ** me.astype(np.float64)).astype(np.float32)
+            if fused_c:
+                me -= cf
+        out[noisy] = me
     if cf > 0 and not fused:
         out[~k] -= cf
     return out
@@ -1602,3 +1673,4 @@ def warmup() -> None:
     lo[0, 0] = hv.max()
     hi[1, 1] = hv.min()
     fse_reconstruct(hv, k, lower=lo, upper=hi, preset="preview")
+    # (the joint estimation with `weights=` is opt-in: its kernels compile on first use, not here)

@@ -55,7 +55,7 @@ def _validate(values, known, lower, upper):
 
 
 def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lower=None, upper=None,
-                noisy=None, noise=None, out=None, **params) -> np.ndarray:
+                noisy=None, noise=None, out=None, noisy_joint: float = 0.0, **params) -> np.ndarray:
     """Fill the pixels where `known` is False; returns float32 (H, W), known pixels bit-exact.
 
     values: float (H, W) in any scale (8-bit data or linear HDR); known: bool (H, W);
@@ -64,7 +64,9 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     noisy/noise: optional bool (H, W) of missing pixels whose value is a noisy measurement (state NOISY,
     dark policy "weighted") and the noise model (anything with gain, read_noise, nd: a CameraProfile);
     they are reconstructed like the other missing pixels, then fused with their measurement by inverse
-    variance (`fuse_noisy`, issue 8).
+    variance (`fuse_noisy`, issue 8). noisy_joint > 0 (method fse, opt-in): FSE fits its model to the
+    NOISY measurements too, weighted `noisy_weights(..., noisy_joint)`, before the fusion (joint
+    estimation; measured no better than the default, docs/BENCHMARKS.md "Joint FSE with noisy samples").
     out: optional float32 C-contiguous (H, W) array to write the result into (may be `values` itself:
     in place, e.g. mapped frame memory), returned.
     Missing pixels are returned finite, within [min(known min, 0), max(known max, lower bound)] (no
@@ -98,7 +100,10 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     if method == "fse":
         from .fse import _fse
         # in place: FSE writes only the missing pixels of `out` (issue 7 item 3: no copy back)
-        res = _fse(out, k, lower, upper, preset, True, params)
+        wts = None
+        if noisy is not None and noisy_joint > 0:
+            wts = noisy_weights(v_meas, noisy & ~k, noise, noisy_joint)
+        res = _fse(out, k, lower, upper, preset, True, params, weights=wts)
     else:
         if params:
             raise ValueError(f"method {method!r} takes no parameters, got {sorted(params)}")
@@ -117,6 +122,20 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
         if nz.any():
             out = fuse_noisy(out, np.asarray(v_meas, np.float32), k, nz, noise)
     return _apply_bounds(out, miss, lower, upper)
+
+
+def noisy_weights(values, noisy, noise, factor: float = 2.0) -> np.ndarray:
+    """FSE sample weights of NOISY measurements for joint estimation (`fse.fse_reconstruct(weights=)`):
+    factor x var_regular(m) / var_ND(m) at `noisy` pixels (known pixels weigh 1 in FSE), 0 elsewhere,
+    at the measured level m (Eq. 4-7 as `validity.measurement_variance`; the ratio is the same in
+    FSE's log2(x + c) domain, both variances scale with the same derivative). Between 1 / ND^2
+    (read-noise limited) and 1 / ND (shot-noise limited) times `factor`, capped at 1."""
+    g = float(noise.gain)
+    floor = g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0
+    nd = float(noise.nd)
+    m = np.maximum(np.asarray(values, np.float64), 0.0)
+    r = float(factor) * (g * m + floor) / (nd * g * m + nd * nd * floor)
+    return np.where(np.asarray(noisy, bool), np.minimum(r, 1.0), 0.0).astype(np.float32)
 
 
 FUSION_SETTINGS = ("fast", "accurate")

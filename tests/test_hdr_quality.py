@@ -301,3 +301,39 @@ def test_noisy_without_noise_model_is_a_clear_error():
         reconstruction.reconstruct(v, k, noisy=~k)
     with pytest.raises(ValueError, match="shape"):
         reconstruction.reconstruct(v, k, noisy=np.zeros((4, 4), bool), noise=validity.default_noise())
+
+
+def test_noisy_weights_are_the_noise_ratio_of_eq_4_7():
+    """Joint FSE sample weights (helper dark2): factor x var_regular / var_ND at the measured level
+    (Eq. 4-7): factor / ND^2 at black (read noise), towards factor / ND when shot noise dominates;
+    0 at pixels that are not NOISY; at most 1 (a known pixel's weight)."""
+    prof = profile.default(8, 8)
+    m = np.array([[0.0, 50.0, 1e7, 300.0]], np.float32)
+    noisy = np.array([[True, True, True, False]])
+    w = reconstruction.noisy_weights(m, noisy, prof, 2.0)
+    ratio = validity.measurement_variance(m, prof, regular=True) / validity.measurement_variance(m, prof)
+    assert w[0, :3] == pytest.approx(2.0 * ratio[0, :3], rel=1e-5)
+    assert w[0, 0] == pytest.approx(2.0 / prof.nd ** 2, rel=1e-5)
+    assert w[0, 2] == pytest.approx(2.0 / prof.nd, rel=1e-3)
+    assert w[0, 3] == 0.0
+    assert reconstruction.noisy_weights(m, noisy, prof, 1e3).max() == 1.0
+
+
+def test_reconstruct_noisy_joint_opt_in_keeps_measured_pixels():
+    """reconstruct(noisy_joint=) on a real dark scene: measured pixels bit-exact, output finite and
+    >= 0; a frame whose NOISY mask is empty gives the default's bits."""
+    scene = io.read_luminance(shared_data("hdr", "Desk.exr"))
+    prof = profile.default(96, 128, seed=3)
+    t = simulate.view(scene, 96, 128, 0.3, simulate.Motion())
+    t = t * np.float32(simulate.exposure_scale(scene, prof, 0))
+    raw = sensor.capture(t, prof, np.random.default_rng(5))
+    v, s = validity.classify(raw, prof, dark_policy="weighted")
+    k, nz = validity.known_mask(s), validity.noisy_mask(s)
+    lo, hi = validity.bounds(v, s)
+    assert nz.any()
+    out = reconstruction.reconstruct(v, k, lower=lo, upper=hi, noisy=nz, noise=prof, noisy_joint=2.0)
+    assert np.array_equal(out[k], v[k])
+    assert np.all(np.isfinite(out)) and out.min() >= 0.0
+    none = np.zeros_like(nz)
+    a = reconstruction.reconstruct(v, k, lower=lo, upper=hi, noisy=none, noise=prof, noisy_joint=2.0)
+    assert np.array_equal(a, reconstruction.reconstruct(v, k, lower=lo, upper=hi))
