@@ -9,7 +9,7 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
   the profile's)
 - nrcrosstalk:   ``crosstalk.correct(values, state, crosstalk_profile, mode)`` unless mode is 'off'
 - nrreconstruct: ``reconstruction.reconstruct_frame(values, state, method=, preset=, use_bounds=,
-  noise=profile)`` (known mask and bounds in one pass, reconstruction, NOISY pixels fused with the
+  noise=profile, fusion=noise_fusion)`` (known mask and bounds in one pass, reconstruction, NOISY pixels fused with the
   profile's noise model, missing pixels written back with the RECONSTRUCTED bit)
 - nrexrsink:     ``io.write_exr(path, values, state)``
 - nrtonemap (normalise=caps/fixed): ``tonemap.log_tonemap(values, white, exposure_stops=, contrast=)``
@@ -39,13 +39,15 @@ class ChainSettings:
     method: str = "fse"              # nrreconstruct method
     preset: str = "fast"             # nrreconstruct preset
     use_bounds: bool = True          # nrreconstruct use-bounds
+    noise_fusion: str = "accurate"   # nrreconstruct noise-fusion (NOISY pixels: accurate or fast)
     white: float | None = None       # nrtonemap white (None = the profile's white, as in the caps)
     exposure: float = 0.0            # nrtonemap exposure (stops)
     contrast: float = 1000.0         # nrtonemap contrast (= tonemap.DEFAULT_CONTRAST)
 
     def __post_init__(self):
         for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES), ("crosstalk", CROSSTALK_MODES),
-                              ("crosstalk_lut", ("compact", "full")), ("method", METHODS), ("preset", PRESETS)):
+                              ("crosstalk_lut", ("compact", "full")), ("method", METHODS), ("preset", PRESETS),
+                              ("noise_fusion", ("accurate", "fast"))):
             v = getattr(self, name)
             if v not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {v!r}")
@@ -80,7 +82,7 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
             state[...] = s2
     # nrreconstruct's own frame path (one function, so batch and the element give the same bits)
     reconstruction.reconstruct_frame(values, state, method=s.method, preset=s.preset,
-                                     use_bounds=s.use_bounds, noise=profile)
+                                     use_bounds=s.use_bounds, noise=profile, fusion=s.noise_fusion)
     return values, state
 
 

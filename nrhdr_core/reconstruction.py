@@ -55,7 +55,8 @@ def _validate(values, known, lower, upper):
 
 
 def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lower=None, upper=None,
-                noisy=None, noise=None, out=None, noisy_joint: float = 0.0, **params) -> np.ndarray:
+                noisy=None, noise=None, out=None, noisy_joint: float = 0.0, fusion: str = "accurate",
+                **params) -> np.ndarray:
     """Fill the pixels where `known` is False; returns float32 (H, W), known pixels bit-exact.
 
     values: float (H, W) in any scale (8-bit data or linear HDR); known: bool (H, W);
@@ -64,7 +65,7 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     noisy/noise: optional bool (H, W) of missing pixels whose value is a noisy measurement (state NOISY,
     dark policy "weighted") and the noise model (anything with gain, read_noise, nd: a CameraProfile);
     they are reconstructed like the other missing pixels, then fused with their measurement by inverse
-    variance (`fuse_noisy`, issue 8). noisy_joint > 0 (method fse, opt-in): FSE fits its model to the
+    variance (`fuse_noisy`, issue 8; `fusion`: its setting, "accurate" or "fast"). noisy_joint > 0 (method fse, opt-in): FSE fits its model to the
     NOISY measurements too, weighted `noisy_weights(..., noisy_joint)`, before the fusion (joint
     estimation; measured no better than the default, docs/BENCHMARKS.md "Joint FSE with noisy samples").
     out: optional float32 C-contiguous (H, W) array to write the result into (may be `values` itself:
@@ -75,6 +76,8 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     ReconstructionWarning saying so is issued."""
     if method not in METHODS:
         raise ValueError(f"reconstruction method must be one of {METHODS}, got {method!r}")
+    if fusion not in FUSION_SETTINGS:
+        raise ValueError(f"noise fusion setting must be one of {FUSION_SETTINGS}, got {fusion!r}")
     v, k, lower, upper = _validate(values, known, lower, upper)
     if noisy is not None:
         if noise is None:
@@ -120,7 +123,7 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     if noisy is not None:
         nz = noisy & miss
         if nz.any():
-            out = fuse_noisy(out, np.asarray(v_meas, np.float32), k, nz, noise)
+            out = fuse_noisy(out, np.asarray(v_meas, np.float32), k, nz, noise, setting=fusion)
     return _apply_bounds(out, miss, lower, upper)
 
 
@@ -1055,14 +1058,14 @@ def _frame_scratch(h, w, with_bounds):
 
 
 def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", preset: str = "balanced",
-                      use_bounds: bool = True, noise=None, **params) -> int:
+                      use_bounds: bool = True, noise=None, fusion: str = "accurate", **params) -> int:
     """Reconstruct an HDR frame in place (docs/ARCHITECTURE.md layout): the missing pixels
     (`validity.missing_mask`) of `values` get `reconstruct(values, known, ...)`'s result and the
     RECONSTRUCTED bit in `state`; measured pixels are untouched. Known mask and bounds come from one
     fused pass into per-thread scratch reused frame after frame; `preview` and `nearest` write straight
     into `values`. `noise`: the noise model (a CameraProfile) with which NOISY pixels (dark policy
-    "weighted", issue 8) are fused; without it they are reconstructed like other missing pixels.
-    `method` may be a callable `f(missing_share) -> (method, preset)`, called once the frame's missing
+    "weighted", issue 8) are fused (`fusion`: `fuse_noisy`'s setting, "accurate" or "fast"); without it
+    they are reconstructed like other missing pixels. `method` may be a callable `f(missing_share) -> (method, preset)`, called once the frame's missing
     share is known (only when something is missing): how `nrreconstruct method=auto` picks per frame.
     This is the one per-frame path of nrreconstruct and of `chain.process_frame` (batch), so both give
     the same bits. Returns the number of pixels filled (0: nothing to do, nothing touched).
@@ -1072,15 +1075,18 @@ def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", prese
             and values.dtype == np.float32 and values.flags.c_contiguous and values.flags.writeable \
             and isinstance(state, np.ndarray) and state.dtype == np.uint8 and state.shape == values.shape \
             and state.flags.c_contiguous and state.flags.writeable:
-        r = _preview_frame(values, state, method, use_bounds, noise)
+        if fusion not in FUSION_SETTINGS:
+            raise ValueError(f"noise fusion setting must be one of {FUSION_SETTINGS}, got {fusion!r}")
+        r = _preview_frame(values, state, method, use_bounds, noise, fusion)
         if isinstance(r, int):
             return r
         if isinstance(r, tuple):
             method, preset = r
-    return _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, **params)
+    return _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, fusion, **params)
 
 
-def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, **params) -> int:
+def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, fusion="accurate",
+                               **params) -> int:
     """`reconstruct_frame` for every method: prepare, `reconstruct`, write-back (the reference of the
     fused preview path)."""
     from . import validity
@@ -1101,7 +1107,7 @@ def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise,
     target = values if (n_miss == n_unknown and values.dtype == np.float32 and values.flags.c_contiguous) \
         else res
     out = reconstruct(values, known, method=method, preset=preset, lower=lower, upper=upper, out=target,
-                      noisy=noisy, noise=noise if noisy is not None else None, **params)
+                      noisy=noisy, noise=noise if noisy is not None else None, fusion=fusion, **params)
     return validity.write_back(values, state, out)
 
 
@@ -1354,7 +1360,7 @@ def _pvf_put_noisy(values, state, noisy, g, cnt, flag):
                 state[y, x] = state[y, x] | flag
 
 
-def _preview_frame(values, state, method, use_bounds, noise):
+def _preview_frame(values, state, method, use_bounds, noise, fusion="accurate"):
     """`reconstruct_frame` for the preview (fused passes above). Returns the pixels filled, or
     (method, preset) when a callable `method` chose something else, or None when the general path must
     do the frame (non-finite values, no known pixel); nothing is written then."""
@@ -1390,10 +1396,10 @@ def _preview_frame(values, state, method, use_bounds, noise):
     nbad = _pvf_fill(values, state, known, noisy, lower, pv, off[1], ws[1], lo, hi, bool(use_bounds), fuse,
                      g, cnt, flag)
     if fuse:
-        fuse_noisy(g, values, known, noisy, noise)
+        fuse_noisy(g, values, known, noisy, noise, setting=fusion)
         _pvf_put_noisy(values, state, noisy, g, cnt, flag)
     n = n_miss - nbad
     if nbad:
         # never seen (a fill that overflows float32): the general path fills what is left, as it would
-        n += _reconstruct_frame_general(values, state, "preview", "balanced", use_bounds, noise)
+        n += _reconstruct_frame_general(values, state, "preview", "balanced", use_bounds, noise, fusion)
     return n

@@ -299,7 +299,7 @@ def test_reconstruct_method_and_preset_change_while_playing(gst, tiny_clip):
     import gst_plugins.elements.nrreconstruct as nrrec
     from gi.repository import Gst
     el = Gst.ElementFactory.make("nrreconstruct", None)
-    for pname in ("method", "preset", "use-bounds"):
+    for pname in ("method", "preset", "use-bounds", "noise-fusion"):
         assert el.find_property(pname).flags & Gst.PARAM_MUTABLE_PLAYING, pname
 
     def before(i, pipeline):
@@ -324,6 +324,30 @@ def test_reconstruct_method_and_preset_change_while_playing(gst, tiny_clip):
     warnings = [m for m in r.messages if m.type == Gst.MessageType.WARNING]
     assert any("no-such-method" in m.parse_warning()[0].message for m in warnings)
     assert nrrec.ReconParams.__dataclass_params__.frozen
+
+
+@pytest.mark.parametrize("method", ["preview", "fse"])
+def test_reconstruct_noise_fusion_setting_reaches_the_core(gst, tiny_clip, method):
+    """noise-fusion=fast|accurate: each frame equals the core's per-frame path with that fusion setting
+    (nrvalidity's default dark-policy=weighted makes NOISY pixels), and the two settings differ there."""
+    from nrhdr_core import chain, reconstruction
+    import gst_plugins.elements.nrreconstruct as nrrec
+    assert nrrec.FUSIONS == reconstruction.FUSION_SETTINGS
+    d, prof, raws = tiny_clip
+    out = {}
+    for setting in reconstruction.FUSION_SETTINGS:
+        r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method={method} preset=fast "
+                       f"noise-fusion={setting}", raw_caps(prof.width, prof.height), raw_buffers(raws[:2]))
+        assert r.error is None, r.error_text
+        assert len(r.samples) == 2
+        out[setting] = [smp[3][0] for smp in r.samples]
+        for i, vals in enumerate(out[setting]):
+            ev, es = chain.process_frame(raws[i], prof, chain.ChainSettings(
+                crosstalk="off", method=method, preset="fast", noise_fusion=setting))
+            np.testing.assert_array_equal(vals, ev)
+    _, es = chain.process_frame(raws[0], prof, chain.ChainSettings(crosstalk="off", method=method))
+    assert ((es & 0x0F) == 5).any()                              # there are NOISY pixels to fuse
+    assert not np.array_equal(out["fast"][0], out["accurate"][0])
 
 
 def test_reconstruct_error_is_posted_not_swallowed(gst, tiny_clip, monkeypatch):

@@ -110,6 +110,10 @@ def test_invalid_property_value(gst_subprocess_env, tiny_clip):
     rc, out = launch(gst_subprocess_env, *src(d), "nrvalidity", f"profile={d / 'camera.json'}", "!",
                      "nrreconstruct", "method=magic", "!", "fakesink")
     assert_element_error(rc, out, "nrreconstruct0", "invalid value 'magic' for property 'method'")
+    rc, out = launch(gst_subprocess_env, *src(d), "nrvalidity", f"profile={d / 'camera.json'}", "!",
+                     "nrreconstruct", "noise-fusion=exact", "!", "fakesink")
+    assert_element_error(rc, out, "nrreconstruct0", "invalid value 'exact' for property 'noise-fusion'",
+                         "fast, accurate")
 
 
 def test_exr_write_failure_names_file(gst_subprocess_env, tiny_clip, tmp_path):

@@ -43,6 +43,8 @@ def add_batch(sub) -> None:
     g.add_argument("--method", choices=chain.METHODS, default="fse", help="nrreconstruct method")
     g.add_argument("--preset", choices=chain.PRESETS, default="fast",
                    help="nrreconstruct preset (default fast, as raw_to_exr.sh; 'best' for final quality)")
+    g.add_argument("--noise-fusion", choices=("accurate", "fast"), default="accurate",
+                   help="nrreconstruct noise-fusion (NOISY pixels: accurate, or fast)")
     g.add_argument("--no-bounds", action="store_true", help="nrreconstruct use-bounds=false")
     g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
     g.add_argument("--exposure", type=float, default=0.0, help="nrtonemap exposure in stops")
@@ -78,7 +80,7 @@ def cmd_batch(a) -> int:
         raise ValueError("--workers starts a local cluster; it cannot go with --scheduler")
     settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk,
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
-                                   preset=a.preset, use_bounds=not a.no_bounds, white=a.white,
+                                   preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion, white=a.white,
                                    exposure=a.exposure, contrast=a.contrast)
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames)
     job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile)

@@ -24,6 +24,7 @@ from ._common import LiveTiming, live_latency_property  # live operation: QoS, l
 METHODS = ("fse", "linear", "nearest", "preview", "auto")
 BUDGET_SHARE = 0.7  # method=auto without budget-ms: this share of the frame period (the rest: other stages)
 PRESETS = ("preview", "fast", "balanced", "best")
+FUSIONS = ("fast", "accurate")   # reconstruction.FUSION_SETTINGS (not imported here: no numba at import)
 STATS_MESSAGE = "nrhdr-frame-stats"
 
 
@@ -32,6 +33,7 @@ class ReconParams:
     method: str = "fse"
     preset: str = "balanced"
     use_bounds: bool = True
+    noise_fusion: str = "accurate"
 
 
 class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
@@ -62,6 +64,7 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         self._params = ReconParams()
         self._method = Choice("method", METHODS, "fse")
         self._preset = Choice("preset", PRESETS, "balanced")
+        self._fusion = Choice("noise-fusion", FUSIONS, "accurate")
         self._post_stats = False   # off by default: unread bus messages would pile up (issue 9)
         self._info = None
         self._noise = None
@@ -121,6 +124,22 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     def use_bounds(self, value):
         self._params = dataclasses.replace(self._params, use_bounds=bool(value))
 
+    @GObject.Property(type=str, default="accurate", nick="Noise fusion",
+                      blurb="How NOISY pixels (nrvalidity dark-policy=weighted) are fused with their noisy "
+                            "measurement: 'accurate' = from the measured 3 x 3 neighbours and the pixel by "
+                            "inverse noise variance (default), 'fast' = the reconstruction and the pixel "
+                            "(about 25 % less time, about 0.3 dB lower in dark regions; docs/BENCHMARKS.md). "
+                            "Changeable while PLAYING",
+                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
+    def noise_fusion(self):
+        return self._params.noise_fusion
+
+    @noise_fusion.setter
+    def noise_fusion(self, value):
+        v = self.set_choice(self._fusion, value)
+        if v is not None:
+            self._params = dataclasses.replace(self._params, noise_fusion=v)
+
     @GObject.Property(type=bool, default=False, nick="Post statistics",
                       blurb="Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing "
                             "= fraction of pixels reconstructed, method, seconds). Off by default: an "
@@ -137,7 +156,7 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     def do_start(self):
         self.reset_errors()
         try:
-            for c in (self._method, self._preset):
+            for c in (self._method, self._preset, self._fusion):
                 if c.invalid:
                     self.post_error(c.invalid, kind="settings")
                     return False
@@ -195,7 +214,8 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
                 n_miss = reconstruction.reconstruct_frame(values, state,
                                                           method=choose if p.method == "auto" else p.method,
                                                           preset=p.preset,
-                                                          use_bounds=p.use_bounds, noise=self._noise_model())
+                                                          use_bounds=p.use_bounds, noise=self._noise_model(),
+                                                          fusion=p.noise_fusion)
             method, preset, rung, budget = picked["method"], picked["preset"], picked["rung"], picked["budget"]
             share = n_miss / float(self._info.pixels)
             dt = time.perf_counter() - t0
