@@ -200,7 +200,7 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path):
     """SIGINT to the whole process group (a terminal's Ctrl-C) during a 2-worker run: exit 130, no
     process of the run is left, only complete files (no temp files); the same command then finishes the
     rest, and every frame equals the chain's output."""
-    d, prof, raws = make_test_clip(tmp_path / "clip", width=96, height=72, frames=12)
+    d, prof, raws = make_test_clip(tmp_path / "clip", width=96, height=72, frames=60)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "gst_plugins.cli", "batch", str(d), "-o", str(out), "--workers", "2",
            "--preset", "best", "--no-progress"]
