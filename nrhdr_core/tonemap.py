@@ -138,6 +138,10 @@ class WhiteTracker:
 def warmup() -> None:
     log_tonemap(np.ones((2, 2), np.float32), 1.0)
     log_tonemap(np.ones((2, 2), np.float32), 1.0, dtype=np.uint16)
+    v = np.ones((2, 2), np.float32)
+    v.setflags(write=False)        # nrtonemap maps its input read-only: numba compiles that signature apart
+    log_tonemap(v, 1.0)
+    log_tonemap(v, 1.0, dtype=np.uint16)
 
 
 # ---- HDR transfer functions (ITU-R BT.2100) --------------------------------------------------------------

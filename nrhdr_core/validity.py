@@ -488,3 +488,7 @@ def warmup() -> None:
     classify(np.zeros((2, 2), np.uint16), p, mode="best")
     v, s = classify(np.array([[4095, 4095], [3, 4095]], np.uint16), p, dark_policy="weighted")
     bounds(v, s)
+    raw = np.zeros((2, 2), np.uint16)
+    raw.setflags(write=False)      # the element classifies read-only mapped buffer memory: its own signature
+    classify(raw, p)
+    classify(raw, p, dark_policy="weighted")
