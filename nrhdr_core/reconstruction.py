@@ -147,23 +147,26 @@ def _noisy_level(out, known, skip):
     """Each `skip` pixel that is not known: the mean of its 3 x 3 neighbours that are not skipped (known
     or reconstructed), else its own measurement (clipped at 0): the level `fuse_noisy` sets the noise
     variances from, and its estimate where no neighbour is measured. Reads only non-skipped pixels, so
-    the order of the writes does not matter."""
+    the order of the writes does not matter; branch-free 3-row column sums per row (random masks)."""
     h, w = out.shape
     for y in prange(h):
+        y0 = max(y - 1, 0)
+        y1 = min(y + 2, h)
+        cs = np.zeros(w + 2, np.float64)     # column sums of the usable pixels, one column of margin
+        cn = np.zeros(w + 2, np.float64)
+        for yy in range(y0, y1):
+            for x in range(w):
+                ok = known[yy, x] | (not skip[yy, x])
+                # (a select, not a product: a skipped pixel's value, written by another row, is never used)
+                cs[x + 1] += np.float64(out[yy, x]) if ok else 0.0
+                cn[x + 1] += 1.0 if ok else 0.0
         for x in range(w):
-            if not skip[y, x] or known[y, x]:
-                continue
-            s = 0.0
-            c = 0
-            for yy in range(max(y - 1, 0), min(y + 2, h)):
-                for xx in range(max(x - 1, 0), min(x + 2, w)):
-                    if known[yy, xx] or not skip[yy, xx]:
-                        s += np.float64(out[yy, xx])
-                        c += 1
-            if c > 0:
-                out[y, x] = np.float32(s / c)
-            else:
-                out[y, x] = max(out[y, x], np.float32(0.0))
+            if skip[y, x] and not known[y, x]:
+                c = cn[x] + cn[x + 1] + cn[x + 2]
+                if c > 0.5:
+                    out[y, x] = np.float32((cs[x] + cs[x + 1] + cs[x + 2]) / c)
+                else:
+                    out[y, x] = max(out[y, x], np.float32(0.0))
 
 
 def noisy_weights(values, noisy, noise, factor: float = 2.0) -> np.ndarray:
