@@ -263,6 +263,12 @@ def dark_split(scenes) -> int:
                 wgt = e2 / (e2 + vm)
                 rows.append((name, np.where(k, v, np.where(nz, gi + wgt * (v - gi), gi))))
             rows.append(("FSE from noise-free regular pixels alone", np.where(k, v, gt)))
+            # helper fsenoisy (issue 7): `reconstruct`'s own NOISY path, FSE reconstructing the NOISY pixels
+            # (before) and skipping them (the default for the accurate fusion), same frame
+            for name, flag in (("reconstruct(noisy=): FSE at NOISY + fusion accurate (before)", False),
+                               ("reconstruct(noisy=): FSE skips NOISY + fusion accurate (issue 7)", True)):
+                rows.append((name, reconstruction.reconstruct(v, k, lower=lo, upper=hi, noisy=nz, noise=prof,
+                                                              noisy_skip=flag)))
             rows += _joint_rows(v, k, nz, lo, hi, prof, t64, vm, rows[1][1])
             for name, o in rows:
                 add(name, t64, np.asarray(o, np.float64), nd_, reg)

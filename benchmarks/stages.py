@@ -264,6 +264,18 @@ def main(argv=None):
             if nz.any():
                 rec("  of which fuse_noisy", timeit(
                     lambda: reconstruction.fuse_noisy(g, vn, kn, nz, prof), a.repeat))
+            # -- helper fsenoisy (issue 7): nrreconstruct method=fse preset=fast's frame with the NOISY pixels
+            # fused (accurate), FSE skipping them (the default) against FSE reconstructing them (before)
+            if "fse_fast" not in skip and nz.any() and hasattr(reconstruction, "NOISY_SKIP"):
+                for label, flag in (("skips NOISY", True), ("FSE at NOISY, before", False)):
+                    def element_fse(flag=flag):
+                        old, reconstruction.NOISY_SKIP = reconstruction.NOISY_SKIP, flag
+                        try:
+                            reconstruction.reconstruct_frame(vw, sw, method="fse", preset="fast", noise=prof)
+                        finally:
+                            reconstruction.NOISY_SKIP = old
+                    rec(f"element_fse_fast ({label})", timeit(element_fse, a.fse_repeat, frame_setup_n))
+            # -- end helper fsenoisy
             vv0, ss0 = vn.copy(), np.zeros_like(sn)
             rec("element_preview none missing", timeit(
                 lambda: reconstruction.reconstruct_frame(vv0, ss0, method="preview", noise=prof), a.repeat))

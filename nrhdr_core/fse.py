@@ -1202,9 +1202,13 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     return _fse(values, known, lower, upper, preset, False, params, weights=weights)
 
 
-def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weights=None):
+def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weights=None, skip=None):
     """`fse_reconstruct`; `inplace`: write the missing pixels into `values` itself when it is a
-    C-contiguous float32 array (the dispatcher's output array) and return it. `fused=False`: the driver
+    C-contiguous float32 array (the dispatcher's output array) and return it. `skip`: optional bool
+    (H, W) of missing pixels FSE leaves alone (state SKIP: weight 0 in `_gather`, not counted as
+    missing by the plan, never written by `_write_block` nor `_finish`; their value in the result is
+    whatever `values` held there; issue 7: the NOISY pixels that `fuse_noisy` accurate re-estimates
+    from their measured neighbours anyway, docs/FSE.md "Skipping NOISY pixels"). `fused=False`: the driver
     before its wrapper passes were fused (issue 7 item 3: numpy offset statistics, numpy log2 of the
     bounds, scipy local bound, serial finish), kept as `_fse_reconstruct_reference` for the tests."""
     p = resolve_params(preset, **params)
@@ -1288,6 +1292,8 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
                                      domain == "log")
             lo_arr, hi_arr = _merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, v.shape)
             use_lo = use_hi = True
+    if skip is not None:
+        _mark_skip(state, skip)
     joint = noisy is not None
     if joint:
         # noisy measurements: state 3, their value in the working domain, their weight (`_gather`)
@@ -1328,7 +1334,8 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
     if nleft:
         # blocks whose support held no usable pixel: nearest reconstructed/known value
         left = state == 0
-        _nearest_fill(work, left)
+        # (from known and reconstructed pixels only: skipped ones hold no value in `work`)
+        _nearest_fill(work, left, (state == 1) | (state == 2) if skip is not None else None)
         state[left] = 2
         if fused_c:
             _finish_c(out, work, state, cf)
@@ -1345,6 +1352,21 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
     if cf > 0 and not fused:
         out[~k] -= cf
     return out
+
+
+# FSE pixel states: 0 missing, 1 known, 2 reconstructed (weight delta), 3 noisy measurement (joint
+# estimation, weighted), SKIP: missing but left to the caller (weight 0, never counted nor written)
+SKIP = 4
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _mark_skip(state, skip):
+    """state = SKIP at the `skip` pixels that are not known (`_fse`'s skip argument)."""
+    h, w = state.shape
+    for y in prange(h):
+        for x in range(w):
+            if skip[y, x] and state[y, x] != 1:
+                state[y, x] = SKIP
 
 
 _SCRATCH = threading.local()
@@ -1508,13 +1530,14 @@ def _bounds(lower, upper, shape, use):
     return lo_arr, hi_arr, use_lo, use_hi
 
 
-def _nearest_fill(work, left):
+def _nearest_fill(work, left, src=None):
+    """Pixels `left` get the value of the nearest `src` pixel (default: every pixel not left)."""
     from scipy import ndimage
-    src = ~left
+    src = ~left if src is None else src
     if not src.any():
         work[left] = 0.0
         return
-    idx = ndimage.distance_transform_edt(left, return_distances=False, return_indices=True)
+    idx = ndimage.distance_transform_edt(~src, return_distances=False, return_indices=True)
     work[left] = work[idx[0][left], idx[1][left]]
 
 
@@ -1673,4 +1696,6 @@ def warmup() -> None:
     lo[0, 0] = hv.max()
     hi[1, 1] = hv.min()
     fse_reconstruct(hv, k, lower=lo, upper=hi, preset="preview")
+    # NOISY pixels skipped (the default before reconstruct's accurate noise fusion, issue 7)
+    _fse(v, k, None, None, "preview", False, {}, skip=~k & (rng.random((24, 24)) < 0.5))
     # (the joint estimation with `weights=` is opt-in: its kernels compile on first use, not here)

@@ -12,6 +12,7 @@ too-dark pixel at most `upper`), and cost nothing when no pixel is missing.
 """
 from __future__ import annotations
 
+import os
 import threading
 import warnings
 
@@ -56,7 +57,7 @@ def _validate(values, known, lower, upper):
 
 def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lower=None, upper=None,
                 noisy=None, noise=None, out=None, noisy_joint: float = 0.0, fusion: str = "accurate",
-                **params) -> np.ndarray:
+                noisy_skip=None, **params) -> np.ndarray:
     """Fill the pixels where `known` is False; returns float32 (H, W), known pixels bit-exact.
 
     values: float (H, W) in any scale (8-bit data or linear HDR); known: bool (H, W);
@@ -68,6 +69,10 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     variance (`fuse_noisy`, issue 8; `fusion`: its setting, "accurate" or "fast"). noisy_joint > 0 (method fse, opt-in): FSE fits its model to the
     NOISY measurements too, weighted `noisy_weights(..., noisy_joint)`, before the fusion (joint
     estimation; measured no better than the default, docs/BENCHMARKS.md "Joint FSE with noisy samples").
+    noisy_skip (method fse, fusion "accurate", no noisy_joint): FSE leaves the NOISY pixels alone (issue 7:
+    the accurate fusion re-estimates them from their measured 3 x 3 neighbours; FSE's value there only
+    set the noise level) and they get the mean of their non-NOISY 3 x 3 neighbours as that level
+    (`_noisy_level`); None: `NOISY_SKIP` (docs/FSE.md "Skipping NOISY pixels").
     out: optional float32 C-contiguous (H, W) array to write the result into (may be `values` itself:
     in place, e.g. mapped frame memory), returned.
     Missing pixels are returned finite, within [min(known min, 0), max(known max, lower bound)] (no
@@ -103,10 +108,15 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     if method == "fse":
         from .fse import _fse
         # in place: FSE writes only the missing pixels of `out` (issue 7 item 3: no copy back)
-        wts = None
+        wts = skip = None
         if noisy is not None and noisy_joint > 0:
             wts = noisy_weights(v_meas, noisy & ~k, noise, noisy_joint)
-        res = _fse(out, k, lower, upper, preset, True, params, weights=wts)
+        elif noisy is not None and fusion == "accurate" and (NOISY_SKIP if noisy_skip is None else noisy_skip):
+            skip = np.ascontiguousarray(noisy)
+        res = _fse(out, k, lower, upper, preset, True, params, weights=wts, skip=skip)
+        if skip is not None:
+            # the fusion's noise level at the skipped pixels (they still hold their measurement)
+            _noisy_level(res, k, skip)
     else:
         if params:
             raise ValueError(f"method {method!r} takes no parameters, got {sorted(params)}")
@@ -125,6 +135,38 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
         if nz.any():
             out = fuse_noisy(out, np.asarray(v_meas, np.float32), k, nz, noise, setting=fusion)
     return _apply_bounds(out, miss, lower, upper)
+
+
+# issue 7 (helper fsenoisy): FSE skips the NOISY pixels when the accurate fusion follows (the default);
+# NRHDR_FSE_NOISY_SKIP=0 restores the FSE estimate there (the before/after switch of the benchmarks)
+NOISY_SKIP = os.environ.get("NRHDR_FSE_NOISY_SKIP", "1") != "0"
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _noisy_level(out, known, skip):
+    """Each `skip` pixel that is not known: the mean of its 3 x 3 neighbours that are not skipped (known
+    or reconstructed), else its own measurement (clipped at 0): the level `fuse_noisy` sets the noise
+    variances from, and its estimate where no neighbour is measured. Reads only non-skipped pixels, so
+    the order of the writes does not matter; branch-free 3-row column sums per row (random masks)."""
+    h, w = out.shape
+    for y in prange(h):
+        y0 = max(y - 1, 0)
+        y1 = min(y + 2, h)
+        cs = np.zeros(w + 2, np.float64)     # column sums of the usable pixels, one column of margin
+        cn = np.zeros(w + 2, np.float64)
+        for yy in range(y0, y1):
+            for x in range(w):
+                ok = known[yy, x] | (not skip[yy, x])
+                # (a select, not a product: a skipped pixel's value, written by another row, is never used)
+                cs[x + 1] += np.float64(out[yy, x]) if ok else 0.0
+                cn[x + 1] += 1.0 if ok else 0.0
+        for x in range(w):
+            if skip[y, x] and not known[y, x]:
+                c = cn[x] + cn[x + 1] + cn[x + 2]
+                if c > 0.5:
+                    out[y, x] = np.float32((cs[x] + cs[x + 1] + cs[x + 2]) / c)
+                else:
+                    out[y, x] = max(out[y, x], np.float32(0.0))
 
 
 def noisy_weights(values, noisy, noise, factor: float = 2.0) -> np.ndarray:
@@ -1025,6 +1067,7 @@ def warmup(method: str | None = None) -> None:
     from types import SimpleNamespace
     _clamp_to_data(v.copy(), v, k, ~k, np.full(v.shape, np.nan, np.float32))
     fuse_noisy(v.copy(), v, k, ~k, SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
+    _noisy_level(v.copy(), k, ~k)
     if method in (None, "fse"):
         from . import fse
         fse.warmup()

@@ -296,3 +296,104 @@ def test_joint_estimate_uses_the_noisy_samples():
     plain = fse.fse_reconstruct(t, known, preset="balanced")
     assert rms(clean, noisy) < 0.5 * rms(plain, noisy)
     assert rms(clean, miss) < rms(plain, miss)
+
+
+# ---- FSE skips NOISY pixels before the accurate noise fusion (issue 7, helper fsenoisy) ----------------
+def _prof():
+    from types import SimpleNamespace
+    return SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35)
+
+
+def test_skipped_pixels_are_neither_read_nor_written():
+    """State SKIP: FSE writes no skipped pixel (they keep their input bits), and the other missing
+    pixels do not depend on the skipped pixels' values (weight 0: garbage there gives the same bits);
+    with every missing pixel skipped nothing is reconstructed at all."""
+    t, known, noisy, rng = _joint_case()
+    skip = noisy & ~known
+    a = fse._fse(t, known, None, None, "fast", False, {}, skip=skip)
+    assert np.array_equal(a[skip], t[skip]) and np.array_equal(a[known], t[known])
+    garbage = t.copy()
+    garbage[skip] = rng.random(int(skip.sum())).astype(np.float32) * 1e6
+    b = fse._fse(garbage, known, None, None, "fast", False, {}, skip=skip)
+    miss = ~known & ~skip
+    assert np.array_equal(a[miss], b[miss])
+    assert np.array_equal(b[skip], garbage[skip])
+    # the plain path would read them (delta-weighted reconstructions) and write them
+    c = fse._fse(t, known, None, None, "fast", False, {})
+    assert not np.array_equal(c[skip], t[skip])
+    # nothing but skipped pixels missing: the input comes back unchanged
+    d = fse._fse(t, known | miss, None, None, "fast", False, {}, skip=skip)
+    assert np.array_equal(d, t)
+
+
+def test_noisy_skip_without_a_noisy_pixel_gives_the_same_bits():
+    """No NOISY pixel (an empty mask, or NOISY only at known pixels): the same bits as without a mask."""
+    t, known, _, _ = _joint_case()
+    ref = reconstruct(t, known, preset="fast")
+    for nz in (np.zeros_like(known), known.copy()):
+        out = reconstruct(t, known, preset="fast", noisy=nz, noise=_prof(), noisy_skip=True)
+        assert np.array_equal(out, ref)
+
+
+def _fusion_numpy(g, m, known, noisy, prof, texture=1.0, r=2):
+    """`fuse_noisy` accurate written out in numpy/float64 from its docstring (issue 8): e = inverse-variance
+    mean of the measured 3 x 3 neighbours (known: 1 / var_r, other NOISY: 1 / var_m), var_e = 1 / sum of
+    weights + texture x excess variance of the known pixels of the 5 x 5 window; e = g, var_e = var_r / 4
+    + excess when no neighbour is measured; f = max(e + var_e / (var_e + var_m) (m - e), 0)."""
+    floor = prof.gain ** 2 * prof.read_noise ** 2 + 1.0 / 12.0
+    out = g.astype(np.float64).copy()
+    h, w = g.shape
+    m = m.astype(np.float64)
+    for y, x in zip(*np.nonzero(noisy)):
+        gp = max(float(g[y, x]), 0.0)
+        var_r = prof.gain * gp + floor
+        var_m = prof.nd * prof.gain * gp + prof.nd ** 2 * floor
+        win = (slice(max(y - r, 0), y + r + 1), slice(max(x - r, 0), x + r + 1))
+        kv = m[win][known[win]]
+        excess = 0.0
+        if kv.size:
+            excess = max(kv.var() - (prof.gain * max(kv.mean(), 0.0) + floor), 0.0)
+        w3 = (slice(max(y - 1, 0), y + 2), slice(max(x - 1, 0), x + 2))
+        kn3 = m[w3][known[w3]]
+        nz3 = noisy[w3] & ~known[w3]
+        nz3[y - w3[0].start, x - w3[1].start] = False
+        zv = m[w3][nz3]
+        sw = kn3.size / var_r + zv.size / var_m
+        e, var_e = float(g[y, x]), var_r / 4.0 + texture * excess
+        if sw > 0.5 / var_m:
+            e = (kn3.sum() / var_r + zv.sum() / var_m) / sw
+            var_e = 1.0 / sw + texture * excess
+        f = e + var_e / (var_e + var_m) * (m[y, x] - e)
+        out[y, x] = max(f, 0.0)
+    return out
+
+
+def test_noisy_skip_fused_result_matches_numpy():
+    """The default path of `reconstruct(fse, noisy, accurate)`: FSE with the NOISY pixels skipped, their
+    level the mean of the non-NOISY 3 x 3 neighbours (numpy here), clamped to the data range, then the
+    fusion formula (numpy above), against the dispatcher; known pixels bit-exact; FSE's model at the other
+    missing pixels the same as the skipped FSE run's."""
+    t, known, noisy, rng = _joint_case(seed=5)
+    t = t[:32, :40].copy()
+    known, noisy = known[:32, :40].copy(), noisy[:32, :40] & ~known[:32, :40]
+    meas = np.where(noisy, t * (1.0 + 0.3 * rng.standard_normal(t.shape)), t).astype(np.float32)
+    out = reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof())
+    g = fse._fse(meas, known, None, None, "fast", False, {}, skip=noisy).astype(np.float64)
+    lvl = g.copy()
+    for y, x in zip(*np.nonzero(noisy)):
+        win = (slice(max(y - 1, 0), y + 2), slice(max(x - 1, 0), x + 2))
+        src = ~noisy[win]
+        lvl[y, x] = g[win][src].mean() if src.any() else max(g[y, x], 0.0)
+    lvl = np.where(known, lvl, np.clip(lvl, min(meas[known].min(), 0.0), meas[known].max()))
+    want = _fusion_numpy(lvl.astype(np.float32), meas, known, noisy, _prof())
+    assert np.array_equal(out[known], meas[known])
+    miss = ~known & ~noisy
+    np.testing.assert_allclose(out[miss], lvl[miss], rtol=1e-6)
+    np.testing.assert_allclose(out[noisy], want[noisy], rtol=2e-5, atol=1e-4)
+    # the switch: noisy_skip=False is the former path (FSE's value at the NOISY pixels), a different result
+    old = reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), noisy_skip=False)
+    assert not np.array_equal(old, out)
+    # the fast fusion and the joint estimation keep FSE at the NOISY pixels (the skip is for accurate only)
+    assert np.array_equal(reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), fusion="fast"),
+                          reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), fusion="fast",
+                                      noisy_skip=False))
