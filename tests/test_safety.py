@@ -516,6 +516,17 @@ def test_shipped_recording_pipeline_refuses_old_recording(gst_subprocess_env, ti
     assert (out / "frame_notes.txt").read_text() == "mine"
 
 
+def _as_from_a_terminal():
+    """Popen preexec: the script starts as from a user's shell, with SIGINT/SIGTERM/SIGHUP at their default
+    action and unblocked, whatever the test process inherited or set up (a shell cannot trap a signal that
+    was ignored when it started: then the recording rightly ignores Ctrl-C, which is not what this tests)."""
+    import signal as s
+    sigs = [s.SIGINT, s.SIGTERM, s.SIGHUP]
+    for sig in sigs:
+        s.signal(sig, s.SIG_DFL)
+    s.pthread_sigmask(s.SIG_UNBLOCK, sigs)
+
+
 @pytest.mark.gst
 @pytest.mark.parametrize("sig,status,group", [(signal.SIGTERM, 143, False), (signal.SIGINT, 130, False),
                                               (signal.SIGINT, 130, True)])
@@ -535,7 +546,7 @@ touch "{tmp_path}/after"
 """)
     env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}")
     p = subprocess.Popen(["bash", str(script)], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                         text=True, start_new_session=group)
+                         text=True, start_new_session=group, preexec_fn=_as_from_a_terminal)
     try:
         assert _wait_for(lambda: len(list(tmp_path.glob("f_*.exr"))) >= 5 or p.poll() is not None)
         assert p.poll() is None, p.communicate()[0]
@@ -550,6 +561,9 @@ touch "{tmp_path}/after"
     finally:
         if p.poll() is None:
             p.kill()
+        for k in locals().get("procs", []):      # never leave nrhdr or gst-launch behind a failed test
+            if _alive(k):
+                os.kill(k, signal.SIGKILL)
     assert p.returncode == status, out
     assert "Got EOS" in out and "terminating it" not in out     # one clean EOS, no escalation
     assert not any(_alive(k) for k in procs)
