@@ -195,6 +195,14 @@ def _session_pids(sid):
     return [int(x) for x in p.stdout.split()]
 
 
+def _default_sigint():
+    """Popen preexec: Ctrl-C at its default action, as in a user's terminal, even when the tests run with
+    SIGINT ignored (started in the background by a non-interactive shell: children inherit SIG_IGN)."""
+    import signal as s
+    s.signal(s.SIGINT, s.SIG_DFL)
+    s.pthread_sigmask(s.SIG_UNBLOCK, [s.SIGINT])
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="process-group signals and pgrep -s")
 def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path):
     """SIGINT to the whole process group (a terminal's Ctrl-C) during a 2-worker run: exit 130, no
@@ -205,7 +213,7 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path):
     cmd = [sys.executable, "-m", "gst_plugins.cli", "batch", str(d), "-o", str(out), "--workers", "2",
            "--preset", "best", "--no-progress"]
     p = subprocess.Popen(cmd, env=batch_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                         start_new_session=True)
+                         start_new_session=True, preexec_fn=_default_sigint)
     try:
         t0 = time.monotonic()
         while len(exr_frames(out)) < 3 and p.poll() is None and time.monotonic() - t0 < 240:

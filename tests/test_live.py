@@ -249,7 +249,7 @@ def test_camsrc_scene_mode_and_errors(gst, tmp_path):
 
 
 def _slow_live(gst, prof_path, qos=True, frames=100, leaky=False):
-    """Live 50 fps camera into fse best (~100 ms per 80x64 frame here): far slower than the 20 ms period."""
+    """Live 50 fps camera into fse best (160x128 frames): slower than the 20 ms period."""
     q = "" if qos else " qos=false"
     queue = "queue leaky=downstream max-size-buffers=1" if leaky else "queue max-size-buffers=1000"
     return (f"nrcamsrc name=s scene=synthetic profile={prof_path} frames=3 fps=50 num-buffers={frames} ! "
@@ -259,10 +259,12 @@ def _slow_live(gst, prof_path, qos=True, frames=100, leaky=False):
 
 
 @pytest.fixture(scope="module")
-def prof80(tmp_path_factory):
+def prof_live(tmp_path_factory):
     from nrhdr_core import profile
     path = tmp_path_factory.mktemp("prof") / "cam.json"
-    profile.save(profile.default(64, 80, seed=4), path)
+    # 160 x 128: fse best must take longer than the 20 ms frame period (80 x 64 no longer did after the
+    # session-3 FSE speed-ups, and these tests skipped)
+    profile.save(profile.default(128, 160, seed=4), path)
     return path
 
 
@@ -272,8 +274,8 @@ def _median(xs):
 
 
 @pytest.mark.gst
-def test_live_pipeline_slower_than_frame_period_skips_late_frames_and_reports_latency(gst, prof80):
-    p, msgs, err = _run(gst, _slow_live(gst, prof80))
+def test_live_pipeline_slower_than_frame_period_skips_late_frames_and_reports_latency(gst, prof_live):
+    p, msgs, err = _run(gst, _slow_live(gst, prof_live))
     k = p.get_by_name("k")
     q = gst.Query.new_latency()
     assert k.sinkpad.peer_query(q)
@@ -284,7 +286,7 @@ def test_live_pipeline_slower_than_frame_period_skips_late_frames_and_reports_la
     st = _stats(msgs)
     med = _median(s.get_value("seconds") for s in st)
     if med <= 0.020:
-        pytest.skip("fse best at 80x64 is faster than the 20 ms frame period on this machine")
+        pytest.skip("fse best at 160x128 is faster than the 20 ms frame period on this machine")
     assert live
     assert lo >= med * SEC                                  # latency covers the processing time
     assert st[-1].get_value("latency") >= med               # nrreconstruct's own share, in its stats
@@ -298,23 +300,23 @@ def test_live_pipeline_slower_than_frame_period_skips_late_frames_and_reports_la
 
 
 @pytest.mark.gst
-def test_live_pipeline_with_a_leaky_queue_renders_on_time(gst, prof80):
+def test_live_pipeline_with_a_leaky_queue_renders_on_time(gst, prof_live):
     """The live recipe (docs/ELEMENTS.md): a leaky queue after the camera keeps frames fresh, the latency
     covers the processing, so the sync=true sink renders what the chain finishes."""
-    p, msgs, err = _run(gst, _slow_live(gst, prof80, leaky=True))
+    p, msgs, err = _run(gst, _slow_live(gst, prof_live, leaky=True))
     rendered = p.get_by_name("k").get_property("stats").get_value("rendered")
     p.set_state(gst.State.NULL)
     assert err is None
     st = _stats(msgs)
     if _median(s.get_value("seconds") for s in st) <= 0.020:
-        pytest.skip("fse best at 80x64 is faster than the 20 ms frame period on this machine")
+        pytest.skip("fse best at 160x128 is faster than the 20 ms frame period on this machine")
     assert st[-1].get_value("skipped") > 0                  # the leaky queue dropped what the chain could not take
     assert rendered >= len(st) // 2                         # (the first frames may precede the latency update)
 
 
 @pytest.mark.gst
-def test_live_pipeline_qos_off_delivers_every_frame_then_eos(gst, prof80):
-    p, msgs, err = _run(gst, _slow_live(gst, prof80, qos=False, frames=30))
+def test_live_pipeline_qos_off_delivers_every_frame_then_eos(gst, prof_live):
+    p, msgs, err = _run(gst, _slow_live(gst, prof_live, qos=False, frames=30))
     rendered = p.get_by_name("k").get_property("stats").get_value("rendered")
     dropped = p.get_by_name("s").get_property("dropped")
     p.set_state(gst.State.NULL)
@@ -327,13 +329,13 @@ def test_live_pipeline_qos_off_delivers_every_frame_then_eos(gst, prof80):
 
 
 @pytest.mark.gst
-def test_qos_default_on_and_fixed_processing_latency(gst, prof80):
+def test_qos_default_on_and_fixed_processing_latency(gst, prof_live):
     for name in ("nrvalidity", "nrcrosstalk", "nrreconstruct", "nrtonemap"):
         el = gst.ElementFactory.make(name, None)
         assert el.get_property("qos") is True, name
         assert el.get_property("processing-latency") == -1.0
-    p = gst.parse_launch("videotestsrc is-live=true num-buffers=2 ! video/x-raw,format=GRAY16_LE,width=80,"
-                         f"height=64,framerate=10/1 ! nrvalidity name=v profile={prof80} ! fakesink name=k")
+    p = gst.parse_launch("videotestsrc is-live=true num-buffers=2 ! video/x-raw,format=GRAY16_LE,width=160,"
+                         f"height=128,framerate=10/1 ! nrvalidity name=v profile={prof_live} ! fakesink name=k")
     p.get_by_name("v").set_property("processing-latency", 250.0)
     p.set_state(gst.State.PLAYING)
     p.get_bus().timed_pop_filtered(10 * SEC, gst.MessageType.EOS | gst.MessageType.ERROR)
