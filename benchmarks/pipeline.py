@@ -53,6 +53,8 @@ def main(argv=None) -> int:
     ap.add_argument("--live", action="store_true",
                     help="also run nrcamsrc live at --fps through the chain into fakesink sync=true for "
                          "--live-methods, reporting frames rendered/dropped and the latency")
+    ap.add_argument("--noise-fusion", choices=("accurate", "fast"), default="accurate",
+                    help="nrreconstruct noise-fusion in the whole-pipeline runs")
     ap.add_argument("--queues", action="store_true",
                     help="also run each chain with a queue between elements (a streaming thread per element)")
     ap.add_argument("--live-methods", default="preview,auto,fse:fast,fse:best",
@@ -164,13 +166,14 @@ def main(argv=None) -> int:
     descs = [("anchor: parse only", f"{src} ! fakesink")]
     for m in methods:
         descs.append((f"validity ! crosstalk ! reconstruct {m} ! tonemap",
-                      f"{src} ! {chain} ! nrreconstruct method={m} preset={a.preset} post-stats=true ! nrtonemap ! fakesink"))
+                      f"{src} ! {chain} ! nrreconstruct method={m} preset={a.preset} post-stats=true "
+                      f"noise-fusion={a.noise_fusion} ! nrtonemap ! fakesink"))
     if a.queues:   # one streaming thread per element: the stages overlap on the cores
         q = " ! queue max-size-buffers=2 max-size-time=0 max-size-bytes=0 ! "
         for m in methods:
             descs.append((f"the same, {m}, a queue between elements",
                           f"{src}{q}{chain.replace(' ! ', q)}{q}nrreconstruct method={m} preset={a.preset} "
-                          f"post-stats=true{q}nrtonemap ! fakesink"))
+                          f"post-stats=true noise-fusion={a.noise_fusion}{q}nrtonemap ! fakesink"))
     for _, d in descs[1:]:
         runtime.run_pipeline(d)  # warm numba's on-disk caches for every method
     for name, d in descs:
