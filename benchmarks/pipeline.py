@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     ap.add_argument("--live", action="store_true",
                     help="also run nrcamsrc live at --fps through the chain into fakesink sync=true for "
                          "--live-methods, reporting frames rendered/dropped and the latency")
-    ap.add_argument("--noise-fusion", choices=("accurate", "fast"), default="accurate",
+    ap.add_argument("--noise-fusion", choices=("auto", "accurate", "fast"), default="auto",
                     help="nrreconstruct noise-fusion in the whole-pipeline runs")
     ap.add_argument("--queues", action="store_true",
                     help="also run each chain with a queue between elements (a streaming thread per element)")

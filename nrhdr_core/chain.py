@@ -39,7 +39,7 @@ class ChainSettings:
     method: str = "fse"              # nrreconstruct method
     preset: str = "fast"             # nrreconstruct preset
     use_bounds: bool = True          # nrreconstruct use-bounds
-    noise_fusion: str = "accurate"   # nrreconstruct noise-fusion (NOISY pixels: accurate or fast)
+    noise_fusion: str = "auto"       # nrreconstruct noise-fusion (NOISY pixels: auto, accurate or fast)
     white: float | None = None       # nrtonemap white (None = the profile's white, as in the caps)
     exposure: float = 0.0            # nrtonemap exposure (stops)
     contrast: float = 1000.0         # nrtonemap contrast (= tonemap.DEFAULT_CONTRAST)
@@ -47,7 +47,7 @@ class ChainSettings:
     def __post_init__(self):
         for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES), ("crosstalk", CROSSTALK_MODES),
                               ("crosstalk_lut", ("compact", "full")), ("method", METHODS), ("preset", PRESETS),
-                              ("noise_fusion", ("accurate", "fast"))):
+                              ("noise_fusion", ("auto", "accurate", "fast"))):
             v = getattr(self, name)
             if v not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {v!r}")

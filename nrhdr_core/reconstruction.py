@@ -56,7 +56,7 @@ def _validate(values, known, lower, upper):
 
 
 def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lower=None, upper=None,
-                noisy=None, noise=None, out=None, noisy_joint: float = 0.0, fusion: str = "accurate",
+                noisy=None, noise=None, out=None, noisy_joint: float = 0.0, fusion: str = "auto",
                 noisy_skip=None, **params) -> np.ndarray:
     """Fill the pixels where `known` is False; returns float32 (H, W), known pixels bit-exact.
 
@@ -66,7 +66,7 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     noisy/noise: optional bool (H, W) of missing pixels whose value is a noisy measurement (state NOISY,
     dark policy "weighted") and the noise model (anything with gain, read_noise, nd: a CameraProfile);
     they are reconstructed like the other missing pixels, then fused with their measurement by inverse
-    variance (`fuse_noisy`, issue 8; `fusion`: its setting, "accurate" or "fast"). noisy_joint > 0 (method fse, opt-in): FSE fits its model to the
+    variance (`fuse_noisy`, issue 8; `fusion`: its setting, "accurate", "fast" or "auto" = `fusion_for`). noisy_joint > 0 (method fse, opt-in): FSE fits its model to the
     NOISY measurements too, weighted `noisy_weights(..., noisy_joint)`, before the fusion (joint
     estimation; measured no better than the default, docs/BENCHMARKS.md "Joint FSE with noisy samples").
     noisy_skip (method fse, fusion "accurate", no noisy_joint): FSE leaves the NOISY pixels alone (issue 7:
@@ -81,8 +81,9 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     ReconstructionWarning saying so is issued."""
     if method not in METHODS:
         raise ValueError(f"reconstruction method must be one of {METHODS}, got {method!r}")
-    if fusion not in FUSION_SETTINGS:
-        raise ValueError(f"noise fusion setting must be one of {FUSION_SETTINGS}, got {fusion!r}")
+    if fusion not in FUSION_CHOICES:
+        raise ValueError(f"noise fusion setting must be one of {FUSION_CHOICES}, got {fusion!r}")
+    fusion = fusion_for(fusion, method)
     v, k, lower, upper = _validate(values, known, lower, upper)
     if noisy is not None:
         if noise is None:
@@ -184,6 +185,15 @@ def noisy_weights(values, noisy, noise, factor: float = 2.0) -> np.ndarray:
 
 
 FUSION_SETTINGS = ("fast", "accurate")
+FUSION_CHOICES = ("auto",) + FUSION_SETTINGS   # "auto": fast for the preview method, accurate otherwise
+
+
+def fusion_for(fusion: str, method: str) -> str:
+    """The noise-fusion setting a method runs with: "auto" is "fast" for the live preview (pull-push; its
+    frame budget, issue 7) and "accurate" for the others; an explicit setting is kept."""
+    if fusion == "auto":
+        return "fast" if method == "preview" else "accurate"
+    return fusion
 _FUSE_ROWS = 64            # rows per parallel chunk of `_fuse_kernel` (its window sums slide down a chunk)
 
 
@@ -1101,7 +1111,7 @@ def _frame_scratch(h, w, with_bounds):
 
 
 def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", preset: str = "balanced",
-                      use_bounds: bool = True, noise=None, fusion: str = "accurate", **params) -> int:
+                      use_bounds: bool = True, noise=None, fusion: str = "auto", **params) -> int:
     """Reconstruct an HDR frame in place (docs/ARCHITECTURE.md layout): the missing pixels
     (`validity.missing_mask`) of `values` get `reconstruct(values, known, ...)`'s result and the
     RECONSTRUCTED bit in `state`; measured pixels are untouched. Known mask and bounds come from one
@@ -1118,8 +1128,8 @@ def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", prese
             and values.dtype == np.float32 and values.flags.c_contiguous and values.flags.writeable \
             and isinstance(state, np.ndarray) and state.dtype == np.uint8 and state.shape == values.shape \
             and state.flags.c_contiguous and state.flags.writeable:
-        if fusion not in FUSION_SETTINGS:
-            raise ValueError(f"noise fusion setting must be one of {FUSION_SETTINGS}, got {fusion!r}")
+        if fusion not in FUSION_CHOICES:
+            raise ValueError(f"noise fusion setting must be one of {FUSION_CHOICES}, got {fusion!r}")
         r = _preview_frame(values, state, method, use_bounds, noise, fusion)
         if isinstance(r, int):
             return r
@@ -1128,7 +1138,7 @@ def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", prese
     return _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, fusion, **params)
 
 
-def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, fusion="accurate",
+def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, fusion="auto",
                                **params) -> int:
     """`reconstruct_frame` for every method: prepare, `reconstruct`, write-back (the reference of the
     fused preview path)."""
@@ -1403,7 +1413,7 @@ def _pvf_put_noisy(values, state, noisy, g, cnt, flag):
                 state[y, x] = state[y, x] | flag
 
 
-def _preview_frame(values, state, method, use_bounds, noise, fusion="accurate"):
+def _preview_frame(values, state, method, use_bounds, noise, fusion="auto"):
     """`reconstruct_frame` for the preview (fused passes above). Returns the pixels filled, or
     (method, preset) when a callable `method` chose something else, or None when the general path must
     do the frame (non-finite values, no known pixel); nothing is written then."""
@@ -1439,7 +1449,7 @@ def _preview_frame(values, state, method, use_bounds, noise, fusion="accurate"):
     nbad = _pvf_fill(values, state, known, noisy, lower, pv, off[1], ws[1], lo, hi, bool(use_bounds), fuse,
                      g, cnt, flag)
     if fuse:
-        fuse_noisy(g, values, known, noisy, noise, setting=fusion)
+        fuse_noisy(g, values, known, noisy, noise, setting=fusion_for(fusion, "preview"))
         _pvf_put_noisy(values, state, noisy, g, cnt, flag)
     n = n_miss - nbad
     if nbad:

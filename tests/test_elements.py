@@ -332,10 +332,10 @@ def test_reconstruct_noise_fusion_setting_reaches_the_core(gst, tiny_clip, metho
     (nrvalidity's default dark-policy=weighted makes NOISY pixels), and the two settings differ there."""
     from nrhdr_core import chain, reconstruction
     import gst_plugins.elements.nrreconstruct as nrrec
-    assert nrrec.FUSIONS == reconstruction.FUSION_SETTINGS
+    assert nrrec.FUSIONS == reconstruction.FUSION_CHOICES
     d, prof, raws = tiny_clip
     out = {}
-    for setting in reconstruction.FUSION_SETTINGS:
+    for setting in reconstruction.FUSION_CHOICES:
         r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method={method} preset=fast "
                        f"noise-fusion={setting}", raw_caps(prof.width, prof.height), raw_buffers(raws[:2]))
         assert r.error is None, r.error_text
@@ -348,6 +348,8 @@ def test_reconstruct_noise_fusion_setting_reaches_the_core(gst, tiny_clip, metho
     _, es = chain.process_frame(raws[0], prof, chain.ChainSettings(crosstalk="off", method=method))
     assert ((es & 0x0F) == 5).any()                              # there are NOISY pixels to fuse
     assert not np.array_equal(out["fast"][0], out["accurate"][0])
+    # auto (the default): the fast fusion for the live preview, the accurate one for the other methods
+    np.testing.assert_array_equal(out["auto"][0], out["fast" if method == "preview" else "accurate"][0])
 
 
 def test_reconstruct_error_is_posted_not_swallowed(gst, tiny_clip, monkeypatch):

@@ -43,8 +43,9 @@ def add_batch(sub) -> None:
     g.add_argument("--method", choices=chain.METHODS, default="fse", help="nrreconstruct method")
     g.add_argument("--preset", choices=chain.PRESETS, default="fast",
                    help="nrreconstruct preset (default fast, as raw_to_exr.sh; 'best' for final quality)")
-    g.add_argument("--noise-fusion", choices=("accurate", "fast"), default="accurate",
-                   help="nrreconstruct noise-fusion (NOISY pixels: accurate, or fast)")
+    g.add_argument("--noise-fusion", choices=("auto", "accurate", "fast"), default="auto",
+                   help="nrreconstruct noise-fusion (NOISY pixels: auto = fast for preview, accurate for the "
+                        "others; or accurate, fast)")
     g.add_argument("--no-bounds", action="store_true", help="nrreconstruct use-bounds=false")
     g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
     g.add_argument("--exposure", type=float, default=0.0, help="nrtonemap exposure in stops")

@@ -24,7 +24,7 @@ from ._common import LiveTiming, live_latency_property  # live operation: QoS, l
 METHODS = ("fse", "linear", "nearest", "preview", "auto")
 BUDGET_SHARE = 0.7  # method=auto without budget-ms: this share of the frame period (the rest: other stages)
 PRESETS = ("preview", "fast", "balanced", "best")
-FUSIONS = ("fast", "accurate")   # reconstruction.FUSION_SETTINGS (not imported here: no numba at import)
+FUSIONS = ("auto", "fast", "accurate")   # reconstruction.FUSION_CHOICES (not imported: no numba at import)
 STATS_MESSAGE = "nrhdr-frame-stats"
 
 
@@ -33,7 +33,7 @@ class ReconParams:
     method: str = "fse"
     preset: str = "balanced"
     use_bounds: bool = True
-    noise_fusion: str = "accurate"
+    noise_fusion: str = "auto"
 
 
 class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
@@ -64,7 +64,7 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         self._params = ReconParams()
         self._method = Choice("method", METHODS, "fse")
         self._preset = Choice("preset", PRESETS, "balanced")
-        self._fusion = Choice("noise-fusion", FUSIONS, "accurate")
+        self._fusion = Choice("noise-fusion", FUSIONS, "auto")
         self._post_stats = False   # off by default: unread bus messages would pile up (issue 9)
         self._info = None
         self._noise = None
@@ -124,11 +124,12 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     def use_bounds(self, value):
         self._params = dataclasses.replace(self._params, use_bounds=bool(value))
 
-    @GObject.Property(type=str, default="accurate", nick="Noise fusion",
+    @GObject.Property(type=str, default="auto", nick="Noise fusion",
                       blurb="How NOISY pixels (nrvalidity dark-policy=weighted) are fused with their noisy "
                             "measurement: 'accurate' = from the measured 3 x 3 neighbours and the pixel by "
-                            "inverse noise variance (default), 'fast' = the reconstruction and the pixel "
-                            "(about 25 % less time, about 0.3 dB lower in dark regions; docs/BENCHMARKS.md). "
+                            "inverse noise variance, 'fast' = the reconstruction and the pixel (about 25 % "
+                            "less time, about 0.3 dB lower in dark regions; docs/BENCHMARKS.md), 'auto' "
+                            "(default) = fast for method=preview (live), accurate for the others. "
                             "Changeable while PLAYING",
                       flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
     def noise_fusion(self):
