@@ -779,6 +779,27 @@ def _pull_push(vals, wts, levels):
             vals[y, x] = pv[y * w + x]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _mean3x3(vals, mask, y, x):
+    """(weighted sum, weight) of the 8-neighbours of (y, x) where `mask` is non-zero: edges weigh 2,
+    corners 1 (the pull-push level-0 fill; one source for `_fill_3x3`, `_pp_fill_px`, `_pvf_fill_px`)."""
+    h, w = vals.shape
+    acc = np.float32(0.0)
+    wsum = np.float32(0.0)
+    for dy in range(-1, 2):
+        yy = y + dy
+        if yy < 0 or yy >= h:
+            continue
+        for dx in range(-1, 2):
+            xx = x + dx
+            if xx < 0 or xx >= w or mask[yy, xx] == 0:
+                continue
+            wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
+            acc += wt * vals[yy, xx]
+            wsum += wt
+    return acc, wsum
+
+
 @njit(cache=True, nogil=True)
 def _fill_3x3(vals, known, coarse, out):
     """Missing pixels with known 8-neighbours get their weighted mean (edges 2, corners 1); the rest
@@ -789,19 +810,7 @@ def _fill_3x3(vals, known, coarse, out):
             if known[y, x]:
                 out[y, x] = vals[y, x]
                 continue
-            acc = np.float32(0.0)
-            wsum = np.float32(0.0)
-            for dy in range(-1, 2):
-                yy = y + dy
-                if yy < 0 or yy >= h:
-                    continue
-                for dx in range(-1, 2):
-                    xx = x + dx
-                    if xx < 0 or xx >= w or not known[yy, xx]:
-                        continue
-                    wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
-                    acc += wt * vals[yy, xx]
-                    wsum += wt
+            acc, wsum = _mean3x3(vals, known, y, x)
             out[y, x] = acc / wsum if wsum > 0 else coarse[y, x]
 
 
@@ -949,23 +958,10 @@ def _pp_push(pv, pw, o0, h0, w0, o1, w1):
 @njit(cache=True, nogil=True)
 def _pp_fill_px(zv, kf, pv, o1, w1, y, x, out):
     """One pixel of `_pp_fill` with bounds checks (image border, no known neighbour)."""
-    h, w = zv.shape
     if kf[y, x] > 0:
         out[y, x] = zv[y, x]
         return
-    acc = np.float32(0.0)
-    wsum = np.float32(0.0)
-    for dy in range(-1, 2):
-        yy = y + dy
-        if yy < 0 or yy >= h:
-            continue
-        for dx in range(-1, 2):
-            xx = x + dx
-            if xx < 0 or xx >= w or kf[yy, xx] == 0:
-                continue
-            wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
-            acc += wt * zv[yy, xx]
-            wsum += wt
+    acc, wsum = _mean3x3(zv, kf, y, x)
     out[y, x] = acc / wsum if wsum > 0 else pv[o1 + (y // 2) * w1 + x // 2]
 
 
@@ -1295,20 +1291,7 @@ def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng,
 @njit(cache=True, nogil=True)
 def _pvf_fill_px(values, known, pv, o1, w1, y, x):
     """`_pp_fill_px` for a missing pixel: weighted mean of its known 8-neighbours, else level 1."""
-    h, w = values.shape
-    acc = np.float32(0.0)
-    wsum = np.float32(0.0)
-    for dy in range(-1, 2):
-        yy = y + dy
-        if yy < 0 or yy >= h:
-            continue
-        for dx in range(-1, 2):
-            xx = x + dx
-            if xx < 0 or xx >= w or not known[yy, xx]:
-                continue
-            wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
-            acc += wt * values[yy, xx]
-            wsum += wt
+    acc, wsum = _mean3x3(values, known, y, x)
     return acc / wsum if wsum > 0 else pv[o1 + (y // 2) * w1 + x // 2]
 
 
