@@ -259,13 +259,16 @@ def _fuse_slide(values, known, noisy, y, ya, r, h, c, est):
             _fuse_add_row(values, known, noisy, y - r - 1, -1.0, c, est)
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, rows, nt):
     """`fuse_noisy`'s pass: (2r+1)^2 window sums of the known pixels (count, sum, sum of squares) and,
     `joint`, 3 x 3 window sums of the known and the NOISY pixels (count, sum) at every noisy pixel,
     from column sums that slide down each chunk of `rows` rows (parallel over chunks, one scratch per
-    chunk; rows without a noisy pixel cost the slide only). `nt`: the thread count the chunks are
-    interleaved over (passed in: calling get_num_threads inside would stop numba caching the kernel)."""
+    chunk; rows without a noisy pixel cost the slide only). Per row the window sums and the fusion are
+    computed for every pixel in branch-free loops over zero-margined column sums (they vectorise; the
+    sums keep the order of the per-pixel loops they replaced) and stored at the noisy pixels only.
+    `nt`: the thread count the chunks are interleaved over (passed in: calling get_num_threads inside
+    would stop numba caching the kernel)."""
     h, w = out.shape
     nch = (h + rows - 1) // rows
     per = (nch + nt - 1) // nt
@@ -278,13 +281,17 @@ def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, 
         ya = ci * rows
         yb = min(ya + rows, h)
         c = np.zeros((7, w), np.float64)
+        idx = np.empty(w, np.int64)
         for y in range(ya, yb):
             _fuse_slide(values, known, noisy, y, ya, r, h, c, False)
             if joint:
                 _fuse_slide(values, known, noisy, y, ya, 1, h, c, True)
-            for x in range(w):
-                if not noisy[y, x]:
-                    continue
+            k = 0
+            for x in range(w):          # the row's noisy pixels, compacted without branches
+                idx[k] = x
+                k += 1 if noisy[y, x] else 0
+            for q in range(k):
+                x = idx[q]
                 n = 0.0
                 t1 = 0.0
                 t2 = 0.0
@@ -292,7 +299,7 @@ def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, 
                     n += c[0, xx]
                     t1 += c[1, xx]
                     t2 += c[2, xx]
-                m = np.float64(values[y, x])
+                mv = np.float64(values[y, x])
                 gv = np.float64(out[y, x])
                 gp = max(gv, 0.0)
                 var_r = gain * gp + floor
@@ -300,10 +307,7 @@ def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, 
                 excess = 0.0
                 if n > 0.5:
                     mean = t1 / n
-                    var = t2 / n - mean * mean
-                    excess = var - (gain * max(mean, 0.0) + floor)
-                    if excess < 0.0:
-                        excess = 0.0
+                    excess = max(t2 / n - mean * mean - (gain * max(mean, 0.0) + floor), 0.0)
                 e = gv
                 var_e = var_r / 4.0 + texture * excess
                 if joint:
@@ -318,13 +322,13 @@ def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, 
                         zs += c[6, xx]
                     if not known[y, x]:     # the pixel's own measurement enters below, not its estimate
                         zn -= 1.0
-                        zs -= m
+                        zs -= mv
                     sw = kn / var_r + zn / var_m
                     if sw > 0.5 / var_m:
                         e = (ks / var_r + zs / var_m) / sw
                         var_e = 1.0 / sw + texture * excess
                 wgt = var_e / (var_e + var_m)
-                f = e + wgt * (m - e)
+                f = e + wgt * (mv - e)
                 out[y, x] = np.float32(f if f > 0.0 else 0.0)
 
 
