@@ -1530,15 +1530,62 @@ def _bounds(lower, upper, shape, use):
     return lo_arr, hi_arr, use_lo, use_hi
 
 
+NEAREST_RING_MAX = 4096     # left pixels up to which `_nearest_fill` searches rings (else one EDT)
+
+
 def _nearest_fill(work, left, src=None):
-    """Pixels `left` get the value of the nearest `src` pixel (default: every pixel not left)."""
-    from scipy import ndimage
+    """Pixels `left` get the value of the nearest `src` pixel (default: every pixel not left), Euclidean.
+    Few left pixels (the usual case: a handful of blocks whose support held no usable pixel): a ring
+    search around each (`_ring_nearest`, cost grows with the pixels left, not the frame: issue 7, a
+    whole-frame distance transform cost ~50 ms per 1080p frame for 128 pixels); many: scipy's exact
+    Euclidean distance transform. Equidistant sources may resolve differently between the two."""
     src = ~left if src is None else src
+    ys, xs = np.nonzero(left)
+    if ys.size == 0:
+        return
     if not src.any():
         work[left] = 0.0
         return
+    if ys.size <= NEAREST_RING_MAX:
+        _ring_nearest(work, np.ascontiguousarray(src), ys, xs)
+        return
+    from scipy import ndimage
     idx = ndimage.distance_transform_edt(~src, return_distances=False, return_indices=True)
     work[left] = work[idx[0][left], idx[1][left]]
+
+
+@njit(cache=True, nogil=True)
+def _ring_nearest(work, src, ys, xs):
+    """For each (ys[i], xs[i]): the value of the Euclidean-nearest `src` pixel, searched in square rings
+    of growing Chebyshev radius r until r^2 exceeds the best squared distance found (a pixel of ring r is
+    at least r away). Values are read first, then written (a filled pixel is never a source)."""
+    h, w = src.shape
+    vals = np.empty(ys.size, np.float32)
+    for i in range(ys.size):
+        y0 = ys[i]
+        x0 = xs[i]
+        best = -1
+        bv = np.float32(0.0)
+        r = 1
+        rmax = max(h, w)
+        while r <= rmax and (best < 0 or r * r <= best):
+            for dy in range(-r, r + 1):
+                y = y0 + dy
+                if y < 0 or y >= h:
+                    continue
+                step = 1 if (dy == -r or dy == r) else 2 * r   # full rows at the top and bottom, else the two sides
+                for dx in range(-r, r + 1, step):
+                    x = x0 + dx
+                    if x < 0 or x >= w or not src[y, x]:
+                        continue
+                    d = dy * dy + dx * dx
+                    if best < 0 or d < best:
+                        best = d
+                        bv = work[y, x]
+            r += 1
+        vals[i] = bv
+    for i in range(ys.size):
+        work[ys[i], xs[i]] = vals[i]
 
 
 def _fill_without_data(out, miss, lower, upper):
