@@ -1745,4 +1745,6 @@ def warmup() -> None:
     fse_reconstruct(hv, k, lower=lo, upper=hi, preset="preview")
     # NOISY pixels skipped (the default before reconstruct's accurate noise fusion, issue 7)
     _fse(v, k, None, None, "preview", False, {}, skip=~k & (rng.random((24, 24)) < 0.5))
+    # the fallback for pixels no block could fill (ring search)
+    _nearest_fill(v.copy(), ~k, k)
     # (the joint estimation with `weights=` is opt-in: its kernels compile on first use, not here)
