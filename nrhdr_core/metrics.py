@@ -142,3 +142,37 @@ def hdr_report(truth, test, dark_level: float, bright_level: float, white: float
             r["off_3stops"] = int(np.count_nonzero(off[m] > 3.0))
         out[name] = r
     return out
+
+
+REGIONS = ("all", "dark", "mid", "bright")
+
+
+def clip_report(pairs, dark_level: float, bright_level: float, white: float) -> dict:
+    """`hdr_report` over the frames of a clip, as `benchmarks/hdr_quality.py` scores the chain (issue 8):
+    `pairs` yields (truth, test) linear frames; both are capped at `white` (the ND camera's clip-equivalent
+    white, so an unmodified camera's clipped highlights count against it), the log2 peak is log2(white);
+    per region the mean over frames of log2 PSNR and PU21-PSNR, and the summed pixel counts and pixels
+    more than 1 / 3 stops off; negative and non-finite test values are counted before the cap."""
+    acc = {k: {"log2_psnr": [], "pu21_psnr": [], "off_1stop": 0, "off_3stops": 0, "pixels": 0} for k in REGIONS}
+    neg = nonfinite = frames = 0
+    peak = float(np.log2(white))
+    for truth, test in pairs:
+        test = np.asarray(test, np.float64)
+        neg += int(np.count_nonzero(test < 0))
+        nonfinite += int(np.count_nonzero(~np.isfinite(test)))
+        r = hdr_report(np.minimum(truth, white), np.minimum(test, white), dark_level, bright_level,
+                       white=white, peak_stops=peak)
+        frames += 1
+        for k in REGIONS:
+            if r[k]["pixels"]:
+                acc[k]["log2_psnr"].append(r[k]["log2_psnr"])
+                acc[k]["pu21_psnr"].append(r[k]["pu21_psnr"])
+                for c in ("off_1stop", "off_3stops", "pixels"):
+                    acc[k][c] += r[k][c]
+    out = {"frames": frames, "negative": neg, "nonfinite": nonfinite}
+    for k in REGIONS:
+        a = acc[k]
+        out[k] = {"log2_psnr": float(np.mean(a["log2_psnr"])) if a["log2_psnr"] else None,
+                  "pu21_psnr": float(np.mean(a["pu21_psnr"])) if a["pu21_psnr"] else None,
+                  "off_1stop": a["off_1stop"], "off_3stops": a["off_3stops"], "pixels": a["pixels"]}
+    return out

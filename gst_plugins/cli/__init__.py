@@ -21,6 +21,7 @@ COMMANDS = (
     ("batch", "batch"),               # raw clip -> OpenEXR frames on Dask (nrhdr_core.batch)
     ("calibrate", "calibrate"),       # crosstalk / ND calibration from flats (nrhdr_core.calibration)
     ("simulate-flats", "calibrate"),  # a simulated flat-field sweep for calibrate
+    ("compare", "compare"),           # EXR frames against the simulator's truth, per region (nrhdr_core.metrics)
 )
 
 

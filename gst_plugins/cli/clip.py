@@ -19,6 +19,9 @@ def _profile_from_args(a):
     from nrhdr_core import profile
     if getattr(a, "profile", None):
         return profile.load(a.profile)
+    if a.pattern == "none":    # the unmodified camera: no ND pixel, the same sensor and noise (issue 8)
+        import numpy as np
+        return profile.make(np.zeros((a.height, a.width), bool), nd=a.nd, l_min=a.l_min)
     return profile.default(a.height, a.width, seed=a.mask_seed, pattern=a.pattern, nd=a.nd, l_min=a.l_min)
 
 
@@ -153,9 +156,11 @@ def _add_sensor_args(p, profile_opt=True):
         p.add_argument("--profile", help="existing camera profile JSON to use")
     g.add_argument("--width", type=int, default=640)
     g.add_argument("--height", type=int, default=480)
-    g.add_argument("--pattern", choices=("nonregular", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster"),
+    g.add_argument("--pattern", choices=("nonregular", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster",
+                                         "none"),
                    default="nonregular", help="ND mask: the paper's non-regular (iid) pattern, the regular "
-                   "2x2 (Nayar) one, or a reduced-randomness design (docs/PAPER.md)")
+                   "2x2 (Nayar) one, a reduced-randomness design (docs/PAPER.md), or none (an unmodified "
+                   "camera with the same sensor, to compare against: nrhdr compare)")
     g.add_argument("--mask-seed", type=int, default=0, help="seed of the non-regular mask")
     g.add_argument("--nd", type=float, default=6.35, help="ND factor (Eq. 1)")
     g.add_argument("--l-min", type=float, default=100.0, help="threshold for attenuated pixels (2.3)")
