@@ -1335,12 +1335,11 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
         # blocks whose support held no usable pixel: nearest reconstructed/known value
         left = state == 0
         # (from known and reconstructed pixels only: skipped ones hold no value in `work`)
+        ys, xs = np.nonzero(left)
         _nearest_fill(work, left, (state == 1) | (state == 2) if skip is not None else None)
         state[left] = 2
-        if fused_c:
-            _finish_c(out, work, state, cf)
-        else:
-            _finish(out, work, state, logd)
+        # only these pixels are new: finish them, not the frame again (same values as `_finish(_c)`)
+        _finish_at(out, work, ys, xs, cf if fused_c else np.float32(0.0), fused_c, logd)
     if joint:
         # the model at the noisy measurements
         me = mest[noisy]
@@ -1408,7 +1407,7 @@ def _log_local_passes(v32, k, lower, upper, p, c, kmin, kmax, minpos):
     ff = np.float32(floor)
     _prep_local(v32, k, cf, ff, r, work, state, hmx, hmn)
     _bounds_local(hmx, hmn, r, np.float32(p["local_margin"]), dummy if lw is None else lw,
-                  dummy if up is None else up, use_lo, use_hi, cf, ff, lo, hi)
+                  dummy if up is None else up, use_lo, use_hi, cf, ff, lo, hi, state)
     wr = math.log2(max(kmax, 0.0) + c) - math.log2(max(max(kmin, 0.0) + c, floor))
     scale = float(p["log_scale_stops"]) if not wr > 0 else min(float(p["log_scale_stops"]), wr)
     return work, state, lo, hi, scale
@@ -1664,11 +1663,13 @@ def _prep_local(v, k, c, floor, r, work, state, hmx, hmn):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, lo, hi):
-    """Log-domain bounds of every pixel: the local bound (column window over hmx/hmn, widened by
-    `margin` stops, `_local_bounds`) narrowed by the data's bounds log2(max(b + c, floor)) with the
-    data's bound winning (`_merge_bounds`), clipped to +-1e38 (finite sentinels for the fastmath
-    block kernels)."""
+def _bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, lo, hi, state):
+    """Log-domain bounds of the missing pixels (state 0; the block kernels read no other pixel's bounds,
+    and known ones keep whatever `lo`/`hi` held: issue 7, two libm log2 per pixel were the cost of this
+    pass, and rows with nothing missing are skipped): the local bound (column window over hmx/hmn,
+    widened by `margin` stops, `_local_bounds`) narrowed by the data's bounds log2(max(b + c, floor))
+    with the data's bound winning (`_merge_bounds`), clipped to +-1e38 (finite sentinels for the
+    fastmath block kernels)."""
     h, w = hmx.shape
     sent = np.float32(1e38)
     inf = np.float32(np.inf)
@@ -1677,7 +1678,14 @@ def _bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, l
     for ch in prange(nch):
         cmx = np.empty(w, np.float32)      # column-window max/min of one row (one per chunk)
         cmn = np.empty(w, np.float32)
+        idx = np.empty(w, np.int64)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
+            nmiss = 0
+            for x in range(w):          # the row's missing pixels, compacted without branches
+                idx[nmiss] = x
+                nmiss += 1 if state[y, x] == 0 else 0
+            if nmiss == 0:
+                continue
             y0 = max(y - r, 0)
             for x in range(w):
                 cmx[x] = hmx[y0, x]
@@ -1687,7 +1695,8 @@ def _bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, l
                 for x in range(w):
                     cmx[x] = max(cmx[x], hmx[yy, x])
                     cmn[x] = min(cmn[x], hmn[yy, x])
-            for x in range(w):
+            for q in range(nmiss):
+                x = idx[q]
                 mx = cmx[x]
                 mn = cmn[x]
                 none = mx < mn
@@ -1709,6 +1718,20 @@ def _bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, l
                 b = max(b, a)
                 lo[y, x] = min(max(a, -sent), sent)
                 hi[y, x] = min(max(b, -sent), sent)
+
+
+@njit(cache=True, nogil=True)
+def _finish_at(out, work, ys, xs, c, with_c, logd):
+    """`_finish_c` (`with_c`) or `_finish` at the pixels (ys, xs) only: the fallback's few pixels."""
+    for i in range(ys.size):
+        y = ys[i]
+        x = xs[i]
+        if with_c:
+            out[y, x] = np.float32(2.0 ** np.float64(work[y, x])) - c
+        elif logd:
+            out[y, x] = np.float32(2.0 ** np.float64(work[y, x]))
+        else:
+            out[y, x] = work[y, x]
 
 
 @njit(cache=True, nogil=True, parallel=True)

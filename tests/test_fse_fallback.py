@@ -45,3 +45,39 @@ def test_nearest_fill_far_source():
     left[199, 299] = True
     fse._nearest_fill(work, left, src)
     assert work[199, 299] == 7.0
+
+
+@pytest.mark.parametrize("with_c,logd", [(True, True), (False, True), (False, False)])
+def test_finish_at_equals_the_whole_frame_finish(with_c, logd, rng):
+    """The fallback's pixels are finished alone (`_finish_at`): the values `_finish_c` / `_finish` give them."""
+    work = (rng.random((20, 30)) * 10).astype(np.float32)
+    state = np.full((20, 30), 1, np.uint8)
+    ys, xs = np.nonzero(rng.random((20, 30)) < 0.2)
+    state[ys, xs] = 2
+    c = np.float32(3.5)
+    ref = np.zeros((20, 30), np.float32)
+    if with_c:
+        fse._finish_c(ref, work, state, c)
+    else:
+        fse._finish(ref, work, state, logd)
+    got = np.zeros_like(ref)
+    fse._finish_at(got, work, ys, xs, c if with_c else np.float32(0.0), with_c, logd)
+    assert np.array_equal(got, ref)
+
+
+def test_fse_far_from_any_sample_gets_a_nearest_value(rng):
+    """A 24 x 24 area whose every support window holds only skipped pixels: no block can fill it, so the
+    fallback gives each of its pixels the value of a known pixel (the only sources: columns 0-7)."""
+    h, w = 64, 64
+    v = (2.0 ** (rng.random((h, w)) * 8)).astype(np.float32)
+    k = np.zeros((h, w), bool)
+    k[:, :8] = rng.random((h, 8)) < 0.6
+    skip = ~k
+    skip[20:44, 36:60] = False                 # missing, surrounded by skipped pixels only
+    out = fse._fse(v.copy(), k, None, None, "fast", False, {}, skip=skip)
+    area = out[20:44, 36:60]
+    assert np.isfinite(area).all()
+    # (to float rounding: the value went through FSE's log2(x + c) working domain and back)
+    known_vals = np.unique(v[k]).astype(np.float64)
+    for a in np.unique(area).astype(np.float64):
+        assert np.min(np.abs(known_vals - a)) <= 1e-5 * a
