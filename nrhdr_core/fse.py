@@ -1333,11 +1333,8 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
     nleft = _finish_c(out, work, state, cf) if fused_c else _finish(out, work, state, logd)
     if nleft:
         # blocks whose support held no usable pixel: nearest reconstructed/known value
-        left = state == 0
-        # (from known and reconstructed pixels only: skipped ones hold no value in `work`)
-        ys, xs = np.nonzero(left)
-        _nearest_fill(work, left, (state == 1) | (state == 2) if skip is not None else None)
-        state[left] = 2
+        # (from known, reconstructed and noisy-measurement pixels: skipped ones hold no value in `work`)
+        ys, xs = _fill_left(work, state)
         # only these pixels are new: finish them, not the frame again (same values as `_finish(_c)`)
         _finish_at(out, work, ys, xs, cf if fused_c else np.float32(0.0), fused_c, logd)
     if joint:
@@ -1546,18 +1543,65 @@ def _nearest_fill(work, left, src=None):
         work[left] = 0.0
         return
     if ys.size <= NEAREST_RING_MAX:
-        _ring_nearest(work, np.ascontiguousarray(src), ys, xs)
+        _ring_nearest(work, np.ascontiguousarray(src).view(np.uint8), _BOOL_SRC, ys, xs)
         return
     from scipy import ndimage
     idx = ndimage.distance_transform_edt(~src, return_distances=False, return_indices=True)
     work[left] = work[idx[0][left], idx[1][left]]
 
 
+# sources by FSE state: known (1), reconstructed (2), noisy measurement (3); not missing (0) nor skipped (4)
+_STATE_SRC = np.zeros(256, np.bool_)
+_STATE_SRC[[1, 2, 3]] = True
+_BOOL_SRC = np.array([False, True] + [True] * 254, np.bool_)
+
+
+def _fill_left(work, state):
+    """The pixels no block could fill (state 0) get the value of the nearest known, reconstructed or
+    noisy-measurement pixel (`_nearest_fill`'s rule) and state 2; returns their coordinates. One numba
+    scan finds them (no frame-sized numpy temporaries for a handful of pixels)."""
+    ys, xs, nsrc = _left_coords(state, _STATE_SRC)
+    if ys.size == 0:
+        return ys, xs
+    if nsrc == 0:
+        work[ys, xs] = 0.0
+    elif ys.size <= NEAREST_RING_MAX:
+        _ring_nearest(work, state, _STATE_SRC, ys, xs)
+    else:
+        _nearest_fill(work, state == 0, _STATE_SRC[state])
+    state[ys, xs] = 2
+    return ys, xs
+
+
 @njit(cache=True, nogil=True)
-def _ring_nearest(work, src, ys, xs):
-    """For each (ys[i], xs[i]): the value of the Euclidean-nearest `src` pixel, searched in square rings
-    of growing Chebyshev radius r until r^2 exceeds the best squared distance found (a pixel of ring r is
-    at least r away). Values are read first, then written (a filled pixel is never a source)."""
+def _left_coords(state, is_src):
+    """(ys, xs) of the state-0 pixels, and whether any pixel is a source (`is_src[state]`)."""
+    h, w = state.shape
+    n = 0
+    nsrc = 0
+    for y in range(h):
+        for x in range(w):
+            s = state[y, x]
+            n += 1 if s == 0 else 0
+            nsrc |= 1 if is_src[s] else 0
+    ys = np.empty(n, np.int64)
+    xs = np.empty(n, np.int64)
+    i = 0
+    for y in range(h):
+        for x in range(w):
+            if state[y, x] == 0:
+                ys[i] = y
+                xs[i] = x
+                i += 1
+    return ys, xs, nsrc
+
+
+@njit(cache=True, nogil=True)
+def _ring_nearest(work, src, is_src, ys, xs):
+    """For each (ys[i], xs[i]): the value of the Euclidean-nearest source pixel (``is_src[src[y, x]]``),
+    searched in square rings of growing Chebyshev radius r until r^2 exceeds the best squared distance
+    found (a pixel of ring r is at least r away). Values are read first, then written (a filled pixel is
+    never a source). There must be a source (else each search scans the whole frame)."""
     h, w = src.shape
     vals = np.empty(ys.size, np.float32)
     for i in range(ys.size):
@@ -1575,7 +1619,7 @@ def _ring_nearest(work, src, ys, xs):
                 step = 1 if (dy == -r or dy == r) else 2 * r   # full rows at the top and bottom, else the two sides
                 for dx in range(-r, r + 1, step):
                     x = x0 + dx
-                    if x < 0 or x >= w or not src[y, x]:
+                    if x < 0 or x >= w or not is_src[src[y, x]]:
                         continue
                     d = dy * dy + dx * dx
                     if best < 0 or d < best:
@@ -1770,4 +1814,5 @@ def warmup() -> None:
     _fse(v, k, None, None, "preview", False, {}, skip=~k & (rng.random((24, 24)) < 0.5))
     # the fallback for pixels no block could fill (ring search)
     _nearest_fill(v.copy(), ~k, k)
+    _fill_left(v.copy(), np.where(k, 1, 0).astype(np.uint8))
     # (the joint estimation with `weights=` is opt-in: its kernels compile on first use, not here)

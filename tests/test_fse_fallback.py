@@ -81,3 +81,20 @@ def test_fse_far_from_any_sample_gets_a_nearest_value(rng):
     known_vals = np.unique(v[k]).astype(np.float64)
     for a in np.unique(area).astype(np.float64):
         assert np.min(np.abs(known_vals - a)) <= 1e-5 * a
+
+
+def test_fill_left_sources_by_state(rng, monkeypatch):
+    """`_fill_left` (the driver's fallback): sources are known, reconstructed and noisy pixels (states
+    1-3), never skipped ones (4); nearest by `_nearest_fill`'s rule, both branches; no source: 0."""
+    for ring_max in (10**9, 0):
+        monkeypatch.setattr(fse, "NEAREST_RING_MAX", ring_max)
+        state = rng.choice(np.array([0, 1, 2, 3, 4], np.uint8), size=(30, 40), p=[0.1, 0.3, 0.2, 0.1, 0.3])
+        work = rng.random((30, 40)).astype(np.float32)
+        got, st = work.copy(), state.copy()
+        ys, xs = fse._fill_left(got, st)
+        assert np.array_equal(np.argwhere(state == 0), np.stack([ys, xs], 1)) and (st[ys, xs] == 2).all()
+        _check(work, state == 0, np.isin(state, (1, 2, 3)), got)
+    st = np.where(rng.random((8, 9)) < 0.5, 0, 4).astype(np.uint8)
+    got = np.ones((8, 9), np.float32)
+    fse._fill_left(got, st)
+    assert (got[st == 2] == 0).all() and (got[st == 4] == 1).all()
