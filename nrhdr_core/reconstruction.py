@@ -363,48 +363,57 @@ def _clamp_to_data(out, v, k, miss, lower):
 @njit(cache=True, nogil=True, parallel=True)
 def _clamp_kernel(out, v, k, lower, use_lower):
     """`_clamp_kernel_reference` in two parallel row passes (min/max per row, reduced in row order:
-    exact, independent of the thread count); the number of non-finite missing pixels (left as they are)."""
+    exact, independent of the thread count); the number of non-finite missing pixels (left as they are).
+    Branch-free (a random mask defeats branch prediction): the known range as order-preserving integer
+    keys (`_f32_key`: integer min/max vectorise), the clamp as selects written back to every pixel."""
     h, w = out.shape
-    r_lo = np.empty(h, np.float32)
-    r_hi = np.empty(h, np.float32)
+    r_lo = np.empty(h, np.int32)
+    r_hi = np.empty(h, np.int32)
+    vi = v.view(np.int32)
+    kmax = np.int32(0x7FFFFFFF)
+    kmin = np.int32(-0x7FFFFFFF - 1)
     for y in prange(h):
-        lo = np.float32(np.inf)
-        hi = np.float32(-np.inf)
+        lo = kmax
+        hi = kmin
         for x in range(w):
-            if k[y, x]:
-                a = v[y, x]
-                lo = min(lo, a)
-                hi = max(hi, a)
+            kk = k[y, x]
+            key = _f32_key(vi[y, x])
+            lo = min(lo, key if kk else kmax)
+            hi = max(hi, key if kk else kmin)
         r_lo[y] = lo
         r_hi[y] = hi
-    lo = np.float32(np.inf)
-    hi = np.float32(-np.inf)
+    lo = kmax
+    hi = kmin
     for y in range(h):
         lo = min(lo, r_lo[y])
         hi = max(hi, r_hi[y])
-    flo = min(lo, np.float32(0.0))
+    # back to float32 (`_f32_key` is an involution); no known pixel: +inf / -inf as the reference
+    flo = np.float32(np.inf) if lo == kmax else _key_f32(lo)
+    fhi = np.float32(-np.inf) if hi == kmin else _key_f32(hi)
+    flo = min(flo, np.float32(0.0))
     nbad = 0
     for y in prange(h):
         nb = 0
         for x in range(w):
-            if k[y, x]:
-                continue
+            miss = not k[y, x]
             a = out[y, x]
-            if not np.isfinite(a):
-                nb += 1
-                continue
-            top = hi
+            fin = a - a == np.float32(0.0)
+            top = fhi
             if use_lower:
                 b = lower[y, x]
-                if b == b and b > top:
-                    top = b
-            if a < flo:
-                a = flo
-            if a > top:
-                a = top
-            out[y, x] = a
+                top = b if (b == b) & (b > top) else top
+            c = flo if a < flo else a
+            c = top if c > top else c
+            out[y, x] = c if miss & fin else a
+            nb += np.int64(miss & (not fin))
         nbad += nb
     return nbad
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _key_f32(key):
+    """float32 of an `_f32_key` key."""
+    return np.array([key ^ ((key >> 31) & 0x7FFFFFFF)], np.int32).view(np.float32)[0]
 
 
 @njit(cache=True, nogil=True)

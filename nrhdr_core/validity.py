@@ -104,19 +104,20 @@ def _prepare_kernel(values, state, known, lower, upper, with_bounds):
         cm = 0
         cu = 0
         for x in range(w):
+            # branch-free (selects and bitwise &): the states of a random mask defeat branch prediction
             st = state[y, x]
             r = st & REASON_MASK
             k = r == VALID
             known[y, x] = k
-            cu += 0 if k else 1
-            cm += 1 if (not k and (st & RECONSTRUCTED) == 0) else 0
+            cu += np.int64(not k)
+            cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
             if with_bounds:
                 v = np.float32(values[y, x])
-                lo = v if r == CLIPPED else nan
-                if r == CLIPPED and (st & ATTENUATED) == 0:   # saturated ND neighbours imply more (issue 8)
-                    m = lower[y, x]
-                    if m == m and m > lo:
-                        lo = m
+                cl = r == CLIPPED
+                lo = v if cl else nan
+                m = lower[y, x]
+                # saturated ND neighbours imply more for a clipped regular pixel (issue 8)
+                lo = m if (cl & ((st & ATTENUATED) == 0) & (m == m) & (m > v)) else lo
                 lower[y, x] = lo
                 upper[y, x] = v if r == DARK else nan
         n_miss += cm
@@ -240,10 +241,11 @@ def _write_back_kernel(values, state, result, flag):
         c = 0
         for x in range(w):
             st = state[y, x]
-            m = (st & REASON_MASK) != VALID and (st & RECONSTRUCTED) == 0
+            # bitwise &, not `and`: a short-circuit compiles to a branch, unpredictable on a random mask
+            m = ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
             values[y, x] = result[y, x] if m else values[y, x]
-            state[y, x] = (st | flag) if m else st
-            c += 1 if m else 0
+            state[y, x] = st | (flag * np.uint8(m))
+            c += np.int64(m)
         n += c
     return n
 
