@@ -1076,30 +1076,45 @@ def _lo_dark(v, k, step, lo10, buf):
     return n
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _key(i):
+    """Order-preserving int32 key of float32 bits (an involution; integer min/max vectorise where float
+    ones do not, and branches on a random mask mispredict): same order as the floats."""
+    return i ^ ((i >> 31) & 0x7FFFFFFF)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _unkey(key):
+    """float32 of a `_key` key, as float64."""
+    return np.float64(np.array([key ^ ((key >> 31) & 0x7FFFFFFF)], np.int32).view(np.float32)[0])
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _finite_max(b):
-    """(any finite value, largest finite value) of a 2-D float32 array (per-row partials)."""
+    """(any finite value, largest finite value) of a 2-D float32 array (per-row partials; branch-free
+    over integer keys)."""
     h, w = b.shape
-    r_max = np.empty(h, np.float64)
+    bi = b.view(np.int32)
+    kmin = np.int32(-0x7FFFFFFF - 1)
+    r_max = np.empty(h, np.int32)
     r_any = np.zeros(h, np.uint8)
     for y in prange(h):
-        m = -np.inf
+        m = kmin
         f = 0
         for x in range(w):
             a = b[y, x]
-            if a - a == 0:
-                f = 1
-                if a > m:
-                    m = a
+            fin = a - a == np.float32(0.0)
+            m = max(m, _key(bi[y, x]) if fin else kmin)
+            f |= np.int64(fin)
         r_max[y] = m
         r_any[y] = f
-    m = -np.inf
+    m = kmin
     f = False
     for y in range(h):
         if r_any[y]:
             f = True
             m = max(m, r_max[y])
-    return f, m
+    return f, (_unkey(m) if f else -np.inf)
 
 
 def _log_offset_reference(v: np.ndarray, k: np.ndarray, noise_k: float = 2.0, lower=None) -> float:
@@ -1431,40 +1446,44 @@ def _fill_bounded(out, miss, lower, upper):
 @njit(cache=True, nogil=True, parallel=True)
 def _stats(v, k):
     """(known count, min, max, smallest positive known value) in one parallel pass (per-row partials,
-    reduced in row order: the result does not depend on the thread count)."""
+    reduced in row order: the result does not depend on the thread count; branch-free over the integer
+    keys of the float32 values, `_key`)."""
     h, w = v.shape
+    vi = v.view(np.int32)
+    kmax_ = np.int32(0x7FFFFFFF)
+    kmin_ = np.int32(-0x7FFFFFFF - 1)
     r_n = np.zeros(h, np.int64)
-    r_min = np.empty(h, np.float64)
-    r_max = np.empty(h, np.float64)
-    r_pos = np.empty(h, np.float64)
+    r_min = np.empty(h, np.int32)
+    r_max = np.empty(h, np.int32)
+    r_pos = np.empty(h, np.int32)
     for y in prange(h):
         nk = 0
-        kmin = np.inf
-        kmax = -np.inf
-        minpos = np.inf
+        lo = kmax_
+        hi = kmin_
+        pos = kmax_
         for x in range(w):
-            # branch-free (random masks): selects
             kk = k[y, x]
-            a = np.float64(v[y, x])
-            nk += 1 if kk else 0
-            kmin = min(kmin, a if kk else np.inf)
-            kmax = max(kmax, a if kk else -np.inf)
-            minpos = min(minpos, a if (kk and a > 0.0) else np.inf)
+            key = _key(vi[y, x])
+            nk += np.int64(kk)
+            lo = min(lo, key if kk else kmax_)
+            hi = max(hi, key if kk else kmin_)
+            pos = min(pos, key if kk & (v[y, x] > np.float32(0.0)) else kmax_)
         r_n[y] = nk
-        r_min[y] = kmin
-        r_max[y] = kmax
-        r_pos[y] = minpos
+        r_min[y] = lo
+        r_max[y] = hi
+        r_pos[y] = pos
     nk = 0
-    kmin = np.inf
-    kmax = -np.inf
-    minpos = np.inf
+    lo = kmax_
+    hi = kmin_
+    pos = kmax_
     for y in range(h):
         nk += r_n[y]
-        kmin = min(kmin, r_min[y])
-        kmax = max(kmax, r_max[y])
-        minpos = min(minpos, r_pos[y])
-    if minpos == np.inf:
-        minpos = 0.0
+        lo = min(lo, r_min[y])
+        hi = max(hi, r_max[y])
+        pos = min(pos, r_pos[y])
+    kmin = np.inf if nk == 0 else _unkey(lo)
+    kmax = -np.inf if nk == 0 else _unkey(hi)
+    minpos = 0.0 if pos == kmax_ else _unkey(pos)
     return nk, kmin, kmax, minpos
 
 

@@ -1,6 +1,8 @@
-"""FSE's fallback for blocks whose support held no usable pixel (`fse._nearest_fill`): every left pixel
-takes the value of a source pixel at the Euclidean-nearest distance, checked against scipy's exact
-distance transform; both branches (ring search for few pixels, the transform for many)."""
+"""FSE's driver around the block kernels (issue 7: its passes made branch-free or cheaper), against
+independent numpy/scipy expectations: the fallback for blocks whose support held no usable pixel
+(`_nearest_fill`, `_fill_left`: every left pixel takes the value of a source pixel at the Euclidean-nearest
+distance, checked against scipy's exact distance transform; both branches, ring search and transform),
+`_finish_at`, and the statistics passes `_stats` / `_finite_max`."""
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -98,3 +100,28 @@ def test_fill_left_sources_by_state(rng, monkeypatch):
     got = np.ones((8, 9), np.float32)
     fse._fill_left(got, st)
     assert (got[st == 2] == 0).all() and (got[st == 4] == 1).all()
+
+
+def test_stats_and_finite_max_equal_numpy(rng):
+    """Known count, min, max, smallest positive (integer-key passes) against numpy, signed zeros, empty
+    masks; the largest finite value with NaN and infinities around."""
+    for _ in range(150):
+        h, w = rng.integers(1, 50, 2)
+        v = ((rng.random((h, w)) - 0.3) * 10 ** rng.uniform(-3, 5)).astype(np.float32)
+        v[rng.random((h, w)) < 0.05] = 0.0
+        v[rng.random((h, w)) < 0.02] = -0.0
+        k = rng.random((h, w)) < rng.random()
+        nk, kmin, kmax, minpos = fse._stats(v, k)
+        kv = v[k].astype(np.float64)
+        assert nk == kv.size
+        if nk:
+            pv = kv[kv > 0]
+            assert (kmin, kmax, minpos) == (kv.min(), kv.max(), pv.min() if pv.size else 0.0)
+        else:
+            assert (kmin, kmax, minpos) == (np.inf, -np.inf, 0.0)
+        b = v.copy()
+        for val, share in ((np.nan, 0.3), (np.inf, 0.1), (-np.inf, 0.1)):
+            b[rng.random((h, w)) < share] = val
+        found, m = fse._finite_max(b)
+        fb = b[np.isfinite(b)]
+        assert found == (fb.size > 0) and m == (fb.max() if fb.size else -np.inf)
