@@ -1703,12 +1703,21 @@ def _prep_local(v, k, c, floor, r, work, state, hmx, hmn):
     for ch in prange(nch):
         mrow = np.empty(w + 2 * r, np.float32)     # masked row, edges replicated (one per chunk)
         nrow = np.empty(w + 2 * r, np.float32)
+        idx = np.empty(w, np.int64)
         for y in range(ch * h // nch, (ch + 1) * h // nch):
+            nk = 0
+            for x in range(w):          # branch-free: state, zeros, the known pixels compacted
+                kk = k[y, x]
+                state[y, x] = np.uint8(kk)
+                work[y, x] = np.float32(0.0)
+                idx[nk] = x
+                nk += np.int64(kk)
+            for q in range(nk):         # libm log2 only where known (a branch here mispredicts at random)
+                x = idx[q]
+                work[y, x] = np.float32(math.log2(max(v[y, x] + c, floor)))
             for x in range(w):
                 kk = k[y, x]
-                a = np.float32(math.log2(max(v[y, x] + c, floor))) if kk else np.float32(0.0)
-                state[y, x] = 1 if kk else 0
-                work[y, x] = a
+                a = work[y, x]
                 mrow[x + r] = a if kk else -big
                 nrow[x + r] = a if kk else big
             for i in range(r):
@@ -1804,12 +1813,16 @@ def _finish_c(out, work, state, c):
     left = 0
     for y in prange(h):
         n = 0
-        for x in range(w):
+        idx = np.empty(w, np.int64)
+        m = 0
+        for x in range(w):              # branch-free: count left, compact the reconstructed pixels
             s = state[y, x]
-            if s == 2:
-                out[y, x] = np.float32(2.0 ** np.float64(work[y, x])) - c
-            elif s == 0:
-                n += 1
+            n += np.int64(s == 0)
+            idx[m] = x
+            m += np.int64(s == 2)
+        for q in range(m):
+            x = idx[q]
+            out[y, x] = np.float32(2.0 ** np.float64(work[y, x])) - c
         left += n
     return left
 
