@@ -143,31 +143,33 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
 NOISY_SKIP = os.environ.get("NRHDR_FSE_NOISY_SKIP", "1") != "0"
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _noisy_level(out, known, skip):
     """Each `skip` pixel that is not known: the mean of its 3 x 3 neighbours that are not skipped (known
     or reconstructed), else its own measurement (clipped at 0): the level `fuse_noisy` sets the noise
     variances from, and its estimate where no neighbour is measured. Reads only non-skipped pixels, so
-    the order of the writes does not matter; branch-free 3-row column sums per row (random masks)."""
+    the order of the writes does not matter; branch-free 3-row column sums per row and a branch-free
+    write (a select; random masks)."""
     h, w = out.shape
-    for y in prange(h):
-        y0 = max(y - 1, 0)
-        y1 = min(y + 2, h)
-        cs = np.zeros(w + 2, np.float64)     # column sums of the usable pixels, one column of margin
-        cn = np.zeros(w + 2, np.float64)
-        for yy in range(y0, y1):
+    nch = min(h, 64)
+    for ch in prange(nch):
+        cs = np.empty(w + 2, np.float64)     # column sums of the usable pixels, one column of margin
+        cn = np.empty(w + 2, np.float64)
+        for y in range(ch * h // nch, (ch + 1) * h // nch):
+            cs[:] = 0.0
+            cn[:] = 0.0
+            for yy in range(max(y - 1, 0), min(y + 2, h)):
+                for x in range(w):
+                    ok = known[yy, x] | (not skip[yy, x])
+                    # (a select, not a product: a skipped pixel's value, written by another row, is never used)
+                    cs[x + 1] += np.float64(out[yy, x]) if ok else 0.0
+                    cn[x + 1] += 1.0 if ok else 0.0
             for x in range(w):
-                ok = known[yy, x] | (not skip[yy, x])
-                # (a select, not a product: a skipped pixel's value, written by another row, is never used)
-                cs[x + 1] += np.float64(out[yy, x]) if ok else 0.0
-                cn[x + 1] += 1.0 if ok else 0.0
-        for x in range(w):
-            if skip[y, x] and not known[y, x]:
                 c = cn[x] + cn[x + 1] + cn[x + 2]
-                if c > 0.5:
-                    out[y, x] = np.float32((cs[x] + cs[x + 1] + cs[x + 2]) / c)
-                else:
-                    out[y, x] = max(out[y, x], np.float32(0.0))
+                a = out[y, x]
+                lv = np.float32((cs[x] + cs[x + 1] + cs[x + 2]) / c) if c > 0.5 else max(a, np.float32(0.0))
+                # every pixel written (a select, no branch): the others get their own value back
+                out[y, x] = lv if skip[y, x] & (not known[y, x]) else a
 
 
 def noisy_weights(values, noisy, noise, factor: float = 2.0) -> np.ndarray:

@@ -125,3 +125,23 @@ def test_stats_and_finite_max_equal_numpy(rng):
         found, m = fse._finite_max(b)
         fb = b[np.isfinite(b)]
         assert found == (fb.size > 0) and m == (fb.max() if fb.size else -np.inf)
+
+
+def test_noisy_level_is_the_mean_of_the_usable_neighbours(rng):
+    """`reconstruction._noisy_level`: each skipped, unknown pixel gets the mean of its 3 x 3 neighbours that
+    are known or not skipped (itself included when usable), else max(own value, 0); others untouched."""
+    from scipy import ndimage
+    from nrhdr_core import reconstruction as R
+    for shape in [(1, 1), (2, 7), (33, 41)]:
+        out = (rng.random(shape) * 100 - 10).astype(np.float32)
+        known = rng.random(shape) < 0.4
+        skip = ~known & (rng.random(shape) < 0.7)
+        ok = (known | ~skip).astype(np.float64)
+        box = lambda a: ndimage.uniform_filter(a, 3, mode="constant") * 9  # noqa: E731
+        n, t = box(ok), box(ok * out.astype(np.float64))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            lv = np.where(n > 0.5, (t / n).astype(np.float32), np.maximum(out, 0))
+        want = np.where(skip & ~known, lv, out)
+        got = out.copy()
+        R._noisy_level(got, known, skip)
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-5)
