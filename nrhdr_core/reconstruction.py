@@ -95,7 +95,8 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
             noisy = None
     v_meas = v
     if noisy is not None and out is not None and np.shares_memory(out, v):
-        v_meas = np.array(v, dtype=np.float32)       # in place: keep the noisy measurements for the fusion
+        # in place: keep the noisy measurements for the fusion (a per-thread plane reused frame after frame)
+        v_meas = _meas_copy(v)
     out = _output_array(v, out)
     nk = _count_true(k)
     if nk == k.size:
@@ -136,6 +137,19 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
         if nz.any():
             out = fuse_noisy(out, np.asarray(v_meas, np.float32), k, nz, noise, setting=fusion)
     return _apply_bounds(out, miss, lower, upper)
+
+
+_MEAS = threading.local()
+
+
+def _meas_copy(v):
+    """float32 copy of `v` into a per-thread plane kept between calls (no 8 MB allocation and its page
+    faults per 1080p frame; issue 7)."""
+    buf = getattr(_MEAS, "buf", None)
+    if buf is None or buf.shape != v.shape:
+        buf = _MEAS.buf = np.empty(v.shape, np.float32)
+    np.copyto(buf, v, casting="same_kind")
+    return buf
 
 
 # issue 7 (helper fsenoisy): FSE skips the NOISY pixels when the accurate fusion follows (the default);
