@@ -12,6 +12,9 @@ self-contained: numpy and numba only). Cases:
   hdr1080   one 1920 x 1080 HDR frame (MtTamWest through the sensor model, the scene's missing pixels and
             bounds), presets fast and preview: the nrreconstruct fse stage of issue 7
   vga       640 x 480 of the same scene, 50 % missing, preset preview (issue 7: >= 30 frames/s)
+  synth1080 one 1920 x 1080 frame of ``scene.synthetic_hdr_scene()`` (the scene of benchmarks/pipeline.py)
+            through the sensor model, ``dark_policy="weighted"`` as nrvalidity's default, preset fast with
+            the NOISY pixels skipped as nrreconstruct does before the accurate fusion (issue 7 session 4)
 Per case: max |after - before| over the image, PSNR of both (Kodak, against the original), and the wall
 time of each (median of ``--repeat`` interleaved calls after one untimed warm-up each; on a shared machine
 only the ratio after / before of one run is meaningful). ``--cpu`` uses the process CPU clock.
@@ -79,6 +82,19 @@ def hdr_frame(h, w, missing=None):
     return values, validity.known_mask(state), lo, hi
 
 
+def synth_frame(h, w):
+    """(values, known, lower, upper, skip) of the synthetic scene's frame as nrreconstruct gets it."""
+    from nrhdr_core import profile, scene, sensor, simulate, validity
+    prof = profile.default(h, w, seed=1)
+    sc = scene.synthetic_hdr_scene()
+    flux = simulate.view(sc, h, w, 0.5, simulate.Motion()) * np.float32(simulate.exposure_scale(sc, prof, 0.0))
+    raw = sensor.capture(flux, prof, np.random.default_rng(1))
+    values, state = validity.classify(raw, prof, dark_policy="weighted")
+    lo, hi = validity.bounds(values, state)
+    known = validity.known_mask(state)
+    return values, known, lo, hi, np.ascontiguousarray(validity.noisy_mask(state) & ~known)
+
+
 def cases(which):
     out = []
     if "kodak" in which:
@@ -100,6 +116,11 @@ def cases(which):
         miss = 1.0 - float(np.mean(k))
         for preset in ("fast", "preview"):
             out.append((f"1920x1080 HDR ({miss:.0%} missing) {preset}", v, k, lo, hi, preset, {}, None))
+    if "synth1080" in which:
+        v, k, lo, hi, sk = synth_frame(1080, 1920)
+        miss, nz = 1.0 - float(np.mean(k)), float(np.mean(sk))
+        out.append((f"1920x1080 synthetic ({miss:.0%} missing, {nz:.0%} NOISY skipped) fast", v, k, lo, hi,
+                    "fast", {"skip": sk}, None))
     if "vga" in which:
         v, k, lo, hi = hdr_frame(480, 640, missing=0.5)
         out.append(("640x480 50% missing preview", v, k, lo, hi, "preview", {}, v))
@@ -110,7 +131,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--before", default="main", help="git revision of the 'before' fse.py")
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--cases", default="kodak,kodak_win,sparse,hdr1080,vga")
+    ap.add_argument("--cases", default="kodak,kodak_win,sparse,hdr1080,synth1080,vga")
     ap.add_argument("--cpu", action="store_true", help="process CPU clock instead of wall time")
     a = ap.parse_args(argv)
     clock = time.process_time if a.cpu else time.perf_counter
@@ -123,12 +144,14 @@ def main(argv=None):
     for name, v, k, lo, hi, preset, kw, truth in cases(set(a.cases.split(","))):
         res = {}
         ts = {m: [] for m in mods}
+        kw = dict(kw)
+        extra = {"skip": kw.pop("skip")} if "skip" in kw else {}
         for m, mod in mods.items():   # warm-up (compilation) and the outputs
-            res[m] = mod._fse(v, k, lo, hi, preset, False, dict(kw))
+            res[m] = mod._fse(v, k, lo, hi, preset, False, dict(kw), **extra)
         for _ in range(a.repeat):
             for m, mod in mods.items():
                 t = clock()
-                mod._fse(v, k, lo, hi, preset, False, dict(kw))
+                mod._fse(v, k, lo, hi, preset, False, dict(kw), **extra)
                 ts[m].append(clock() - t)
         tb, ta = (1e3 * float(np.median(ts[m])) for m in ("before", "after"))
         d = float(np.max(np.abs(res["after"].astype(np.float64) - res["before"])))

@@ -557,55 +557,65 @@ def _iteration_count(cnt, s1, s2, scale, local, iter_c, iter_min, iter_max):
 
 
 @njit(**_INL)
-def _forward_dft(wbuf, xbuf, n, cos_t, sin_t, wr, wi, t1r, t1i, t2r, t2i):
+def _fft_pass(zb, off_r, off_i, n, tw_c, tw_s):
+    """One 1-D radix-2 decimation-in-frequency FFT (Gentleman-Sande, in place, output in bit-reversed
+    order) along the first index of the complex n x n block zb[off_r + p n + l] + i zb[off_i + p n + l],
+    batched over the n lanes l: every butterfly is a contiguous, vectorised loop over the lanes. One
+    flat buffer with compile-time offsets (n = 16) lets LLVM prove that the rows do not alias."""
+    half = n // 2
+    step = 1
+    while half >= 1:
+        for start in range(0, n, 2 * half):
+            for k in range(half):
+                p = (start + k) * n
+                q = p + half * n
+                c = tw_c[k * step]      # e^{-i 2 pi k step / n} = c - i s
+                s = tw_s[k * step]
+                for l in range(n):
+                    ar = zb[off_r + p + l]
+                    ai = zb[off_i + p + l]
+                    br = zb[off_r + q + l]
+                    bi = zb[off_i + q + l]
+                    zb[off_r + p + l] = ar + br
+                    zb[off_i + p + l] = ai + bi
+                    dr = ar - br
+                    di = ai - bi
+                    zb[off_r + q + l] = dr * c + di * s
+                    zb[off_i + q + l] = di * c - dr * s
+        half //= 2
+        step *= 2
+
+
+@njit(**_INL)
+def _forward_dft(n, tw_c, tw_s, bitrev, zb, t1r, t1i, t2r, t2i):
     """Step 2, W = DFT(w) -> (t1r, t1i) and R = DFT(w (f - mean)) -> (t2r, t2i), [u, v] on the half
-    spectrum v < n/2 + 1; xbuf holds w (f - mean). Separable, as dot products (reductions vectorise
-    without the runtime alias checks that short in-place loops over several arrays need)."""
+    spectrum v < n/2 + 1, from zb[0:n^2] = w and zb[n^2:2n^2] = w (f - mean) (row-major [i, j]). Both
+    are real: one complex 2-D FFT of z = w + i w (f - mean), split by conjugate symmetry,
+    W(k) = (Z(k) + conj Z(-k)) / 2, R(k) = (Z(k) - conj Z(-k)) / 2i. The FFT is batched radix-2 over
+    the rows (lanes: the columns), a transpose, then over the columns (lanes: the row frequencies);
+    ~3.5x faster than the separable dot-product DFT it replaces (issue 7 session 4, docs/FSE.md)."""
+    nn = n * n
     hh = n // 2 + 1
-    # rows (real input -> half spectrum v < hh): T(i, v) = sum_j x(i, j) e^{-i 2 pi j v / N}, stored
-    # transposed [v, i] in the (not yet used) W grids: wr[v] / wr[n + v] = re / im of DFT(w),
-    # wi[v] / wi[n + v] = re / im of DFT(w (f - mean))
-    for i in range(n):
+    _fft_pass(zb, 0, nn, n, tw_c, tw_s)             # along i: row p holds frequency u = bitrev[p]
+    for p in range(n):
+        for j in range(n):
+            zb[2 * nn + j * n + p] = zb[p * n + j]
+            zb[3 * nn + j * n + p] = zb[nn + p * n + j]
+    _fft_pass(zb, 2 * nn, 3 * nn, n, tw_c, tw_s)    # along j: Z(u, v) at [bitrev[v], bitrev[u]]
+    for u in range(n):
+        bu = bitrev[u]
+        bun = bitrev[(n - u) & (n - 1)]
         for v in range(hh):
-            s_wc = np.float32(0.0)
-            s_ws = np.float32(0.0)
-            s_xc = np.float32(0.0)
-            s_xs = np.float32(0.0)
-            for j in range(n):
-                a = wbuf[i, j]
-                bb = xbuf[i, j]
-                c = cos_t[v, j]
-                sn = sin_t[v, j]
-                s_wc += a * c
-                s_ws += a * sn
-                s_xc += bb * c
-                s_xs += bb * sn
-            wr[v, i] = s_wc
-            wr[n + v, i] = -s_ws
-            wi[v, i] = s_xc
-            wi[n + v, i] = -s_xs
-    # columns (complex): X(u, v) = sum_i T(i, v) e^{-i 2 pi u i / N} -> t1 (w) / t2 (w (f - mean)) [u, v]
-    for v in range(hh):
-        for u in range(n):
-            a1 = np.float32(0.0)
-            a2 = np.float32(0.0)
-            a3 = np.float32(0.0)
-            a4 = np.float32(0.0)
-            for i in range(n):
-                c = cos_t[u, i]
-                sn = sin_t[u, i]
-                q1r = wr[v, i]
-                q1i = wr[n + v, i]
-                q2r = wi[v, i]
-                q2i = wi[n + v, i]
-                a1 += q1r * c + q1i * sn
-                a2 += q1i * c - q1r * sn
-                a3 += q2r * c + q2i * sn
-                a4 += q2i * c - q2r * sn
-            t1r[u, v] = a1
-            t1i[u, v] = a2
-            t2r[u, v] = a3
-            t2i[u, v] = a4
+            ia = bitrev[v] * n + bu
+            ib = bitrev[(n - v) & (n - 1)] * n + bun
+            ar = zb[2 * nn + ia]
+            ai = zb[3 * nn + ia]
+            br = zb[2 * nn + ib]
+            bi = zb[3 * nn + ib]
+            t1r[u, v] = np.float32(0.5) * (ar + br)
+            t1i[u, v] = np.float32(0.5) * (ai - bi)
+            t2r[u, v] = np.float32(0.5) * (ai + bi)
+            t2i[u, v] = np.float32(0.5) * (br - ar)
 
 
 @njit(**_INL)
@@ -846,7 +856,7 @@ def _make_block_kernel(n_fixed, joint=False):
 
     @njit(cache=True, nogil=True, fastmath=True)
     def block_kernel(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
-                     by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
+                     by, bx, b, lvl, n, rho_tab, bitrev, zb, tw_c, tw_s, prior2,
                      delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
                      wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i,
                      wp, mest):
@@ -865,10 +875,13 @@ def _make_block_kernel(n_fixed, joint=False):
         mean = swf / sw     # weighted mean removed (ours: translation invariance, float32 conditioning)
         nit = _iteration_count(cnt, s1, s2, scale, local, iter_c, iter_min, iter_max)
         fm = np.float32(mean)
+        nn = n * n
         for i in range(n):
             for j in range(n):
-                xbuf[i, j] = wbuf[i, j] * (xbuf[i, j] - fm)
-        _forward_dft(wbuf, xbuf, n, cos_t, sin_t, wr, wi, t1r, t1i, t2r, t2i)
+                wv = wbuf[i, j]
+                zb[i * n + j] = wv
+                zb[nn + i * n + j] = wv * (xbuf[i, j] - fm)
+        _forward_dft(n, tw_c, tw_s, bitrev, zb, t1r, t1i, t2r, t2i)
         _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm)
         ns = _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm,
                           sel_u, sel_v, sel_r, sel_i)
@@ -931,6 +944,14 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     sel_r = np.zeros(nsel, np.float32)
     sel_i = np.zeros(nsel, np.float32)
     dummy = np.zeros((1, 1), np.float32)
+    zb = np.zeros(4 * n * n, np.float32)           # the forward FFT's buffer (_forward_dft)
+    bitrev = np.zeros(n, np.int64)
+    bits = 0
+    while (1 << bits) < n:
+        bits += 1
+    for i in range(n):
+        for bb in range(bits):
+            bitrev[i] |= ((i >> bb) & 1) << (bits - 1 - bb)
     while True:
         q = _fetch_add(counter, r)
         if q >= cntr:
@@ -941,25 +962,25 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
             if wp is not None:
                 if n == 16:     # the common window: the kernel specialised for n = 16
                     _block16j(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                                leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
+                                leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, zb, tw_c,
                                tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                                local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                                sel_u, sel_v, sel_r, sel_i, wp, mest)
                 else:
                     _blockj(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
+                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, zb, tw_c,
                             tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                             local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                             sel_u, sel_v, sel_r, sel_i, wp, mest)
             elif n == 16:     # the common window: the kernel specialised for n = 16
                 _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                         leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
+                         leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, zb, tw_c,
                          tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                          local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                          sel_u, sel_v, sel_r, sel_i, dummy, dummy)
             else:
                 _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
+                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, zb, tw_c,
                        tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
                        local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                        sel_u, sel_v, sel_r, sel_i, dummy, dummy)

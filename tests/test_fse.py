@@ -200,7 +200,8 @@ def _numpy_fse_block(img, known, by, bx, b, n, rho, gamma, nit):
 
 def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
     p = fse.resolve_params("balanced", window=n, max_block=b, min_block=b, rho={b: rho}, gamma=gamma)
-    cos_t, sin_t, tw_c, tw_s, _bitrev, prior2, rho_tab, _split, _sizes = fse._make_tables(p)
+    _cos, _sin, tw_c, tw_s, bitrev, prior2, rho_tab, _split, _sizes = fse._make_tables(p)
+    zb = np.zeros(4 * n * n, np.float32)     # the forward FFT's buffer
     img = img.copy()
     state = state.copy()
     tshift = int(np.log2(b))
@@ -213,7 +214,7 @@ def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
                   np.zeros(nit + 2, f32), np.zeros(nit + 2, f32)])
     dummy = np.zeros((1, 1), f32)
     ok = kernel(img, state, dummy, dummy, False, False, tile_round, tshift, tw_tiles,
-                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, cos_t, sin_t,
+                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, bitrev, zb,
                 tw_c, tw_s, prior2, 0.5, gamma, 0.0, nit, nit, 1.0, False, False, *scratch, dummy, dummy)
     assert ok
     return img, state
