@@ -785,14 +785,33 @@ def _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm, sel_
     return ns
 
 
+@njit(cache=True, nogil=True)
+def _phase_table(n, sizes, tw_c, tw_s):
+    """The synthesis phases of every block size: [lvl, 0 / 1, k, m] = cos / sin(2 pi k (o + m) / N),
+    o = (N - b) / 2 the block's offset in its window (the same table entries the per-block lookups
+    gave, so the synthesis is unchanged bit for bit)."""
+    nl = sizes.shape[0]
+    bmax = 1
+    for lv in range(nl):
+        bmax = max(bmax, sizes[lv])
+    ph = np.zeros((nl, 2, n, bmax), np.float32)
+    for lv in range(nl):
+        b = sizes[lv]
+        o = (n - b) // 2
+        for k in range(n):
+            for m in range(b):
+                t = (k * (o + m)) & (n - 1)
+                ph[lv, 0, k, m] = tw_c[t]
+                ph[lv, 1, k, m] = tw_s[t]
+    return ph
+
+
 @njit(**_INL)
-def _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, ph_buf):
+def _synthesize(b, lvl, ns, sel_u, sel_v, sel_r, sel_i, phs, xbuf):
     """Step 4, the model on the block only: g(m) - mean = sum Re(c e^{+i 2 pi k m / N}) into xbuf[:b, :b]
     (no inverse FFT). Separable phases: Re(c e^{i(a + b)}) = cos b (c_r cos a - c_i sin a) - sin b
-    (c_r sin a + c_i cos a), a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j) / N per column (rows 0
-    and 1 of ph_buf), vectorised over the block row."""
-    nmask = n - 1
-    o = (n - b) // 2
+    (c_r sin a + c_i cos a), a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j) / N per column, read
+    from the block size's phase table (``_phase_table``), vectorised over the block row."""
     for i in range(b):
         for j in range(b):
             xbuf[i, j] = 0.0
@@ -801,18 +820,13 @@ def _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, ph_buf):
         sq = sel_i[q]
         uq = sel_u[q]
         vq = sel_v[q]
-        for j in range(b):
-            ph = (vq * (o + j)) & nmask   # n is a power of two
-            ph_buf[0, j] = tw_c[ph]
-            ph_buf[1, j] = tw_s[ph]
         for i in range(b):
-            ph = (uq * (o + i)) & nmask
-            ca = tw_c[ph]
-            sa = tw_s[ph]
+            ca = phs[lvl, 0, uq, i]
+            sa = phs[lvl, 1, uq, i]
             pp = cq * ca - sq * sa
             qq = cq * sa + sq * ca
             for j in range(b):
-                xbuf[i, j] += pp * ph_buf[0, j] - qq * ph_buf[1, j]
+                xbuf[i, j] += pp * phs[lvl, 0, vq, j] - qq * phs[lvl, 1, vq, j]
 
 
 @njit(**_INL)
@@ -856,7 +870,7 @@ def _make_block_kernel(n_fixed, joint=False):
 
     @njit(cache=True, nogil=True, fastmath=True)
     def block_kernel(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
-                     by, bx, b, lvl, n, rho_tab, bitrev, zb, tw_c, tw_s, prior2,
+                     by, bx, b, lvl, n, rho_tab, bitrev, zb, tw_c, tw_s, prior2, phs,
                      delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
                      wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i,
                      wp, mest):
@@ -885,7 +899,7 @@ def _make_block_kernel(n_fixed, joint=False):
         _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm)
         ns = _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm,
                           sel_u, sel_v, sel_r, sel_i)
-        _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, t1r)
+        _synthesize(b, lvl, ns, sel_u, sel_v, sel_r, sel_i, phs, xbuf)
         _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf, joint, mest)
         return True
 
@@ -952,6 +966,7 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     for i in range(n):
         for bb in range(bits):
             bitrev[i] |= ((i >> bb) & 1) << (bits - 1 - bb)
+    phs = _phase_table(n, sizes, tw_c, tw_s)
     while True:
         q = _fetch_add(counter, r)
         if q >= cntr:
@@ -963,25 +978,25 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
                 if n == 16:     # the common window: the kernel specialised for n = 16
                     _block16j(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                                 leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, zb, tw_c,
-                               tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                               tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
                                local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                                sel_u, sel_v, sel_r, sel_i, wp, mest)
                 else:
                     _blockj(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                             leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, zb, tw_c,
-                            tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                            tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
                             local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                             sel_u, sel_v, sel_r, sel_i, wp, mest)
             elif n == 16:     # the common window: the kernel specialised for n = 16
                 _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                          leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, zb, tw_c,
-                         tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                         tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
                          local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                          sel_u, sel_v, sel_r, sel_i, dummy, dummy)
             else:
                 _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                        leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, zb, tw_c,
-                       tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
+                       tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
                        local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
                        sel_u, sel_v, sel_r, sel_i, dummy, dummy)
 

@@ -215,7 +215,8 @@ def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
     dummy = np.zeros((1, 1), f32)
     ok = kernel(img, state, dummy, dummy, False, False, tile_round, tshift, tw_tiles,
                 (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, bitrev, zb,
-                tw_c, tw_s, prior2, 0.5, gamma, 0.0, nit, nit, 1.0, False, False, *scratch, dummy, dummy)
+                tw_c, tw_s, prior2, fse._phase_table(n, _sizes, tw_c, tw_s), 0.5, gamma, 0.0, nit, nit, 1.0,
+                False, False, *scratch, dummy, dummy)
     assert ok
     return img, state
 
