@@ -587,35 +587,61 @@ def _fft_pass(zb, off_r, off_i, n, tw_c, tw_s):
 
 
 @njit(**_INL)
-def _forward_dft(n, tw_c, tw_s, bitrev, zb, t1r, t1i, t2r, t2i):
-    """Step 2, W = DFT(w) -> (t1r, t1i) and R = DFT(w (f - mean)) -> (t2r, t2i), [u, v] on the half
-    spectrum v < n/2 + 1, from zb[0:n^2] = w and zb[n^2:2n^2] = w (f - mean) (row-major [i, j]). Both
-    are real: one complex 2-D FFT of z = w + i w (f - mean), split by conjugate symmetry,
-    W(k) = (Z(k) + conj Z(-k)) / 2, R(k) = (Z(k) - conj Z(-k)) / 2i. The FFT is batched radix-2 over
-    the rows (lanes: the columns), a transpose, then over the columns (lanes: the row frequencies);
-    ~3.5x faster than the separable dot-product DFT it replaces (issue 7 session 4, docs/FSE.md)."""
+def _split_bin(zb, n, ia, ib, v, u, prior2, wr, wi, rr, ri, en):
+    """One bin of the split of Z = DFT(w + i x) (zb[2n^2 + .] real, zb[3n^2 + .] imaginary, ia: k,
+    ib: -k): W = (Z(k) + conj Z(-k)) / 2 into its copies on the doubled periodic grid (rows v and, for
+    v < n/2 + 1, v + n; columns u and u + n); for v < n/2 + 1 also R = (Z(k) - conj Z(-k)) / 2i and
+    its selection energy |R|^2 prior^2."""
     nn = n * n
-    hh = n // 2 + 1
-    _fft_pass(zb, 0, nn, n, tw_c, tw_s)             # along i: row p holds frequency u = bitrev[p]
+    ar = zb[2 * nn + ia]
+    ai = zb[3 * nn + ia]
+    br = zb[2 * nn + ib]
+    bi = zb[3 * nn + ib]
+    wre = np.float32(0.5) * (ar + br)
+    wim = np.float32(0.5) * (ai - bi)
+    wr[v, u] = wre
+    wi[v, u] = wim
+    wr[v, u + n] = wre
+    wi[v, u + n] = wim
+    if 2 * v <= n:
+        wr[v + n, u] = wre
+        wi[v + n, u] = wim
+        wr[v + n, u + n] = wre
+        wi[v + n, u + n] = wim
+        rre = np.float32(0.5) * (ai + bi)
+        rim = np.float32(0.5) * (br - ar)
+        rr[v, u] = rre
+        ri[v, u] = rim
+        en[v, u] = (rre * rre + rim * rim) * prior2[v, u]
+
+
+@njit(**_INL)
+def _forward_dft(n, tw_c, tw_s, bitrev, zb, prior2, wr, wi, rr, ri, en, rm):
+    """Step 2, W = DFT(w) and R = DFT(w (f - mean)) from zb[0:n^2] = w and zb[n^2:2n^2] = w (f - mean)
+    (row-major [i, j]) straight into the layout of the iterations: R[v, u] (v = half-spectrum index,
+    u full, contiguous) with its selection energies |R|^2 prior^2 and their per-row maxima; W on a
+    doubled periodic grid W[v', u'] so that W(j - k) and W(j + k) are contiguous slices without modulo
+    (rows >= n + n/2 + 1 are never read and not written). Both signals are real: one complex 2-D FFT
+    of z = w + i w (f - mean), split by conjugate symmetry, W(k) = (Z(k) + conj Z(-k)) / 2,
+    R(k) = (Z(k) - conj Z(-k)) / 2i. The FFT is batched radix-2 over the rows (lanes: the columns), a
+    transpose that also undoes the bit reversal of the row frequencies, then over the columns (lanes:
+    the row frequencies u, natural order). Issue 7 session 4 (docs/FSE.md): replaces the separable
+    dot-product DFT and the separate layout step."""
+    nn = n * n
+    _fft_pass(zb, 0, nn, n, tw_c, tw_s)              # along i: row p holds u = bitrev[p]
     for p in range(n):
+        bp = bitrev[p]
         for j in range(n):
-            zb[2 * nn + j * n + p] = zb[p * n + j]
-            zb[3 * nn + j * n + p] = zb[nn + p * n + j]
-    _fft_pass(zb, 2 * nn, 3 * nn, n, tw_c, tw_s)    # along j: Z(u, v) at [bitrev[v], bitrev[u]]
-    for u in range(n):
-        bu = bitrev[u]
-        bun = bitrev[(n - u) & (n - 1)]
-        for v in range(hh):
-            ia = bitrev[v] * n + bu
-            ib = bitrev[(n - v) & (n - 1)] * n + bun
-            ar = zb[2 * nn + ia]
-            ai = zb[3 * nn + ia]
-            br = zb[2 * nn + ib]
-            bi = zb[3 * nn + ib]
-            t1r[u, v] = np.float32(0.5) * (ar + br)
-            t1i[u, v] = np.float32(0.5) * (ai - bi)
-            t2r[u, v] = np.float32(0.5) * (ai + bi)
-            t2i[u, v] = np.float32(0.5) * (br - ar)
+            zb[2 * nn + j * n + bp] = zb[p * n + j]
+            zb[3 * nn + j * n + bp] = zb[nn + p * n + j]
+    _fft_pass(zb, 2 * nn, 3 * nn, n, tw_c, tw_s)     # along j: Z(u, v) at [bitrev[v], u]
+    for v in range(n):
+        ra = bitrev[v] * n
+        rb = bitrev[(n - v) & (n - 1)] * n
+        _split_bin(zb, n, ra, rb, v, 0, prior2, wr, wi, rr, ri, en)
+        for u in range(1, n):
+            _split_bin(zb, n, ra + u, rb + n - u, v, u, prior2, wr, wi, rr, ri, en)
+    _row_maxima(n, en, rm)
 
 
 @njit(**_INL)
@@ -637,45 +663,6 @@ def _row_maxima(n, en, rm):
             m2 = max(m2, en[v, u + 2])
             m3 = max(m3, en[v, u + 3])
         rm[v] = max(max(m0, m1), max(m2, m3))
-
-
-@njit(**_INL)
-def _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm):
-    """The layout of the iterations: R[v, u] (v = half-spectrum index, u full, contiguous) with its
-    selection energies |R|^2 prior^2 and their per-row maxima; W on a doubled periodic grid W[v', u']
-    (v', u' in 0..2n, conjugate symmetry fills v > n/2) so that W(j - k) and W(j + k) are contiguous
-    slices without modulo."""
-    hh = n // 2 + 1
-    for u in range(n):
-        un = (n - u) % n
-        for v in range(hh):
-            a = t1r[u, v]
-            bq = t1i[u, v]
-            wr[v, u] = a
-            wi[v, u] = bq
-            wr[v, u + n] = a
-            wi[v, u + n] = bq
-            wr[v + n, u] = a
-            wi[v + n, u] = bq
-            wr[v + n, u + n] = a
-            wi[v + n, u + n] = bq
-            if 0 < v < n - v:
-                wr[n - v, un] = a
-                wi[n - v, un] = -bq
-                wr[n - v, un + n] = a
-                wi[n - v, un + n] = -bq
-                wr[2 * n - v, un] = a
-                wi[2 * n - v, un] = -bq
-                wr[2 * n - v, un + n] = a
-                wi[2 * n - v, un + n] = -bq
-    for v in range(hh):
-        for u in range(n):
-            a = t2r[u, v]
-            bq = t2i[u, v]
-            rr[v, u] = a
-            ri[v, u] = bq
-            en[v, u] = (a * a + bq * bq) * prior2[v, u]
-    _row_maxima(n, en, rm)
 
 
 @njit(**_INL)
@@ -786,6 +773,19 @@ def _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm, sel_
 
 
 @njit(cache=True, nogil=True)
+def _bit_reversal(n):
+    """bitrev[i]: i with its log2(n) bits reversed (the output order of ``_fft_pass``)."""
+    bits = 0
+    while (1 << bits) < n:
+        bits += 1
+    br = np.zeros(n, np.int64)
+    for i in range(n):
+        for bb in range(bits):
+            br[i] |= ((i >> bb) & 1) << (bits - 1 - bb)
+    return br
+
+
+@njit(cache=True, nogil=True)
 def _phase_table(n, sizes, tw_c, tw_s):
     """The synthesis phases of every block size: [lvl, 0 / 1, k, m] = cos / sin(2 pi k (o + m) / N),
     o = (N - b) / 2 the block's offset in its window (the same table entries the per-block lookups
@@ -870,9 +870,9 @@ def _make_block_kernel(n_fixed, joint=False):
 
     @njit(cache=True, nogil=True, fastmath=True)
     def block_kernel(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
-                     by, bx, b, lvl, n, rho_tab, bitrev, zb, tw_c, tw_s, prior2, phs,
+                     by, bx, b, lvl, n, rho_tab, bitrev, tw_c, tw_s, prior2, phs,
                      delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
-                     wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i,
+                     wbuf, xbuf, zb, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i,
                      wp, mest):
         """Reconstruct the missing pixels of block (by, bx, b) in place (Seiler & Kaup, SPL 2010: weighted
         projection of the support area onto DFT basis functions, one chosen per iteration, residual
@@ -895,8 +895,7 @@ def _make_block_kernel(n_fixed, joint=False):
                 wv = wbuf[i, j]
                 zb[i * n + j] = wv
                 zb[nn + i * n + j] = wv * (xbuf[i, j] - fm)
-        _forward_dft(n, tw_c, tw_s, bitrev, zb, t1r, t1i, t2r, t2i)
-        _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm)
+        _forward_dft(n, tw_c, tw_s, bitrev, zb, prior2, wr, wi, rr, ri, en, rm)
         ns = _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm,
                           sel_u, sel_v, sel_r, sel_i)
         _synthesize(b, lvl, ns, sel_u, sel_v, sel_r, sel_i, phs, xbuf)
@@ -940,13 +939,9 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     are compiled only when used); arrays: the joint kernels."""
     hh = n // 2 + 1
     nsel = iter_max + 2
-    hp = cos_t.shape[1]
     wbuf = np.zeros((n, n), np.float32)
     xbuf = np.zeros((n, n), np.float32)
-    t1r = np.zeros((n, hp), np.float32)
-    t1i = np.zeros((n, hp), np.float32)
-    t2r = np.zeros((n, hp), np.float32)
-    t2i = np.zeros((n, hp), np.float32)
+    zb = np.zeros(4 * n * n, np.float32)           # the forward FFT's work area (_forward_dft)
     wr = np.zeros((2 * n, 2 * n), np.float32)
     wi = np.zeros((2 * n, 2 * n), np.float32)
     rr = np.zeros((hh, n), np.float32)
@@ -958,14 +953,7 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     sel_r = np.zeros(nsel, np.float32)
     sel_i = np.zeros(nsel, np.float32)
     dummy = np.zeros((1, 1), np.float32)
-    zb = np.zeros(4 * n * n, np.float32)           # the forward FFT's buffer (_forward_dft)
-    bitrev = np.zeros(n, np.int64)
-    bits = 0
-    while (1 << bits) < n:
-        bits += 1
-    for i in range(n):
-        for bb in range(bits):
-            bitrev[i] |= ((i >> bb) & 1) << (bits - 1 - bb)
+    bitrev = _bit_reversal(n)
     phs = _phase_table(n, sizes, tw_c, tw_s)
     while True:
         q = _fetch_add(counter, r)
@@ -977,27 +965,27 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
             if wp is not None:
                 if n == 16:     # the common window: the kernel specialised for n = 16
                     _block16j(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                                leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, zb, tw_c,
+                                leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, tw_c,
                                tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
-                               local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                               local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                                sel_u, sel_v, sel_r, sel_i, wp, mest)
                 else:
                     _blockj(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, zb, tw_c,
+                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, tw_c,
                             tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
-                            local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                            local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                             sel_u, sel_v, sel_r, sel_i, wp, mest)
             elif n == 16:     # the common window: the kernel specialised for n = 16
                 _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                         leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, zb, tw_c,
+                         leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, tw_c,
                          tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
-                         local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                         local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                          sel_u, sel_v, sel_r, sel_i, dummy, dummy)
             else:
                 _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, zb, tw_c,
+                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, tw_c,
                        tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
-                       local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                       local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                        sel_u, sel_v, sel_r, sel_i, dummy, dummy)
 
 

@@ -201,20 +201,19 @@ def _numpy_fse_block(img, known, by, bx, b, n, rho, gamma, nit):
 def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
     p = fse.resolve_params("balanced", window=n, max_block=b, min_block=b, rho={b: rho}, gamma=gamma)
     _cos, _sin, tw_c, tw_s, bitrev, prior2, rho_tab, _split, _sizes = fse._make_tables(p)
-    zb = np.zeros(4 * n * n, np.float32)     # the forward FFT's buffer
     img = img.copy()
     state = state.copy()
     tshift = int(np.log2(b))
     tw_tiles = -(-img.shape[1] // b)
     tile_round = np.zeros(-(-img.shape[0] // b) * tw_tiles, np.int64)
     hh, f32 = n // 2 + 1, np.float32
-    scratch = ([np.zeros((n, n), f32) for _ in range(2)] + [np.zeros((n, n), f32) for _ in range(4)]
+    scratch = ([np.zeros((n, n), f32) for _ in range(2)] + [np.zeros(4 * n * n, f32)]
                + [np.zeros((2 * n, 2 * n), f32) for _ in range(2)] + [np.zeros((hh, n), f32) for _ in range(3)]
                + [np.zeros(hh, f32), np.zeros(nit + 2, np.int64), np.zeros(nit + 2, np.int64),
                   np.zeros(nit + 2, f32), np.zeros(nit + 2, f32)])
     dummy = np.zeros((1, 1), f32)
     ok = kernel(img, state, dummy, dummy, False, False, tile_round, tshift, tw_tiles,
-                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, bitrev, zb,
+                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, bitrev,
                 tw_c, tw_s, prior2, fse._phase_table(n, _sizes, tw_c, tw_s), 0.5, gamma, 0.0, nit, nit, 1.0,
                 False, False, *scratch, dummy, dummy)
     assert ok
