@@ -1555,14 +1555,33 @@ def _bounds(lower, upper, shape, use):
 
 
 def _nearest_fill(work, left, src=None):
-    """Pixels `left` get the value of the nearest `src` pixel (default: every pixel not left)."""
+    """Pixels `left` get the value of the nearest `src` pixel (default: every pixel not left), by the
+    Euclidean distance transform of a crop around the left pixels (issue 7 session 4: the whole-frame
+    transform cost ~90 ms at 1080p for a few hundred left pixels). The crop reaches `m` pixels beyond
+    the left pixels' bounding box; a source outside it is more than `m` away from every left pixel, so
+    the result is exact once every left pixel found a source within `m` (else `m` grows)."""
     from scipy import ndimage
     src = ~left if src is None else src
     if not src.any():
         work[left] = 0.0
         return
-    idx = ndimage.distance_transform_edt(~src, return_distances=False, return_indices=True)
-    work[left] = work[idx[0][left], idx[1][left]]
+    ys, xs = np.nonzero(left)
+    if ys.size == 0:
+        return
+    h, w = left.shape
+    y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    m = 16
+    while True:
+        cy0, cy1, cx0, cx1 = max(0, y0 - m), min(h, y1 + m), max(0, x0 - m), min(w, x1 + m)
+        whole = (cy0, cy1, cx0, cx1) == (0, h, 0, w)
+        sub = src[cy0:cy1, cx0:cx1]
+        if sub.any():
+            d, idx = ndimage.distance_transform_edt(~sub, return_distances=True, return_indices=True)
+            ly, lx = ys - cy0, xs - cx0
+            if whole or float(d[ly, lx].max()) <= m:
+                work[ys, xs] = work[idx[0][ly, lx] + cy0, idx[1][ly, lx] + cx0]
+                return
+        m *= 4
 
 
 def _fill_without_data(out, miss, lower, upper):

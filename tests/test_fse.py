@@ -398,3 +398,30 @@ def test_noisy_skip_fused_result_matches_numpy():
     assert np.array_equal(reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), fusion="fast"),
                           reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), fusion="fast",
                                       noisy_skip=False))
+
+
+# ---- issue 7 session 4 (helper fse2): the fallback fill of blocks without data, cropped -------------
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nearest_fill_crop_gives_a_nearest_source(seed):
+    """`_nearest_fill` transforms only a crop around the left pixels: every left pixel still gets the
+    value of a source pixel at the minimal Euclidean distance (the whole-frame distance transform)."""
+    from scipy import ndimage
+    rng = np.random.default_rng(seed)
+    h, w = 120, 200
+    src = rng.random((h, w)) < (0.02 if seed else 0.5)
+    left = np.zeros((h, w), bool)
+    left[40:70, 90:150] = rng.random((30, 60)) < 0.7     # a hole region, sources far away for seed > 0
+    src &= ~left
+    if seed == 2:
+        src[:] = False
+        src[0, 0] = True                                  # one source in a corner: the crop must grow
+    work = np.arange(h * w, dtype=np.float64).reshape(h, w).astype(np.float32)   # value = source id
+    ref = work.copy()
+    fse._nearest_fill(work, left, src)
+    dist = ndimage.distance_transform_edt(~src)
+    ys, xs = np.nonzero(left)
+    sid = work[ys, xs].astype(np.int64)
+    sy, sx = sid // w, sid % w
+    assert np.all(src[sy, sx])                                                    # sources only
+    np.testing.assert_allclose(np.hypot(sy - ys, sx - xs), dist[ys, xs], rtol=0, atol=1e-9)  # nearest
+    np.testing.assert_array_equal(work[~left], ref[~left])                        # nothing else touched
