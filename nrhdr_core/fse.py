@@ -587,11 +587,24 @@ def _fft_pass(zb, off_r, off_i, n, tw_c, tw_s):
 
 
 @njit(**_INL)
-def _split_bin(zb, n, ia, ib, v, u, prior2, wr, wi, rr, ri, en):
+def _pack_scale(cnt, s1, s2):
+    """(2^-e, 2^e) with 2^e ~ the std of the usable values (from ``_moments``; 1 when they are
+    constant): w (f - mean) 2^-e is of the magnitude of w, exactly (a power of two), so a k-fold
+    scaled input (k a power of two) gives the same packed FFT, and any k the same up to rounding."""
+    m1 = s1 / cnt
+    var = s2 / cnt - m1 * m1
+    e = 0
+    if var > 0.0:
+        e = math.frexp(math.sqrt(var))[1]
+    return np.float32(math.ldexp(1.0, -e)), np.float32(math.ldexp(1.0, e))
+
+
+@njit(**_INL)
+def _split_bin(zb, n, ia, ib, v, u, hx, prior2, wr, wi, rr, ri, en):
     """One bin of the split of Z = DFT(w + i x) (zb[2n^2 + .] real, zb[3n^2 + .] imaginary, ia: k,
     ib: -k): W = (Z(k) + conj Z(-k)) / 2 into its copies on the doubled periodic grid (rows v and, for
-    v < n/2 + 1, v + n; columns u and u + n); for v < n/2 + 1 also R = (Z(k) - conj Z(-k)) / 2i and
-    its selection energy |R|^2 prior^2."""
+    v < n/2 + 1, v + n; columns u and u + n); for v < n/2 + 1 also R = (Z(k) - conj Z(-k)) / 2i
+    (times 2 hx = the packing's inverse scale) and its selection energy |R|^2 prior^2."""
     nn = n * n
     ar = zb[2 * nn + ia]
     ai = zb[3 * nn + ia]
@@ -608,17 +621,17 @@ def _split_bin(zb, n, ia, ib, v, u, prior2, wr, wi, rr, ri, en):
         wi[v + n, u] = wim
         wr[v + n, u + n] = wre
         wi[v + n, u + n] = wim
-        rre = np.float32(0.5) * (ai + bi)
-        rim = np.float32(0.5) * (br - ar)
+        rre = hx * (ai + bi)
+        rim = hx * (br - ar)
         rr[v, u] = rre
         ri[v, u] = rim
         en[v, u] = (rre * rre + rim * rim) * prior2[v, u]
 
 
 @njit(**_INL)
-def _forward_dft(n, tw_c, tw_s, bitrev, zb, prior2, wr, wi, rr, ri, en, rm):
-    """Step 2, W = DFT(w) and R = DFT(w (f - mean)) from zb[0:n^2] = w and zb[n^2:2n^2] = w (f - mean)
-    (row-major [i, j]) straight into the layout of the iterations: R[v, u] (v = half-spectrum index,
+def _forward_dft(n, tw_c, tw_s, bitrev, zb, xi, prior2, wr, wi, rr, ri, en, rm):
+    """Step 2, W = DFT(w) and R = DFT(w (f - mean)) from zb[0:n^2] = w and zb[n^2:2n^2] = w (f - mean) / xi
+    (row-major [i, j]; xi a power of two, see ``_pack_scale``) straight into the layout of the iterations: R[v, u] (v = half-spectrum index,
     u full, contiguous) with its selection energies |R|^2 prior^2 and their per-row maxima; W on a
     doubled periodic grid W[v', u'] so that W(j - k) and W(j + k) are contiguous slices without modulo
     (rows >= n + n/2 + 1 are never read and not written). Both signals are real: one complex 2-D FFT
@@ -628,6 +641,7 @@ def _forward_dft(n, tw_c, tw_s, bitrev, zb, prior2, wr, wi, rr, ri, en, rm):
     the row frequencies u, natural order). Issue 7 session 4 (docs/FSE.md): replaces the separable
     dot-product DFT and the separate layout step."""
     nn = n * n
+    hx = np.float32(0.5) * xi
     _fft_pass(zb, 0, nn, n, tw_c, tw_s)              # along i: row p holds u = bitrev[p]
     for p in range(n):
         bp = bitrev[p]
@@ -638,9 +652,9 @@ def _forward_dft(n, tw_c, tw_s, bitrev, zb, prior2, wr, wi, rr, ri, en, rm):
     for v in range(n):
         ra = bitrev[v] * n
         rb = bitrev[(n - v) & (n - 1)] * n
-        _split_bin(zb, n, ra, rb, v, 0, prior2, wr, wi, rr, ri, en)
+        _split_bin(zb, n, ra, rb, v, 0, hx, prior2, wr, wi, rr, ri, en)
         for u in range(1, n):
-            _split_bin(zb, n, ra + u, rb + n - u, v, u, prior2, wr, wi, rr, ri, en)
+            _split_bin(zb, n, ra + u, rb + n - u, v, u, hx, prior2, wr, wi, rr, ri, en)
     _row_maxima(n, en, rm)
 
 
@@ -889,13 +903,17 @@ def _make_block_kernel(n_fixed, joint=False):
         mean = swf / sw     # weighted mean removed (ours: translation invariance, float32 conditioning)
         nit = _iteration_count(cnt, s1, s2, scale, local, iter_c, iter_min, iter_max)
         fm = np.float32(mean)
+        # w and w (f - mean) share one complex FFT (_forward_dft): the second is brought to the first's
+        # magnitude by a power of two 2^-e ~ 1 / std(f) (exact, undone in the split), so that the
+        # rounding of one does not swamp the other whatever the data scale (scale invariance)
+        xs, xi = _pack_scale(cnt, s1, s2)
         nn = n * n
         for i in range(n):
             for j in range(n):
                 wv = wbuf[i, j]
                 zb[i * n + j] = wv
-                zb[nn + i * n + j] = wv * (xbuf[i, j] - fm)
-        _forward_dft(n, tw_c, tw_s, bitrev, zb, prior2, wr, wi, rr, ri, en, rm)
+                zb[nn + i * n + j] = wv * (xbuf[i, j] - fm) * xs
+        _forward_dft(n, tw_c, tw_s, bitrev, zb, xi, prior2, wr, wi, rr, ri, en, rm)
         ns = _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm,
                           sel_u, sel_v, sel_r, sel_i)
         _synthesize(b, lvl, ns, sel_u, sel_v, sel_r, sel_i, phs, xbuf)
@@ -1359,12 +1377,15 @@ def _fse(values, known, lower, upper, preset, inplace, params, fused=True, weigh
         # blocks whose support held no usable pixel: nearest reconstructed/known value
         left = state == 0
         # (from known and reconstructed pixels only: skipped ones hold no value in `work`)
-        _nearest_fill(work, left, (state == 1) | (state == 2) if skip is not None else None)
-        state[left] = 2
-        if fused_c:
-            _finish_c(out, work, state, cf)
-        else:
-            _finish(out, work, state, logd)
+        ys, xs = _nearest_fill(work, left, (state == 1) | (state == 2) if skip is not None else None)
+        state[ys, xs] = 2
+        # `_finish` of these pixels only (a second whole-frame pass cost ~5 ms at 1080p)
+        fv = work[ys, xs]
+        if logd:
+            fv = (2.0 ** fv.astype(np.float64)).astype(np.float32)
+            if fused_c:
+                fv -= cf
+        out[ys, xs] = fv
     if joint:
         # the model at the noisy measurements
         me = mest[noisy]
@@ -1559,15 +1580,16 @@ def _nearest_fill(work, left, src=None):
     Euclidean distance transform of a crop around the left pixels (issue 7 session 4: the whole-frame
     transform cost ~90 ms at 1080p for a few hundred left pixels). The crop reaches `m` pixels beyond
     the left pixels' bounding box; a source outside it is more than `m` away from every left pixel, so
-    the result is exact once every left pixel found a source within `m` (else `m` grows)."""
+    the result is exact once every left pixel found a source within `m` (else `m` grows). Returns the
+    coordinates (ys, xs) of the left pixels."""
     from scipy import ndimage
     src = ~left if src is None else src
-    if not src.any():
-        work[left] = 0.0
-        return
     ys, xs = np.nonzero(left)
+    if not src.any():
+        work[ys, xs] = 0.0
+        return ys, xs
     if ys.size == 0:
-        return
+        return ys, xs
     h, w = left.shape
     y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
     m = 16
@@ -1580,7 +1602,7 @@ def _nearest_fill(work, left, src=None):
             ly, lx = ys - cy0, xs - cx0
             if whole or float(d[ly, lx].max()) <= m:
                 work[ys, xs] = work[idx[0][ly, lx] + cy0, idx[1][ly, lx] + cx0]
-                return
+                return ys, xs
         m *= 4
 
 
