@@ -847,8 +847,26 @@ def _synthesize(b, lvl, ns, sel_u, sel_v, sel_r, sel_i, phs, xbuf):
 def _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf, joint, mest):
     """Step 5, the block's missing pixels only: mean + model, clamped to [lo, hi] where bounded, become
     "reconstructed" (state 2, weight delta) for later blocks; known pixels stay bit-exact. `joint`: the
-    model at noisy measurements (state 3, which stay measurements for later blocks) goes to ``mest``."""
+    model at noisy measurements (state 3, which stay measurements for later blocks) goes to ``mest``.
+    A block inside the image is written branch-free (random masks make ``state`` unpredictable: the
+    branchy loop measured ~1.3 us per 8 x 8 block): every pixel is stored, a known or skipped one with
+    its own value and state (no other thread writes this block)."""
     h, w = img.shape
+    if not joint and by + b <= h and bx + b <= w:
+        for i in range(b):
+            y = by + i
+            for j in range(b):
+                x = bx + j
+                st = state[y, x]
+                val = np.float32(mean + xbuf[i, j])
+                if use_lo:
+                    val = max(val, lo[y, x])
+                if use_hi:
+                    val = min(val, hi[y, x])
+                miss = st == 0
+                img[y, x] = val if miss else img[y, x]
+                state[y, x] = np.uint8(2) if miss else st
+        return
     for i in range(b):
         y = by + i
         if y >= h:
