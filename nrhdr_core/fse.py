@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit, prange, get_num_threads, set_num_threads
 from numba.core import cgutils, types
 from numba.extending import intrinsic
+from llvmlite import ir as llvm_ir
 
 __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
 
@@ -963,6 +964,43 @@ def _fetch_add(typingctx, counter, i):
     return sig, codegen
 
 
+@intrinsic
+def _prefetch(typingctx, arr, y, x):
+    """Hint the cache line of arr[y, x] into the cache (llvm.prefetch, read, high locality); y, x must
+    be inside the array."""
+    sig = types.void(arr, y, x)
+
+    def codegen(context, builder, signature, args):
+        aryty, yty, xty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        iy = context.cast(builder, args[1], yty, types.intp)
+        ix = context.cast(builder, args[2], xty, types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [iy, ix])
+        i32 = llvm_ir.IntType(32)
+        p8 = builder.bitcast(ptr, llvm_ir.IntType(8).as_pointer())
+        fnty = llvm_ir.FunctionType(llvm_ir.VoidType(), [p8.type, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [p8, i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _prefetch_window(img, state, ay, ax, n):
+    """Prefetch the n x n support area at (ay, ax) of img and state (first and last column of each row),
+    issued one tile ahead: the gather of a block otherwise waits for its rows (measured ~0.9 us of its
+    ~1.8 us per 8 x 8 block at 1080p, where the rounds sweep the whole frame)."""
+    h, w = img.shape
+    x0 = min(max(ax, 0), w - 1)
+    x1 = min(max(ax + n - 1, 0), w - 1)
+    for y in range(max(ay, 0), min(ay + n, h)):
+        _prefetch(img, y, x0)
+        _prefetch(img, y, x1)
+        _prefetch(state, y, x0)
+        _prefetch(state, y, x1)
+
+
 @njit(cache=True, nogil=True)
 def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
             round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t, tw_c, tw_s,
@@ -996,6 +1034,11 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
         if q >= cntr:
             return
         t = round_tiles[r0 + q]
+        # the support areas of the next two tiles of the round (the likely next one of this thread)
+        for qq in range(q + 1, min(q + 3, cntr)):
+            l2 = leaf_ptr[round_tiles[r0 + qq]]
+            o2 = (n - sizes[leaf_l[l2]]) // 2
+            _prefetch_window(img, state, leaf_y[l2] - o2, leaf_x[l2] - o2, n)
         for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
             lv = leaf_l[li]
             if wp is not None:
