@@ -944,6 +944,7 @@ def _make_block_kernel(n_fixed, joint=False):
 
 # the common 16 x 16 window (preview, fast, balanced) and any other window
 _block16 = _make_block_kernel(16)
+_block32 = _make_block_kernel(32)   # `best`, and `fast` / `balanced` below 40 % known
 _block = _make_block_kernel(0)
 # joint estimation with noisy measurements (state 3): separate specialisations, the plain ones unchanged
 _block16j = _make_block_kernel(16, True)
@@ -1057,6 +1058,12 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
             elif n == 16:     # the common window: the kernel specialised for n = 16
                 _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
                          leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, tw_c,
+                         tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
+                         local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
+                         sel_u, sel_v, sel_r, sel_i, dummy, dummy)
+            elif n == 32:
+                _block32(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
+                         leaf_y[li], leaf_x[li], sizes[lv], lv, 32, rho_tab, bitrev, tw_c,
                          tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
                          local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                          sel_u, sel_v, sel_r, sel_i, dummy, dummy)
