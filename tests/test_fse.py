@@ -223,7 +223,7 @@ def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
 @pytest.mark.parametrize("n, b", [(16, 8), (16, 4), (32, 8), (8, 4)])
 def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b):
     """The block kernel (one source, issue 13) against an independent numpy FSE of the same block; for
-    n = 16 the specialised kernel (compile-time n) gives the generic kernel's result to float rounding."""
+    n = 16 and 32 the specialised kernel (compile-time n) gives the generic kernel's result to float rounding."""
     rng = np.random.default_rng(n + b)
     img = (sinusoids(48, 48) + rng.normal(0, 3, (48, 48))).astype(np.float32)
     known = rng.random(img.shape) < 0.5
@@ -241,8 +241,9 @@ def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b)
     outside = np.ones(img.shape, bool)
     outside[blk] = False
     np.testing.assert_array_equal(out[outside], work[outside])            # nothing outside the block
-    if n == 16:
-        out16, st16 = _run_block_kernel(fse._block16, work, state, by, bx, b, n, rho, gamma, nit)
+    if n in (16, 32):
+        spec = fse._block16 if n == 16 else fse._block32
+        out16, st16 = _run_block_kernel(spec, work, state, by, bx, b, n, rho, gamma, nit)
         np.testing.assert_array_equal(st16, st)
         np.testing.assert_allclose(out16, out, rtol=1e-6, atol=1e-5)
 
@@ -425,3 +426,10 @@ def test_nearest_fill_crop_gives_a_nearest_source(seed):
     assert np.all(src[sy, sx])                                                    # sources only
     np.testing.assert_allclose(np.hypot(sy - ys, sx - xs), dist[ys, xs], rtol=0, atol=1e-9)  # nearest
     np.testing.assert_array_equal(work[~left], ref[~left])                        # nothing else touched
+    # the driver's form: left = state 0, sources = state 1 or 2 (skipped pixels, state 4, are not)
+    state = np.where(left, 0, np.where(src, 1, 4)).astype(np.uint8)
+    work2 = ref.copy()
+    ys2, xs2 = fse._nearest_fill_state(work2, state, True, int(left.sum()))
+    np.testing.assert_array_equal(ys2, ys)
+    np.testing.assert_array_equal(xs2, xs)
+    np.testing.assert_array_equal(work2, work)
