@@ -632,8 +632,8 @@ def _split_bin(zb, n, ia, ib, v, u, hx, prior2, wr, wi, rr, ri, en):
 @njit(**_INL)
 def _forward_dft(n, tw_c, tw_s, bitrev, zb, xi, prior2, wr, wi, rr, ri, en, rm):
     """Step 2, W = DFT(w) and R = DFT(w (f - mean)) from zb[0:n^2] = w and zb[n^2:2n^2] = w (f - mean) / xi
-    (row-major [i, j]; xi a power of two, see ``_pack_scale``) straight into the layout of the iterations: R[v, u] (v = half-spectrum index,
-    u full, contiguous) with its selection energies |R|^2 prior^2 and their per-row maxima; W on a
+    (row-major [i, j]; xi a power of two, see ``_pack_scale``) straight into the layout of the
+    iterations: R[v, u] (v = half-spectrum index, u full, contiguous) with its selection energies |R|^2 prior^2 and their per-row maxima; W on a
     doubled periodic grid W[v', u'] so that W(j - k) and W(j + k) are contiguous slices without modulo
     (rows >= n + n/2 + 1 are never read and not written). Both signals are real: one complex 2-D FFT
     of z = w + i w (f - mean), split by conjugate symmetry, W(k) = (Z(k) + conj Z(-k)) / 2,
