@@ -12,6 +12,7 @@ self-contained: numpy and numba only). Cases:
   hdr1080   one 1920 x 1080 HDR frame (MtTamWest through the sensor model, the scene's missing pixels and
             bounds), presets fast and preview: the nrreconstruct fse stage of issue 7
   vga       640 x 480 of the same scene, 50 % missing, preset preview (issue 7: >= 30 frames/s)
+  desk1080  the same for ../shared/data/hdr/Desk.exr (largely clipped: the slowest scene of the five)
   synth1080 one 1920 x 1080 frame of ``scene.synthetic_hdr_scene()`` (the scene of benchmarks/pipeline.py)
             through the sensor model, ``dark_policy="weighted"`` as nrvalidity's default, preset fast with
             the NOISY pixels skipped as nrreconstruct does before the accurate fusion (issue 7 session 4)
@@ -90,11 +91,12 @@ def hdr_frame(h, w, missing=None):
     return values, validity.known_mask(state), lo, hi, flux
 
 
-def synth_frame(h, w):
-    """(values, known, lower, upper, skip) of the synthetic scene's frame as nrreconstruct gets it."""
-    from nrhdr_core import profile, scene, sensor, simulate, validity
+def synth_frame(h, w, scene_file=None):
+    """(values, known, lower, upper, skip, flux) of the synthetic scene's frame (or of `scene_file`'s)
+    as nrreconstruct gets it."""
+    from nrhdr_core import io, profile, scene, sensor, simulate, validity
     prof = profile.default(h, w, seed=1)
-    sc = scene.synthetic_hdr_scene()
+    sc = scene.synthetic_hdr_scene() if scene_file is None else io.read_luminance(str(scene_file))
     flux = simulate.view(sc, h, w, 0.5, simulate.Motion()) * np.float32(simulate.exposure_scale(sc, prof, 0.0))
     raw = sensor.capture(flux, prof, np.random.default_rng(1))
     values, state = validity.classify(raw, prof, dark_policy="weighted")
@@ -131,6 +133,11 @@ def cases(which):
         miss, nz = 1.0 - float(np.mean(k)), float(np.mean(sk))
         out.append((f"1920x1080 synthetic ({miss:.0%} missing, {nz:.0%} NOISY skipped) fast", v, k, lo, hi,
                     "fast", {"skip": sk}, ("log", flux, ~(k | sk))))
+    if "desk1080" in which:
+        v, k, lo, hi, sk, flux = synth_frame(1080, 1920, DATA / "hdr" / "Desk.exr")
+        miss, nz = 1.0 - float(np.mean(k)), float(np.mean(sk))
+        out.append((f"1920x1080 Desk ({miss:.0%} missing, {nz:.0%} NOISY skipped) fast", v, k, lo, hi,
+                    "fast", {"skip": sk}, ("log", flux, ~(k | sk))))
     if "vga" in which:
         v, k, lo, hi = hdr_frame(480, 640, missing=0.5)[:4]
         out.append(("640x480 50% missing preview", v, k, lo, hi, "preview", {}, v))
@@ -141,7 +148,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--before", default="main", help="git revision of the 'before' fse.py")
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--cases", default="kodak,kodak_win,sparse,hdr1080,synth1080,vga")
+    ap.add_argument("--cases", default="kodak,kodak_win,sparse,hdr1080,synth1080,desk1080,vga")
     ap.add_argument("--cpu", action="store_true", help="process CPU clock instead of wall time")
     a = ap.parse_args(argv)
     clock = time.process_time if a.cpu else time.perf_counter
