@@ -12,7 +12,12 @@ self-contained: numpy and numba only). Cases:
   hdr1080   one 1920 x 1080 HDR frame (MtTamWest through the sensor model, the scene's missing pixels and
             bounds), presets fast and preview: the nrreconstruct fse stage of issue 7
   vga       640 x 480 of the same scene, 50 % missing, preset preview (issue 7: >= 30 frames/s)
-Per case: max |after - before| over the image, PSNR of both (Kodak, against the original), and the wall
+  desk1080  the same for ../shared/data/hdr/Desk.exr (largely clipped: the slowest scene of the five)
+  synth1080 one 1920 x 1080 frame of ``scene.synthetic_hdr_scene()`` (the scene of benchmarks/pipeline.py)
+            through the sensor model, ``dark_policy="weighted"`` as nrvalidity's default, preset fast with
+            the NOISY pixels skipped as nrreconstruct does before the accurate fusion (issue 7 session 4)
+Per case: max |after - before| over the image, PSNR of both (Kodak, against the original; HDR: log2 PSNR of
+the reconstructed pixels against the scene flux, NOISY ones excluded for synth1080), and the wall
 time of each (median of ``--repeat`` interleaved calls after one untimed warm-up each; on a shared machine
 only the ratio after / before of one run is meaningful). ``--cpu`` uses the process CPU clock.
 """
@@ -57,6 +62,13 @@ def psnr(ref, test, peak=255.0):
     return float("inf") if mse == 0 else float(10 * np.log10(peak * peak / mse))
 
 
+def logpsnr(ref, test):
+    """PSNR of log2 values (floored at 1 DN) over the reference's log2 range (docs/FSE.md's log PSNR)."""
+    a = np.log2(np.maximum(np.asarray(ref, np.float64), 1.0))
+    b = np.log2(np.maximum(np.asarray(test, np.float64), 1.0))
+    return psnr(a, b, float(a.max()))
+
+
 def kodak(i):
     import cv2
     p = DATA / "kodak" / f"kodim0{i}.png"
@@ -76,7 +88,22 @@ def hdr_frame(h, w, missing=None):
         miss = np.random.default_rng(3).random((h, w)) < missing
         return flux.astype(np.float32), ~miss, None, None
     lo, hi = validity.bounds(values, state)
-    return values, validity.known_mask(state), lo, hi
+    return values, validity.known_mask(state), lo, hi, flux
+
+
+def synth_frame(h, w, scene_file=None):
+    """(values, known, lower, upper, skip, flux) of the synthetic scene's frame (or of `scene_file`'s)
+    as nrreconstruct gets it."""
+    from nrhdr_core import io, profile, scene, sensor, simulate, validity
+    prof = profile.default(h, w, seed=1)
+    sc = scene.synthetic_hdr_scene() if scene_file is None else io.read_luminance(str(scene_file))
+    flux = simulate.view(sc, h, w, 0.5, simulate.Motion()) * np.float32(simulate.exposure_scale(sc, prof, 0.0))
+    raw = sensor.capture(flux, prof, np.random.default_rng(1))
+    values, state = validity.classify(raw, prof, dark_policy="weighted")
+    lo, hi = validity.bounds(values, state)
+    known = validity.known_mask(state)
+    skip = np.ascontiguousarray(validity.noisy_mask(state) & ~known)
+    return values, known, lo, hi, skip, flux
 
 
 def cases(which):
@@ -96,12 +123,23 @@ def cases(which):
         k = np.random.default_rng(7).random(img.shape) < 0.2
         out.append(("kodim03 20% fast (32 x 32 window)", img, k, None, None, "fast", {}, img))
     if "hdr1080" in which:
-        v, k, lo, hi = hdr_frame(1080, 1920)
+        v, k, lo, hi, flux = hdr_frame(1080, 1920)
         miss = 1.0 - float(np.mean(k))
         for preset in ("fast", "preview"):
-            out.append((f"1920x1080 HDR ({miss:.0%} missing) {preset}", v, k, lo, hi, preset, {}, None))
+            out.append((f"1920x1080 HDR ({miss:.0%} missing) {preset}", v, k, lo, hi, preset, {},
+                        ("log", flux, ~k)))
+    if "synth1080" in which:
+        v, k, lo, hi, sk, flux = synth_frame(1080, 1920)
+        miss, nz = 1.0 - float(np.mean(k)), float(np.mean(sk))
+        out.append((f"1920x1080 synthetic ({miss:.0%} missing, {nz:.0%} NOISY skipped) fast", v, k, lo, hi,
+                    "fast", {"skip": sk}, ("log", flux, ~(k | sk))))
+    if "desk1080" in which:
+        v, k, lo, hi, sk, flux = synth_frame(1080, 1920, DATA / "hdr" / "Desk.exr")
+        miss, nz = 1.0 - float(np.mean(k)), float(np.mean(sk))
+        out.append((f"1920x1080 Desk ({miss:.0%} missing, {nz:.0%} NOISY skipped) fast", v, k, lo, hi,
+                    "fast", {"skip": sk}, ("log", flux, ~(k | sk))))
     if "vga" in which:
-        v, k, lo, hi = hdr_frame(480, 640, missing=0.5)
+        v, k, lo, hi = hdr_frame(480, 640, missing=0.5)[:4]
         out.append(("640x480 50% missing preview", v, k, lo, hi, "preview", {}, v))
     return out
 
@@ -110,7 +148,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--before", default="main", help="git revision of the 'before' fse.py")
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--cases", default="kodak,kodak_win,sparse,hdr1080,vga")
+    ap.add_argument("--cases", default="kodak,kodak_win,sparse,hdr1080,synth1080,desk1080,vga")
     ap.add_argument("--cpu", action="store_true", help="process CPU clock instead of wall time")
     a = ap.parse_args(argv)
     clock = time.process_time if a.cpu else time.perf_counter
@@ -123,17 +161,22 @@ def main(argv=None):
     for name, v, k, lo, hi, preset, kw, truth in cases(set(a.cases.split(","))):
         res = {}
         ts = {m: [] for m in mods}
+        kw = dict(kw)
+        extra = {"skip": kw.pop("skip")} if "skip" in kw else {}
         for m, mod in mods.items():   # warm-up (compilation) and the outputs
-            res[m] = mod._fse(v, k, lo, hi, preset, False, dict(kw))
+            res[m] = mod._fse(v, k, lo, hi, preset, False, dict(kw), **extra)
         for _ in range(a.repeat):
             for m, mod in mods.items():
                 t = clock()
-                mod._fse(v, k, lo, hi, preset, False, dict(kw))
+                mod._fse(v, k, lo, hi, preset, False, dict(kw), **extra)
                 ts[m].append(clock() - t)
         tb, ta = (1e3 * float(np.median(ts[m])) for m in ("before", "after"))
         d = float(np.max(np.abs(res["after"].astype(np.float64) - res["before"])))
         pb = pa = "-"
-        if truth is not None:
+        if isinstance(truth, tuple):   # HDR: log2 PSNR of the reconstructed pixels against the scene flux
+            _, flux, m = truth
+            pb, pa = (f"{logpsnr(flux[m], res[x][m]):.3f} (log)" for x in ("before", "after"))
+        elif truth is not None:
             pk = 255.0 if truth.max() <= 255 else float(truth.max())
             pb, pa = f"{psnr(truth, res['before'], pk):.3f}", f"{psnr(truth, res['after'], pk):.3f}"
         print(f"| {name} | {d:.3g} | {pb} | {pa} | {tb:.1f} | {ta:.1f} | {ta / tb:.3f} |", flush=True)

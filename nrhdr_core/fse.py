@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit, prange, get_num_threads, set_num_threads
 from numba.core import cgutils, types
 from numba.extending import intrinsic
+from llvmlite import ir as llvm_ir
 
 __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
 
@@ -557,55 +558,105 @@ def _iteration_count(cnt, s1, s2, scale, local, iter_c, iter_min, iter_max):
 
 
 @njit(**_INL)
-def _forward_dft(wbuf, xbuf, n, cos_t, sin_t, wr, wi, t1r, t1i, t2r, t2i):
-    """Step 2, W = DFT(w) -> (t1r, t1i) and R = DFT(w (f - mean)) -> (t2r, t2i), [u, v] on the half
-    spectrum v < n/2 + 1; xbuf holds w (f - mean). Separable, as dot products (reductions vectorise
-    without the runtime alias checks that short in-place loops over several arrays need)."""
-    hh = n // 2 + 1
-    # rows (real input -> half spectrum v < hh): T(i, v) = sum_j x(i, j) e^{-i 2 pi j v / N}, stored
-    # transposed [v, i] in the (not yet used) W grids: wr[v] / wr[n + v] = re / im of DFT(w),
-    # wi[v] / wi[n + v] = re / im of DFT(w (f - mean))
-    for i in range(n):
-        for v in range(hh):
-            s_wc = np.float32(0.0)
-            s_ws = np.float32(0.0)
-            s_xc = np.float32(0.0)
-            s_xs = np.float32(0.0)
-            for j in range(n):
-                a = wbuf[i, j]
-                bb = xbuf[i, j]
-                c = cos_t[v, j]
-                sn = sin_t[v, j]
-                s_wc += a * c
-                s_ws += a * sn
-                s_xc += bb * c
-                s_xs += bb * sn
-            wr[v, i] = s_wc
-            wr[n + v, i] = -s_ws
-            wi[v, i] = s_xc
-            wi[n + v, i] = -s_xs
-    # columns (complex): X(u, v) = sum_i T(i, v) e^{-i 2 pi u i / N} -> t1 (w) / t2 (w (f - mean)) [u, v]
-    for v in range(hh):
-        for u in range(n):
-            a1 = np.float32(0.0)
-            a2 = np.float32(0.0)
-            a3 = np.float32(0.0)
-            a4 = np.float32(0.0)
-            for i in range(n):
-                c = cos_t[u, i]
-                sn = sin_t[u, i]
-                q1r = wr[v, i]
-                q1i = wr[n + v, i]
-                q2r = wi[v, i]
-                q2i = wi[n + v, i]
-                a1 += q1r * c + q1i * sn
-                a2 += q1i * c - q1r * sn
-                a3 += q2r * c + q2i * sn
-                a4 += q2i * c - q2r * sn
-            t1r[u, v] = a1
-            t1i[u, v] = a2
-            t2r[u, v] = a3
-            t2i[u, v] = a4
+def _fft_pass(zb, off_r, off_i, n, tw_c, tw_s):
+    """One 1-D radix-2 decimation-in-frequency FFT (Gentleman-Sande, in place, output in bit-reversed
+    order) along the first index of the complex n x n block zb[off_r + p n + l] + i zb[off_i + p n + l],
+    batched over the n lanes l: every butterfly is a contiguous, vectorised loop over the lanes. One
+    flat buffer with compile-time offsets (n = 16) lets LLVM prove that the rows do not alias."""
+    half = n // 2
+    step = 1
+    while half >= 1:
+        for start in range(0, n, 2 * half):
+            for k in range(half):
+                p = (start + k) * n
+                q = p + half * n
+                c = tw_c[k * step]      # e^{-i 2 pi k step / n} = c - i s
+                s = tw_s[k * step]
+                for l in range(n):
+                    ar = zb[off_r + p + l]
+                    ai = zb[off_i + p + l]
+                    br = zb[off_r + q + l]
+                    bi = zb[off_i + q + l]
+                    zb[off_r + p + l] = ar + br
+                    zb[off_i + p + l] = ai + bi
+                    dr = ar - br
+                    di = ai - bi
+                    zb[off_r + q + l] = dr * c + di * s
+                    zb[off_i + q + l] = di * c - dr * s
+        half //= 2
+        step *= 2
+
+
+@njit(**_INL)
+def _pack_scale(cnt, s1, s2):
+    """(2^-e, 2^e) with 2^e ~ the std of the usable values (from ``_moments``; 1 when they are
+    constant): w (f - mean) 2^-e is of the magnitude of w, exactly (a power of two), so a k-fold
+    scaled input (k a power of two) gives the same packed FFT, and any k the same up to rounding."""
+    m1 = s1 / cnt
+    var = s2 / cnt - m1 * m1
+    e = 0
+    if var > 0.0:
+        e = math.frexp(math.sqrt(var))[1]
+    return np.float32(math.ldexp(1.0, -e)), np.float32(math.ldexp(1.0, e))
+
+
+@njit(**_INL)
+def _split_bin(zb, n, ia, ib, v, u, hx, prior2, wr, wi, rr, ri, en):
+    """One bin of the split of Z = DFT(w + i x) (zb[2n^2 + .] real, zb[3n^2 + .] imaginary, ia: k,
+    ib: -k): W = (Z(k) + conj Z(-k)) / 2 into its copies on the doubled periodic grid (rows v and, for
+    v < n/2 + 1, v + n; columns u and u + n); for v < n/2 + 1 also R = (Z(k) - conj Z(-k)) / 2i
+    (times 2 hx = the packing's inverse scale) and its selection energy |R|^2 prior^2."""
+    nn = n * n
+    ar = zb[2 * nn + ia]
+    ai = zb[3 * nn + ia]
+    br = zb[2 * nn + ib]
+    bi = zb[3 * nn + ib]
+    wre = np.float32(0.5) * (ar + br)
+    wim = np.float32(0.5) * (ai - bi)
+    wr[v, u] = wre
+    wi[v, u] = wim
+    wr[v, u + n] = wre
+    wi[v, u + n] = wim
+    if 2 * v <= n:
+        wr[v + n, u] = wre
+        wi[v + n, u] = wim
+        wr[v + n, u + n] = wre
+        wi[v + n, u + n] = wim
+        rre = hx * (ai + bi)
+        rim = hx * (br - ar)
+        rr[v, u] = rre
+        ri[v, u] = rim
+        en[v, u] = (rre * rre + rim * rim) * prior2[v, u]
+
+
+@njit(**_INL)
+def _forward_dft(n, tw_c, tw_s, bitrev, zb, xi, prior2, wr, wi, rr, ri, en, rm):
+    """Step 2, W = DFT(w) and R = DFT(w (f - mean)) from zb[0:n^2] = w and zb[n^2:2n^2] = w (f - mean) / xi
+    (row-major [i, j]; xi a power of two, see ``_pack_scale``) straight into the layout of the
+    iterations: R[v, u] (v = half-spectrum index, u full, contiguous) with its selection energies |R|^2 prior^2 and their per-row maxima; W on a
+    doubled periodic grid W[v', u'] so that W(j - k) and W(j + k) are contiguous slices without modulo
+    (rows >= n + n/2 + 1 are never read and not written). Both signals are real: one complex 2-D FFT
+    of z = w + i w (f - mean), split by conjugate symmetry, W(k) = (Z(k) + conj Z(-k)) / 2,
+    R(k) = (Z(k) - conj Z(-k)) / 2i. The FFT is batched radix-2 over the rows (lanes: the columns), a
+    transpose that also undoes the bit reversal of the row frequencies, then over the columns (lanes:
+    the row frequencies u, natural order). Issue 7 session 4 (docs/FSE.md): replaces the separable
+    dot-product DFT and the separate layout step."""
+    nn = n * n
+    hx = np.float32(0.5) * xi
+    _fft_pass(zb, 0, nn, n, tw_c, tw_s)              # along i: row p holds u = bitrev[p]
+    for p in range(n):
+        bp = bitrev[p]
+        for j in range(n):
+            zb[2 * nn + j * n + bp] = zb[p * n + j]
+            zb[3 * nn + j * n + bp] = zb[nn + p * n + j]
+    _fft_pass(zb, 2 * nn, 3 * nn, n, tw_c, tw_s)     # along j: Z(u, v) at [bitrev[v], u]
+    for v in range(n):
+        ra = bitrev[v] * n
+        rb = bitrev[(n - v) & (n - 1)] * n
+        _split_bin(zb, n, ra, rb, v, 0, hx, prior2, wr, wi, rr, ri, en)
+        for u in range(1, n):
+            _split_bin(zb, n, ra + u, rb + n - u, v, u, hx, prior2, wr, wi, rr, ri, en)
+    _row_maxima(n, en, rm)
 
 
 @njit(**_INL)
@@ -627,45 +678,6 @@ def _row_maxima(n, en, rm):
             m2 = max(m2, en[v, u + 2])
             m3 = max(m3, en[v, u + 3])
         rm[v] = max(max(m0, m1), max(m2, m3))
-
-
-@njit(**_INL)
-def _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm):
-    """The layout of the iterations: R[v, u] (v = half-spectrum index, u full, contiguous) with its
-    selection energies |R|^2 prior^2 and their per-row maxima; W on a doubled periodic grid W[v', u']
-    (v', u' in 0..2n, conjugate symmetry fills v > n/2) so that W(j - k) and W(j + k) are contiguous
-    slices without modulo."""
-    hh = n // 2 + 1
-    for u in range(n):
-        un = (n - u) % n
-        for v in range(hh):
-            a = t1r[u, v]
-            bq = t1i[u, v]
-            wr[v, u] = a
-            wi[v, u] = bq
-            wr[v, u + n] = a
-            wi[v, u + n] = bq
-            wr[v + n, u] = a
-            wi[v + n, u] = bq
-            wr[v + n, u + n] = a
-            wi[v + n, u + n] = bq
-            if 0 < v < n - v:
-                wr[n - v, un] = a
-                wi[n - v, un] = -bq
-                wr[n - v, un + n] = a
-                wi[n - v, un + n] = -bq
-                wr[2 * n - v, un] = a
-                wi[2 * n - v, un] = -bq
-                wr[2 * n - v, un + n] = a
-                wi[2 * n - v, un + n] = -bq
-    for v in range(hh):
-        for u in range(n):
-            a = t2r[u, v]
-            bq = t2i[u, v]
-            rr[v, u] = a
-            ri[v, u] = bq
-            en[v, u] = (a * a + bq * bq) * prior2[v, u]
-    _row_maxima(n, en, rm)
 
 
 @njit(**_INL)
@@ -775,14 +787,46 @@ def _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm, sel_
     return ns
 
 
+@njit(cache=True, nogil=True)
+def _bit_reversal(n):
+    """bitrev[i]: i with its log2(n) bits reversed (the output order of ``_fft_pass``)."""
+    bits = 0
+    while (1 << bits) < n:
+        bits += 1
+    br = np.zeros(n, np.int64)
+    for i in range(n):
+        for bb in range(bits):
+            br[i] |= ((i >> bb) & 1) << (bits - 1 - bb)
+    return br
+
+
+@njit(cache=True, nogil=True)
+def _phase_table(n, sizes, tw_c, tw_s):
+    """The synthesis phases of every block size: [lvl, 0 / 1, k, m] = cos / sin(2 pi k (o + m) / N),
+    o = (N - b) / 2 the block's offset in its window (the same table entries the per-block lookups
+    gave, so the synthesis is unchanged bit for bit)."""
+    nl = sizes.shape[0]
+    bmax = 1
+    for lv in range(nl):
+        bmax = max(bmax, sizes[lv])
+    ph = np.zeros((nl, 2, n, bmax), np.float32)
+    for lv in range(nl):
+        b = sizes[lv]
+        o = (n - b) // 2
+        for k in range(n):
+            for m in range(b):
+                t = (k * (o + m)) & (n - 1)
+                ph[lv, 0, k, m] = tw_c[t]
+                ph[lv, 1, k, m] = tw_s[t]
+    return ph
+
+
 @njit(**_INL)
-def _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, ph_buf):
+def _synthesize(b, lvl, ns, sel_u, sel_v, sel_r, sel_i, phs, xbuf):
     """Step 4, the model on the block only: g(m) - mean = sum Re(c e^{+i 2 pi k m / N}) into xbuf[:b, :b]
     (no inverse FFT). Separable phases: Re(c e^{i(a + b)}) = cos b (c_r cos a - c_i sin a) - sin b
-    (c_r sin a + c_i cos a), a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j) / N per column (rows 0
-    and 1 of ph_buf), vectorised over the block row."""
-    nmask = n - 1
-    o = (n - b) // 2
+    (c_r sin a + c_i cos a), a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j) / N per column, read
+    from the block size's phase table (``_phase_table``), vectorised over the block row."""
     for i in range(b):
         for j in range(b):
             xbuf[i, j] = 0.0
@@ -791,26 +835,39 @@ def _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, ph_buf):
         sq = sel_i[q]
         uq = sel_u[q]
         vq = sel_v[q]
-        for j in range(b):
-            ph = (vq * (o + j)) & nmask   # n is a power of two
-            ph_buf[0, j] = tw_c[ph]
-            ph_buf[1, j] = tw_s[ph]
         for i in range(b):
-            ph = (uq * (o + i)) & nmask
-            ca = tw_c[ph]
-            sa = tw_s[ph]
+            ca = phs[lvl, 0, uq, i]
+            sa = phs[lvl, 1, uq, i]
             pp = cq * ca - sq * sa
             qq = cq * sa + sq * ca
             for j in range(b):
-                xbuf[i, j] += pp * ph_buf[0, j] - qq * ph_buf[1, j]
+                xbuf[i, j] += pp * phs[lvl, 0, vq, j] - qq * phs[lvl, 1, vq, j]
 
 
 @njit(**_INL)
 def _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf, joint, mest):
     """Step 5, the block's missing pixels only: mean + model, clamped to [lo, hi] where bounded, become
     "reconstructed" (state 2, weight delta) for later blocks; known pixels stay bit-exact. `joint`: the
-    model at noisy measurements (state 3, which stay measurements for later blocks) goes to ``mest``."""
+    model at noisy measurements (state 3, which stay measurements for later blocks) goes to ``mest``.
+    A block inside the image is written branch-free (random masks make ``state`` unpredictable: the
+    branchy loop measured ~1.3 us per 8 x 8 block): every pixel is stored, a known or skipped one with
+    its own value and state (no other thread writes this block)."""
     h, w = img.shape
+    if not joint and by + b <= h and bx + b <= w:
+        for i in range(b):
+            y = by + i
+            for j in range(b):
+                x = bx + j
+                st = state[y, x]
+                val = np.float32(mean + xbuf[i, j])
+                if use_lo:
+                    val = max(val, lo[y, x])
+                if use_hi:
+                    val = min(val, hi[y, x])
+                miss = st == 0
+                img[y, x] = val if miss else img[y, x]
+                state[y, x] = np.uint8(2) if miss else st
+        return
     for i in range(b):
         y = by + i
         if y >= h:
@@ -846,9 +903,9 @@ def _make_block_kernel(n_fixed, joint=False):
 
     @njit(cache=True, nogil=True, fastmath=True)
     def block_kernel(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t_self, r_cur,
-                     by, bx, b, lvl, n, rho_tab, cos_t, sin_t, tw_c, tw_s, prior2,
+                     by, bx, b, lvl, n, rho_tab, bitrev, tw_c, tw_s, prior2, phs,
                      delta, gamma, iter_c, iter_min, iter_max, scale, local, pair_exact,
-                     wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i,
+                     wbuf, xbuf, zb, wr, wi, rr, ri, en, rm, sel_u, sel_v, sel_r, sel_i,
                      wp, mest):
         """Reconstruct the missing pixels of block (by, bx, b) in place (Seiler & Kaup, SPL 2010: weighted
         projection of the support area onto DFT basis functions, one chosen per iteration, residual
@@ -865,14 +922,20 @@ def _make_block_kernel(n_fixed, joint=False):
         mean = swf / sw     # weighted mean removed (ours: translation invariance, float32 conditioning)
         nit = _iteration_count(cnt, s1, s2, scale, local, iter_c, iter_min, iter_max)
         fm = np.float32(mean)
+        # w and w (f - mean) share one complex FFT (_forward_dft): the second is brought to the first's
+        # magnitude by a power of two 2^-e ~ 1 / std(f) (exact, undone in the split), so that the
+        # rounding of one does not swamp the other whatever the data scale (scale invariance)
+        xs, xi = _pack_scale(cnt, s1, s2)
+        nn = n * n
         for i in range(n):
             for j in range(n):
-                xbuf[i, j] = wbuf[i, j] * (xbuf[i, j] - fm)
-        _forward_dft(wbuf, xbuf, n, cos_t, sin_t, wr, wi, t1r, t1i, t2r, t2i)
-        _spectra_layout(n, t1r, t1i, t2r, t2i, prior2, wr, wi, rr, ri, en, rm)
+                wv = wbuf[i, j]
+                zb[i * n + j] = wv
+                zb[nn + i * n + j] = wv * (xbuf[i, j] - fm) * xs
+        _forward_dft(n, tw_c, tw_s, bitrev, zb, xi, prior2, wr, wi, rr, ri, en, rm)
         ns = _extrapolate(n, nit, gamma, pair_exact, prior2, wr, wi, rr, ri, en, rm,
                           sel_u, sel_v, sel_r, sel_i)
-        _synthesize(n, b, ns, sel_u, sel_v, sel_r, sel_i, tw_c, tw_s, xbuf, t1r)
+        _synthesize(b, lvl, ns, sel_u, sel_v, sel_r, sel_i, phs, xbuf)
         _write_block(img, state, lo, hi, use_lo, use_hi, by, bx, b, mean, xbuf, joint, mest)
         return True
 
@@ -881,6 +944,7 @@ def _make_block_kernel(n_fixed, joint=False):
 
 # the common 16 x 16 window (preview, fast, balanced) and any other window
 _block16 = _make_block_kernel(16)
+_block32 = _make_block_kernel(32)   # `best`, and `fast` / `balanced` below 40 % known
 _block = _make_block_kernel(0)
 # joint estimation with noisy measurements (state 3): separate specialisations, the plain ones unchanged
 _block16j = _make_block_kernel(16, True)
@@ -901,6 +965,43 @@ def _fetch_add(typingctx, counter, i):
     return sig, codegen
 
 
+@intrinsic
+def _prefetch(typingctx, arr, y, x):
+    """Hint the cache line of arr[y, x] into the cache (llvm.prefetch, read, high locality); y, x must
+    be inside the array."""
+    sig = types.void(arr, y, x)
+
+    def codegen(context, builder, signature, args):
+        aryty, yty, xty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        iy = context.cast(builder, args[1], yty, types.intp)
+        ix = context.cast(builder, args[2], xty, types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [iy, ix])
+        i32 = llvm_ir.IntType(32)
+        p8 = builder.bitcast(ptr, llvm_ir.IntType(8).as_pointer())
+        fnty = llvm_ir.FunctionType(llvm_ir.VoidType(), [p8.type, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [p8, i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _prefetch_window(img, state, ay, ax, n):
+    """Prefetch the n x n support area at (ay, ax) of img and state (first and last column of each row),
+    issued one tile ahead: the gather of a block otherwise waits for its rows (measured ~0.9 us of its
+    ~1.8 us per 8 x 8 block at 1080p, where the rounds sweep the whole frame)."""
+    h, w = img.shape
+    x0 = min(max(ax, 0), w - 1)
+    x1 = min(max(ax + n - 1, 0), w - 1)
+    for y in range(max(ay, 0), min(ay + n, h)):
+        _prefetch(img, y, x0)
+        _prefetch(img, y, x1)
+        _prefetch(state, y, x0)
+        _prefetch(state, y, x1)
+
+
 @njit(cache=True, nogil=True)
 def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r, r0, cntr, counter,
             round_tiles, leaf_ptr, leaf_y, leaf_x, leaf_l, sizes, n, rho_tab, cos_t, sin_t, tw_c, tw_s,
@@ -913,13 +1014,9 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     are compiled only when used); arrays: the joint kernels."""
     hh = n // 2 + 1
     nsel = iter_max + 2
-    hp = cos_t.shape[1]
     wbuf = np.zeros((n, n), np.float32)
     xbuf = np.zeros((n, n), np.float32)
-    t1r = np.zeros((n, hp), np.float32)
-    t1i = np.zeros((n, hp), np.float32)
-    t2r = np.zeros((n, hp), np.float32)
-    t2i = np.zeros((n, hp), np.float32)
+    zb = np.zeros(4 * n * n, np.float32)           # the forward FFT's work area (_forward_dft)
     wr = np.zeros((2 * n, 2 * n), np.float32)
     wi = np.zeros((2 * n, 2 * n), np.float32)
     rr = np.zeros((hh, n), np.float32)
@@ -931,37 +1028,50 @@ def _worker(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, r,
     sel_r = np.zeros(nsel, np.float32)
     sel_i = np.zeros(nsel, np.float32)
     dummy = np.zeros((1, 1), np.float32)
+    bitrev = _bit_reversal(n)
+    phs = _phase_table(n, sizes, tw_c, tw_s)
     while True:
         q = _fetch_add(counter, r)
         if q >= cntr:
             return
         t = round_tiles[r0 + q]
+        # the support areas of the next two tiles of the round (the likely next one of this thread)
+        for qq in range(q + 1, min(q + 3, cntr)):
+            l2 = leaf_ptr[round_tiles[r0 + qq]]
+            o2 = (n - sizes[leaf_l[l2]]) // 2
+            _prefetch_window(img, state, leaf_y[l2] - o2, leaf_x[l2] - o2, n)
         for li in range(leaf_ptr[t], leaf_ptr[t + 1]):
             lv = leaf_l[li]
             if wp is not None:
                 if n == 16:     # the common window: the kernel specialised for n = 16
                     _block16j(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                                leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
-                               tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                               local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                                leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, tw_c,
+                               tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
+                               local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                                sel_u, sel_v, sel_r, sel_i, wp, mest)
                 else:
                     _blockj(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
-                            tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                            local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                            leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, tw_c,
+                            tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
+                            local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                             sel_u, sel_v, sel_r, sel_i, wp, mest)
             elif n == 16:     # the common window: the kernel specialised for n = 16
                 _block16(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                         leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, cos_t, sin_t, tw_c,
-                         tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                         local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                         leaf_y[li], leaf_x[li], sizes[lv], lv, 16, rho_tab, bitrev, tw_c,
+                         tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
+                         local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
+                         sel_u, sel_v, sel_r, sel_i, dummy, dummy)
+            elif n == 32:
+                _block32(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
+                         leaf_y[li], leaf_x[li], sizes[lv], lv, 32, rho_tab, bitrev, tw_c,
+                         tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
+                         local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                          sel_u, sel_v, sel_r, sel_i, dummy, dummy)
             else:
                 _block(img, state, lo, hi, use_lo, use_hi, tile_round, tshift, tw_tiles, t, r,
-                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, cos_t, sin_t, tw_c,
-                       tw_s, prior2, delta, gamma, iter_c, iter_min, iter_max, scale,
-                       local, pair_exact, wbuf, xbuf, t1r, t1i, t2r, t2i, wr, wi, rr, ri, en, rm,
+                       leaf_y[li], leaf_x[li], sizes[lv], lv, n, rho_tab, bitrev, tw_c,
+                       tw_s, prior2, phs, delta, gamma, iter_c, iter_min, iter_max, scale,
+                       local, pair_exact, wbuf, xbuf, zb, wr, wi, rr, ri, en, rm,
                        sel_u, sel_v, sel_r, sel_i, dummy, dummy)
 
 
@@ -1545,29 +1655,8 @@ def _bounds(lower, upper, shape, use):
     return lo_arr, hi_arr, use_lo, use_hi
 
 
-NEAREST_RING_MAX = 4096     # left pixels up to which `_nearest_fill` searches rings (else one EDT)
-
-
-def _nearest_fill(work, left, src=None):
-    """Pixels `left` get the value of the nearest `src` pixel (default: every pixel not left), Euclidean.
-    Few left pixels (the usual case: a handful of blocks whose support held no usable pixel): a ring
-    search around each (`_ring_nearest`, cost grows with the pixels left, not the frame: issue 7, a
-    whole-frame distance transform cost ~50 ms per 1080p frame for 128 pixels); many: scipy's exact
-    Euclidean distance transform. Equidistant sources may resolve differently between the two."""
-    src = ~left if src is None else src
-    ys, xs = np.nonzero(left)
-    if ys.size == 0:
-        return
-    if not src.any():
-        work[left] = 0.0
-        return
-    if ys.size <= NEAREST_RING_MAX:
-        _ring_nearest(work, np.ascontiguousarray(src).view(np.uint8), _BOOL_SRC, ys, xs)
-        return
-    from scipy import ndimage
-    idx = ndimage.distance_transform_edt(~src, return_distances=False, return_indices=True)
-    work[left] = work[idx[0][left], idx[1][left]]
-
+NEAREST_RING_MAX = 4096     # left pixels up to which the fallback searches rings around each
+RING_RADIUS_MAX = 64        # ring radius searched; pixels with no source that near take the cropped transform
 
 # sources by FSE state: known (1), reconstructed (2), noisy measurement (3); not missing (0) nor skipped (4)
 _STATE_SRC = np.zeros(256, np.bool_)
@@ -1575,21 +1664,61 @@ _STATE_SRC[[1, 2, 3]] = True
 _BOOL_SRC = np.array([False, True] + [True] * 254, np.bool_)
 
 
+def _nearest_fill(work, left, src=None):
+    """Pixels `left` get the value of the nearest `src` pixel (default: every pixel not left), Euclidean
+    (issue 7: a whole-frame distance transform cost 50-90 ms per 1080p frame for a few hundred pixels):
+    up to NEAREST_RING_MAX pixels a ring search around each (`_ring_nearest`, cost grows with the
+    pixels left and their distance to a source, not with the frame), the rest (many pixels, or no
+    source within RING_RADIUS_MAX) the distance transform of a crop around them (`_crop_nearest`).
+    Equidistant sources may resolve differently between the two."""
+    src = ~left if src is None else src
+    ys, xs = np.nonzero(left)
+    _fill_at(work, np.ascontiguousarray(src).view(np.uint8), _BOOL_SRC, ys, xs)
+
+
 def _fill_left(work, state):
     """The pixels no block could fill (state 0) get the value of the nearest known, reconstructed or
     noisy-measurement pixel (`_nearest_fill`'s rule) and state 2; returns their coordinates. One numba
     scan finds them (no frame-sized numpy temporaries for a handful of pixels)."""
-    ys, xs, nsrc = _left_coords(state, _STATE_SRC)
-    if ys.size == 0:
-        return ys, xs
-    if nsrc == 0:
-        work[ys, xs] = 0.0
-    elif ys.size <= NEAREST_RING_MAX:
-        _ring_nearest(work, state, _STATE_SRC, ys, xs)
-    else:
-        _nearest_fill(work, state == 0, _STATE_SRC[state])
+    ys, xs, _ = _left_coords(state, _STATE_SRC)
+    _fill_at(work, state, _STATE_SRC, ys, xs)
     state[ys, xs] = 2
     return ys, xs
+
+
+def _fill_at(work, src, is_src, ys, xs):
+    """`_nearest_fill` of the pixels (ys, xs), sources where ``is_src[src]``; none anywhere: 0."""
+    if ys.size == 0:
+        return
+    todo = np.ones(ys.size, np.bool_)
+    if ys.size <= NEAREST_RING_MAX:
+        todo = _ring_nearest(work, src, is_src, ys, xs, RING_RADIUS_MAX)
+    if todo.any():
+        _crop_nearest(work, src, is_src, ys[todo], xs[todo])
+
+
+def _crop_nearest(work, src, is_src, ys, xs):
+    """The distance transform of a crop reaching `m` pixels beyond the bounding box of (ys, xs) (helper
+    fse2): a source outside it is more than `m` away from every one of them, so the result is exact once
+    each found a source within `m` (else `m` grows, up to the whole frame)."""
+    from scipy import ndimage
+    h, w = work.shape
+    y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    m = 16
+    while True:
+        cy0, cy1, cx0, cx1 = max(0, y0 - m), min(h, y1 + m), max(0, x0 - m), min(w, x1 + m)
+        whole = (cy0, cy1, cx0, cx1) == (0, h, 0, w)
+        sub = is_src[src[cy0:cy1, cx0:cx1]]
+        if sub.any():
+            d, idx = ndimage.distance_transform_edt(~sub, return_distances=True, return_indices=True)
+            ly, lx = ys - cy0, xs - cx0
+            if whole or float(d[ly, lx].max()) <= m:
+                work[ys, xs] = work[idx[0][ly, lx] + cy0, idx[1][ly, lx] + cx0]
+                return
+        elif whole:      # no source at all
+            work[ys, xs] = 0.0
+            return
+        m *= 4
 
 
 @njit(cache=True, nogil=True)
@@ -1616,20 +1745,22 @@ def _left_coords(state, is_src):
 
 
 @njit(cache=True, nogil=True)
-def _ring_nearest(work, src, is_src, ys, xs):
+def _ring_nearest(work, src, is_src, ys, xs, rcap):
     """For each (ys[i], xs[i]): the value of the Euclidean-nearest source pixel (``is_src[src[y, x]]``),
     searched in square rings of growing Chebyshev radius r until r^2 exceeds the best squared distance
-    found (a pixel of ring r is at least r away). Values are read first, then written (a filled pixel is
-    never a source). There must be a source (else each search scans the whole frame)."""
+    found (a pixel of ring r is at least r away), r <= rcap. Values are read first, then written (a
+    filled pixel is never a source). Returns which pixels are left to do (no source proven nearest
+    within rcap; their value is not written)."""
     h, w = src.shape
     vals = np.empty(ys.size, np.float32)
+    todo = np.zeros(ys.size, np.bool_)
     for i in range(ys.size):
         y0 = ys[i]
         x0 = xs[i]
         best = -1
         bv = np.float32(0.0)
         r = 1
-        rmax = max(h, w)
+        rmax = min(max(h, w), rcap)
         while r <= rmax and (best < 0 or r * r <= best):
             for dy in range(-r, r + 1):
                 y = y0 + dy
@@ -1646,8 +1777,12 @@ def _ring_nearest(work, src, is_src, ys, xs):
                         bv = work[y, x]
             r += 1
         vals[i] = bv
+        # not done: no source within the cap, or one beyond a ring not yet searched
+        todo[i] = (best < 0 or r * r <= best) and r <= max(h, w)
     for i in range(ys.size):
-        work[ys[i], xs[i]] = vals[i]
+        if not todo[i]:
+            work[ys[i], xs[i]] = vals[i]
+    return todo
 
 
 def _fill_without_data(out, miss, lower, upper):

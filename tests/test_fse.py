@@ -200,21 +200,22 @@ def _numpy_fse_block(img, known, by, bx, b, n, rho, gamma, nit):
 
 def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
     p = fse.resolve_params("balanced", window=n, max_block=b, min_block=b, rho={b: rho}, gamma=gamma)
-    cos_t, sin_t, tw_c, tw_s, _bitrev, prior2, rho_tab, _split, _sizes = fse._make_tables(p)
+    _cos, _sin, tw_c, tw_s, bitrev, prior2, rho_tab, _split, _sizes = fse._make_tables(p)
     img = img.copy()
     state = state.copy()
     tshift = int(np.log2(b))
     tw_tiles = -(-img.shape[1] // b)
     tile_round = np.zeros(-(-img.shape[0] // b) * tw_tiles, np.int64)
     hh, f32 = n // 2 + 1, np.float32
-    scratch = ([np.zeros((n, n), f32) for _ in range(2)] + [np.zeros((n, n), f32) for _ in range(4)]
+    scratch = ([np.zeros((n, n), f32) for _ in range(2)] + [np.zeros(4 * n * n, f32)]
                + [np.zeros((2 * n, 2 * n), f32) for _ in range(2)] + [np.zeros((hh, n), f32) for _ in range(3)]
                + [np.zeros(hh, f32), np.zeros(nit + 2, np.int64), np.zeros(nit + 2, np.int64),
                   np.zeros(nit + 2, f32), np.zeros(nit + 2, f32)])
     dummy = np.zeros((1, 1), f32)
     ok = kernel(img, state, dummy, dummy, False, False, tile_round, tshift, tw_tiles,
-                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, cos_t, sin_t,
-                tw_c, tw_s, prior2, 0.5, gamma, 0.0, nit, nit, 1.0, False, False, *scratch, dummy, dummy)
+                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, bitrev,
+                tw_c, tw_s, prior2, fse._phase_table(n, _sizes, tw_c, tw_s), 0.5, gamma, 0.0, nit, nit, 1.0,
+                False, False, *scratch, dummy, dummy)
     assert ok
     return img, state
 
@@ -222,7 +223,7 @@ def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
 @pytest.mark.parametrize("n, b", [(16, 8), (16, 4), (32, 8), (8, 4)])
 def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b):
     """The block kernel (one source, issue 13) against an independent numpy FSE of the same block; for
-    n = 16 the specialised kernel (compile-time n) gives the generic kernel's result to float rounding."""
+    n = 16 and 32 the specialised kernel (compile-time n) gives the generic kernel's result to float rounding."""
     rng = np.random.default_rng(n + b)
     img = (sinusoids(48, 48) + rng.normal(0, 3, (48, 48))).astype(np.float32)
     known = rng.random(img.shape) < 0.5
@@ -240,8 +241,9 @@ def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b)
     outside = np.ones(img.shape, bool)
     outside[blk] = False
     np.testing.assert_array_equal(out[outside], work[outside])            # nothing outside the block
-    if n == 16:
-        out16, st16 = _run_block_kernel(fse._block16, work, state, by, bx, b, n, rho, gamma, nit)
+    if n in (16, 32):
+        spec = fse._block16 if n == 16 else fse._block32
+        out16, st16 = _run_block_kernel(spec, work, state, by, bx, b, n, rho, gamma, nit)
         np.testing.assert_array_equal(st16, st)
         np.testing.assert_allclose(out16, out, rtol=1e-6, atol=1e-5)
 
@@ -397,3 +399,38 @@ def test_noisy_skip_fused_result_matches_numpy():
     assert np.array_equal(reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), fusion="fast"),
                           reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), fusion="fast",
                                       noisy_skip=False))
+
+
+# ---- issue 7 session 4 (helper fse2): the fallback fill of blocks without data, cropped -------------
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nearest_fill_crop_gives_a_nearest_source(seed):
+    """`_nearest_fill` (ring search around each left pixel; a crop's distance transform where no source is
+    within RING_RADIUS_MAX, seed 2): every left pixel gets the value of a source pixel at the minimal
+    Euclidean distance (the whole-frame distance transform)."""
+    from scipy import ndimage
+    rng = np.random.default_rng(seed)
+    h, w = 120, 200
+    src = rng.random((h, w)) < (0.02 if seed else 0.5)
+    left = np.zeros((h, w), bool)
+    left[40:70, 90:150] = rng.random((30, 60)) < 0.7     # a hole region, sources far away for seed > 0
+    src &= ~left
+    if seed == 2:
+        src[:] = False
+        src[0, 0] = True                                  # one source in a corner: the crop must grow
+    work = np.arange(h * w, dtype=np.float64).reshape(h, w).astype(np.float32)   # value = source id
+    ref = work.copy()
+    fse._nearest_fill(work, left, src)
+    dist = ndimage.distance_transform_edt(~src)
+    ys, xs = np.nonzero(left)
+    sid = work[ys, xs].astype(np.int64)
+    sy, sx = sid // w, sid % w
+    assert np.all(src[sy, sx])                                                    # sources only
+    np.testing.assert_allclose(np.hypot(sy - ys, sx - xs), dist[ys, xs], rtol=0, atol=1e-9)  # nearest
+    np.testing.assert_array_equal(work[~left], ref[~left])                        # nothing else touched
+    # the driver's form: left = state 0, sources = state 1 or 2 (skipped pixels, state 4, are not)
+    state = np.where(left, 0, np.where(src, 1, 4)).astype(np.uint8)
+    work2 = ref.copy()
+    ys2, xs2 = fse._fill_left(work2, state)
+    np.testing.assert_array_equal(ys2, ys)
+    np.testing.assert_array_equal(xs2, xs)
+    np.testing.assert_array_equal(work2, work)
