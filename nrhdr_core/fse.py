@@ -1981,5 +1981,7 @@ def warmup() -> None:
     _fse(v, k, None, None, "preview", False, {}, skip=~k & (rng.random((24, 24)) < 0.5))
     # the fallback for pixels no block could fill (ring search)
     _nearest_fill(v.copy(), ~k, k)
-    _fill_left(v.copy(), np.where(k, 1, 0).astype(np.uint8))
+    ys, xs = _fill_left(v.copy(), np.where(k, 1, 0).astype(np.uint8))
+    for with_c, logd in ((True, True), (False, True), (False, False)):
+        _finish_at(v.copy(), v, ys, xs, np.float32(1.0), with_c, logd)
     # (the joint estimation with `weights=` is opt-in: its kernels compile on first use, not here)
