@@ -413,7 +413,7 @@ def _hdr_cases(rng):
     yield v, k, lo, hi                                   # the sensor case: clipped + dark pixels, bounds
     yield v, k, None, None                               # no bounds
     yield v, k, np.full_like(lo, np.nan), hi             # lower all NaN (not used), upper used
-    kr = rng.random(v.shape) < 0.3                       # sparse known (sparse_below: 32 x 32 window)
+    kr = rng.random(v.shape) < 0.25                      # sparse known (sparse_below: 32 x 32 window)
     yield flux.astype(np.float32), kr, None, None
     yield (v * np.float32(1e-3)).astype(np.float32), k, lo * np.float32(1e-3), hi * np.float32(1e-3)  # scale
 
