@@ -62,6 +62,8 @@ def main(argv=None) -> int:
     ap.add_argument("--live-seconds", type=float, default=5.0, help="length of each live run")
     ap.add_argument("--fps", type=int, default=30, help="frame rate of the live runs")
     ap.add_argument("--skip-stages", action="store_true", help="only the pipelines")
+    ap.add_argument("--no-launch", action="store_true",
+                    help="skip the gst-launch-1.0 runs of each pipeline (the last column)")
     ap.add_argument("--scene", default="synthetic",
                     help="HDR scene file for the clips (default: the synthesised scene)")
     a = ap.parse_args(argv)
@@ -158,8 +160,8 @@ def main(argv=None) -> int:
         clip_dir, prof_path, xt = tmp / "clip", tmp / "clip" / "camera.json", "nrcrosstalk (pass-through)"
     print(f"\n## whole pipelines, {a.frames} frames {W}x{H}, wall time (anchor: filesrc ! rawvideoparse ! "
           f"fakesink; {xt})\n")
-    print("| pipeline | s | frames/s | frames/s after start-up |")
-    print("|---|---|---|---|")
+    print("| pipeline | s | frames/s | frames/s after start-up | gst-launch-1.0, frames/s after start-up |")
+    print("|---|---|---|---|---|")
     src = (f"filesrc location={clip_dir / 'clip.raw'} ! rawvideoparse format=gray16-le width={W} "
            f"height={H} framerate=30/1 plane-strides=<{2 * W}>")
     chain = f"nrvalidity profile={prof_path} ! nrcrosstalk profile={prof_path} mode=lut"
@@ -188,10 +190,37 @@ def main(argv=None) -> int:
         rc = runtime.run_pipeline(d, on_message=on_message)
         dt = time.perf_counter() - t
         warm = f"{(len(times) - 1) / (times[-1] - times[0]):.1f}" if len(times) > 2 else "-"
-        print(f"| {name} | {dt:.2f} | {a.frames / dt:.1f} | {warm} |" + ("" if rc == 0 else " (FAILED)"))
+        gl = launch_rate(d, a.frames) if not a.no_launch else float("nan")
+        print(f"| {name} | {dt:.2f} | {a.frames / dt:.1f} | {warm} | {gl:.1f} |" + ("" if rc == 0 else " (FAILED)"))
     if a.live:
         live_runs(a, clip_dir, prof_path, chain)
     return 0
+
+
+def launch_rate(desc: str, frames: int, skip: int = 2) -> float:
+    """Frames/s of `desc` run by gst-launch-1.0 (as `nrhdr launch` and pipelines/*.sh run it) after
+    start-up: from the timestamps of nrreconstruct's per-frame log lines (GST_DEBUG=nrreconstruct:6), the
+    first `skip` frames left out. NaN for a pipeline without nrreconstruct. The in-process column runs
+    the same pipeline under this Python process's own main loop; the two differ by more than the run-to-run
+    noise at 1080p (docs/BENCHMARKS.md, session 4)."""
+    import shlex
+    import subprocess
+
+    from gst_plugins import runtime
+    if "nrreconstruct" not in desc:
+        return float("nan")
+    env = dict(runtime.gst_env(), GST_DEBUG="nrreconstruct:6", GST_DEBUG_NO_COLOR="1")
+    r = subprocess.run(["gst-launch-1.0", "-q"] + shlex.split(desc.replace(" post-stats=true", "")), env=env,
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        return float("nan")
+    ts = []
+    for line in r.stderr.splitlines():
+        if "nrreconstruct" in line and " frame " in line and "do_transform_ip" in line:
+            h, m, sec = line.split()[0].split(":")
+            ts.append(int(h) * 3600 + int(m) * 60 + float(sec))
+    ts = ts[skip:]
+    return (len(ts) - 1) / (ts[-1] - ts[0]) if len(ts) > 2 and ts[-1] > ts[0] else float("nan")
 
 
 def live_runs(a, clip_dir, prof_path, chain) -> None:
