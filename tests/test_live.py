@@ -249,7 +249,7 @@ def test_camsrc_scene_mode_and_errors(gst, tmp_path):
 
 
 def _slow_live(gst, prof_path, qos=True, frames=100, leaky=False):
-    """Live 50 fps camera into fse best (160x128 frames): slower than the 20 ms period."""
+    """Live 50 fps camera into fse best (320x256 frames): slower than the 20 ms period."""
     q = "" if qos else " qos=false"
     queue = "queue leaky=downstream max-size-buffers=1" if leaky else "queue max-size-buffers=1000"
     return (f"nrcamsrc name=s scene=synthetic profile={prof_path} frames=3 fps=50 num-buffers={frames} ! "
@@ -262,9 +262,9 @@ def _slow_live(gst, prof_path, qos=True, frames=100, leaky=False):
 def prof_live(tmp_path_factory):
     from nrhdr_core import profile
     path = tmp_path_factory.mktemp("prof") / "cam.json"
-    # 160 x 128: fse best must take longer than the 20 ms frame period (80 x 64 no longer did after the
-    # session-3 FSE speed-ups, and these tests skipped)
-    profile.save(profile.default(128, 160, seed=4), path)
+    # 320 x 256: fse best must take longer than the 20 ms frame period (80 x 64 no longer did after the
+    # session-3 FSE speed-ups, 160 x 128 after session 4's, and these tests skipped)
+    profile.save(profile.default(256, 320, seed=4), path)
     return path
 
 
@@ -286,7 +286,7 @@ def test_live_pipeline_slower_than_frame_period_skips_late_frames_and_reports_la
     st = _stats(msgs)
     med = _median(s.get_value("seconds") for s in st)
     if med <= 0.020:
-        pytest.skip("fse best at 160x128 is faster than the 20 ms frame period on this machine")
+        pytest.skip("fse best at 320x256 is faster than the 20 ms frame period on this machine")
     assert live
     assert lo >= med * SEC                                  # latency covers the processing time
     assert st[-1].get_value("latency") >= med               # nrreconstruct's own share, in its stats
@@ -309,7 +309,7 @@ def test_live_pipeline_with_a_leaky_queue_renders_on_time(gst, prof_live):
     assert err is None
     st = _stats(msgs)
     if _median(s.get_value("seconds") for s in st) <= 0.020:
-        pytest.skip("fse best at 160x128 is faster than the 20 ms frame period on this machine")
+        pytest.skip("fse best at 320x256 is faster than the 20 ms frame period on this machine")
     assert st[-1].get_value("skipped") > 0                  # the leaky queue dropped what the chain could not take
     assert rendered >= len(st) // 2                         # (the first frames may precede the latency update)
 
@@ -334,8 +334,8 @@ def test_qos_default_on_and_fixed_processing_latency(gst, prof_live):
         el = gst.ElementFactory.make(name, None)
         assert el.get_property("qos") is True, name
         assert el.get_property("processing-latency") == -1.0
-    p = gst.parse_launch("videotestsrc is-live=true num-buffers=2 ! video/x-raw,format=GRAY16_LE,width=160,"
-                         f"height=128,framerate=10/1 ! nrvalidity name=v profile={prof_live} ! fakesink name=k")
+    p = gst.parse_launch("videotestsrc is-live=true num-buffers=2 ! video/x-raw,format=GRAY16_LE,width=320,"
+                         f"height=256,framerate=10/1 ! nrvalidity name=v profile={prof_live} ! fakesink name=k")
     p.get_by_name("v").set_property("processing-latency", 250.0)
     p.set_state(gst.State.PLAYING)
     p.get_bus().timed_pop_filtered(10 * SEC, gst.MessageType.EOS | gst.MessageType.ERROR)
