@@ -1190,7 +1190,8 @@ def _lo_dark(v, k, step, lo10, buf):
 @njit(cache=True, nogil=True, inline="always")
 def _key(i):
     """Order-preserving int32 key of float32 bits (an involution; integer min/max vectorise where float
-    ones do not, and branches on a random mask mispredict): same order as the floats."""
+    ones do not, and branches on a random mask mispredict): same order as the floats (-0 below +0). Also
+    `reconstruction`'s `_f32_key`."""
     return i ^ ((i >> 31) & 0x7FFFFFFF)
 
 

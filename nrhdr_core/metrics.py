@@ -148,7 +148,7 @@ REGIONS = ("all", "dark", "mid", "bright")
 
 
 def clip_report(pairs, dark_level: float, bright_level: float, white: float) -> dict:
-    """`hdr_report` over the frames of a clip, as `benchmarks/hdr_quality.py` scores the chain (issue 8):
+    """`hdr_report` over the frames of a clip (issue 8; `nrhdr compare` and `benchmarks/hdr_quality.py`):
     `pairs` yields (truth, test) linear frames; both are capped at `white` (the ND camera's clip-equivalent
     white, so an unmodified camera's clipped highlights count against it), the log2 peak is log2(white);
     per region the mean over frames of log2 PSNR and PU21-PSNR, and the summed pixel counts and pixels

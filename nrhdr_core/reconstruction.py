@@ -19,6 +19,8 @@ import warnings
 import numpy as np
 from numba import get_num_threads, njit, prange
 
+from .fse import _key as _f32_key  # order-preserving int32 keys of float32 bits (min/max that vectorise)
+from .fse import _unkey
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
 
 METHODS = ("fse", "linear", "nearest", "preview")
@@ -404,8 +406,8 @@ def _clamp_kernel(out, v, k, lower, use_lower):
         lo = min(lo, r_lo[y])
         hi = max(hi, r_hi[y])
     # back to float32 (`_f32_key` is an involution); no known pixel: +inf / -inf as the reference
-    flo = np.float32(np.inf) if lo == kmax else _key_f32(lo)
-    fhi = np.float32(-np.inf) if hi == kmin else _key_f32(hi)
+    flo = np.float32(np.inf) if lo == kmax else np.float32(_unkey(lo))
+    fhi = np.float32(-np.inf) if hi == kmin else np.float32(_unkey(hi))
     flo = min(flo, np.float32(0.0))
     nbad = 0
     for y in prange(h):
@@ -424,12 +426,6 @@ def _clamp_kernel(out, v, k, lower, use_lower):
             nb += np.int64(miss & (not fin))
         nbad += nb
     return nbad
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _key_f32(key):
-    """float32 of an `_f32_key` key."""
-    return np.array([key ^ ((key >> 31) & 0x7FFFFFFF)], np.int32).view(np.float32)[0]
 
 
 @njit(cache=True, nogil=True)
@@ -1049,8 +1045,15 @@ def _preview(vals, k, out=None):
     pv, pw, hs, ws, off, zv, kf = _pyramid(h, w)
     levels = hs.shape[0] - 1
     _pp_pull0(vals, k, zv, kf, pv, pw, off[1], hs[1], ws[1])
-    # big levels in parallel regions, the small ones (< _PP_SERIAL pixels) in one serial call: a parallel
-    # region per tiny level costs more than its work, and much more when the cores are busy
+    _pp_levels(pv, pw, hs, ws, off, levels)
+    _pp_fill(zv, kf, pv, off[1], ws[1], out)
+    return out
+
+
+def _pp_levels(pv, pw, hs, ws, off, levels):
+    """Pull levels 1 -> `levels`, then push back to level 1 (level 1 already pulled from the frame): big
+    levels in parallel regions, the small ones (< _PP_SERIAL pixels) in one serial call (a parallel
+    region per tiny level costs more than its work, and much more when the cores are busy)."""
     small = 1
     while small < levels and hs[small] * ws[small] >= _PP_SERIAL:
         small += 1
@@ -1059,8 +1062,6 @@ def _preview(vals, k, out=None):
     _pp_small_levels(pv, pw, hs, ws, off, small, levels)
     for lv in range(small - 1, 0, -1):
         _pp_push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
-    _pp_fill(zv, kf, pv, off[1], ws[1], out)
-    return out
 
 
 _PP_SERIAL = 1 << 16
@@ -1210,13 +1211,6 @@ def _pvf_scratch(h, w):
         s = _FRAME.pv = (np.empty((h, w), np.bool_), np.empty((h, w), np.bool_), np.empty((h, w), np.float32),
                          np.empty((h, w), np.float32), np.empty((h1, 4), np.int64), np.empty((h1, 2), np.int32))
     return s
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _f32_key(i):
-    """Order-preserving int32 key of float32 bits (an involution): integer min/max vectorise where
-    float ones do not; same order as the floats (-0 sorts below +0)."""
-    return i ^ ((i >> 31) & 0x7FFFFFFF)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -1445,16 +1439,9 @@ def _preview_frame(values, state, method, use_bounds, noise, fusion="auto"):
         method, preset = method(n_miss / float(h * w))
         if method != "preview":
             return method, preset
-    small = 1
-    while small < levels and hs[small] * ws[small] >= _PP_SERIAL:
-        small += 1
-    for lv in range(1, small):
-        _pp_pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
-    _pp_small_levels(pv, pw, hs, ws, off, small, levels)
-    for lv in range(small - 1, 0, -1):
-        _pp_push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+    _pp_levels(pv, pw, hs, ws, off, levels)
     keys = np.array([rng[:, 0].min(), rng[:, 1].max()], np.int32)
-    lo, hi = (keys ^ ((keys >> 31) & 0x7FFFFFFF)).view(np.float32)
+    lo, hi = (keys ^ ((keys >> 31) & 0x7FFFFFFF)).view(np.float32)     # `_f32_key` undone
     lo = np.float32(min(lo, np.float32(0.0)))
     fuse = noise is not None and n_noisy > 0
     flag = np.uint8(validity.RECONSTRUCTED)
