@@ -1682,7 +1682,7 @@ def _fill_left(work, state):
     """The pixels no block could fill (state 0) get the value of the nearest known, reconstructed or
     noisy-measurement pixel (`_nearest_fill`'s rule) and state 2; returns their coordinates. One numba
     scan finds them (no frame-sized numpy temporaries for a handful of pixels)."""
-    ys, xs, _ = _left_coords(state, _STATE_SRC)
+    ys, xs = _left_coords(state)
     _fill_at(work, state, _STATE_SRC, ys, xs)
     state[ys, xs] = 2
     return ys, xs
@@ -1724,16 +1724,13 @@ def _crop_nearest(work, src, is_src, ys, xs):
 
 
 @njit(cache=True, nogil=True)
-def _left_coords(state, is_src):
-    """(ys, xs) of the state-0 pixels, and whether any pixel is a source (`is_src[state]`)."""
+def _left_coords(state):
+    """(ys, xs) of the state-0 pixels, in row-major order (as np.nonzero)."""
     h, w = state.shape
     n = 0
-    nsrc = 0
     for y in range(h):
         for x in range(w):
-            s = state[y, x]
-            n += 1 if s == 0 else 0
-            nsrc |= 1 if is_src[s] else 0
+            n += 1 if state[y, x] == 0 else 0
     ys = np.empty(n, np.int64)
     xs = np.empty(n, np.int64)
     i = 0
@@ -1743,7 +1740,7 @@ def _left_coords(state, is_src):
                 ys[i] = y
                 xs[i] = x
                 i += 1
-    return ys, xs, nsrc
+    return ys, xs
 
 
 @njit(cache=True, nogil=True)
