@@ -11,7 +11,6 @@ Nothing is compiled at import time; kernels compile on first call (``cache=True`
 from __future__ import annotations
 
 import math
-import threading
 import warnings
 
 import numpy as np
@@ -19,6 +18,7 @@ from numba import njit, prange, get_num_threads, set_num_threads
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 from llvmlite import ir as llvm_ir
+from .scratch import ThreadScratch  # scratch per OS thread (issue 7)
 
 __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]
 
@@ -1492,7 +1492,7 @@ def _mark_skip(state, skip):
                 state[y, x] = SKIP
 
 
-_SCRATCH = threading.local()
+_SCRATCH = ThreadScratch()
 
 
 def _scratch(h, w):

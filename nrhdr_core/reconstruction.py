@@ -13,13 +13,13 @@ too-dark pixel at most `upper`), and cost nothing when no pixel is missing.
 from __future__ import annotations
 
 import os
-import threading
 import warnings
 
 import numpy as np
 from numba import get_num_threads, njit, prange
 
 from .fse import _key as _f32_key  # order-preserving int32 keys of float32 bits (min/max that vectorise)
+from .scratch import ThreadScratch  # scratch per OS thread (issue 7)
 from .fse import _unkey
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
 
@@ -141,7 +141,7 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     return _apply_bounds(out, miss, lower, upper)
 
 
-_MEAS = threading.local()
+_MEAS = ThreadScratch()
 
 
 def _meas_copy(v):
@@ -602,7 +602,7 @@ def _nearest(out, k, dst=None):
     return dst
 
 
-_NN = threading.local()
+_NN = ThreadScratch()
 
 
 def _nn_scratch(h, w):
@@ -857,7 +857,7 @@ def _preview_reference(out, k):
 # allocated once per frame shape and thread. With 0/1 input weights every level's capped weight is 0 or 1,
 # so a push only fills empty cells with their parent's value.
 
-_PYR = threading.local()
+_PYR = ThreadScratch()
 
 
 def _pyramid(h: int, w: int):
@@ -1125,7 +1125,7 @@ def warmup(method: str | None = None) -> None:
 
 # ---- whole-frame entry point for elements (issue 7 item 3): no per-frame allocation --------------------
 
-_FRAME = threading.local()
+_FRAME = ThreadScratch()
 
 
 def _frame_scratch(h, w, with_bounds):
