@@ -565,7 +565,8 @@ touch "{tmp_path}/after"
             if _alive(k):
                 os.kill(k, signal.SIGKILL)
     assert p.returncode == status, out
-    assert "Got EOS" in out and "terminating it" not in out     # one clean EOS, no escalation
+    # one clean EOS, no escalation (the whole output in the message: seen to fail once in 40+ CI runs)
+    assert "Got EOS" in out and "terminating it" not in out, out
     assert not any(_alive(k) for k in procs)
     assert not (tmp_path / "after").exists()
     _check_recording(tmp_path, prof)
