@@ -206,7 +206,7 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
     stage = {"n": 0, "deadline": None}   # 0 running, 1 SIGINT sent, 2 SIGTERM sent, 3 SIGKILL sent
     old = {}
 
-    def escalate():
+    def escalate(why=""):
         if proc.poll() is not None:
             return
         n = stage["n"]
@@ -215,10 +215,11 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
                 proc.send_signal(signal.SIGINT)
                 stage["deadline"] = time.monotonic() + _stop_timeout()
             elif n == 1:
-                print("nrhdr: the pipeline did not stop after EOS; terminating it", file=sys.stderr)
+                print(f"nrhdr: {why or 'stop requested again'}; terminating the pipeline", file=sys.stderr)
                 proc.send_signal(signal.SIGTERM)
                 stage["deadline"] = time.monotonic() + KILL_TIMEOUT_S
             else:
+                print(f"nrhdr: {why or 'stop requested again'}; killing the pipeline", file=sys.stderr)
                 proc.kill()
                 stage["deadline"] = None
         except ProcessLookupError:
@@ -236,7 +237,7 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
             first[0] = now
             print(f"nrhdr: {signal.Signals(signum).name}: stopping the pipeline with EOS (files are "
                   f"finished; signal again to stop at once)", file=sys.stderr)
-        escalate()
+        escalate(f"{signal.Signals(signum).name} again {now - first[0]:.1f} s after the first")
 
     if forward_signals and threading.current_thread() is threading.main_thread():
         for name in STOP_SIGNALS:
@@ -257,7 +258,9 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
                 got.append(int(signal.SIGINT))  # got the same SIGINT from the terminal
                 continue
             if stage["deadline"] is not None and time.monotonic() > stage["deadline"]:
-                escalate()
+                escalate("the pipeline did not stop within "
+                         + ("%g s of the EOS request" % _stop_timeout() if stage["n"] == 1 else
+                            "%g s of SIGTERM" % KILL_TIMEOUT_S))
     except BaseException:
         if proc.poll() is None:     # never leave the child alone
             proc.kill()

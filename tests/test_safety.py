@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -97,6 +98,41 @@ def test_launch_turns_signal_into_eos_live_source(gst_subprocess_env, tiny_clip,
     n = _check_recording(tmp_path, prof)
     time.sleep(0.5)
     assert len(list(tmp_path.glob("f_*.exr"))) == n  # nothing is still recording
+
+
+@pytest.mark.gst
+@pytest.mark.parametrize("how", ["timeout", "second signal"])
+def test_launch_escalates_when_eos_does_not_stop_the_pipeline(gst_subprocess_env, how):
+    """A pipeline that cannot finish after the EOS request (identity sleeps 4 s on each buffer) gets SIGTERM
+    after NRHDR_STOP_TIMEOUT, or at once on a second signal more than 1 s after the first; the message says
+    which, the status is the first signal's, and gst-launch is not left running."""
+    env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}",
+               NRHDR_STOP_TIMEOUT="1" if how == "timeout" else "30")
+    p = subprocess.Popen(_nrhdr_cmd() + ["launch", "videotestsrc", "is-live=true", "!", "identity",
+                                         "sleep-time=4000000", "!", "fakesink"],
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert _wait_for(lambda: bool(_children(p.pid)) or p.poll() is not None)
+        kids = _children(p.pid)
+        assert kids and p.poll() is None
+        time.sleep(1.0)                     # the first buffer is in identity's sleep
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        if how == "second signal":
+            time.sleep(1.5)
+            p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, out
+    if how == "timeout":
+        assert "did not stop within 1 s of the EOS request; terminating the pipeline" in out, out
+    else:
+        assert re.search(r"SIGINT again \d+\.\d s after the first; terminating the pipeline", out), out
+    assert took < 15, (took, out)           # neither waited for the 30 s timeout nor for SIGKILL
+    assert _wait_for(lambda: not any(_alive(k) for k in kids), timeout=10), "gst-launch left running"
 
 
 @pytest.mark.gst
@@ -566,7 +602,7 @@ touch "{tmp_path}/after"
                 os.kill(k, signal.SIGKILL)
     assert p.returncode == status, out
     # one clean EOS, no escalation (the whole output in the message: seen to fail once in 40+ CI runs)
-    assert "Got EOS" in out and "terminating it" not in out, out
+    assert "Got EOS" in out and "terminating the pipeline" not in out, out
     assert not any(_alive(k) for k in procs)
     assert not (tmp_path / "after").exists()
     _check_recording(tmp_path, prof)
