@@ -203,23 +203,28 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
     t = threading.Thread(target=pump, daemon=True)
     t.start()
     got: list[int] = []            # signals received, in order
-    stage = {"n": 0, "deadline": None}   # 0 running, 1 SIGINT sent, 2 SIGTERM sent, 3 SIGKILL sent
+    # n: 0 running, 1 SIGINT sent, 2 SIGTERM sent, 3 SIGKILL sent; late: what passing the deadline means
+    stage = {"n": 0, "deadline": None, "late": ""}
     old = {}
 
-    def escalate(why=""):
+    def wait_for(seconds, what):
+        stage["deadline"] = time.monotonic() + seconds
+        stage["late"] = f"the pipeline did not stop within {seconds:g} s of {what}"
+
+    def escalate(why):
         if proc.poll() is not None:
             return
         n = stage["n"]
         try:
             if n == 0:
                 proc.send_signal(signal.SIGINT)
-                stage["deadline"] = time.monotonic() + _stop_timeout()
+                wait_for(_stop_timeout(), "the EOS request")
             elif n == 1:
-                print(f"nrhdr: {why or 'stop requested again'}; terminating the pipeline", file=sys.stderr)
+                print(f"nrhdr: {why}; terminating the pipeline", file=sys.stderr)
                 proc.send_signal(signal.SIGTERM)
-                stage["deadline"] = time.monotonic() + KILL_TIMEOUT_S
+                wait_for(KILL_TIMEOUT_S, "SIGTERM")
             else:
-                print(f"nrhdr: {why or 'stop requested again'}; killing the pipeline", file=sys.stderr)
+                print(f"nrhdr: {why}; killing the pipeline", file=sys.stderr)
                 proc.kill()
                 stage["deadline"] = None
         except ProcessLookupError:
@@ -258,9 +263,7 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
                 got.append(int(signal.SIGINT))  # got the same SIGINT from the terminal
                 continue
             if stage["deadline"] is not None and time.monotonic() > stage["deadline"]:
-                escalate("the pipeline did not stop within "
-                         + ("%g s of the EOS request" % _stop_timeout() if stage["n"] == 1 else
-                            "%g s of SIGTERM" % KILL_TIMEOUT_S))
+                escalate(stage["late"])
     except BaseException:
         if proc.poll() is None:     # never leave the child alone
             proc.kill()

@@ -18,6 +18,7 @@ from numba import njit, prange, get_num_threads, set_num_threads
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 from llvmlite import ir as llvm_ir
+
 from .scratch import ThreadScratch  # scratch per OS thread (issue 7)
 
 __all__ = ["FSE_PRESETS", "fse_reconstruct", "warmup", "resolve_params"]

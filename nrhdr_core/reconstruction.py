@@ -19,8 +19,8 @@ import numpy as np
 from numba import get_num_threads, njit, prange
 
 from .fse import _key as _f32_key  # order-preserving int32 keys of float32 bits (min/max that vectorise)
-from .scratch import ThreadScratch  # scratch per OS thread (issue 7)
 from .fse import _unkey
+from .scratch import ThreadScratch  # scratch per OS thread (issue 7)
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
 
 METHODS = ("fse", "linear", "nearest", "preview")
