@@ -231,18 +231,27 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
             return
         stage["n"] = min(n + 1, 3)
 
-    first = [0.0]
+    got_at: list[float] = []       # when each of `got` arrived
+    arrived: list[tuple[int, float]] = []   # filled by the handler, handled by the loop below
 
     def on_signal(signum, frame):
-        now = time.monotonic()
-        if got and now - first[0] < DUPLICATE_S:
-            return   # the same stop, delivered twice (terminal's process group + a script forwarding it)
-        got.append(signum)
-        if len(got) == 1:
-            first[0] = now
-            print(f"nrhdr: {signal.Signals(signum).name}: stopping the pipeline with EOS (files are "
-                  f"finished; signal again to stop at once)", file=sys.stderr)
-        escalate(f"{signal.Signals(signum).name} again {now - first[0]:.1f} s after the first")
+        # Only record: a second signal can run this handler between any two bytecodes of the first
+        # (a terminal's Ctrl-C and a script forwarding it arrive together), so all decisions are made
+        # in the wait loop, which never runs nested.
+        arrived.append((signum, time.monotonic()))
+
+    def handle_arrived():
+        while arrived:
+            signum, now = arrived.pop(0)
+            if got and now - got_at[0] < DUPLICATE_S:
+                continue   # the same stop, delivered twice (terminal's process group + a script forwarding it)
+            got.append(signum)
+            got_at.append(now)
+            name = signal.Signals(signum).name
+            if len(got) == 1:
+                print(f"nrhdr: {name}: stopping the pipeline with EOS (files are finished; signal again "
+                      f"to stop at once)", file=sys.stderr)
+            escalate(f"{name} again {now - got_at[0]:.1f} s after the first")
 
     if forward_signals and threading.current_thread() is threading.main_thread():
         for name in STOP_SIGNALS:
@@ -254,6 +263,7 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
                     pass
     try:
         while True:
+            handle_arrived()
             try:
                 rc = proc.wait(timeout=0.2)
                 break
@@ -261,9 +271,11 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
                 pass
             except KeyboardInterrupt:   # no handler installed (not the main thread): gst-launch -e
                 got.append(int(signal.SIGINT))  # got the same SIGINT from the terminal
+                got_at.append(time.monotonic())
                 continue
             if stage["deadline"] is not None and time.monotonic() > stage["deadline"]:
                 escalate(stage["late"])
+        handle_arrived()            # a signal in the child's last moments still sets the exit status
     except BaseException:
         if proc.poll() is None:     # never leave the child alone
             proc.kill()
