@@ -131,6 +131,70 @@ def _stop_timeout() -> float:
         return STOP_TIMEOUT_S
 
 
+class StopSignals:
+    """SIGINT, SIGTERM and SIGHUP as stop requests for a loop that polls `take()` (a context manager).
+
+    The handler only records the signal: a second signal can run a Python handler nested between any two
+    bytecodes of the first (a terminal's Ctrl-C to the process group and a script forwarding it arrive
+    together), so all decisions are taken in the caller's loop, which never nests. A signal within
+    DUPLICATE_S of the first is the same request and is dropped. Installs nothing outside the main thread
+    (`installed` is then False)."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.got: list[int] = []        # distinct stop requests, in order
+        self.installed = False
+        self._first = 0.0
+        self._arrived: list[tuple[int, float]] = []
+        self._old: dict = {}
+
+    def _on_signal(self, signum, frame):
+        import time
+        self._arrived.append((signum, time.monotonic()))
+
+    def __enter__(self):
+        import signal
+        import threading
+        if self.enabled and threading.current_thread() is threading.main_thread():
+            for name in STOP_SIGNALS:
+                sig = getattr(signal, name, None)
+                if sig is not None:
+                    try:
+                        self._old[sig] = signal.signal(sig, self._on_signal)
+                    except (OSError, ValueError):
+                        pass
+            self.installed = bool(self._old)
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+        for sig, h in self._old.items():
+            try:
+                signal.signal(sig, h)
+            except (OSError, ValueError):
+                pass
+        self._old = {}
+        return False
+
+    def add(self, signum: int, at: float) -> bool:
+        """Record one stop request; False when it duplicates the first (within DUPLICATE_S)."""
+        if self.got and at - self._first < DUPLICATE_S:
+            return False
+        if not self.got:
+            self._first = at
+        self.got.append(signum)
+        return True
+
+    def take(self) -> list[tuple[int, float]]:
+        """The new stop requests since the last call: (signal number, seconds after the first request)."""
+        new = []
+        while self._arrived:
+            signum, at = self._arrived.pop(0)
+            if self.add(signum, at):
+                new.append((signum, at - self._first))
+        return new
+
+
 def _child_preexec_factory():
     """preexec_fn for a gst-launch child on Linux: its own process group (a terminal's Ctrl-C reaches only
     the wrapper, which forwards exactly one SIGINT: gst-launch dies on a second one) and
@@ -202,10 +266,8 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
 
     t = threading.Thread(target=pump, daemon=True)
     t.start()
-    got: list[int] = []            # signals received, in order
     # n: 0 running, 1 SIGINT sent, 2 SIGTERM sent, 3 SIGKILL sent; late: what passing the deadline means
     stage = {"n": 0, "deadline": None, "late": ""}
-    old = {}
 
     def wait_for(seconds, what):
         stage["deadline"] = time.monotonic() + seconds
@@ -231,65 +293,38 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
             return
         stage["n"] = min(n + 1, 3)
 
-    got_at: list[float] = []       # when each of `got` arrived
-    arrived: list[tuple[int, float]] = []   # filled by the handler, handled by the loop below
-
-    def on_signal(signum, frame):
-        # Only record: a second signal can run this handler between any two bytecodes of the first
-        # (a terminal's Ctrl-C and a script forwarding it arrive together), so all decisions are made
-        # in the wait loop, which never runs nested.
-        arrived.append((signum, time.monotonic()))
-
-    def handle_arrived():
-        while arrived:
-            signum, now = arrived.pop(0)
-            if got and now - got_at[0] < DUPLICATE_S:
-                continue   # the same stop, delivered twice (terminal's process group + a script forwarding it)
-            got.append(signum)
-            got_at.append(now)
+    def handle(stops):
+        for signum, after in stops.take():
             name = signal.Signals(signum).name
-            if len(got) == 1:
+            if len(stops.got) == 1:
                 print(f"nrhdr: {name}: stopping the pipeline with EOS (files are finished; signal again "
                       f"to stop at once)", file=sys.stderr)
-            escalate(f"{name} again {now - got_at[0]:.1f} s after the first")
+            escalate(f"{name} again {after:.1f} s after the first")
 
-    if forward_signals and threading.current_thread() is threading.main_thread():
-        for name in STOP_SIGNALS:
-            sig = getattr(signal, name, None)
-            if sig is not None:
+    with StopSignals(forward_signals) as stops:
+        try:
+            while True:
+                handle(stops)
                 try:
-                    old[sig] = signal.signal(sig, on_signal)
-                except (OSError, ValueError):
+                    rc = proc.wait(timeout=0.2)
+                    break
+                except subprocess.TimeoutExpired:
                     pass
-    try:
-        while True:
-            handle_arrived()
-            try:
-                rc = proc.wait(timeout=0.2)
-                break
-            except subprocess.TimeoutExpired:
-                pass
-            except KeyboardInterrupt:   # no handler installed (not the main thread): gst-launch -e
-                got.append(int(signal.SIGINT))  # got the same SIGINT from the terminal
-                got_at.append(time.monotonic())
-                continue
-            if stage["deadline"] is not None and time.monotonic() > stage["deadline"]:
-                escalate(stage["late"])
-        handle_arrived()            # a signal in the child's last moments still sets the exit status
-    except BaseException:
-        if proc.poll() is None:     # never leave the child alone
-            proc.kill()
-            proc.wait()
-        raise
-    finally:
-        for sig, h in old.items():
-            try:
-                signal.signal(sig, h)
-            except (OSError, ValueError):
-                pass
-        t.join(timeout=5)
-    if got:
-        return 128 + got[0]
+                except KeyboardInterrupt:   # no handler installed (not the main thread): gst-launch -e
+                    stops.add(int(signal.SIGINT), time.monotonic())  # got the same SIGINT from the terminal
+                    continue
+                if stage["deadline"] is not None and time.monotonic() > stage["deadline"]:
+                    escalate(stage["late"])
+            handle(stops)           # a signal in the child's last moments still sets the exit status
+        except BaseException:
+            if proc.poll() is None:     # never leave the child alone
+                proc.kill()
+                proc.wait()
+            raise
+        finally:
+            t.join(timeout=5)
+    if stops.got:
+        return 128 + stops.got[0]
     return _exit_status(rc)
 
 
@@ -335,8 +370,9 @@ def run_pipeline(description: str, on_message=None) -> int:
 
     Blocks until EOS (returns 0) or the first error (prints `ERROR from <element>: <text>` and the debug
     text to stderr, returns 1). `on_message(msg)` is called for every bus message (e.g. the element messages
-    "nrhdr-frame-stats" of nrreconstruct). Ctrl-C (or SIGTERM/SIGHUP, in the main thread) sends EOS so files
-    are finished; a second one stops (130)."""
+    "nrhdr-frame-stats" of nrreconstruct). In the main thread, SIGINT (Ctrl-C), SIGTERM or SIGHUP sends EOS so
+    files are finished and the run then returns 128 + that signal (130 for Ctrl-C); a second one (more than
+    1 s after the first) stops at once (`StopSignals`)."""
     import gst_plugins
     gst_plugins.register_all()
     from gi.repository import GLib, Gst
@@ -353,7 +389,6 @@ def run_pipeline(description: str, on_message=None) -> int:
         pipeline = p
     bus = pipeline.get_bus()
     result = {"rc": 1, "done": False}
-    interrupted = [0]
 
     def handle(msg) -> bool:
         """Return True when the run is over."""
@@ -389,41 +424,42 @@ def run_pipeline(description: str, on_message=None) -> int:
 
     import signal
     import threading
-    old_term = None
-    if threading.current_thread() is threading.main_thread():
-        def _term(signum, frame):   # SIGTERM/SIGHUP: like Ctrl-C, EOS first so files are finished
-            raise KeyboardInterrupt
+    stop_wait = None        # seconds the shutdown may take after a second stop request (None: no limit)
+    with StopSignals() as stops:
+        ret = pipeline.set_state(Gst.State.PLAYING)
         try:
-            old_term = {s: signal.signal(s, _term) for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None))
-                        if s is not None}
-        except (OSError, ValueError):
-            old_term = None
-    ret = pipeline.set_state(Gst.State.PLAYING)
-    try:
-        if ret == Gst.StateChangeReturn.FAILURE:
-            # the element that failed has usually posted an error: report it
-            msg = bus.pop_filtered(Gst.MessageType.ERROR)
-            if msg is not None:
-                handle(msg)
-            else:
-                print("ERROR: the pipeline could not start (state change failed)", file=sys.stderr)
-            return 1
-        mask = Gst.MessageType.ANY
-        while True:
-            try:
-                msg = bus.timed_pop_filtered(100 * Gst.MSECOND, mask)
-            except KeyboardInterrupt:
-                interrupted[0] += 1
-                if interrupted[0] == 1:
-                    print("nrhdr: interrupted, sending EOS (Ctrl-C again to stop now)", file=sys.stderr)
-                    pipeline.send_event(Gst.Event.new_eos())
-                    continue
-                return 130
-            if msg is None:
-                continue
-            if handle(msg):
-                return result["rc"]
-    finally:
-        pipeline.set_state(Gst.State.NULL)
-        for sig, h in (old_term or {}).items():
-            signal.signal(sig, h)
+            if ret == Gst.StateChangeReturn.FAILURE:
+                # the element that failed has usually posted an error: report it
+                msg = bus.pop_filtered(Gst.MessageType.ERROR)
+                if msg is not None:
+                    handle(msg)
+                else:
+                    print("ERROR: the pipeline could not start (state change failed)", file=sys.stderr)
+                return 1
+            while True:
+                for signum, after in stops.take():
+                    if len(stops.got) > 1:
+                        print(f"nrhdr: {signal.Signals(signum).name} again {after:.1f} s after the first; "
+                              f"stopping now", file=sys.stderr)
+                        stop_wait = KILL_TIMEOUT_S
+                        return 128 + stops.got[0]
+                    print(f"nrhdr: {signal.Signals(signum).name}: sending EOS so files are finished (signal "
+                          f"again to stop now)", file=sys.stderr)
+                    # from another thread: a live source takes the EOS only between two buffers, and a
+                    # blocked main thread could not take the second signal
+                    threading.Thread(target=pipeline.send_event, args=(Gst.Event.new_eos(),), daemon=True,
+                                     name="nrhdr-eos").start()
+                msg = bus.timed_pop_filtered(100 * Gst.MSECOND, Gst.MessageType.ANY)
+                if msg is not None and handle(msg):
+                    # a stopped run is not a finished one: EOS after a stop request returns 128 + signal
+                    return 128 + stops.got[0] if stops.got and result["rc"] == 0 else result["rc"]
+        finally:
+            if stop_wait is None:
+                pipeline.set_state(Gst.State.NULL)
+            else:   # asked twice: an element blocked in its streaming thread must not hold the stop
+                t = threading.Thread(target=pipeline.set_state, args=(Gst.State.NULL,), daemon=True)
+                t.start()
+                t.join(stop_wait)
+                if t.is_alive():
+                    print(f"nrhdr: the pipeline did not shut down within {stop_wait:g} s (an element is "
+                          f"blocked); leaving it", file=sys.stderr)

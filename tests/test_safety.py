@@ -165,6 +165,45 @@ def test_launch_takes_a_burst_of_signals_for_one_stop(gst_subprocess_env):
 
 
 @pytest.mark.gst
+@pytest.mark.parametrize("how", ["storm", "second signal"])
+def test_run_pipeline_stop_signals(gst_subprocess_env, how):
+    """runtime.run_pipeline (the in-process runner of `nrhdr demo` and apps): a storm of SIGINT within 50 ms
+    is one stop (EOS, files finished, status 130, no traceback); a second signal 1.5 s later stops a
+    pipeline that cannot finish: a live source into `identity sleep-time`, which GStreamer cannot even shut
+    down (plain gst-launch-1.0 -e hangs on it too), within KILL_TIMEOUT_S."""
+    env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}")
+    sleep = "identity sleep-time=4000000 ! " if how == "second signal" else ""
+    code = ("import sys; from gst_plugins import runtime; "
+            f"sys.exit(runtime.run_pipeline('videotestsrc is-live=true ! {sleep}fakesink'))")
+    p = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         text=True)
+    try:
+        time.sleep(2.0)                       # registered and playing
+        assert p.poll() is None, p.communicate()[0]
+        t0 = time.monotonic()
+        if how == "storm":
+            while time.monotonic() < t0 + 0.05:
+                os.kill(p.pid, signal.SIGINT)
+        else:
+            p.send_signal(signal.SIGINT)
+            time.sleep(1.5)
+            p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode in (130, -signal.SIGINT) if how == "storm" else p.returncode == 130, out
+    assert out.count("SIGINT: sending EOS") == 1 and "Traceback" not in out, out
+    if how == "storm":
+        assert "stopping now" not in out, out
+    else:
+        assert re.search(r"SIGINT again \d+\.\d s after the first; stopping now", out), out
+        assert "did not shut down within 5 s" in out, out
+        assert took < 1.5 + 5 + 3, (took, out)
+
+
+@pytest.mark.gst
 def test_launch_child_stops_when_wrapper_is_killed_hard(gst_subprocess_env, tiny_clip, tmp_path):
     d, prof, _ = tiny_clip
     env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}")

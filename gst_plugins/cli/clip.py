@@ -127,7 +127,8 @@ def _run_demo(a, out: Path):
     rc = runtime.run_pipeline(desc, on_message=on_message)
     dt = time.perf_counter() - t0
     if rc != 0:
-        print("nrhdr demo: the pipeline failed", file=sys.stderr)
+        print("nrhdr demo: stopped by a signal" if rc >= 128 else "nrhdr demo: the pipeline failed",
+              file=sys.stderr)
         return rc, []
     exrs = sorted((out / "exr").glob("frame_*.exr"))
     pngs = sorted((out / "png").glob("frame_*.png"))

@@ -48,14 +48,19 @@ def _stages():
                     f"nrvalidity profile={cam} ! nrcrosstalk ! nrreconstruct method={m} ! tee name=t "
                     f"t. ! queue ! nrtonemap ! fakesink "
                     f"t. ! queue ! nrtonemap ! video/x-raw,format=GRAY16_LE ! fakesink")
+                if rc >= 128:           # stopped by a signal (run_pipeline: 128 + n)
+                    raise KeyboardInterrupt
                 if rc != 0:
                     raise RuntimeError(f"warm-up pipeline with method={m} failed")
             # an odd width: GStreamer pads GRAY16 rows to 4 bytes, so frames arrive as strided views
             odd = Path(d) / "odd.json"
             profile.save(profile.default(47, 63, seed=1), odd)
-            if runtime.run_pipeline(f"nrcamsrc scene=synthetic profile={odd} frames=2 is-live=false "
-                                    f"num-buffers=2 ! nrvalidity profile={odd} ! nrreconstruct method=preview "
-                                    f"! nrtonemap ! fakesink") != 0:
+            rc = runtime.run_pipeline(f"nrcamsrc scene=synthetic profile={odd} frames=2 is-live=false "
+                                      f"num-buffers=2 ! nrvalidity profile={odd} ! nrreconstruct "
+                                      f"method=preview ! nrtonemap ! fakesink")
+            if rc >= 128:
+                raise KeyboardInterrupt
+            if rc != 0:
                 raise RuntimeError("warm-up pipeline with an odd frame width failed")
 
     stages = [("nrvalidity", "validity.classify", validity.warmup),
