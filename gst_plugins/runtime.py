@@ -138,10 +138,12 @@ class StopSignals:
     bytecodes of the first (a terminal's Ctrl-C to the process group and a script forwarding it arrive
     together), so all decisions are taken in the caller's loop, which never nests. A signal within
     DUPLICATE_S of the first is the same request and is dropped. Installs nothing outside the main thread
-    (`installed` is then False)."""
+    (`installed` is then False). `restore=False` (a command whose process ends with the run) keeps the
+    handler after the block: a late copy of the same stop must not raise KeyboardInterrupt in the exit."""
 
-    def __init__(self, enabled: bool = True):
+    def __init__(self, enabled: bool = True, restore: bool = True):
         self.enabled = enabled
+        self.restore = restore
         self.got: list[int] = []        # distinct stop requests, in order
         self.installed = False
         self._first = 0.0
@@ -168,6 +170,8 @@ class StopSignals:
 
     def __exit__(self, *exc):
         import signal
+        if not self.restore:
+            return False
         for sig, h in self._old.items():
             try:
                 signal.signal(sig, h)
@@ -230,14 +234,14 @@ def _exit_status(rc: int) -> int:
     return 128 - rc if rc < 0 else rc
 
 
-def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> int:
+def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False, until_exit: bool = False) -> int:
     """Run `cmd`, passing its stderr through except the harmless FLOATING_NOISE lines.
 
     With `forward_signals` (gst-launch children) SIGINT, SIGTERM and SIGHUP to this process become one
     SIGINT to the child (EOS: it finishes its files), escalated to SIGTERM after NRHDR_STOP_TIMEOUT s
     (default 10) and SIGKILL 5 s later; a second signal (more than 1 s after the first) escalates at once.
     The child runs in its own process group and gets SIGINT if this process dies (PR_SET_PDEATHSIG), so it
-    is never left running alone.
+    is never left running alone. `until_exit`: see `launch`.
     Returns 128 + signal number when a signal stopped the run (130 SIGINT, 143 SIGTERM), else the child's
     status (128 + n when the child itself died of signal n)."""
     import signal
@@ -301,7 +305,7 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
                       f"to stop at once)", file=sys.stderr)
             escalate(f"{name} again {after:.1f} s after the first")
 
-    with StopSignals(forward_signals) as stops:
+    with StopSignals(forward_signals, restore=not until_exit) as stops:
         try:
             while True:
                 handle(stops)
@@ -328,11 +332,12 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False) -> 
     return _exit_status(rc)
 
 
-def launch(args: list[str]) -> int:
+def launch(args: list[str], until_exit: bool = False) -> int:
     """Run `gst-launch-1.0 -e <args>` with gst_env(); returns its exit status (non-zero on error).
 
     SIGINT/SIGTERM/SIGHUP stop the pipeline with EOS (see `_call_filtered`): the exit status is then 130 /
-    143 / 129; the child never outlives this process."""
+    143 / 129; the child never outlives this process. `until_exit` (`nrhdr launch`, whose process ends with
+    the run): the stop-signal handler stays installed after the run (`StopSignals(restore=False)`)."""
     try:
         exe = _tool("gst-launch-1.0")
     except FileNotFoundError as e:
@@ -341,7 +346,7 @@ def launch(args: list[str]) -> int:
     args = list(args)
     if "-e" not in args and "--eos-on-shutdown" not in args:
         args = ["-e"] + args
-    return _call_filtered([exe] + args, gst_env(), forward_signals=True)
+    return _call_filtered([exe] + args, gst_env(), forward_signals=True, until_exit=until_exit)
 
 
 def inspect(args: list[str]) -> int:

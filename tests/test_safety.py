@@ -173,13 +173,18 @@ def test_run_pipeline_stop_signals(gst_subprocess_env, how):
     down (plain gst-launch-1.0 -e hangs on it too), within KILL_TIMEOUT_S."""
     env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}")
     sleep = "identity sleep-time=4000000 ! " if how == "second signal" else ""
-    code = ("import sys; from gst_plugins import runtime; "
-            f"sys.exit(runtime.run_pipeline('videotestsrc is-live=true ! {sleep}fakesink'))")
+    code = ("import sys\nfrom gst_plugins import runtime\n"
+            "def ready(msg):\n"
+            "    if msg.type.first_value_nick == 'stream-start':\n"
+            "        print('streaming', flush=True)\n"
+            f"sys.exit(runtime.run_pipeline('videotestsrc is-live=true ! {sleep}fakesink', on_message=ready))")
     p = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                          text=True)
     try:
-        time.sleep(2.0)                       # registered and playing
-        assert p.poll() is None, p.communicate()[0]
+        head = ""
+        while "streaming" not in head and p.poll() is None:     # the handler is installed before PLAYING
+            head += p.stdout.readline()
+        assert p.poll() is None, head + p.communicate()[0]
         t0 = time.monotonic()
         if how == "storm":
             while time.monotonic() < t0 + 0.05:
@@ -193,6 +198,7 @@ def test_run_pipeline_stop_signals(gst_subprocess_env, how):
     finally:
         if p.poll() is None:
             p.kill()
+    out = head + out
     assert p.returncode in (130, -signal.SIGINT) if how == "storm" else p.returncode == 130, out
     assert out.count("SIGINT: sending EOS") == 1 and "Traceback" not in out, out
     if how == "storm":

@@ -24,7 +24,7 @@ def cmd_env(a) -> int:
 
 def cmd_launch(a) -> int:
     from .. import runtime
-    return runtime.launch(a.args)
+    return runtime.launch(a.args, until_exit=True)     # the process ends with the run
 
 
 def cmd_inspect(a) -> int:
