@@ -137,15 +137,14 @@ class StopSignals:
     The handler only records the signal: a second signal can run a Python handler nested between any two
     bytecodes of the first (a terminal's Ctrl-C to the process group and a script forwarding it arrive
     together), so all decisions are taken in the caller's loop, which never nests. A signal within
-    DUPLICATE_S of the first is the same request and is dropped. Installs nothing outside the main thread
-    (`installed` is then False). `restore=False` (a command whose process ends with the run) keeps the
+    DUPLICATE_S of the first is the same request and is dropped. Installs nothing outside the main
+    thread. `restore=False` (a command whose process ends with the run) keeps the
     handler after the block: a late copy of the same stop must not raise KeyboardInterrupt in the exit."""
 
     def __init__(self, enabled: bool = True, restore: bool = True):
         self.enabled = enabled
         self.restore = restore
         self.got: list[int] = []        # distinct stop requests, in order
-        self.installed = False
         self._first = 0.0
         self._arrived: list[tuple[int, float]] = []
         self._old: dict = {}
@@ -165,7 +164,6 @@ class StopSignals:
                         self._old[sig] = signal.signal(sig, self._on_signal)
                     except (OSError, ValueError):
                         pass
-            self.installed = bool(self._old)
         return self
 
     def __exit__(self, *exc):
@@ -393,7 +391,7 @@ def run_pipeline(description: str, on_message=None) -> int:
         p.add(pipeline)
         pipeline = p
     bus = pipeline.get_bus()
-    result = {"rc": 1, "done": False}
+    result = {"rc": 1, "playing": False}
 
     def handle(msg) -> bool:
         """Return True when the run is over."""
@@ -419,6 +417,8 @@ def run_pipeline(description: str, on_message=None) -> int:
             w, dbg = msg.parse_warning()
             name = msg.src.get_name() if msg.src is not None else "?"
             print(f"WARNING from {name}: {w.message}", file=sys.stderr)
+        if t == Gst.MessageType.STATE_CHANGED and msg.src == pipeline:
+            result["playing"] = msg.parse_state_changed()[1] == Gst.State.PLAYING
         if t == Gst.MessageType.LATENCY:  # an element's processing time grew (issue #7): as gst-launch does
             pipeline.recalculate_latency()
         if t == Gst.MessageType.INFO:  # e.g. numba compiling inside the pipeline (issue #7): never silent
@@ -430,6 +430,8 @@ def run_pipeline(description: str, on_message=None) -> int:
     import signal
     import threading
     stop_wait = None        # seconds the shutdown may take after a second stop request (None: no limit)
+    eos_due = False         # a stop request waits for PLAYING: EOS into a live source that is still
+                            # prerolling deadlocks GStreamer (gst-launch too sends it only when PLAYING)
     with StopSignals() as stops:
         ret = pipeline.set_state(Gst.State.PLAYING)
         try:
@@ -450,10 +452,13 @@ def run_pipeline(description: str, on_message=None) -> int:
                         return 128 + stops.got[0]
                     print(f"nrhdr: {signal.Signals(signum).name}: sending EOS so files are finished (signal "
                           f"again to stop now)", file=sys.stderr)
+                    eos_due = True
+                if eos_due and result["playing"]:
                     # from another thread: a live source takes the EOS only between two buffers, and a
                     # blocked main thread could not take the second signal
                     threading.Thread(target=pipeline.send_event, args=(Gst.Event.new_eos(),), daemon=True,
                                      name="nrhdr-eos").start()
+                    eos_due = False
                 msg = bus.timed_pop_filtered(100 * Gst.MSECOND, Gst.MessageType.ANY)
                 if msg is not None and handle(msg):
                     # a stopped run is not a finished one: EOS after a stop request returns 128 + signal

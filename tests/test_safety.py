@@ -168,9 +168,9 @@ def test_launch_takes_a_burst_of_signals_for_one_stop(gst_subprocess_env):
 @pytest.mark.parametrize("how", ["storm", "second signal"])
 def test_run_pipeline_stop_signals(gst_subprocess_env, how):
     """runtime.run_pipeline (the in-process runner of `nrhdr demo` and apps): a storm of SIGINT within 50 ms
-    is one stop (EOS, files finished, status 130, no traceback); a second signal 1.5 s later stops a
-    pipeline that cannot finish: a live source into `identity sleep-time`, which GStreamer cannot even shut
-    down (plain gst-launch-1.0 -e hangs on it too), within KILL_TIMEOUT_S."""
+    is one stop (EOS, files finished, status 130, no traceback; the storm often comes before the pipeline
+    is PLAYING, where an EOS into a live source deadlocked 1 run in ~10); a second signal 1.5 s later stops
+    a pipeline that cannot finish (a live source into `identity sleep-time=4 s`, still prerolling) at once."""
     env = dict(gst_subprocess_env, PYTHONPATH=f"{ROOT}{os.pathsep}{gst_subprocess_env.get('PYTHONPATH', '')}")
     sleep = "identity sleep-time=4000000 ! " if how == "second signal" else ""
     code = ("import sys\nfrom gst_plugins import runtime\n"
@@ -205,8 +205,7 @@ def test_run_pipeline_stop_signals(gst_subprocess_env, how):
         assert "stopping now" not in out, out
     else:
         assert re.search(r"SIGINT again \d+\.\d s after the first; stopping now", out), out
-        assert "did not shut down within 5 s" in out, out
-        assert took < 1.5 + 5 + 3, (took, out)
+        assert took < 1.5 + 5 + 3, (took, out)       # the shutdown is given KILL_TIMEOUT_S at most
 
 
 @pytest.mark.gst
