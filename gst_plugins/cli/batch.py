@@ -67,8 +67,17 @@ def add_batch(sub) -> None:
     p.set_defaults(func=cmd_batch)
 
 
-def _sigterm(signum, frame):
+def _stop(signum, frame):
+    """The first SIGINT or SIGTERM interrupts the run (KeyboardInterrupt: the frames in flight are cancelled,
+    the cluster closed, temporary files removed); later ones are ignored until the process ends, so that
+    clean-up runs to its end: a Ctrl-C pressed again would otherwise break off the cluster's close and
+    leave tracebacks and temporary files (seen with a 50 ms storm of SIGINT)."""
+    for sig in STOPS:
+        signal.signal(sig, signal.SIG_IGN)
     raise KeyboardInterrupt
+
+
+STOPS = (signal.SIGINT, signal.SIGTERM)
 
 
 def cmd_batch(a) -> int:
@@ -94,7 +103,7 @@ def cmd_batch(a) -> int:
     def on_failure(f, bar):
         bar.write(f"nrhdr batch: error: {f}", file=sys.stderr)
 
-    old = signal.signal(signal.SIGTERM, _sigterm)
+    old = {sig: signal.signal(sig, _stop) for sig in STOPS}
     res = None
     try:
         if not todo:
@@ -121,9 +130,11 @@ def cmd_batch(a) -> int:
             batch.remove_temp_files(job.out_dir)
         print(f"nrhdr batch: interrupted; the complete frames in {job.out_dir} are kept, rerun the same "
               f"command to resume", file=sys.stderr)
+        old = {}            # the stop signals stay ignored (`_stop`): the process ends here
         return 130
     finally:
-        signal.signal(signal.SIGTERM, old)
+        for sig, h in old.items():
+            signal.signal(sig, h)
     res.skipped = skipped
     fps = f", {res.fps:.2f} frames/s" if res.done else ""
     print(f"nrhdr batch: wrote {len(res.done)} frames, skipped {skipped} done, {len(res.failures)} failed "
