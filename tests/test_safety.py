@@ -177,7 +177,10 @@ def test_run_pipeline_stop_signals(gst_subprocess_env, how):
             "def ready(msg):\n"
             "    if msg.type.first_value_nick == 'stream-start':\n"
             "        print('streaming', flush=True)\n"
-            f"sys.exit(runtime.run_pipeline('videotestsrc is-live=true ! {sleep}fakesink', on_message=ready))")
+            f"rc = runtime.run_pipeline('videotestsrc is-live=true ! {sleep}fakesink', on_message=ready)\n"
+            "import signal\n"
+            "signal.signal(signal.SIGINT, signal.SIG_IGN)   # the app's own choice after the run: the storm may\n"
+            "sys.exit(rc)                                   # outlast it (run_pipeline restores the handlers)\n")
     p = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                          text=True)
     try:

@@ -71,10 +71,16 @@ def _stop(signum, frame):
     """The first SIGINT or SIGTERM interrupts the run (KeyboardInterrupt: the frames in flight are cancelled,
     the cluster closed, temporary files removed); later ones are ignored until the process ends, so that
     clean-up runs to its end: a Ctrl-C pressed again would otherwise break off the cluster's close and
-    leave tracebacks and temporary files (seen with a 50 ms storm of SIGINT)."""
+    leave tracebacks and temporary files (seen with a 50 ms storm of SIGINT). Ignored by a Python handler,
+    not SIG_IGN: a signal already pending when SIG_IGN is set prints "OSError: Signal 2 ignored due to race
+    condition"."""
     for sig in STOPS:
-        signal.signal(sig, signal.SIG_IGN)
+        signal.signal(sig, _ignore)
     raise KeyboardInterrupt
+
+
+def _ignore(signum, frame):
+    """A later copy of the stop (`_stop`)."""
 
 
 STOPS = (signal.SIGINT, signal.SIGTERM)
