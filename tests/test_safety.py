@@ -100,6 +100,22 @@ def test_launch_turns_signal_into_eos_live_source(gst_subprocess_env, tiny_clip,
     assert len(list(tmp_path.glob("f_*.exr"))) == n  # nothing is still recording
 
 
+def _sigint_and_wait(p, how):
+    """SIGINT to `p` as `how` says: once ("timeout", "once"), again 1.5 s later ("second signal"), or again
+    and again for 50 ms, faster than a handler runs ("storm"); then its output and the seconds since the
+    first signal."""
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGINT)
+    if how == "storm":
+        while time.monotonic() < t0 + 0.05:
+            os.kill(p.pid, signal.SIGINT)
+    elif how == "second signal":
+        time.sleep(1.5)
+        p.send_signal(signal.SIGINT)
+    out, _ = p.communicate(timeout=60)
+    return out, time.monotonic() - t0
+
+
 @pytest.mark.gst
 @pytest.mark.parametrize("how", ["timeout", "second signal"])
 def test_launch_escalates_when_eos_does_not_stop_the_pipeline(gst_subprocess_env, how):
@@ -116,13 +132,7 @@ def test_launch_escalates_when_eos_does_not_stop_the_pipeline(gst_subprocess_env
         kids = _children(p.pid)
         assert kids and p.poll() is None
         time.sleep(1.0)                     # the first buffer is in identity's sleep
-        t0 = time.monotonic()
-        p.send_signal(signal.SIGINT)
-        if how == "second signal":
-            time.sleep(1.5)
-            p.send_signal(signal.SIGINT)
-        out, _ = p.communicate(timeout=60)
-        took = time.monotonic() - t0
+        out, took = _sigint_and_wait(p, how)
     finally:
         if p.poll() is None:
             p.kill()
@@ -148,10 +158,7 @@ def test_launch_takes_a_burst_of_signals_for_one_stop(gst_subprocess_env):
         kids = _children(p.pid)
         assert kids and p.poll() is None
         time.sleep(1.0)
-        t_end = time.monotonic() + 0.05       # a storm, faster than the handler runs
-        while time.monotonic() < t_end:
-            os.kill(p.pid, signal.SIGINT)
-        out, _ = p.communicate(timeout=60)
+        out, _ = _sigint_and_wait(p, "storm")
     finally:
         if p.poll() is None:
             p.kill()
@@ -188,16 +195,7 @@ def test_run_pipeline_stop_signals(gst_subprocess_env, how):
         while "streaming" not in head and p.poll() is None:     # the handler is installed before PLAYING
             head += p.stdout.readline()
         assert p.poll() is None, head + p.communicate()[0]
-        t0 = time.monotonic()
-        if how == "storm":
-            while time.monotonic() < t0 + 0.05:
-                os.kill(p.pid, signal.SIGINT)
-        else:
-            p.send_signal(signal.SIGINT)
-            time.sleep(1.5)
-            p.send_signal(signal.SIGINT)
-        out, _ = p.communicate(timeout=60)
-        took = time.monotonic() - t0
+        out, took = _sigint_and_wait(p, how)
     finally:
         if p.poll() is None:
             p.kill()

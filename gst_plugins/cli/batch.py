@@ -67,6 +67,9 @@ def add_batch(sub) -> None:
     p.set_defaults(func=cmd_batch)
 
 
+STOPS = (signal.SIGINT, signal.SIGTERM)
+
+
 def _stop(signum, frame):
     """The first SIGINT or SIGTERM interrupts the run (KeyboardInterrupt: the frames in flight are cancelled,
     the cluster closed, temporary files removed); later ones are ignored until the process ends, so that
@@ -81,9 +84,6 @@ def _stop(signum, frame):
 
 def _ignore(signum, frame):
     """A later copy of the stop (`_stop`)."""
-
-
-STOPS = (signal.SIGINT, signal.SIGTERM)
 
 
 def cmd_batch(a) -> int:
