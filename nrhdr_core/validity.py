@@ -23,15 +23,8 @@ from numba import njit, prange
 from .profile import CameraProfile
 from .sensor import zero_db_signal_dn
 
-VALID = 0
-CLIPPED = 1
-DARK = 2
-DISCARDED = 3
-UNCALIBRATED = 4
-NOISY = 5          # attenuated pixel below l_min kept as a noisy measurement (dark_policy="weighted")
-REASON_MASK = 0x0F
-RECONSTRUCTED = 0x40
-ATTENUATED = 0x80
+from .states import (ATTENUATED, CLIPPED, DARK, DISCARDED, NOISY, REASON_MASK,  # noqa: F401 (re-exported)
+                     RECONSTRUCTED, UNCALIBRATED, VALID)
 
 MODES = ("all", "best", "threshold")
 DARK_POLICIES = ("threshold", "weighted")
