@@ -1,5 +1,5 @@
-"""Per-thread scratch storage for the working arrays the kernels reuse frame after frame (issue 7 item 3:
-no per-frame allocation).
+"""Per-thread scratch storage for the working arrays the kernels reuse frame after frame (no per-frame
+allocation): `planes(name, key, make)` is the one cache every stage uses.
 
 `threading.local()` does not do this job inside GStreamer: its data lives in the Python thread state, and
 the Python bindings create a thread state when a streaming thread calls into a Python element and destroy it
@@ -62,3 +62,18 @@ class ThreadScratch:
     def threads(self) -> int:
         """Number of threads holding values (for tests)."""
         return len(self._d)
+
+
+_STORE = ThreadScratch()
+
+
+def planes(name: str, key, make):
+    """The calling OS thread's working arrays called `name`, made by `make()` the first time and again
+    whenever `key` (e.g. the frame shape) differs from the one they were made for. Nothing returned to a
+    caller of the core may live in them."""
+    entry = getattr(_STORE, name, None)
+    if entry is None or entry[0] != key:
+        entry = (key, make())
+        setattr(_STORE, name, entry)
+    return entry[1]
+
