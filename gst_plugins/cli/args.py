@@ -1,0 +1,25 @@
+"""argparse value types for every `nrhdr` command: numbers are checked (finite, in range) before any work,
+so `--exposure nan` or `--frames 1e9` is refused with a message naming the option."""
+from __future__ import annotations
+
+import argparse
+import math
+
+
+def number(lo: float | None = None, hi: float | None = None, *, integer: bool = False,
+           lo_open: bool = False, hi_open: bool = False):
+    """A `type=` for argparse: a finite int/float within [lo, hi] (open ends where asked)."""
+    def parse(text: str):
+        try:
+            v = int(text, 10) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'a whole number' if integer else 'a number'}")
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'>' if lo_open else '>='} {lo}")
+        if hi is not None and (v > hi or (hi_open and v == hi)):
+            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'<' if hi_open else '<='} {hi}")
+        return v
+    parse.__name__ = "integer" if integer else "number"    # argparse names the type in its message
+    return parse
