@@ -1,4 +1,4 @@
-"""Crosstalk validation (issue 4, docs/CROSSTALK.md): one command,
+"""Crosstalk validation (docs/CROSSTALK.md): one command,
 
     .venv/bin/python benchmarks/crosstalk_validation.py            # ~30 s on 2 cores
     .venv/bin/python benchmarks/crosstalk_validation.py --quick    # smaller sensors, 2 scenes
@@ -123,7 +123,7 @@ def evaluate(raw, cal_prof, truth, mask):
     res = {}
     for mode in EVAL_MODES:
         v, s = validity.classify(raw, cal_prof, mode="threshold")
-        if mode == "lut-compact":   # nrcrosstalk mode=lut lut=compact (the fast setting, issue 7)
+        if mode == "lut-compact":   # nrcrosstalk mode=lut lut=compact (the fast setting)
             crosstalk.correct(v, s, cal_prof, mode="lut", lut="compact")
         else:
             crosstalk.correct(v, s, cal_prof, mode=mode)

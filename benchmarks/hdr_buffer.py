@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Per-frame cost of the HDR frame plumbing (issue 11): one-block f32-u8-planar frames from the buffer pool
+"""Per-frame cost of the HDR frame plumbing: one-block f32-u8-planar frames from the buffer pool
 mapped as numpy views (what nrvalidity does now), against the anchor measured in the same run: the older
 two-block frame allocated per frame and mapped block by block (map_range), and a copying `new_wrapped`.
 
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
             values.fill(1.0)             # a kernel writes every pixel: page faults of fresh memory count
             state.fill(1)
 
-    def two_blocks_per_frame():          # the layout before issue 11 (anchor)
+    def two_blocks_per_frame():          # two blocks per frame (anchor)
         alloc = Gst.Allocator.find(None)
         buf = Gst.Buffer.new()
         buf.append_memory(alloc.alloc(4 * w * h, None))

@@ -1,4 +1,4 @@
-"""HDR quality of the whole chain on real HDR scenes (issue 8), per region, against an unmodified camera.
+"""HDR quality of the whole chain on real HDR scenes, per region, against an unmodified camera.
 
     python benchmarks/hdr_quality.py --quick     # 160 x 128 crops, 1 frame per scene, fse only (~2-3 min)
     python benchmarks/hdr_quality.py             # 512 x 384, 2 frames per scene, fse/linear/preview
@@ -189,7 +189,7 @@ def flat_snr() -> int:
 
 
 def dark_split(scenes) -> int:
-    """Where the dark-region error comes from (issue 8 target "within 2 dB of the unmodified camera"):
+    """Where the dark-region error comes from (the target: within 2 dB of the unmodified camera):
     512 x 384, one view per scene, no crosstalk, FSE balanced in-process (the chain's default stages).
     The unmodified camera and the ND camera share the noise of the regular pixels (same raw code there),
     so the two differ only at the ND pixels. Log2 PSNR (1 DN floor, peak log2(white)) pooled over the
@@ -246,10 +246,10 @@ def dark_split(scenes) -> int:
                 wgt = e2 / (e2 + vm)
                 rows.append((name, np.where(k, v, np.where(nz, gi + wgt * (v - gi), gi))))
             rows.append(("FSE from noise-free regular pixels alone", np.where(k, v, gt)))
-            # helper fsenoisy (issue 7): `reconstruct`'s own NOISY path, FSE reconstructing the NOISY pixels
+            # `reconstruct`'s own NOISY path, FSE reconstructing the NOISY pixels
             # (before) and skipping them (the default for the accurate fusion), same frame
             for name, flag in (("reconstruct(noisy=): FSE at NOISY + fusion accurate (before)", False),
-                               ("reconstruct(noisy=): FSE skips NOISY + fusion accurate (issue 7)", True)):
+                               ("reconstruct(noisy=): FSE skips NOISY + fusion accurate", True)):
                 rows.append((name, reconstruction.reconstruct(v, k, lower=lo, upper=hi, noisy=nz, noise=prof,
                                                               noisy_skip=flag)))
             rows += _joint_rows(v, k, nz, lo, hi, prof, t64, vm, rows[1][1])
@@ -268,7 +268,7 @@ JOINT_FACTOR = 2.0     # measured best of 0.5 / 1 / 2 / 4 for the joint estimate
 
 
 def _joint_rows(v, k, nz, lo, hi, prof, t64, vm, acc):
-    """`dark_split`'s joint-FSE rows (issue 8, helper dark2): (name, estimate) pairs."""
+    """`dark_split`'s joint-FSE rows: (name, estimate) pairs."""
     from nrhdr_core import fse
     R = reconstruction
     miss = ~k
@@ -348,7 +348,7 @@ def main(argv=None) -> int:
         for pattern in ("nonregular", "regular"):
             prof = profile.default(h, w, seed=3, pattern=pattern)
             model = crosstalk.sensor_model_preset("prototype", h, w, seed=2)
-            # both masks calibrate (the checkerboard from the sensor's outer ring since session 3): a
+            # both masks calibrate (the checkerboard from the sensor's outer ring): a
             # CalibrationError here is a real failure and stops the benchmark
             cam = calibrate_sensor(prof, model, tmp / pattern, a.quick)
             xt = "prototype crosstalk, calibrated"

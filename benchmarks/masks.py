@@ -1,4 +1,4 @@
-"""Mask benchmark (issue 10, docs/PAPER.md): the paper's core claim, non-regular sampling + FSE against the
+"""Mask benchmark (docs/PAPER.md): the paper's core claim, non-regular sampling + FSE against the
 regular checkerboard, measured for several mask designs on the same inputs in one run.
 
     .venv/bin/python benchmarks/masks.py --quick     # ~1-2 min on 2 cores: 256 px crops, fewer images

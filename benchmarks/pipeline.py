@@ -111,7 +111,7 @@ def main(argv=None) -> int:
         for mode in ("lut", "kernel"):
             rows.append((f"nrcrosstalk mode={mode}{' lut=full' if mode == 'lut' else ''} (calibrated prototype sensor)",
                          tm(lambda: crosstalk.correct(cv.copy(), cs.copy(), cprof, mode=mode), 5)))
-        if hasattr(crosstalk, "compact_for"):   # nrcrosstalk's default LUT form (helper lut, issue 7)
+        if hasattr(crosstalk, "compact_for"):   # nrcrosstalk's default LUT form
             crosstalk.compact_for(cprof)
             rows.append(("nrcrosstalk mode=lut lut=compact (calibrated prototype sensor)",
                          tm(lambda: crosstalk.correct(cv.copy(), cs.copy(), cprof, mode="lut", lut="compact"), 5)))
@@ -202,7 +202,7 @@ def launch_rate(desc: str, frames: int, skip: int = 2) -> float:
     start-up: from the timestamps of nrreconstruct's per-frame log lines (GST_DEBUG=nrreconstruct:6), the
     first `skip` frames left out. NaN for a pipeline without nrreconstruct. The in-process column runs
     the same pipeline under this Python process's own main loop; the two differ by more than the run-to-run
-    noise at 1080p (docs/BENCHMARKS.md, session 4)."""
+    noise at 1080p (docs/BENCHMARKS.md)."""
     import shlex
     import subprocess
 

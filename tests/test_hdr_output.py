@@ -1,4 +1,4 @@
-"""HDR display output (issue 11 item 6): SMPTE ST 2084 (PQ) and ARIB STD-B67 / BT.2100 HLG against the
+"""HDR display output: SMPTE ST 2084 (PQ) and ARIB STD-B67 / BT.2100 HLG against the
 published formulas and constants (written out here, independently of nrhdr_core.tonemap), nrtonemap
 transfer=pq|hlg with BT.2100 colorimetry, and the shipped HDR pipelines."""
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""Issue 8: physically valid HDR output (no negative / non-finite value, bounds, no ringing around point
+"""Physically valid HDR output (no negative / non-finite value, bounds, no ringing around point
 sources), a stable domain (zone plate, noise seed), the noise-aware dark policy, HDR metrics (PU21 by
-hand from its published formula), and issue 9 item 5 (a saturated frame is uniform at its bound)."""
+hand from its published formula), and a saturated frame uniform at its bound."""
 import math
 import warnings
 
@@ -149,7 +149,7 @@ def test_saturated_frame_is_uniform_at_the_bound_not_the_mask():
 
 
 def test_overexposed_scene_shows_no_mask_pattern():
-    """Issue 9 item 5: a scene over-exposed by 7 stops: where it saturates both pixel kinds the output is
+    """A scene over-exposed by 7 stops: where it saturates both pixel kinds the output is
     one uniform level (regular and ND pixels alike), not the ND mask as a dot pattern."""
     from scipy.ndimage import binary_erosion
     sc = io.read_luminance(shared_data("hdr", "Desk.exr"))

@@ -1,4 +1,4 @@
-"""Issue 13 item 4: no import cycles in nrhdr_core. Every import of an nrhdr_core module (module level or inside
+"""No import cycles in nrhdr_core. Every import of an nrhdr_core module (module level or inside
 a function: a function-level import only hides a cycle) is read from the source's AST; the graph must be
 acyclic."""
 from __future__ import annotations

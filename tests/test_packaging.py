@@ -1,4 +1,4 @@
-"""Packaging (issue 11 item 7): a LICENSE file shipped in the wheel, one version source, CLI hints that
+"""Packaging: a LICENSE file shipped in the wheel, one version source, CLI hints that
 negotiate with stock sinks, property blurbs without machine-specific timings."""
 from __future__ import annotations
 

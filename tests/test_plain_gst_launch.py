@@ -1,5 +1,5 @@
 """`nrhdr env` then plain gst-launch-1.0 in a clean shell (only PATH and HOME set), as the README's recipe
-says (issue 11 item 4)."""
+says."""
 from __future__ import annotations
 
 import os
