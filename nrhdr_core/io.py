@@ -28,6 +28,10 @@ class ImageFileError(FileContentError):
     """An image could not be read or has unexpected content; the message names the file."""
 
 
+class ImageSizeError(ImageFileError):
+    """An image's header declares another size than the one it must have (nothing was decoded)."""
+
+
 class OutputExistsError(FileExistsError):
     """A command would replace a file or folder it was not told to replace (`--force`, `overwrite`)."""
 
@@ -137,7 +141,7 @@ def _read_pixels(path, fmt_of, shape=None, channels=None, check=None):
             raise ImageFileError(f"{path}: the header declares {w}x{h} pixels, {c} channels: more than nrhdr "
                                  f"reads ({MAX_PIXELS} pixels, {MAX_CHANNELS} channels); nothing was decoded")
         if shape is not None and (h, w) != tuple(shape):
-            raise ImageFileError(f"{path}: image is {w}x{h}, expected {shape[1]}x{shape[0]}; nothing was "
+            raise ImageSizeError(f"{path}: image is {w}x{h}, expected {shape[1]}x{shape[0]}; nothing was "
                                  f"decoded")
         if check is not None:
             check(spec)

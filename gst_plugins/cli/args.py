@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from nrhdr_core.profile import MAX_SIZE, ND_MAX
+
 
 def number(lo: float | None = None, hi: float | None = None, *, integer: bool = False,
            lo_open: bool = False, hi_open: bool = False):
@@ -23,3 +25,18 @@ def number(lo: float | None = None, hi: float | None = None, *, integer: bool = 
         return v
     parse.__name__ = "integer" if integer else "number"    # argparse names the type in its message
     return parse
+
+
+# the value ranges of the options several commands share
+SEED = number(0, 2 ** 63 - 1, integer=True)
+SIZE = number(1, MAX_SIZE, integer=True)       # sensor width / height
+ND = number(1, ND_MAX)                         # ND factor (Eq. 1)
+CODE_LEVEL = number(0, 65535)                  # a level in ADC codes (l_min)
+
+
+def add_allow_outside(p) -> None:
+    """`--allow-outside-paths`: trust the files named inside the JSON/CSV files this command reads (docs/
+    RELIABILITY.md): they may then lie outside the folder holding the naming file."""
+    p.add_argument("--allow-outside-paths", action="store_true",
+                   help="accept files named by a profile, clip.json or exposures.csv outside that file's folder "
+                        "(absolute paths, '..', links out of it); only for files you trust")
