@@ -116,7 +116,7 @@ def resolve_named(source, field: str, name, error=FileContentError, allow_outsid
 # Images: the header is checked before any pixel is decoded, every decoder error surfaces
 # ======================================================================================================
 
-MAX_PIXELS = 1 << 28        # 16384 x 16384: larger images are refused before decoding (a decompression bomb)
+MAX_PIXELS = 1 << 27        # 16384 x 8192: larger images are refused before decoding (a decompression bomb)
 MAX_CHANNELS = 64
 
 
