@@ -123,17 +123,33 @@ MAX_CHANNELS = 64
 def _read_pixels(path, fmt_of, shape=None, channels=None, check=None):
     """Open `path` with OpenImageIO, check its header (2-D, at most MAX_PIXELS pixels and MAX_CHANNELS
     channels, `shape` (H, W) where given, `check(spec)`), then decode channels `channels(spec)` -> (begin,
-    end) (default all) as `fmt_of(spec)`; returns (pixels (H, W, C), spec). Errors: ImageFileError naming the
+    end) (default all) as `fmt_of(spec)`; returns (pixels (H, W, C), spec, channel names). Errors: ImageFileError naming the
     file, also for a truncated or corrupt file."""
     oiio = _oiio()
     path = str(path)
     if not os.path.isfile(path):
         raise ImageFileError(f"{path}: no such file")
+    try:
+        return _decode(oiio, path, fmt_of, shape, channels, check)
+    except UnicodeDecodeError:      # a corrupt header's names reach us through OpenImageIO's messages
+        raise ImageFileError(f"{path}: cannot read image: its header holds text that is not UTF-8 (corrupt "
+                             f"file?)") from None
+
+
+def _error_text(get) -> str:
+    try:
+        return (get() or "").strip()
+    except UnicodeDecodeError:
+        return "(an error message that is not UTF-8)"
+
+
+def _decode(oiio, path, fmt_of, shape, channels, check):
     inp = oiio.ImageInput.open(path)
     if inp is None:
-        raise ImageFileError(f"{path}: cannot read image: {oiio.geterror().strip()}")
+        raise ImageFileError(f"{path}: cannot read image: {_error_text(oiio.geterror)}")
     try:
         spec = inp.spec()
+        names = [str(n) for n in spec.channelnames]
         w, h, d, c = int(spec.width), int(spec.height), int(spec.depth), int(spec.nchannels)
         if w < 1 or h < 1 or d != 1 or c < 1:
             raise ImageFileError(f"{path}: not a 2-D image ({w}x{h}x{d}, {c} channels)")
@@ -147,10 +163,10 @@ def _read_pixels(path, fmt_of, shape=None, channels=None, check=None):
             check(spec)
         cb, ce = channels(spec) if channels is not None else (0, c)
         px = inp.read_image(0, 0, cb, ce, fmt_of(spec))
-        err = inp.geterror() if inp.has_error else ""
+        err = _error_text(inp.geterror) if inp.has_error else ""
         if px is None or err:
             raise ImageFileError(f"{path}: cannot decode pixels (truncated or corrupt file?): "
-                                 f"{(err or oiio.geterror()).strip() or 'read failed'}")
+                                 f"{err or _error_text(oiio.geterror) or 'read failed'}")
     finally:
         inp.close()
     px = np.asarray(px)
@@ -158,7 +174,7 @@ def _read_pixels(path, fmt_of, shape=None, channels=None, check=None):
         px = px[:, :, None]
     if px.shape[:2] != (h, w):
         raise ImageFileError(f"{path}: decoded {px.shape[1]}x{px.shape[0]} pixels, header says {w}x{h}")
-    return px, spec
+    return px, spec, names
 
 
 def read_image(path, dtype=np.float32, shape=None) -> np.ndarray:
@@ -262,8 +278,7 @@ def read_exr(path, shape=None):
     `shape` (H, W): the size it must have (checked before decoding). A truncated or corrupt file is an
     ImageFileError naming it."""
     oiio = _oiio()
-    px, spec = _read_pixels(path, lambda spec: oiio.FLOAT, shape)
-    names = [str(n) for n in spec.channelnames]
+    px, spec, names = _read_pixels(path, lambda spec: oiio.FLOAT, shape)
     vi = names.index("Y") if "Y" in names else 0
     state = None
     if "state" in names:
@@ -295,7 +310,7 @@ def read_mask(path, shape=None) -> np.ndarray:
         if spec.format.basetype not in (oiio.UINT8, oiio.UINT16):
             raise ImageFileError(f"{path}: mask must be an 8-bit (or 16-bit) integer image, got {spec.format}")
 
-    px, spec = _read_pixels(path, lambda spec: spec.format.basetype, shape, check=check)
+    px, spec, _ = _read_pixels(path, lambda spec: spec.format.basetype, shape, check=check)
     bits = 8 if spec.format.basetype == oiio.UINT8 else 16
     m = px[:, :, 0]
     if px.shape[2] > 1 and not all(np.array_equal(m, px[:, :, c]) for c in range(1, px.shape[2])):

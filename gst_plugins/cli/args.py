@@ -16,7 +16,7 @@ def number(lo: float | None = None, hi: float | None = None, *, integer: bool = 
             v = int(text, 10) if integer else float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not {'a whole number' if integer else 'a number'}")
-        if not math.isfinite(v):
+        if not integer and not math.isfinite(v):        # (a Python int is always finite, and may exceed a float)
             raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
         if lo is not None and (v < lo or (lo_open and v == lo)):
             raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'>' if lo_open else '>='} {lo}")
