@@ -223,8 +223,7 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
     try:
         mask = io.read_mask(mask_path, shape=(doc["height"], doc["width"]))
     except io.ImageFileError as e:
-        raise ProfileError(f"{path}: field 'mask': {e} (the profile says {doc['width']}x{doc['height']})") \
-            from None
+        raise ProfileError(f"{path}: field 'mask': {e}") from None
     fields = {}
     for k, typ in _SCALARS.items():
         if k in doc:
@@ -281,14 +280,14 @@ def _check_calibration_fits(path: Path, xt, fields: dict) -> None:
 
 def _check_binding(path: Path, entry: dict, mask: np.ndarray, mask_path: Path, bit_depth: int) -> None:
     """A calibration belongs to the sensor it was measured on: its recorded mask checksum, size and bit depth
-    must match the profile's mask (docs/PROFILE.md). Calibrations written before the checksum existed load
+    must match the profile's mask (docs/PROFILE.md). Calibrations that record no checksum load
     with a ProfileWarning (nothing to compare)."""
     xt = entry.get("file")
     want = entry.get("mask_sha256")
     if want is None:
-        warnings.warn(f"{path}: field 'crosstalk': calibration {xt} records no mask checksum (written by an "
-                      f"older nrhdr): cannot check that it was made for {mask_path.name}; re-save the profile "
-                      f"with a current nrhdr to bind it", ProfileWarning, stacklevel=3)
+        warnings.warn(f"{path}: field 'crosstalk': calibration {xt} records no mask checksum: cannot check "
+                      f"that it was made for {mask_path.name}; re-save the profile (profile.save) to bind it",
+                      ProfileWarning, stacklevel=3)
         return
     if not isinstance(want, str):
         raise ProfileError(f"{path}: field 'crosstalk.mask_sha256' must be a string, got {want!r}")
