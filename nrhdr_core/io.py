@@ -123,8 +123,8 @@ MAX_CHANNELS = 64
 def _read_pixels(path, fmt_of, shape=None, channels=None, check=None):
     """Open `path` with OpenImageIO, check its header (2-D, at most MAX_PIXELS pixels and MAX_CHANNELS
     channels, `shape` (H, W) where given, `check(spec)`), then decode channels `channels(spec)` -> (begin,
-    end) (default all) as `fmt_of(spec)`; returns (pixels (H, W, C), spec, channel names). Errors: ImageFileError naming the
-    file, also for a truncated or corrupt file."""
+    end) (default all) as `fmt_of(spec)`; returns (pixels (H, W, C), spec, channel names). Errors:
+    ImageFileError naming the file, also for a truncated or corrupt file."""
     oiio = _oiio()
     path = str(path)
     if not os.path.isfile(path):

@@ -8,6 +8,11 @@ import math
 from nrhdr_core.profile import MAX_SIZE, ND_MAX
 
 
+def _show(x) -> str:
+    """A bound as the user would type it: 1024, not 1024.0."""
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+
 def number(lo: float | None = None, hi: float | None = None, *, integer: bool = False,
            lo_open: bool = False, hi_open: bool = False):
     """A `type=` for argparse: a finite int/float within [lo, hi] (open ends where asked)."""
@@ -19,9 +24,9 @@ def number(lo: float | None = None, hi: float | None = None, *, integer: bool = 
         if not integer and not math.isfinite(v):        # (a Python int is always finite, and may exceed a float)
             raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
         if lo is not None and (v < lo or (lo_open and v == lo)):
-            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'>' if lo_open else '>='} {lo}")
+            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'>' if lo_open else '>='} {_show(lo)}")
         if hi is not None and (v > hi or (hi_open and v == hi)):
-            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'<' if hi_open else '<='} {hi}")
+            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'<' if hi_open else '<='} {_show(hi)}")
         return v
     parse.__name__ = "integer" if integer else "number"    # argparse names the type in its message
     return parse
