@@ -265,6 +265,46 @@ def _entry_number(entry: dict, key: str, lo: float, hi: float, integer: bool = F
     return int(v) if integer else float(v)
 
 
+MAX_SPILL_SIGNALS = 4096     # the spill table's signal count (a calibration writes one per exposure)
+
+
+def _check_npz_shapes(path: Path, h: int, w: int) -> None:
+    """ValueError unless every array of the calibration `path` declares (in its .npy header, read without
+    decompressing the data) a shape that fits an (h, w) sensor: (h, w, K <= 255) for codes_q, (h, w) for the
+    per-pixel maps, (K,) knot fluxes, (8, J) and (J,) spill table with J <= MAX_SPILL_SIGNALS. Bounds the
+    memory a received calibration can make us allocate."""
+    shapes, dtypes = {}, {}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            members = set(zf.namelist())
+            for k in _ARRAYS:
+                if k + ".npy" not in members:
+                    continue                 # reported by the reader below, naming the array
+                with zf.open(k + ".npy") as f:
+                    version = np.lib.format.read_magic(f)
+                    if version == (1, 0):
+                        shp, _, dt = np.lib.format.read_array_header_1_0(f)
+                    elif version == (2, 0):
+                        shp, _, dt = np.lib.format.read_array_header_2_0(f)
+                    else:
+                        raise ValueError(f"array {k}: .npy format version {version} is not read here")
+                shapes[k] = tuple(int(n) for n in shp)
+                dtypes[k] = np.dtype(dt)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, RuntimeError, NotImplementedError) as e:
+        raise ValueError(f"{path}: not a readable crosstalk calibration (.npz): {e}") from None
+    cq = shapes.get("codes_q")
+    k = cq[2] if cq is not None and len(cq) == 3 else None
+    j = shapes.get("sig_e", (0,))[0] if len(shapes.get("sig_e", (0,))) == 1 else None
+    want = {"codes_q": ((h, w, k), f"uint16 ({h}, {w}, K)"), "n_knots": ((h, w), f"({h}, {w})"),
+            "clip_flux": ((h, w), f"({h}, {w})"), "alpha": ((h, w), f"({h}, {w})"), "knot_flux": ((k,), "(K,)"),
+            "sig_e": ((j,), "(J,)"), "sigma": ((8, j), "(8, J)")}
+    for name, shp in shapes.items():
+        if shp != want[name][0] or (name == "codes_q" and not (1 <= k <= 255 and dtypes[name] == np.uint16)) \
+                or (name == "sig_e" and not 2 <= j <= MAX_SPILL_SIGNALS):
+            raise ValueError(f"{path}: array {name} is {dtypes[name]} {shp}, expected {want[name][1]} for the "
+                             f"profile's {w}x{h} mask (1..255 knots K, 2..{MAX_SPILL_SIGNALS} spill signals J)")
+
+
 def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: bool = False) -> CrosstalkCalibration:
     """Read the calibration named by a profile's 'crosstalk' entry; ValueError on any inconsistency.
 
@@ -295,6 +335,8 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
     path = io.resolve_named(source, "crosstalk.file", entry["file"], ValueError, allow_outside)
     if not path.is_file():
         raise ValueError(f"{path}: crosstalk calibration file not found")
+    h, w = int(shape[0]), int(shape[1])
+    _check_npz_shapes(path, h, w)               # from the array headers, before anything is decompressed
     try:
         with np.load(path, allow_pickle=False) as z:
             arr = {}
@@ -307,7 +349,6 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
     for name in _ARRAYS:
         if arr[name].dtype.kind not in "uif":
             raise ValueError(f"{path}: array {name} has type {arr[name].dtype}, expected numbers")
-    h, w = int(shape[0]), int(shape[1])
     cq = arr["codes_q"]
     if cq.ndim != 3 or cq.shape[:2] != (h, w) or cq.dtype != np.uint16:
         raise ValueError(f"{path}: LUT is {cq.shape} {cq.dtype}, expected uint16 ({h}, {w}, K) for the "

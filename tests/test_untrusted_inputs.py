@@ -236,6 +236,30 @@ def test_calibration_arrays_are_checked(tmp_path, damage):
         profile.load(f)
 
 
+def test_calibration_array_declaring_a_huge_shape_is_refused_from_its_header(tmp_path):
+    """An .npz member whose .npy header declares 60000 x 60000 x 255 codes (900 GB) with 64 bytes of data:
+    refused from the header, nothing is decompressed."""
+    import io as pyio
+    import zipfile
+    f = _profile(tmp_path / "recv", calibrated=True)
+    npz = f.parent / "cam_crosstalk.npz"
+    with np.load(npz) as z:
+        arrays = {k: z[k] for k in z.files}
+    with zipfile.ZipFile(npz, "w", zipfile.ZIP_DEFLATED) as zf:
+        for k, v in arrays.items():
+            b = pyio.BytesIO()
+            if k == "codes_q":
+                np.lib.format.write_array_header_1_0(b, {"descr": "<u2", "fortran_order": False,
+                                                         "shape": (60000, 60000, 255)})
+                b.write(bytes(64))
+            else:
+                np.lib.format.write_array(b, v)
+            zf.writestr(k + ".npy", b.getvalue())
+    with pytest.raises(profile.ProfileError, match=r"array codes_q is uint16 \(60000, 60000, 255\), expected uint16 "
+                                                   r"\(12, 16, K\)"):
+        profile.load(f)
+
+
 def test_calibration_of_another_sensor_is_refused_by_check_same_sensor(tmp_path):
     a = profile.load(_profile(tmp_path / "a", calibrated=True))
     other = profile.make(~a.mask)
