@@ -60,7 +60,7 @@ def launch_line(clip: dict, out: Path, sink: str = "autovideosink") -> str:
     words = ["nrhdr", "launch", "filesrc", f"location={out / 'clip.raw'}", "!", *rawvideoparse(clip).split(),
              "!", "nrvalidity", f"profile={out / 'camera.json'}", "!", "nrreconstruct", "!", "nrtonemap", "!",
              "videoconvert", "!", sink]
-    return " ".join(shlex.quote(w) for w in words)
+    return " ".join(w if w == "!" else shlex.quote(w) for w in words)     # a lone ! is not history expansion
 
 
 def cmd_profile(a) -> int:
