@@ -61,8 +61,12 @@ class FlatSweep:
         return self.mean.shape[1:]
 
 
-def read_index(folder) -> list[tuple[float, list[Path]]]:
-    """Validate `folder/exposures.csv` and return [(exposure_s, [frame paths])] sorted by exposure."""
+CSV_MAX_BYTES = 16 << 20     # exposures.csv: a line per frame; 16 MiB is over 100000 frames
+
+
+def read_index(folder, allow_outside: bool = False) -> list[tuple[float, list[Path]]]:
+    """Validate `folder/exposures.csv` and return [(exposure_s, [frame paths])] sorted by exposure. The
+    frames it names must lie in `folder` unless `allow_outside` (io.resolve_named)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise CalibrationError(f"{folder}: flat-field folder not found")
@@ -71,6 +75,8 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
         raise CalibrationError(f"{csv_path}: missing (a flat-field folder needs exposures.csv with columns "
                                f"file,exposure_s)")
     try:
+        if csv_path.stat().st_size > CSV_MAX_BYTES:
+            raise CalibrationError(f"{csv_path}: larger than {CSV_MAX_BYTES} bytes: not a flat-field index")
         with open(csv_path, newline="", encoding="utf-8-sig") as f:     # tolerate a BOM (spreadsheets)
             rd = csv.DictReader(f)
             rows = list(rd)
@@ -101,7 +107,7 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
                                    f"number") from None
         if not (math.isfinite(t) and t >= 0):
             raise CalibrationError(f"{csv_path}: line {n}: exposure_s must be finite and >= 0, got {t}")
-        p = folder / name
+        p = io.resolve_named(csv_path, f"file (line {n})", name, CalibrationError, allow_outside)
         try:
             found = p.is_file()
         except (OSError, ValueError):     # e.g. a NUL byte or a name too long for the file system
@@ -130,17 +136,20 @@ def read_index(folder) -> list[tuple[float, list[Path]]]:
     return sorted(groups.items())
 
 
-def _read_frame(p: Path) -> np.ndarray:
+def _read_frame(p: Path, shape=None, first=None) -> np.ndarray:
     try:
-        px = io.read_image(p, np.uint16)
+        px = io.read_image(p, np.uint16, shape=shape)
+    except io.ImageSizeError as e:
+        raise CalibrationError(f"{e}; all frames of a sweep must have one size (that of {first.name})") from None
     except io.ImageFileError as e:
         raise CalibrationError(str(e)) from None
     return px[:, :, 0]
 
 
-def read_flats(folder, progress: bool = True) -> FlatSweep:
-    """Read and validate a flat-field folder; per-exposure mean, max and temporal variance per pixel."""
-    index = read_index(folder)
+def read_flats(folder, progress: bool = True, allow_outside: bool = False) -> FlatSweep:
+    """Read and validate a flat-field folder; per-exposure mean, max and temporal variance per pixel. Every
+    frame must have the first frame's size (checked from its header, before decoding)."""
+    index = read_index(folder, allow_outside)
     from tqdm import tqdm
     total = sum(len(g) for _, g in index)
     shape = None
@@ -151,7 +160,7 @@ def read_flats(folder, progress: bool = True) -> FlatSweep:
         for i, (t, paths) in enumerate(index):
             s = s2 = mx = None
             for p in paths:
-                fr = _read_frame(p)
+                fr = _read_frame(p, shape, first)
                 if shape is None:
                     shape, first = fr.shape, p
                     mean = np.empty((E,) + shape, np.float32)
@@ -898,6 +907,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
     """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep: the steps of
     paper 3.2, 4.1 and 4.2 (module doc), each a function of this module."""
     from tqdm import tqdm
+    check_options(nd_nominal, l_min, clip_code, bit_depth)
     mask = check_mask(sweep, mask, mask_name)
     where = str(sweep.folder)
     with tqdm(total=6, desc="calibrating", unit="step", disable=not progress, file=sys.stderr) as bar:
@@ -1154,10 +1164,30 @@ def write_plots(res: CalibrationResult, prefix) -> list[Path]:
 # The whole calibration from files (`nrhdr calibrate`, gst_plugins/cli/calibration.py)
 # ======================================================================================================
 
+def check_options(nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None) -> None:
+    """CalibrationError naming the option unless the user's settings are usable: `nd_nominal` None or
+    finite in 1..1024, `l_min` finite >= 0, `clip_code` None or an integer in 1..65535, `bit_depth` None or
+    an integer in 1..16."""
+    def num(v, integer=False):
+        if integer:
+            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+    if nd_nominal is not None and not (num(nd_nominal) and 1 <= nd_nominal <= profiles.ND_MAX):
+        raise CalibrationError(f"nd_nominal must be a finite number in 1..{profiles.ND_MAX:g}, got {nd_nominal!r}")
+    if not (num(l_min) and l_min >= 0):
+        raise CalibrationError(f"l_min must be a finite number >= 0, got {l_min!r}")
+    if clip_code is not None and not (num(clip_code, True) and 1 <= clip_code <= 65535):
+        raise CalibrationError(f"clip_code must be an integer in 1..65535, got {clip_code!r}")
+    if bit_depth is not None and not (num(bit_depth, True) and 1 <= bit_depth <= 16):
+        raise CalibrationError(f"bit_depth must be an integer in 1..16, got {bit_depth!r}")
+
+
 def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None,
-                  plots=True, progress=True, overwrite=False):
+                  plots=True, progress=True, overwrite=False, allow_outside=False):
     """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary. Existing
-    outputs (the profile's files, the plots) are refused before any work unless `overwrite`."""
+    outputs (the profile's files, the plots) are refused before any work unless `overwrite`; frames named
+    outside the flats folder only with `allow_outside` (read_index)."""
+    check_options(nd_nominal, l_min, clip_code, bit_depth)
     out = Path(output)
     if not overwrite:
         io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
@@ -1166,7 +1196,7 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
         mask = io.read_mask(mask_path)
     except io.ImageFileError as e:
         raise CalibrationError(str(e)) from None
-    sweep = read_flats(flats, progress=progress)
+    sweep = read_flats(flats, progress=progress, allow_outside=allow_outside)
     res = calibrate(sweep, mask, nd_nominal=nd_nominal, l_min=l_min, clip_code=clip_code,
                     bit_depth=bit_depth, name=out.stem, mask_name=str(mask_path), progress=progress)
     profiles.save(res.profile, out)

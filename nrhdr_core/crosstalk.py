@@ -255,68 +255,154 @@ def save_calibration(calib: CrosstalkCalibration, path) -> dict:
             "clip_code": int(calib.clip_code), "info": calib.info}
 
 
-def load_calibration(entry: dict, base_dir, shape) -> CrosstalkCalibration:
-    """Read the calibration named by a profile's 'crosstalk' entry; ValueError on any inconsistency."""
+def _entry_number(entry: dict, key: str, lo: float, hi: float, integer: bool = False, lo_open: bool = False):
+    """entry[key] as a finite number within [lo, hi] ((lo, hi] with lo_open); ValueError naming the field."""
+    v = entry[key]
+    ok = isinstance(v, int) if integer else isinstance(v, (int, float))
+    if not ok or isinstance(v, bool) or not math.isfinite(v) or v < lo or v > hi or (lo_open and v == lo):
+        kind = "an integer" if integer else "a finite number"
+        raise ValueError(f"field '{key}' must be {kind} in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {v!r}")
+    return int(v) if integer else float(v)
+
+
+MAX_SPILL_SIGNALS = 4096     # the spill table's signal count (a calibration writes one per exposure)
+
+
+def _check_npz_shapes(path: Path, h: int, w: int) -> None:
+    """ValueError unless every array of the calibration `path` declares (in its .npy header, read without
+    decompressing the data) a shape that fits an (h, w) sensor: (h, w, K <= 255) for codes_q, (h, w) for the
+    per-pixel maps, (K,) knot fluxes, (8, J) and (J,) spill table with J <= MAX_SPILL_SIGNALS. Bounds the
+    memory a received calibration can make us allocate."""
+    shapes, dtypes = {}, {}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            members = set(zf.namelist())
+            for k in _ARRAYS:
+                if k + ".npy" not in members:
+                    continue                 # reported by the reader below, naming the array
+                with zf.open(k + ".npy") as f:
+                    version = np.lib.format.read_magic(f)
+                    if version == (1, 0):
+                        shp, _, dt = np.lib.format.read_array_header_1_0(f)
+                    elif version == (2, 0):
+                        shp, _, dt = np.lib.format.read_array_header_2_0(f)
+                    else:
+                        raise ValueError(f"array {k}: .npy format version {version} is not read here")
+                shapes[k] = tuple(int(n) for n in shp)
+                dtypes[k] = np.dtype(dt)
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, RuntimeError, NotImplementedError) as e:
+        raise ValueError(f"{path}: not a readable crosstalk calibration (.npz): {e}") from None
+    cq = shapes.get("codes_q")
+    k = cq[2] if cq is not None and len(cq) == 3 else None
+    j = shapes.get("sig_e", (0,))[0] if len(shapes.get("sig_e", (0,))) == 1 else None
+    want = {"codes_q": ((h, w, k), f"uint16 ({h}, {w}, K)"), "n_knots": ((h, w), f"({h}, {w})"),
+            "clip_flux": ((h, w), f"({h}, {w})"), "alpha": ((h, w), f"({h}, {w})"), "knot_flux": ((k,), "(K,)"),
+            "sig_e": ((j,), "(J,)"), "sigma": ((8, j), "(8, J)")}
+    for name, shp in shapes.items():
+        if shp != want[name][0] or (name == "codes_q" and not (1 <= k <= 255 and dtypes[name] == np.uint16)) \
+                or (name == "sig_e" and not 2 <= j <= MAX_SPILL_SIGNALS):
+            raise ValueError(f"{path}: array {name} is {dtypes[name]} {shp}, expected {want[name][1]} for the "
+                             f"profile's {w}x{h} mask (1..255 knots K, 2..{MAX_SPILL_SIGNALS} spill signals J)")
+
+
+def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: bool = False) -> CrosstalkCalibration:
+    """Read the calibration named by a profile's 'crosstalk' entry; ValueError on any inconsistency.
+
+    `source`: the JSON file holding the entry (default: a file in `base_dir`); the .npz it names must lie in
+    its folder unless `allow_outside` (io.resolve_named). Every value is checked before use: the entry's
+    numbers finite and in range, every array of the sensor's `shape` (H, W), knot fluxes finite and strictly
+    increasing, each pixel's knot codes non-decreasing, spill table finite."""
+    from . import io
     if not isinstance(entry, dict):
         raise ValueError(f"crosstalk entry must be an object, got {type(entry).__name__}")
     if entry.get("format") != CALIB_FORMAT:
         raise ValueError(f"crosstalk entry: field 'format' must be '{CALIB_FORMAT}'")
-    if entry.get("version") != CALIB_VERSION:
+    if entry.get("version") != CALIB_VERSION or isinstance(entry.get("version"), bool):
         raise ValueError(f"crosstalk entry: this nrhdr reads version {CALIB_VERSION}, got "
                          f"{entry.get('version')!r}")
     for k in ("file", "qscale", "qoffset", "nd", "black_level", "clip_code"):
         if k not in entry:
             raise ValueError(f"crosstalk entry: missing field '{k}'")
-    path = Path(base_dir) / str(entry["file"])
+    try:
+        qscale = _entry_number(entry, "qscale", 0.0, 16.0, lo_open=True)
+        qoffset = _entry_number(entry, "qoffset", 0.0, 65535.0 * 16.0)
+        nd = _entry_number(entry, "nd", 1.0, 1e6)
+        black_level = _entry_number(entry, "black_level", 0.0, 65535.0)
+        clip_code = _entry_number(entry, "clip_code", 1, 65535, integer=True)
+    except ValueError as e:
+        raise ValueError(f"crosstalk entry: {e}") from None
+    source = Path(source) if source is not None else Path(base_dir) / "profile.json"
+    path = io.resolve_named(source, "crosstalk.file", entry["file"], ValueError, allow_outside)
     if not path.is_file():
         raise ValueError(f"{path}: crosstalk calibration file not found")
+    h, w = int(shape[0]), int(shape[1])
+    _check_npz_shapes(path, h, w)               # from the array headers, before anything is decompressed
     try:
         with np.load(path, allow_pickle=False) as z:
-            arr = {k: np.array(z[k]) for k in _ARRAYS}
+            arr = {}
+            for k in _ARRAYS:
+                arr[k] = z[k]
     except KeyError as e:
         raise ValueError(f"{path}: crosstalk calibration lacks array {e}") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, RuntimeError, NotImplementedError) as e:
         raise ValueError(f"{path}: not a readable crosstalk calibration (.npz): {e}") from None
-    h, w = int(shape[0]), int(shape[1])
+    for name in _ARRAYS:
+        if arr[name].dtype.kind not in "uif":
+            raise ValueError(f"{path}: array {name} has type {arr[name].dtype}, expected numbers")
     cq = arr["codes_q"]
     if cq.ndim != 3 or cq.shape[:2] != (h, w) or cq.dtype != np.uint16:
         raise ValueError(f"{path}: LUT is {cq.shape} {cq.dtype}, expected uint16 ({h}, {w}, K) for the "
                          f"profile's {w}x{h} mask")
     k = cq.shape[2]
-    if arr["knot_flux"].shape != (k,) or arr["n_knots"].shape != (h, w) or arr["clip_flux"].shape != (h, w) \
-            or arr["alpha"].shape != (h, w):
-        raise ValueError(f"{path}: array shapes are inconsistent (corrupt calibration)")
-    if arr["sigma"].ndim != 2 or arr["sigma"].shape[0] != 8 or arr["sigma"].shape[1] != arr["sig_e"].shape[0]:
-        raise ValueError(f"{path}: neighbour spill table has shape {arr['sigma'].shape}, expected (8, J)")
-    if int(arr["n_knots"].max(initial=0)) > k:
-        raise ValueError(f"{path}: knot counts exceed the {k} stored knots (corrupt calibration)")
-    if not np.all(np.isfinite(arr["knot_flux"])) or np.any(np.diff(arr["knot_flux"]) < 0):
-        raise ValueError(f"{path}: knot fluxes must be finite and increasing")
-    if not np.all(np.isfinite(arr["sigma"])) or not np.all(np.isfinite(arr["sig_e"])):
+    for name, want in (("knot_flux", (k,)), ("n_knots", (h, w)), ("clip_flux", (h, w)), ("alpha", (h, w))):
+        if arr[name].shape != want:
+            raise ValueError(f"{path}: array {name} has shape {arr[name].shape}, expected {want} (a calibration "
+                             f"of this {w}x{h} sensor with {k} knots)")
+    if arr["sigma"].ndim != 2 or arr["sigma"].shape[0] != 8 or arr["sig_e"].ndim != 1 \
+            or arr["sigma"].shape[1] != arr["sig_e"].shape[0]:
+        raise ValueError(f"{path}: neighbour spill table has shape {arr['sigma'].shape} for signals "
+                         f"{arr['sig_e'].shape}, expected (8, J) and (J,)")
+    if k < 1 or k > 255:
+        raise ValueError(f"{path}: the LUT holds {k} knots per pixel, expected 1..255")
+    nk = arr["n_knots"]
+    if nk.dtype.kind == "f" and not np.array_equal(nk, np.floor(nk)) or nk.min(initial=0) < 0 \
+            or nk.max(initial=0) > k:
+        raise ValueError(f"{path}: knot counts must be integers in 0..{k} (corrupt calibration)")
+    nk = nk.astype(np.int32)
+    kf = arr["knot_flux"].astype(np.float64)
+    if not np.all(np.isfinite(kf)) or np.any(kf < 0) or np.any(np.diff(kf) <= 0):
+        raise ValueError(f"{path}: knot fluxes must be finite, >= 0 and strictly increasing")
+    down = (cq[:, :, 1:] < cq[:, :, :-1]) & (np.arange(1, k) < nk[:, :, None])
+    if down.any():
+        bad = np.argwhere(down)
+        y, x = int(bad[0][0]), int(bad[0][1])
+        raise ValueError(f"{path}: the knot codes of {len(np.unique(bad[:, :2], axis=0))} pixels decrease "
+                         f"(first at y={y}, x={x}): a pixel's codes must not decrease with flux")
+    cf = arr["clip_flux"].astype(np.float32)
+    if np.any(np.isinf(cf)) or np.any(cf <= 0):
+        raise ValueError(f"{path}: clip fluxes must be positive (NaN: never clipped), found "
+                         f"{int(np.sum(np.isinf(cf) | (cf <= 0)))} others")
+    al = arr["alpha"].astype(np.float32)
+    if not np.all(np.isfinite(al)):
+        raise ValueError(f"{path}: crosstalk amplitudes (alpha) must be finite")
+    se, sg = arr["sig_e"].astype(np.float64), arr["sigma"].astype(np.float64)
+    if not np.all(np.isfinite(sg)) or not np.all(np.isfinite(se)):
         raise ValueError(f"{path}: neighbour spill table contains non-finite values")
-    # issue 9 (fuzzing): what the numba kernels index without bounds checks must be well-formed
-    if arr["sig_e"].ndim != 1 or arr["sig_e"].shape[0] < 2 or np.any(np.diff(arr["sig_e"]) < 0):
+    # what the numba kernels index without bounds checks must be well-formed
+    if se.shape[0] < 2 or np.any(np.diff(se) < 0):
         raise ValueError(f"{path}: neighbour spill table signals must be an increasing 1-D array of at least "
-                         f"2 values, got shape {arr['sig_e'].shape}")
-    if k < 1 or int(arr["n_knots"].min(initial=0)) < 0:
-        raise ValueError(f"{path}: knot counts must be in 0..{k} (corrupt calibration)")
-    for name in ("codes_q", "n_knots", "knot_flux", "clip_flux", "sig_e", "sigma", "alpha"):
-        if arr[name].dtype.kind not in "uif":
-            raise ValueError(f"{path}: array {name} has type {arr[name].dtype}, expected numbers")
-    try:
-        float(entry["qscale"]), float(entry["qoffset"]), float(entry["black_level"]), int(entry["clip_code"])
-    except (TypeError, ValueError, OverflowError):
-        raise ValueError("crosstalk entry: qscale, qoffset, black_level, clip_code must be numbers") from None
-    nd = float(entry["nd"])
-    if not (math.isfinite(nd) and nd >= 1):
-        raise ValueError(f"crosstalk entry: field 'nd' must be >= 1, got {entry['nd']!r}")
+                         f"2 values, got shape {se.shape}")
+    if not np.all(np.isfinite(se.astype(np.float32))) or not np.all(np.isfinite(sg.astype(np.float32))):
+        raise ValueError(f"{path}: neighbour spill table values overflow float32")
+    info = entry.get("info") or {}
+    if not isinstance(info, dict):
+        raise ValueError(f"crosstalk entry: field 'info' must be an object, got {type(info).__name__}")
     return CrosstalkCalibration(
-        codes_q=np.ascontiguousarray(cq), qscale=float(entry["qscale"]), qoffset=float(entry["qoffset"]),
-        n_knots=arr["n_knots"].astype(np.int32), knot_flux=arr["knot_flux"].astype(np.float64),
-        clip_flux=arr["clip_flux"].astype(np.float32), nd=nd, black_level=float(entry["black_level"]),
-        clip_code=int(entry["clip_code"]), sig_e=arr["sig_e"].astype(np.float32),
-        sigma=np.ascontiguousarray(arr["sigma"].astype(np.float32)),
-        alpha=arr["alpha"].astype(np.float32), info=dict(entry.get("info") or {}))
+        codes_q=np.ascontiguousarray(cq), qscale=qscale, qoffset=qoffset,
+        n_knots=nk, knot_flux=kf, clip_flux=cf, nd=nd, black_level=black_level,
+        clip_code=clip_code, sig_e=se.astype(np.float32),
+        sigma=np.ascontiguousarray(sg.astype(np.float32)),
+        alpha=al, info=dict(info))
 
 
 # ======================================================================================================

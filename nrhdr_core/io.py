@@ -6,6 +6,7 @@ written completely or not at all.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import shutil
@@ -18,8 +19,17 @@ import numpy as np
 LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
 
-class ImageFileError(ValueError):
-    """A file could not be read or has unexpected content; the message names the file."""
+class FileContentError(ValueError):
+    """An input file is unreadable, too large, or holds unexpected content; the message names the file (and
+    the field). The loaders re-raise it as their own error type (ProfileError, CalibrationError, ClipError)."""
+
+
+class ImageFileError(FileContentError):
+    """An image could not be read or has unexpected content; the message names the file."""
+
+
+class ImageSizeError(ImageFileError):
+    """An image's header declares another size than the one it must have (nothing was decoded)."""
 
 
 class OutputExistsError(FileExistsError):
@@ -31,43 +41,175 @@ def _oiio():
     return oiio
 
 
-def read_image(path, dtype=np.float32) -> np.ndarray:
-    """Read any image OpenImageIO supports as (H, W, C) array of `dtype` (float: values as stored for
-    float files, 0..1 for integer files; uint8/uint16: native codes)."""
+# ======================================================================================================
+# Files received from others: JSON and the paths it names (docs/RELIABILITY.md)
+# ======================================================================================================
+
+JSON_MAX_BYTES = 4 << 20    # a profile or clip.json is a few kB; a calibration's info a few tens of kB
+JSON_MAX_DEPTH = 32         # the deepest document nrhdr writes nests 4 levels
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"', re.S)
+_JSON_BRACKET = re.compile(r"[\[\]{}]")
+
+
+def read_json(path, what: str = "JSON file", error=FileContentError, max_bytes: int = JSON_MAX_BYTES,
+              max_depth: int = JSON_MAX_DEPTH) -> dict:
+    """The one JSON reader for files nrhdr receives (profiles, clip.json, manifests): at most `max_bytes`
+    bytes, UTF-8, nested at most `max_depth` levels, a JSON object at the top. Any failure raises `error`
+    with a message naming the file and `what` it should be."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            data = f.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise error(f"{path}: {what} not found") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read the {what}: {e.strerror or e}") from None
+    if len(data) > max_bytes:
+        raise error(f"{path}: larger than {max_bytes} bytes: not a {what}")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise error(f"{path}: not a valid {what}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    depth = deepest = 0
+    for b in _JSON_BRACKET.findall(_JSON_STRING.sub("", text)):
+        depth += 1 if b in "[{" else -1
+        deepest = max(deepest, depth)
+    if deepest > max_depth:
+        raise error(f"{path}: not a valid {what}: nested {deepest} levels deep (at most {max_depth})")
+    try:
+        doc = json.loads(text)
+    except (ValueError, RecursionError) as e:      # JSONDecodeError, integers of more than 4300 digits
+        raise error(f"{path}: not a valid {what}: {e}") from None
+    if not isinstance(doc, dict):
+        raise error(f"{path}: not a valid {what}: the top level must be an object, got {type(doc).__name__}")
+    return doc
+
+
+def resolve_named(source, field: str, name, error=FileContentError, allow_outside: bool = False) -> Path:
+    """The path that `field` of file `source` (a JSON or CSV file received from someone) names, relative to
+    the folder holding `source`. Unless `allow_outside`, a name that leaves that folder is refused: an
+    absolute path, `..` above it, or a symbolic link pointing out of it; the error names `source`, `field`
+    and the name. The folder itself may be reached through a link (the user named it)."""
+    source = Path(source)
+    if not isinstance(name, str) or not name or "\x00" in name:
+        raise error(f"{source}: field '{field}' must name a file, got {name!r}")
+    base = Path(os.path.abspath(source.parent))
+    target = base / name                      # an absolute `name` replaces base
+    if allow_outside:
+        return target
+    if os.path.isabs(name):
+        raise error(f"{source}: field '{field}': {name!r} is an absolute path; a file named here must lie in "
+                    f"{base} (pass allow_outside=True / --allow-outside-paths if you trust this file)")
+    try:
+        real_base, real = base.resolve(), target.resolve()
+    except (OSError, RuntimeError) as e:        # a symlink loop
+        raise error(f"{source}: field '{field}': cannot resolve {name!r}: {e}") from None
+    if real != real_base and real_base not in real.parents:
+        how = "leaves" if ".." in Path(name).parts else "is a link out of"
+        raise error(f"{source}: field '{field}': {name!r} {how} the folder {base} (it resolves to {real}); a "
+                    f"file named here must lie in that folder (pass allow_outside=True / --allow-outside-paths "
+                    f"if you trust this file)")
+    return target
+
+
+# ======================================================================================================
+# Images: the header is checked before any pixel is decoded, every decoder error surfaces
+# ======================================================================================================
+
+MAX_PIXELS = 1 << 27        # 16384 x 8192: larger images are refused before decoding (a decompression bomb)
+MAX_CHANNELS = 64
+
+
+def _read_pixels(path, fmt_of, shape=None, channels=None, check=None):
+    """Open `path` with OpenImageIO, check its header (2-D, at most MAX_PIXELS pixels and MAX_CHANNELS
+    channels, `shape` (H, W) where given, `check(spec)`), then decode channels `channels(spec)` -> (begin,
+    end) (default all) as `fmt_of(spec)`; returns (pixels (H, W, C), spec, channel names). Errors:
+    ImageFileError naming the file, also for a truncated or corrupt file."""
     oiio = _oiio()
     path = str(path)
     if not os.path.isfile(path):
         raise ImageFileError(f"{path}: no such file")
-    buf = oiio.ImageBuf(path)
-    if buf.has_error:
-        raise ImageFileError(f"{path}: cannot read image: {buf.geterror()}")
-    fmt = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.uint8): oiio.UINT8,
-           np.dtype(np.uint16): oiio.UINT16, np.dtype(np.float64): oiio.DOUBLE}[np.dtype(dtype)]
-    px = buf.get_pixels(fmt)
-    if buf.has_error or px is None:
-        raise ImageFileError(f"{path}: cannot decode pixels: {buf.geterror()}")
+    try:
+        return _decode(oiio, path, fmt_of, shape, channels, check)
+    except UnicodeDecodeError:      # a corrupt header's names reach us through OpenImageIO's messages
+        raise ImageFileError(f"{path}: cannot read image: its header holds text that is not UTF-8 (corrupt "
+                             f"file?)") from None
+
+
+def _error_text(get) -> str:
+    try:
+        return (get() or "").strip()
+    except UnicodeDecodeError:
+        return "(an error message that is not UTF-8)"
+
+
+def _decode(oiio, path, fmt_of, shape, channels, check):
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ImageFileError(f"{path}: cannot read image: {_error_text(oiio.geterror)}")
+    try:
+        spec = inp.spec()
+        names = [str(n) for n in spec.channelnames]
+        w, h, d, c = int(spec.width), int(spec.height), int(spec.depth), int(spec.nchannels)
+        if w < 1 or h < 1 or d != 1 or c < 1:
+            raise ImageFileError(f"{path}: not a 2-D image ({w}x{h}x{d}, {c} channels)")
+        if w * h > MAX_PIXELS or c > MAX_CHANNELS:
+            raise ImageFileError(f"{path}: the header declares {w}x{h} pixels, {c} channels: more than nrhdr "
+                                 f"reads ({MAX_PIXELS} pixels, {MAX_CHANNELS} channels); nothing was decoded")
+        if shape is not None and (h, w) != tuple(shape):
+            raise ImageSizeError(f"{path}: image is {w}x{h}, expected {shape[1]}x{shape[0]}; nothing was "
+                                 f"decoded")
+        if check is not None:
+            check(spec)
+        cb, ce = channels(spec) if channels is not None else (0, c)
+        px = inp.read_image(0, 0, cb, ce, fmt_of(spec))
+        err = _error_text(inp.geterror) if inp.has_error else ""
+        if px is None or err:
+            raise ImageFileError(f"{path}: cannot decode pixels (truncated or corrupt file?): "
+                                 f"{err or _error_text(oiio.geterror) or 'read failed'}")
+    finally:
+        inp.close()
     px = np.asarray(px)
     if px.ndim == 2:
         px = px[:, :, None]
-    return px
+    if px.shape[:2] != (h, w):
+        raise ImageFileError(f"{path}: decoded {px.shape[1]}x{px.shape[0]} pixels, header says {w}x{h}")
+    return px, spec, names
 
 
-def read_luminance(path) -> np.ndarray:
+def read_image(path, dtype=np.float32, shape=None) -> np.ndarray:
+    """Read any image OpenImageIO supports as (H, W, C) array of `dtype` (float: values as stored for
+    float files, 0..1 for integer files; uint8/uint16: native codes). `shape` (H, W): the size it must have,
+    checked before decoding."""
+    oiio = _oiio()
+    fmt = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.uint8): oiio.UINT8,
+           np.dtype(np.uint16): oiio.UINT16, np.dtype(np.float64): oiio.DOUBLE}[np.dtype(dtype)]
+    return _read_pixels(path, lambda spec: fmt, shape)[0]
+
+
+def read_luminance(path, nonfinite: str = "repair") -> np.ndarray:
     """Read an HDR (or LDR) image as linear luminance float32 (H, W).
 
     RGB(A) is converted with Rec. 709 weights; negative values (present in some EXR scenes) are clamped
-    to 0; NaN/Inf are replaced by 0 (NaN) or the largest finite value (+Inf) and counted in the error
-    message only if nothing finite is left."""
-    px = read_image(path, np.float32).astype(np.float64)
+    to 0. NaN/Inf: `nonfinite="repair"` replaces them by 0 (NaN, -Inf) or the largest finite value (+Inf),
+    "error" raises ImageFileError counting them; nothing finite left is always an error."""
+    if nonfinite not in ("repair", "error"):
+        raise ValueError(f"nonfinite must be 'repair' or 'error', got {nonfinite!r}")
+    oiio = _oiio()
+    px = _read_pixels(path, lambda spec: oiio.FLOAT, channels=lambda spec: (0, min(int(spec.nchannels), 4)))[0]
+    px = px.astype(np.float64)
     c = px.shape[2]
-    if c >= 3:
-        lum = px[:, :, :3] @ LUMA_709
-    else:
-        lum = px[:, :, 0]
+    with np.errstate(over="ignore", invalid="ignore"):
+        if c >= 3:
+            lum = px[:, :, :3] @ LUMA_709
+        else:
+            lum = px[:, :, 0]
     finite = np.isfinite(lum)
     if not finite.any():
         raise ImageFileError(f"{path}: no finite pixel values")
     if not finite.all():
+        if nonfinite == "error":
+            raise ImageFileError(f"{path}: {int(np.sum(~finite))} of {lum.size} pixels are NaN or infinite")
         big = float(np.max(lum[finite]))
         lum = np.where(np.isnan(lum), 0.0, lum)
         lum = np.where(np.isposinf(lum), big, lum)
@@ -131,18 +273,19 @@ def write_exr(path, values, state=None) -> Path:
     return write_image(path, both, np.float32, ["Y", "state"])
 
 
-def read_exr(path):
-    """Read an EXR written by `write_exr`: returns (values float32 (H, W), state uint8 (H, W) or None)."""
+def read_exr(path, shape=None):
+    """Read an EXR written by `write_exr`: returns (values float32 (H, W), state uint8 (H, W) or None).
+    `shape` (H, W): the size it must have (checked before decoding). A truncated or corrupt file is an
+    ImageFileError naming it."""
     oiio = _oiio()
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise ImageFileError(f"{path}: cannot read: {buf.geterror()}")
-    names = list(buf.spec().channelnames)
-    px = np.asarray(buf.get_pixels(oiio.FLOAT))
-    if px.ndim == 2:
-        px = px[:, :, None]
+    px, spec, names = _read_pixels(path, lambda spec: oiio.FLOAT, shape)
     vi = names.index("Y") if "Y" in names else 0
-    state = px[:, :, names.index("state")].astype(np.uint8) if "state" in names else None
+    state = None
+    if "state" in names:
+        sv = px[:, :, names.index("state")]
+        if not (np.isfinite(sv).all() and sv.min(initial=0) >= 0 and sv.max(initial=0) <= 255):
+            raise ImageFileError(f"{path}: channel 'state' must hold pixel states 0..255")
+        state = sv.astype(np.uint8)
     return px[:, :, vi].copy(), state
 
 
@@ -151,34 +294,24 @@ def write_mask(path, mask) -> Path:
     return write_image(path, np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8), np.uint8)
 
 
-def read_mask(path) -> np.ndarray:
+def read_mask(path, shape=None) -> np.ndarray:
     """Read an ND mask image: one gray channel (or equal colour channels), no alpha, holding exactly two
     levels: 0 = regular and the format's full scale = attenuated (255 for 8-bit, the PNG `write_mask`
-    writes; 65535 for 16-bit). Anything else is an ImageFileError saying what was found."""
+    writes; 65535 for 16-bit). `shape` (H, W): the sensor's size, checked before decoding. Anything else is
+    an ImageFileError saying what was found."""
     oiio = _oiio()
     path = str(path)
-    if not os.path.isfile(path):
-        raise ImageFileError(f"{path}: no such file")
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise ImageFileError(f"{path}: cannot read image: {oiio.geterror()}")
-    try:
-        spec = inp.spec()
+
+    def check(spec):
         names = [str(n) for n in spec.channelnames]
         if spec.alpha_channel >= 0 or any(n.upper() in ("A", "ALPHA") for n in names):
             raise ImageFileError(f"{path}: mask has an alpha channel (channels {', '.join(names)}); save it as "
                                  f"a gray PNG without transparency (0 = regular, 255 = attenuated)")
-        bits = {oiio.UINT8: 8, oiio.UINT16: 16}.get(spec.format.basetype)
-        if bits is None:
+        if spec.format.basetype not in (oiio.UINT8, oiio.UINT16):
             raise ImageFileError(f"{path}: mask must be an 8-bit (or 16-bit) integer image, got {spec.format}")
-        px = inp.read_image(0, 0, 0, spec.nchannels, oiio.UINT8 if bits == 8 else oiio.UINT16)
-        if px is None:
-            raise ImageFileError(f"{path}: cannot decode pixels: {inp.geterror()}")
-    finally:
-        inp.close()
-    px = np.asarray(px)
-    if px.ndim == 2:
-        px = px[:, :, None]
+
+    px, spec, _ = _read_pixels(path, lambda spec: spec.format.basetype, shape, check=check)
+    bits = 8 if spec.format.basetype == oiio.UINT8 else 16
     m = px[:, :, 0]
     if px.shape[2] > 1 and not all(np.array_equal(m, px[:, :, c]) for c in range(1, px.shape[2])):
         raise ImageFileError(f"{path}: mask must be gray (all colour channels equal)")

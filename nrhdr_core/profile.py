@@ -196,19 +196,18 @@ def _write_json_atomic(path: Path, doc: dict) -> None:
     os.replace(tmp, path)
 
 
-def load(path) -> CameraProfile:
-    """Read and validate a camera profile JSON (docs/PROFILE.md)."""
+def load(path, allow_outside: bool = False) -> CameraProfile:
+    """Read and validate a camera profile JSON (docs/PROFILE.md). The files it names (mask, calibration)
+    must lie in the profile's folder unless `allow_outside` (io.resolve_named); every value is checked
+    before use. Any problem is a ProfileError naming the file and the field."""
     path = Path(path)
     if not path.is_file():
         raise ProfileError(f"{path}: camera profile not found")
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ProfileError(f"{path}: not a valid JSON camera profile: {e}") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+    doc = io.read_json(path, "JSON camera profile", error=ProfileError)
+    if doc.get("format") != FORMAT:
         raise ProfileError(f"{path}: not an nrhdr camera profile (field 'format' must be '{FORMAT}')")
     ver = doc.get("version")
-    if ver != VERSION:
+    if ver != VERSION or isinstance(ver, bool):
         raise ProfileError(f"{path}: field 'version': this nrhdr reads version {VERSION}, file has {ver!r}")
     for k in ("mask", "nd", "width", "height"):
         if k not in doc:
@@ -220,14 +219,11 @@ def load(path) -> CameraProfile:
                                f"got {v!r}")
     if not isinstance(doc["mask"], str) or not doc["mask"]:
         raise ProfileError(f"{path}: field 'mask' must be the name of a PNG file, got {doc['mask']!r}")
-    mask_path = path.parent / doc["mask"]
+    mask_path = io.resolve_named(path, "mask", doc["mask"], ProfileError, allow_outside)
     try:
-        mask = io.read_mask(mask_path)
+        mask = io.read_mask(mask_path, shape=(doc["height"], doc["width"]))
     except io.ImageFileError as e:
         raise ProfileError(f"{path}: field 'mask': {e}") from None
-    if mask.shape != (doc["height"], doc["width"]):
-        raise ProfileError(f"{path}: field 'mask': {mask_path.name} is {mask.shape[1]}x{mask.shape[0]} "
-                           f"but the profile says {doc['width']}x{doc['height']}")
     fields = {}
     for k, typ in _SCALARS.items():
         if k in doc:
@@ -242,33 +238,56 @@ def load(path) -> CameraProfile:
                 fields[k] = typ(v)
             except OverflowError:
                 raise ProfileError(f"{path}: field '{k}' is out of range: {v!r}") from None
+    extra = doc.get("extra", {})
+    if not isinstance(extra, dict):
+        raise ProfileError(f"{path}: field 'extra' must be an object, got {type(extra).__name__}")
+    # the sensor's own fields first: a calibration is checked against a valid sensor
+    validate(CameraProfile(mask=mask, extra=extra, path=path, **fields), where=str(path))
     xt = None
     xt_file = None
     if doc.get("crosstalk") is not None:
         from . import crosstalk
         entry = doc["crosstalk"]
+        if not isinstance(entry, dict):
+            raise ProfileError(f"{path}: field 'crosstalk' must be an object or null, got {type(entry).__name__}")
+        _check_binding(path, entry, mask, mask_path, fields.get("bit_depth", CameraProfile.bit_depth))
         try:
-            xt = crosstalk.load_calibration(entry, path.parent, mask.shape)
+            xt = crosstalk.load_calibration(entry, path.parent, mask.shape, source=path,
+                                            allow_outside=allow_outside)
         except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
             raise ProfileError(f"{path}: field 'crosstalk': {e}") from None
         xt_file = entry.get("file")
-        _check_binding(path, entry, mask, mask_path, fields.get("bit_depth", CameraProfile.bit_depth))
-    p = CameraProfile(mask=mask, crosstalk=xt, crosstalk_file=xt_file, extra=doc.get("extra", {}),
-                      path=path, **fields)
+        _check_calibration_fits(path, xt, fields)
+    p = CameraProfile(mask=mask, crosstalk=xt, crosstalk_file=xt_file, extra=extra, path=path, **fields)
     validate(p, where=str(path))
     return p
 
 
+def _check_calibration_fits(path: Path, xt, fields: dict) -> None:
+    """The calibration's ADC levels must be the profile's: its clip code within the ADC range, its black
+    level below its clip code (its LUT maps codes above that black level)."""
+    bits = fields.get("bit_depth", CameraProfile.bit_depth)
+    max_code = (1 << bits) - 1
+    if not (1 <= xt.nd <= ND_MAX):
+        raise ProfileError(f"{path}: field 'crosstalk.nd': must be in 1..{ND_MAX:g}, got {xt.nd!r}")
+    if not (0 < xt.clip_code <= max_code):
+        raise ProfileError(f"{path}: field 'crosstalk.clip_code': must be in 1..{max_code} for {bits}-bit data, "
+                           f"got {xt.clip_code}")
+    if not (0 <= xt.black_level < xt.clip_code):
+        raise ProfileError(f"{path}: field 'crosstalk.black_level': must be in 0..clip_code-1, got "
+                           f"{xt.black_level}")
+
+
 def _check_binding(path: Path, entry: dict, mask: np.ndarray, mask_path: Path, bit_depth: int) -> None:
     """A calibration belongs to the sensor it was measured on: its recorded mask checksum, size and bit depth
-    must match the profile's mask (docs/PROFILE.md). Calibrations written before the checksum existed load
+    must match the profile's mask (docs/PROFILE.md). Calibrations that record no checksum load
     with a ProfileWarning (nothing to compare)."""
     xt = entry.get("file")
     want = entry.get("mask_sha256")
     if want is None:
-        warnings.warn(f"{path}: field 'crosstalk': calibration {xt} records no mask checksum (written by an "
-                      f"older nrhdr): cannot check that it was made for {mask_path.name}; re-save the profile "
-                      f"with a current nrhdr to bind it", ProfileWarning, stacklevel=3)
+        warnings.warn(f"{path}: field 'crosstalk': calibration {xt} records no mask checksum: cannot check "
+                      f"that it was made for {mask_path.name}; re-save the profile (profile.save) to bind it",
+                      ProfileWarning, stacklevel=3)
         return
     if not isinstance(want, str):
         raise ProfileError(f"{path}: field 'crosstalk.mask_sha256' must be a string, got {want!r}")

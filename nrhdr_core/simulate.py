@@ -79,6 +79,31 @@ def exposure_scale(scene: np.ndarray, profile, stops: float) -> float:
     return 0.18 * profile.regular_white / med * 2.0 ** stops
 
 
+FLUX_MAX = 1e30   # DN: far beyond any full well, far below float32's overflow (3.4e38)
+
+
+def check_scene(scene: np.ndarray, profile, stops: float, name: str = "scene") -> float:
+    """ValueError naming `name` unless `scene` can be exposed: a 2-D array (at least 2 x 2) of finite
+    values whose exposure (`exposure_scale`) is a positive float32 factor that keeps its brightest pixel a
+    finite float32 flux (<= FLUX_MAX); returns that factor."""
+    if scene.ndim != 2 or min(scene.shape) < 2:
+        raise ValueError(f"{name}: scene must be a 2-D luminance image of at least 2x2, got shape {scene.shape}")
+    finite = np.isfinite(scene)
+    if not finite.all():
+        raise ValueError(f"{name}: {int(np.sum(~finite))} scene values are NaN or infinite")
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        k = exposure_scale(scene, profile, stops)
+    peak = float(np.max(scene)) * k
+    if not (math.isfinite(k) and 0 < k <= float(np.finfo(np.float32).max) and math.isfinite(peak)
+            and peak <= FLUX_MAX):
+        lit = scene[scene > 0]
+        rng = f"{float(lit.min()):.3g}..{float(lit.max()):.3g}" if lit.size else "none"
+        raise ValueError(f"{name}: the scene cannot be exposed: its positive values ({rng}) at exposure "
+                         f"{stops:+g} stops give a scale factor {k:.3g} (must be in (0, 3.4e38]) and a peak flux "
+                         f"{peak:.3g} DN (must be at most {FLUX_MAX:g}); rescale the scene values towards 1")
+    return k
+
+
 def view(scene: np.ndarray, h: int, w: int, t: float, motion: Motion, prefiltered=None) -> np.ndarray:
     """Resample the view at time t in [0, 1] (bilinear on an anti-aliased scene)."""
     from scipy.ndimage import map_coordinates
@@ -110,12 +135,9 @@ def simulate_clip(scene: np.ndarray, out_dir, profile=None, frames: int = 60, fp
     untouched; a non-empty `out_dir` is refused (io.OutputExistsError) unless `overwrite`, which replaces
     only the files a clip consists of (CLIP_OUTPUTS) and keeps any other file there."""
     check_args(frames, fps, exposure_stops, motion, sequence)
-    scene = np.asarray(scene, np.float32)
-    if scene.ndim != 2 or min(scene.shape) < 2:
-        raise ValueError(f"scene must be a 2-D luminance image, got shape {scene.shape}")
-    if not np.isfinite(scene).all():
-        raise ValueError("scene holds NaN or Inf values (io.read_luminance replaces them)")
     prof = profile if profile is not None else profiles.default()
+    scene = np.asarray(scene, np.float32)
+    check_scene(scene, prof, exposure_stops, scene_name)
     with io.staged_folder(out_dir, force=overwrite, owned=CLIP_OUTPUTS) as tmp:
         info = _write_clip(scene, tmp, prof, frames, fps, exposure_stops, motion, seed, sensor_model,
                            sequence, scene_name, progress)
@@ -164,14 +186,38 @@ def _write_clip(scene, out: Path, prof, frames, fps, exposure_stops, motion, see
     return info
 
 
-def load_clip(clip_dir) -> dict:
-    """Read clip.json with clear errors; adds absolute paths."""
+class ClipError(ValueError):
+    """A clip folder or its clip.json is missing, unreadable or inconsistent; the message names the file and
+    the field."""
+
+
+CLIP_FILES = ("raw", "profile", "truth")      # the fields of clip.json that name files in the clip folder
+
+
+def load_clip(clip_dir, allow_outside: bool = False) -> dict:
+    """Read clip.json (io.read_json) and check it: format and version, positive integer size, rate and
+    frame count, and the files it names (`CLIP_FILES`) inside the clip folder unless `allow_outside`
+    (io.resolve_named). Adds "dir" (the folder, absolute) and "<field>_path" (absolute) for each of
+    `CLIP_FILES`. Errors: ClipError naming clip.json and the field."""
     d = Path(clip_dir)
     f = d / "clip.json"
     if not f.is_file():
-        raise FileNotFoundError(f"{d}: not a clip folder (no clip.json); make one with 'nrhdr simulate'")
-    info = json.loads(f.read_text())
+        raise ClipError(f"{d}: not a clip folder (no clip.json); make one with 'nrhdr simulate'")
+    info = io.read_json(f, "clip description (clip.json)", error=ClipError)
     if info.get("format") != CLIP_FORMAT:
-        raise ValueError(f"{f}: not an nrhdr clip description")
+        raise ClipError(f"{f}: not an nrhdr clip description (field 'format' must be '{CLIP_FORMAT}')")
+    if info.get("version") != 1 or isinstance(info.get("version"), bool):
+        raise ClipError(f"{f}: field 'version': this nrhdr reads version 1, file has {info.get('version')!r}")
+    for k, hi in (("width", profiles.MAX_SIZE), ("height", profiles.MAX_SIZE), ("fps", 10000), ("frames", 10 ** 9)):
+        v = info.get(k)
+        if not (isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= hi):
+            raise ClipError(f"{f}: field '{k}' must be an integer in 1..{hi}, got {v!r}")
+    if info.get("pixel_format", "GRAY16_LE") != "GRAY16_LE":
+        raise ClipError(f"{f}: field 'pixel_format' must be 'GRAY16_LE', got {info.get('pixel_format')!r}")
+    info.setdefault("raw", "clip.raw")
+    info.setdefault("profile", "camera.json")
+    for k in CLIP_FILES:
+        if k in info:
+            info[f"{k}_path"] = str(io.resolve_named(f, k, info[k], ClipError, allow_outside))
     info["dir"] = str(d.resolve())
     return info

@@ -510,7 +510,7 @@ def test_step_valid_pixel_ratio_and_dynamic_range_gain():
         assert stops == pytest.approx(np.log2(f / 4094.0), abs=0.015)
 
 
-# ---- regular (checkerboard) mask: ND from the sensor's outer ring (issue #8) --------------------------------
+# ---- regular (checkerboard) mask: ND from the sensor's outer ring -----------------------------------------
 
 def _checkerboard_flats(tmp_path, model, h=64, w=64, seed=0):
     prof = profile.default(h, w, pattern="regular")
@@ -542,7 +542,7 @@ def test_checkerboard_with_crosstalk_measures_the_true_nd(tmp_path):
 
 def test_checkerboard_with_the_prototype_preset_calibrates(tmp_path):
     """The prototype preset (35 % per-pixel spread of the crosstalk, blooming) on a 64 x 64 checkerboard:
-    calibrates (was "cannot measure the ND factor"), ND within 15 % (only the ~120 ring pixels carry the
+    calibrates (measures the ND factor), ND within 15 % (only the ~120 ring pixels carry the
     reference; within 5 % at 512 x 384, docs/CROSSTALK.md), and the LUT removes the amplified crosstalk."""
     model = crosstalk.sensor_model_preset("prototype", 64, 64, seed=0)
     prof, sweep = _checkerboard_flats(tmp_path, model)

@@ -31,7 +31,7 @@ def test_bad_scene_file_exits_2(tmp_path, capsys):
 
 
 def test_nrhdr_core_imports_no_argparse():
-    """The command line lives in gst_plugins/cli/ only: no nrhdr_core module imports argparse (#13)."""
+    """The command line lives in gst_plugins/cli/ only: no nrhdr_core module imports argparse."""
     import ast
     from pathlib import Path
     root = Path(__file__).resolve().parents[1] / "nrhdr_core"

@@ -1,4 +1,4 @@
-"""`nrhdr compare` and `metrics.clip_report` (issue 8: the chain's EXR frames against the simulator's
+"""`nrhdr compare` and `metrics.clip_report` (the chain's EXR frames against the simulator's
 truth, per region, beside an unmodified camera): figures against errors built by hand, and clear errors."""
 import json
 

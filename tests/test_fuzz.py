@@ -1,13 +1,17 @@
-"""Property-based fuzzing (hypothesis) of the readers (issue 9): camera profiles, crosstalk calibrations,
-the flat-field index (exposures.csv) and flat frames, raw video files and the raw-frame path. Every input
-either works or fails with the module's own error type (ProfileError, CalibrationError, ImageFileError,
-validity.FrameError, ValueError for reconstruction), never another exception."""
+"""Property-based fuzzing (hypothesis) of every reader (docs/RELIABILITY.md): camera profiles (JSON, mask
+image), crosstalk calibrations (entry, arrays, file), clip.json, JSON nesting, image files (PNG headers of
+any size, truncated and corrupted PNG/TIFF/EXR), scenes, command-line numbers, the flat-field index
+(exposures.csv) and flat frames, raw video files and the raw-frame path. Every input either works or fails
+with the module's own error type (ProfileError, CalibrationError, ClipError, ImageFileError,
+validity.FrameError, ValueError for reconstruction) naming the file, never another exception and never a
+huge allocation."""
 from __future__ import annotations
 
 import json
 import os
 import shutil
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +19,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from nrhdr_core import calibration, crosstalk, io, profile, reconstruction, tonemap, validity
+from nrhdr_core import calibration, crosstalk, io, profile, reconstruction, simulate, tonemap, validity
 
 # Bounded for the suite (seconds, reproducible); NRHDR_FUZZ_EXAMPLES=2000 for a deeper, random run.
 _DEEP = int(os.environ.get("NRHDR_FUZZ_EXAMPLES", "0") or 0)
@@ -209,6 +213,162 @@ def test_fuzz_flat_frames(tmp_path, shapes, dtype, corrupt):
     except calibration.CalibrationError:
         return
     assert sweep.mean.shape[0] == 3 and np.isfinite(sweep.mean).all()
+
+
+# ---- clip.json, JSON nesting ---------------------------------------------------------------------------------
+
+CLIP_FIELDS = ["format", "version", "width", "height", "fps", "frames", "raw", "profile", "truth", "pixel_format"]
+names = st.one_of(st.sampled_from(["clip.raw", "camera.json", "../clip.raw", "/etc/passwd", "sub/../clip.raw",
+                                   "link_out", "link_in", "..", ".", "", "a\x00b", "truth/frame_%05d.exr"]),
+                  st.text(max_size=8))
+
+
+@pytest.fixture(scope="module")
+def clip_base(tmp_path_factory):
+    from conftest import make_test_clip
+    d, _, _ = make_test_clip(tmp_path_factory.mktemp("fuzz_clip") / "clip", width=16, height=12, frames=2)
+    return d
+
+
+@FUZZ
+@given(changes=st.dictionaries(st.sampled_from(CLIP_FIELDS), st.one_of(json_values, names), min_size=1, max_size=4))
+def test_fuzz_clip_json(clip_base, tmp_path, changes):
+    d = tmp_path / "c"
+    if d.exists():
+        shutil.rmtree(d)
+    shutil.copytree(clip_base, d)
+    os.symlink("/etc/passwd", d / "link_out")
+    os.symlink("clip.raw", d / "link_in")
+    doc = json.loads((d / "clip.json").read_text())
+    doc.update(changes)
+    (d / "clip.json").write_text(json.dumps(doc))
+    try:
+        info = simulate.load_clip(d)
+    except simulate.ClipError as e:
+        assert "clip.json" in str(e) or str(d) in str(e)
+        return
+    root = d.resolve()
+    for k in simulate.CLIP_FILES:
+        if f"{k}_path" in info:
+            real = Path(info[f"{k}_path"]).resolve()
+            assert real == root or root in real.parents
+    assert all(isinstance(info[k], int) and info[k] >= 1 for k in ("width", "height", "fps", "frames"))
+
+
+@FUZZ
+@given(depth=st.integers(0, 20000), opener=st.sampled_from(["[", '{"a":', '{"mask": [']), cut=st.integers(0, 3),
+       reader=st.sampled_from(["profile", "clip"]))
+def test_fuzz_json_nesting(tmp_path, depth, opener, cut, reader):
+    closer = {"[": "]", '{"a":': "}", '{"mask": [': "]}"}[opener]
+    text = opener * depth + "1" + closer * max(depth - cut, 0)
+    if reader == "profile":
+        f = tmp_path / "cam.json"
+        f.write_text(text)
+        with pytest.raises(profile.ProfileError, match="cam.json"):
+            profile.load(f)
+    else:
+        (tmp_path / "clip.json").write_text(text)
+        with pytest.raises(simulate.ClipError, match="clip.json"):
+            simulate.load_clip(tmp_path)
+
+
+# ---- image files: headers of any size, truncated and corrupted files ------------------------------------------
+
+def _png(width, height, bit_depth, colour, rows, pad):
+    def chunk(kind, data):
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+    ihdr = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes([bit_depth, colour, 0, 0, 0])
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + (chunk(b"zpAd", bytes(pad)) if pad else b"")
+            + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+
+
+dims = st.one_of(st.integers(1, 48), st.sampled_from([65535, 60000, 2 ** 31 - 1]))
+
+
+@FUZZ
+@given(w=dims, h=dims, bit_depth=st.sampled_from([1, 8, 16]), colour=st.sampled_from([0, 2, 4, 6]),
+       rows=st.binary(max_size=400), pad=st.sampled_from([0, 2 << 20]), reader=st.sampled_from(["mask", "image"]))
+def test_fuzz_png_headers(tmp_path, w, h, bit_depth, colour, rows, pad, reader):
+    """A PNG declaring any size (up to 2^31 - 1 per side) with too little or garbage data: an array of the
+    declared size or an ImageFileError naming the file, decided from the header for the huge ones."""
+    f = tmp_path / "m.png"
+    f.write_bytes(_png(w, h, bit_depth, colour, rows, pad))
+    try:
+        a = io.read_mask(f) if reader == "mask" else io.read_image(f, np.float32)
+    except io.ImageFileError as e:
+        assert str(f) in str(e)
+        return
+    assert w * h <= io.MAX_PIXELS and a.shape[:2] == (h, w)
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fuzz_images")
+    rng = np.random.default_rng(3)
+    io.write_exr(d / "f.exr", (rng.random((20, 24)) * 1e4).astype(np.float32), rng.integers(0, 200, (20, 24)))
+    io.write_image(d / "f.png", rng.integers(0, 65535, (20, 24)).astype(np.uint16), np.uint16)
+    io.write_image(d / "f.tif", rng.integers(0, 65535, (20, 24)).astype(np.uint16), np.uint16)
+    io.write_mask(d / "m.png", rng.random((20, 24)) < 0.5)
+    return d
+
+
+@FUZZ
+@given(name=st.sampled_from(["f.exr", "f.png", "f.tif", "m.png"]), cut=st.integers(0, 4000),
+       flips=st.lists(st.tuples(st.integers(0, 4000), st.integers(1, 255)), max_size=4),
+       reader=st.sampled_from(["image", "exr", "mask", "luminance"]))
+def test_fuzz_image_bytes(images, tmp_path, name, cut, flips, reader):
+    """Truncated or corrupted images (header bytes included): the declared-size array or ImageFileError."""
+    b = bytearray((images / name).read_bytes())
+    for pos, x in flips:
+        if pos < len(b):
+            b[pos] ^= x
+    f = tmp_path / name
+    f.write_bytes(bytes(b[:cut]) if cut < len(b) else bytes(b))
+    read = {"image": lambda: io.read_image(f, np.uint16), "exr": lambda: io.read_exr(f)[0],
+            "mask": lambda: io.read_mask(f), "luminance": lambda: io.read_luminance(f)}[reader]
+    try:
+        a = read()
+    except io.ImageFileError as e:
+        assert str(f) in str(e)
+        return
+    assert a.shape[0] * a.shape[1] <= io.MAX_PIXELS
+    if reader == "luminance":
+        assert np.isfinite(a).all() and (a >= 0).all()
+
+
+# ---- scenes and command-line numbers -------------------------------------------------------------------
+
+@FUZZ
+@given(value=st.floats(allow_nan=True, allow_infinity=True, width=32), other=st.floats(0, 1e4, width=32),
+       stops=st.floats(-30, 30))
+def test_fuzz_scene_values(value, other, stops):
+    scene = np.full((6, 6), other, np.float32)
+    scene[2:4, 1:5] = value
+    prof = profile.default(4, 4)
+    try:
+        k = simulate.check_scene(scene, prof, stops)
+    except ValueError as e:
+        assert str(e).startswith("scene: ")
+        return
+    flux = simulate.view(scene, 4, 4, 0.5, simulate.Motion()) * np.float32(k)
+    assert np.isfinite(flux).all() and flux.max() <= simulate.FLUX_MAX
+
+
+@FUZZ
+@given(text=st.one_of(st.text(max_size=12), st.sampled_from(["nan", "NaN", "inf", "-inf", "1e308", "1e309", "-0",
+                                                            "0x10", "1_000", " 5", "5.0", "1e-320", "9" * 400])),
+       lo=st.sampled_from([None, 0, 1, -30]), integer=st.booleans())
+def test_fuzz_cli_number(text, lo, integer):
+    import argparse
+    from gst_plugins.cli.args import number
+    parse = number(lo, 1000, integer=integer)
+    try:
+        v = parse(text)
+    except argparse.ArgumentTypeError as e:
+        assert repr(text) in str(e) or text in str(e)
+        return
+    assert np.isfinite(v) and (lo is None or v >= lo) and v <= 1000
+    assert isinstance(v, int) if integer else isinstance(v, float)
 
 
 # ---- raw video files and the raw-frame path ----------------------------------------------------------------

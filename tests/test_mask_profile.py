@@ -84,7 +84,7 @@ def test_mask_png_must_be_binary(tmp_path):
         io.read_mask(tmp_path / "m.png")
 
 
-# ---- reduced-randomness designs (issue 10) ---------------------------------------------------------
+# ---- reduced-randomness designs ------------------------------------------------------------------
 
 @pytest.mark.parametrize("pattern", ["cell2", "cell2diag", "bluenoise", "voidcluster", "random"])
 @pytest.mark.parametrize("shape", [(48, 64), (33, 47)])

@@ -59,7 +59,7 @@ def test_exposure_stops_double_the_flux(rng):
 def test_simulate_errors(tmp_path):
     with pytest.raises(ValueError, match="frames"):
         simulate.simulate_clip(np.ones((10, 10)), tmp_path, frames=0)
-    with pytest.raises(FileNotFoundError, match="clip.json"):
+    with pytest.raises(simulate.ClipError, match="clip.json"):
         simulate.load_clip(tmp_path)
 
 

@@ -40,8 +40,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run one `nrhdr` command; returns its exit status (2: bad arguments or input, named on stderr)."""
     ap = build_parser()
-    a = ap.parse_args(argv)
+    try:
+        a = ap.parse_args(argv)
+    except SystemExit as e:                 # argparse's own exit: --help, --version, a refused argument
+        return e.code if isinstance(e.code, int) else 2
     try:
         return int(a.func(a) or 0)
     except KeyboardInterrupt:

@@ -5,6 +5,13 @@ from __future__ import annotations
 import argparse
 import math
 
+from nrhdr_core.profile import MAX_SIZE, ND_MAX
+
+
+def _show(x) -> str:
+    """A bound as the user would type it: 1024, not 1024.0."""
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
 
 def number(lo: float | None = None, hi: float | None = None, *, integer: bool = False,
            lo_open: bool = False, hi_open: bool = False):
@@ -14,12 +21,27 @@ def number(lo: float | None = None, hi: float | None = None, *, integer: bool = 
             v = int(text, 10) if integer else float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not {'a whole number' if integer else 'a number'}")
-        if not math.isfinite(v):
+        if not integer and not math.isfinite(v):        # (a Python int is always finite, and may exceed a float)
             raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
         if lo is not None and (v < lo or (lo_open and v == lo)):
-            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'>' if lo_open else '>='} {lo}")
+            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'>' if lo_open else '>='} {_show(lo)}")
         if hi is not None and (v > hi or (hi_open and v == hi)):
-            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'<' if hi_open else '<='} {hi}")
+            raise argparse.ArgumentTypeError(f"{text} is out of range: must be {'<' if hi_open else '<='} {_show(hi)}")
         return v
     parse.__name__ = "integer" if integer else "number"    # argparse names the type in its message
     return parse
+
+
+# the value ranges of the options several commands share
+SEED = number(0, 2 ** 63 - 1, integer=True)
+SIZE = number(1, MAX_SIZE, integer=True)       # sensor width / height
+ND = number(1, ND_MAX)                         # ND factor (Eq. 1)
+CODE_LEVEL = number(0, 65535)                  # a level in ADC codes (l_min)
+
+
+def add_allow_outside(p) -> None:
+    """`--allow-outside-paths`: trust the files named inside the JSON/CSV files this command reads (docs/
+    RELIABILITY.md): they may then lie outside the folder holding the naming file."""
+    p.add_argument("--allow-outside-paths", action="store_true",
+                   help="accept files named by a profile, clip.json or exposures.csv outside that file's folder "
+                        "(absolute paths, '..', links out of it); only for files you trust")

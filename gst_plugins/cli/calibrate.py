@@ -6,13 +6,16 @@ import json
 import sys
 from pathlib import Path
 
+from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
+
 
 def cmd_calibrate(a) -> int:
     from nrhdr_core import calibration, io
     try:
         s = calibration.run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
                                       clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
-                                      progress=not a.quiet, overwrite=a.force)
+                                      progress=not a.quiet, overwrite=a.force,
+                                      allow_outside=a.allow_outside_paths)
     except (calibration.CalibrationError, io.OutputExistsError) as e:
         print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
         return 2
@@ -36,7 +39,7 @@ def cmd_simulate_flats(a) -> int:
     from nrhdr_core import profile as profiles
     try:
         if a.profile:
-            prof = profiles.load(a.profile)
+            prof = profiles.load(a.profile, allow_outside=a.allow_outside_paths)
         else:
             prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd)
         model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.sensor_seed)
@@ -64,15 +67,17 @@ def add_calibrate(sub) -> None:
     p.add_argument("flats", help="folder with 16-bit TIFF/PNG frames and exposures.csv")
     p.add_argument("--mask", required=True, help="ND mask PNG (255 = attenuated)")
     p.add_argument("-o", "--output", required=True, help="camera profile JSON to write")
-    p.add_argument("--nd-nominal", type=float, help="nominal ND factor (reported against the measured one)")
-    p.add_argument("--l-min", type=float, default=100.0, help="l_min for the profile and the valid ratio")
-    p.add_argument("--clip-code", type=int, help="override the clip code (default: from the saturated frames)")
-    p.add_argument("--bit-depth", type=int, help="ADC bits (default: from the largest code)")
+    p.add_argument("--nd-nominal", type=ND, help="nominal ND factor (reported against the measured one)")
+    p.add_argument("--l-min", type=CODE_LEVEL, default=100.0, help="l_min for the profile and the valid ratio")
+    p.add_argument("--clip-code", type=number(1, 65535, integer=True),
+                   help="override the clip code (default: from the saturated frames)")
+    p.add_argument("--bit-depth", type=number(1, 16, integer=True), help="ADC bits (default: from the largest code)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--force", action="store_true",
                    help="replace an existing profile (and its mask, calibration, plots) at --output")
+    add_allow_outside(p)
     p.set_defaults(func=cmd_calibrate)
 
 
@@ -81,19 +86,22 @@ def add_simulate_flats(sub) -> None:
     p = sub.add_parser("simulate-flats", help="write a simulated flat-field sweep (for calibrate)")
     p.add_argument("output", help="folder to write")
     p.add_argument("--profile", help="camera profile to simulate (default: the paper-like default)")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
-    p.add_argument("--nd", type=float, default=6.35)
-    p.add_argument("--mask-seed", type=int, default=0)
+    p.add_argument("--width", type=SIZE, default=640)
+    p.add_argument("--height", type=SIZE, default=480)
+    p.add_argument("--nd", type=ND, default=6.35)
+    p.add_argument("--mask-seed", type=SEED, default=0)
     p.add_argument("--sensor-model", default="prototype", help=f"one of {crosstalk.PRESETS}")
-    p.add_argument("--exposures", type=int, default=40, help="number of exposures (incl. dark)")
-    p.add_argument("--frames", type=int, default=4, help="frames per exposure")
+    p.add_argument("--exposures", type=number(6, 10000, integer=True), default=40,
+                   help="number of exposures (incl. dark), at least 6")
+    p.add_argument("--frames", type=number(2, 10000, integer=True), default=4,
+                   help="frames per exposure, at least 2 (temporal noise)")
     p.add_argument("--format", choices=("tiff", "png"), default="tiff")
-    p.add_argument("--seed", type=int, default=0, help="noise seed")
-    p.add_argument("--sensor-seed", type=int, default=0,
+    p.add_argument("--seed", type=SEED, default=0, help="noise seed")
+    p.add_argument("--sensor-seed", type=SEED, default=0,
                    help="seed of the sensor's pixel-to-pixel variation: use the same value with "
                         "'nrhdr simulate --sensor-seed' to calibrate the sensor that recorded a clip")
     p.add_argument("-q", "--quiet", action="store_true")
     p.add_argument("--force", action="store_true",
                    help="replace the sweep files in an existing folder (other files there are kept)")
+    add_allow_outside(p)
     p.set_defaults(func=cmd_simulate_flats)

@@ -2,9 +2,12 @@
 that runs the whole chain on one (nrhdr_core.simulate, nrhdr_core.profile)."""
 from __future__ import annotations
 
+import shlex
 import sys
 import time
 from pathlib import Path
+
+from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
 
 
 def _scene(arg: str | None):
@@ -12,14 +15,14 @@ def _scene(arg: str | None):
     from nrhdr_core import io, scene
     if arg in (None, "", "synthetic"):
         return scene.synthetic_hdr_scene(), "synthetic"
-    return io.read_luminance(arg), Path(arg).name
+    return io.read_luminance(arg, nonfinite="error"), Path(arg).name
 
 
 def _profile_from_args(a):
     from nrhdr_core import profile
     if getattr(a, "profile", None):
-        return profile.load(a.profile)
-    if a.pattern == "none":    # the unmodified camera: no ND pixel, the same sensor and noise (issue 8)
+        return profile.load(a.profile, allow_outside=a.allow_outside_paths)
+    if a.pattern == "none":    # the unmodified camera: no ND pixel, the same sensor and noise
         import numpy as np
         return profile.make(np.zeros((a.height, a.width), bool), nd=a.nd, l_min=a.l_min)
     return profile.default(a.height, a.width, seed=a.mask_seed, pattern=a.pattern, nd=a.nd, l_min=a.l_min)
@@ -39,6 +42,7 @@ def cmd_simulate(a) -> int:
         model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width,
                                                  seed=a.sensor_seed)
     scene, name = _scene(a.scene)
+    simulate.check_scene(scene, prof, a.exposure, a.scene or "synthetic")
     info = simulate.simulate_clip(scene, a.output, prof, frames=a.frames, fps=a.fps,
                                   exposure_stops=a.exposure, motion=motion, seed=a.seed,
                                   sensor_model=model, sequence=a.sequence, scene_name=name,
@@ -46,10 +50,17 @@ def cmd_simulate(a) -> int:
     out = Path(a.output)
     print(f"wrote {info['frames']} frames {info['width']}x{info['height']} GRAY16_LE to {out / 'clip.raw'}")
     print(f"profile {out / 'camera.json'}, ground truth {out / 'truth'}/")
-    print(f"run it: pipelines/raw_to_display.sh {out}   or\n"
-          f"  nrhdr launch filesrc location={out / 'clip.raw'} ! {rawvideoparse(info)} ! "
-          f"nrvalidity profile={out / 'camera.json'} ! nrreconstruct ! nrtonemap ! videoconvert ! autovideosink")
+    print(f"run it: pipelines/raw_to_display.sh {shlex.quote(str(out))}   or\n  {launch_line(info, out)}")
     return 0
+
+
+def launch_line(clip: dict, out: Path, sink: str = "autovideosink") -> str:
+    """The `nrhdr launch` command that plays clip folder `out`, quoted for a POSIX shell: it pastes into
+    bash as printed (`plane-strides=<N>` and paths with spaces stay one argument each)."""
+    words = ["nrhdr", "launch", "filesrc", f"location={out / 'clip.raw'}", "!", *rawvideoparse(clip).split(),
+             "!", "nrvalidity", f"profile={out / 'camera.json'}", "!", "nrreconstruct", "!", "nrtonemap", "!",
+             "videoconvert", "!", sink]
+    return " ".join(w if w == "!" else shlex.quote(w) for w in words)     # a lone ! is not history expansion
 
 
 def cmd_profile(a) -> int:
@@ -97,7 +108,7 @@ def cmd_demo(a) -> int:
         print(f"nrhdr demo: nothing written to {final}", file=sys.stderr)
         return rc
     for line in lines:
-        print(line.replace(str(tmp), str(final)))
+        print(line.replace(str(tmp), str(final)))      # the staging folder is `final` now
     return 0
 
 
@@ -115,7 +126,8 @@ def _run_demo(a, out: Path):
                                   fps=30, seed=1)
     clip = simulate.load_clip(out / "clip")
     desc = demo_pipeline(clip, out, a.method, a.preset)
-    print(f"nrhdr demo: running the chain (method={a.method} preset={a.preset}):\n  {desc}")
+    # the staging folder `out` is gone when the demo ends: its paths are printed only at the end, in `lines`
+    print(f"nrhdr demo: running the chain (method={a.method} preset={a.preset})")
     stats = []
 
     def on_message(msg):
@@ -139,14 +151,15 @@ def _run_demo(a, out: Path):
         truth, _ = io.read_exr(out / "clip" / "truth" / f.name)
         lp.append(metrics.log_psnr(np.minimum(truth, prof.white), v))
     miss = 100.0 * float(np.mean(stats)) if stats else float("nan")
-    lines = [f"tone-mapped frames: {out / 'png'}/ ({len(pngs)} PNG)",
+    lines = [f"pipeline: {desc}",
+             f"tone-mapped frames: {out / 'png'}/ ({len(pngs)} PNG)",
              f"linear HDR frames:  {out / 'exr'}/ ({len(exrs)} OpenEXR, channels Y + state)",
              f"summary: {len(pngs)} frames in {dt:.1f} s = {len(pngs) / dt:.1f} frames/s (JIT warm-up "
              f"included), {miss:.1f} % of pixels reconstructed, log-domain PSNR vs ground truth "
              f"{np.mean(lp):.1f} dB"]
     if not (len(pngs) == a.frames == len(exrs)):
-        print("\n".join(lines))
-        print(f"nrhdr demo: expected {a.frames} frames", file=sys.stderr)
+        print(f"nrhdr demo: expected {a.frames} frames, the chain wrote {len(pngs)} PNG and {len(exrs)} EXR",
+              file=sys.stderr)
         return 1, []
     return 0, lines
 
@@ -155,16 +168,16 @@ def _add_sensor_args(p, profile_opt=True):
     g = p.add_argument_group("sensor (ignored with --profile)")
     if profile_opt:
         p.add_argument("--profile", help="existing camera profile JSON to use")
-    g.add_argument("--width", type=int, default=640)
-    g.add_argument("--height", type=int, default=480)
+    g.add_argument("--width", type=SIZE, default=640)
+    g.add_argument("--height", type=SIZE, default=480)
     g.add_argument("--pattern", choices=("nonregular", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster",
                                          "none"),
                    default="nonregular", help="ND mask: the paper's non-regular (iid) pattern, the regular "
                    "2x2 (Nayar) one, a reduced-randomness design (docs/PAPER.md), or none (an unmodified "
                    "camera with the same sensor, to compare against: nrhdr compare)")
-    g.add_argument("--mask-seed", type=int, default=0, help="seed of the non-regular mask")
-    g.add_argument("--nd", type=float, default=6.35, help="ND factor (Eq. 1)")
-    g.add_argument("--l-min", type=float, default=100.0, help="threshold for attenuated pixels (2.3)")
+    g.add_argument("--mask-seed", type=SEED, default=0, help="seed of the non-regular mask")
+    g.add_argument("--nd", type=ND, default=6.35, help="ND factor (Eq. 1), 1..1024")
+    g.add_argument("--l-min", type=CODE_LEVEL, default=100.0, help="threshold for attenuated pixels (2.3)")
 
 
 
@@ -173,23 +186,25 @@ def add_simulate(sub) -> None:
     p.add_argument("scene", nargs="?", default="synthetic",
                    help="OpenEXR / Radiance .hdr / PNG scene, or 'synthetic' (default)")
     p.add_argument("-o", "--output", required=True, help="clip folder to write")
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--fps", type=int, default=30)
-    p.add_argument("--exposure", type=float, default=0.0,
-                   help="stops relative to auto exposure (scene median at 18 %% of the regular range)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed")
-    p.add_argument("--pan", type=float, default=0.15, help="camera pan, fraction of the scene width")
-    p.add_argument("--tilt", type=float, default=0.05)
-    p.add_argument("--zoom", type=float, default=1.25, help="zoom factor over the clip (1 = none)")
-    p.add_argument("--fov", type=float, default=0.8, help="first view's share of the scene")
+    p.add_argument("--frames", type=number(1, 10 ** 6, integer=True), default=60)
+    p.add_argument("--fps", type=number(1, 10000, integer=True), default=30)
+    p.add_argument("--exposure", type=number(-30, 30), default=0.0,
+                   help="stops relative to auto exposure (scene median at 18 %% of the regular range), -30..30")
+    p.add_argument("--seed", type=SEED, default=0, help="noise seed")
+    p.add_argument("--pan", type=number(-1, 1), default=0.15, help="camera pan, fraction of the scene width")
+    p.add_argument("--tilt", type=number(-1, 1), default=0.05, help="camera tilt, fraction of the scene height")
+    p.add_argument("--zoom", type=number(0, 100, lo_open=True), default=1.25,
+                   help="zoom factor over the clip (1 = none)")
+    p.add_argument("--fov", type=number(0, 1, lo_open=True), default=0.8, help="first view's share of the scene")
     p.add_argument("--sensor-model", default="none",
                    help="crosstalk/PRNU/DSNU preset: none or prototype (paper section 3)")
-    p.add_argument("--sensor-seed", type=int, default=0,
+    p.add_argument("--sensor-seed", type=SEED, default=0,
                    help="seed of the sensor model's pixel-to-pixel variation (same as simulate-flats')")
     p.add_argument("--sequence", choices=("png", "tiff"), help="also write 16-bit raw frames")
     p.add_argument("--force", action="store_true",
                    help="replace the clip files in an existing folder (other files there are kept)")
     _add_sensor_args(p)
+    add_allow_outside(p)
     p.set_defaults(func=cmd_simulate)
 
 
@@ -204,9 +219,9 @@ def add_profile(sub) -> None:
 def add_demo(sub) -> None:
     p = sub.add_parser("demo", help="simulate a clip of a synthesised scene and run the whole chain")
     p.add_argument("-o", "--output", default="demo_out")
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--frames", type=number(1, 10 ** 6, integer=True), default=60)
+    p.add_argument("--width", type=number(2, 65536, integer=True), default=640)
+    p.add_argument("--height", type=number(2, 65536, integer=True), default=480)
     p.add_argument("--method", default="fse", choices=("fse", "linear", "nearest", "preview"))
     p.add_argument("--preset", default="fast", choices=("preview", "fast", "balanced", "best"))
     p.add_argument("--force", action="store_true",

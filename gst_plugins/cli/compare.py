@@ -1,12 +1,14 @@
 """`nrhdr compare`: HDR frames written by the chain (nrexrsink / `nrhdr batch`) against the simulator's
 ground truth, per region (dark / mid / bright), in log2 PSNR, PU21-PSNR and pixels off by more than 1 and
-3 stops (issue 8; nrhdr_core.metrics.clip_report). Put an unmodified camera beside it: simulate the
+3 stops (nrhdr_core.metrics.clip_report). Put an unmodified camera beside it: simulate the
 same scene with `--pattern none` (no ND pixel, the same noise model) and run it through the same chain."""
 from __future__ import annotations
 
 import json
 import sys
 from pathlib import Path
+
+from .args import add_allow_outside, number
 
 
 def add_compare(sub) -> None:
@@ -19,9 +21,10 @@ def add_compare(sub) -> None:
     p.add_argument("--profile", required=True,
                    help="the ND camera's profile JSON: its l_min x ND and regular clip split the regions, "
                         "its white caps both")
-    p.add_argument("--frames", type=int, default=0, help="score only every k-th frame so that about this "
-                                                          "many are read (0: all)")
+    p.add_argument("--frames", type=number(0, 10 ** 9, integer=True), default=0,
+                   help="score only every k-th frame so that about this many are read (0: all)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
+    add_allow_outside(p)
     p.set_defaults(func=cmd_compare)
 
 
@@ -41,21 +44,19 @@ def _pairs(files, truth_dir: Path):
         if not t_path.is_file():
             raise ValueError(f"{f}: no truth frame {t_path}")
         truth, _ = io.read_exr(t_path)
-        test, _ = io.read_exr(f)
-        if truth.shape != test.shape:
-            raise ValueError(f"{f}: {test.shape[1]}x{test.shape[0]} but its truth {t_path} is "
-                             f"{truth.shape[1]}x{truth.shape[0]}")
+        try:
+            test, _ = io.read_exr(f, shape=truth.shape)       # the size is checked before decoding
+        except io.ImageSizeError as e:
+            raise ValueError(f"{e}: the size of its truth {t_path}") from None
         yield truth, test
 
 
 def cmd_compare(a) -> int:
     from nrhdr_core import metrics, profile
-    prof = profile.load(a.profile)
+    prof = profile.load(a.profile, allow_outside=a.allow_outside_paths)
     truth_dir = Path(a.truth)
     if not truth_dir.is_dir():
         raise ValueError(f"--truth {truth_dir}: not a folder")
-    if a.frames < 0:
-        raise ValueError("--frames must be >= 0")
     dark, bright, white = prof.l_min * prof.nd, prof.regular_white, prof.white
     report = {}
     for r in a.results:

@@ -1,8 +1,10 @@
 """`nrhdr snr`: the paper's SNR and valid-pixel analysis (nrhdr_core.analysis); `nrhdr figures`: the paper's
-Figs. 2-10 regenerated with the numbers beside the paper's (issue 10; code in nrhdr_core.figures)."""
+Figs. 2-10 regenerated with the numbers beside the paper's (nrhdr_core.figures)."""
 from __future__ import annotations
 
 import sys
+
+from .args import CODE_LEVEL, ND, SEED
 
 
 def cmd_snr(a) -> int:
@@ -16,9 +18,9 @@ def cmd_snr(a) -> int:
 def add_snr(sub) -> None:
     p = sub.add_parser("snr", help="the paper's SNR and valid-pixel analysis (Fig. 3, 4, 5) as plots")
     p.add_argument("-o", "--output", default="snr_out")
-    p.add_argument("--nd", type=float, default=6.35)
-    p.add_argument("--l-min", type=float, default=100.0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--nd", type=ND, default=6.35)
+    p.add_argument("--l-min", type=CODE_LEVEL, default=100.0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.set_defaults(func=cmd_snr)
 
 
@@ -48,7 +50,7 @@ def add_figures(sub) -> None:
     p.add_argument("--quick", action="store_true", help="smaller sizes (under 2 minutes on 2 cores)")
     p.add_argument("--force", action="store_true",
                    help="write into an existing non-empty folder (replaces only the files written here)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--data", help="shared data folder with hdr/*.exr (default: $NRHDR_SHARED_DATA or "
                                   "../shared/data)")
     p.add_argument("-q", "--quiet", action="store_true")
