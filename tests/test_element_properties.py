@@ -47,6 +47,15 @@ def run_inprocess(gst, desc, timeout=60.0):
         pipeline.set_state(gst.State.NULL)
 
 
+def run_app(env, desc, timeout=120):
+    """`desc` through `gst_plugins.runtime.run_pipeline` in a child Python process (not gst-launch-1.0,
+    which can hang when a pipeline fails before preroll): (exit status, output)."""
+    code = "import sys; from gst_plugins import runtime; sys.exit(runtime.run_pipeline(sys.argv[1]))"
+    p = subprocess.run([sys.executable, "-c", code, desc], env=env, cwd=ROOT, capture_output=True, text=True,
+                       timeout=timeout)
+    return p.returncode, p.stdout + p.stderr
+
+
 # ---- the property tables ----------------------------------------------------------------------------------
 
 def test_property_table_is_what_gobject_declares(gst):
@@ -63,7 +72,7 @@ def test_property_table_is_what_gobject_declares(gst):
                 assert bool(spec.flags & gst.PARAM_MUTABLE_READY) == (not p.playing), (factory, p.name)
             assert bool(spec.flags & gst.PARAM_CONTROLLABLE) == p.controllable, (factory, p.name)
             if p.choices:
-                assert [spec.enum_class.values[i].value_nick for i in range(len(p.choices))] == list(p.choices)
+                assert [spec.enum_class.__enum_values__[i].value_nick for i in range(len(p.choices))] == list(p.choices)
                 assert el.get_property(p.name).value_nick == p.default
             elif not p.readonly:
                 assert el.get_property(p.name) == p.default, (factory, p.name)
@@ -143,6 +152,8 @@ def test_fuzz_every_property(gst, factory, capfd):
             assert got == pytest.approx(float(value))
         elif p.kind is int:
             assert p.minimum <= got <= p.maximum and got == value
+        elif p.kind is str:
+            assert got == value.split("\0")[0]         # a C string ends at NUL
         else:
             assert got == value
 
@@ -174,27 +185,41 @@ def test_ready_only_property_is_kept_while_playing(gst, tiny_clip):
     assert r.error is None, r.error_text
     assert len(r.samples) == 3 and all("GRAY8" in s[0] for s in r.samples)
     texts = [m.parse_warning()[0].message for m in r.messages if m.type == gst.MessageType.WARNING]
-    assert any("property 'transfer' cannot change while PLAYING" in t for t in texts), texts
+    assert any("property 'transfer' cannot change while PAUSED or PLAYING" in t for t in texts), texts
 
 
 # ---- one buffer, one frame ----------------------------------------------------------------------------------
 
 def test_two_frames_in_one_buffer_is_an_error(gst_subprocess_env, tiny_clip, tmp_path):
-    """rawvideoparse frame-size of two frames: nrvalidity refuses the buffer (element, both sizes), the
-    run exits non-zero and no EXR is written from misread frames."""
+    """Buffers of two frames (filesrc blocksize of two frames, no video meta): nrvalidity refuses the
+    buffer (element, both sizes) instead of reading it as one frame of wider rows; the run exits non-zero
+    and no EXR is written."""
     d, prof, raws = tiny_clip
     frame = 2 * prof.width * prof.height
-    p = subprocess.run(
-        [sys.executable, "-m", "gst_plugins.cli", "launch", "filesrc", f"location={d / 'clip.raw'}", "!",
-         "rawvideoparse", "format=gray16-le", f"width={prof.width}", f"height={prof.height}",
-         "framerate=5/1", f"frame-size={2 * frame}", "!", "nrvalidity", f"profile={d / 'camera.json'}", "!",
-         "nrreconstruct", "method=nearest", "!", "nrexrsink", f"location={tmp_path}/f_%03d.exr"],
-        env=gst_subprocess_env, cwd=ROOT, capture_output=True, text=True, timeout=120)
-    out = p.stdout + p.stderr
-    assert p.returncode != 0, out
-    line = next(ln for ln in out.splitlines() if ln.startswith("ERROR") and "nrvalidity0" in ln)
+    rc, out = run_app(gst_subprocess_env,
+                      f"filesrc location={d / 'clip.raw'} blocksize={2 * frame} ! video/x-raw,format=GRAY16_LE,"
+                      f"width={prof.width},height={prof.height},framerate=5/1 ! nrvalidity "
+                      f"profile={d / 'camera.json'} ! nrreconstruct method=nearest ! nrexrsink "
+                      f"location={tmp_path}/f_%03d.exr")
+    assert rc != 0, out
+    line = next(ln for ln in out.splitlines() if ln.startswith("ERROR from nrvalidity0"))
     assert f"buffer of {2 * frame} bytes" in line and f"expected {frame} bytes" in line, line
     assert not list(tmp_path.glob("*.exr"))
+
+
+def test_rawvideoparse_strides_are_read_from_the_video_meta(gst, tiny_clip):
+    """rawvideoparse plane-strides wider than the rows: each buffer is one frame described by its video meta
+    (stride and size agree), so it is read with that stride."""
+    d, prof, raws = tiny_clip
+    w, h = prof.width, prof.height
+    padded = np.zeros((len(raws), h, 2 * w), "<u2")
+    padded[:, :, :w] = raws
+    path = d.parent / "padded.raw"
+    path.write_bytes(padded.tobytes())
+    ok, err = run_inprocess(gst, f"filesrc location={path} ! rawvideoparse format=gray16-le width={w} height={h} "
+                                 f"framerate=5/1 plane-strides=<{4 * w}> ! nrvalidity profile={d / 'camera.json'} "
+                                 f"! fakesink")
+    assert ok, err
 
 
 @FUZZ

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import hdr_buffer, run_appsrc
+from test_element_properties import run_app, run_inprocess
 
 pytestmark = pytest.mark.gst
 
@@ -36,18 +37,10 @@ def assert_element_error(rc, out, element, *needles):
 
 
 def inprocess_error(gst, desc, timeout=60.0):
-    """Run `desc` in this process; return (element name, error text) of the first error. An EOS or no
-    message within `timeout` s fails the test (never a hang)."""
-    pipeline = gst.parse_launch(desc)
-    bus = pipeline.get_bus()
-    try:
-        pipeline.set_state(gst.State.PLAYING)
-        msg = bus.timed_pop_filtered(int(timeout * gst.SECOND), gst.MessageType.EOS | gst.MessageType.ERROR)
-        assert msg is not None, f"no error within {timeout} s: {desc}"
-        assert msg.type == gst.MessageType.ERROR, f"EOS instead of an error: {desc}"
-        return msg.src.get_factory().get_name(), msg.parse_error()[0].message
-    finally:
-        pipeline.set_state(gst.State.NULL)
+    """(factory, error text) of the first error of `desc` run in this process (bus wait with a timeout)."""
+    ok, err = run_inprocess(gst, desc, timeout)
+    assert not ok, f"EOS instead of an error: {desc}"
+    return err[0], err[2]
 
 
 @pytest.mark.parametrize("run", range(20))
@@ -107,11 +100,13 @@ def test_truncated_last_frame(gst_subprocess_env, tiny_clip, tmp_path, between):
     data = (d / "clip.raw").read_bytes()
     cut = tmp_path / "cut.raw"
     cut.write_bytes(data[:30000])
-    rc, out = launch(gst_subprocess_env, *src(tmp_path, raw="cut.raw"), *between, "nrvalidity",
-                     f"profile={d / 'camera.json'}", "!", "fakesink")
-    assert_element_error(rc, out, "nrvalidity0", f"{cut} is 30000 bytes",
-                         "not a whole number of 6144-byte 64x48 GRAY16_LE frames (4 frames + 5424 bytes)",
-                         "truncated")
+    rc, out = run_app(gst_subprocess_env, " ".join(src(tmp_path, raw="cut.raw") + between + [
+        "nrvalidity", f"profile={d / 'camera.json'}", "!", "fakesink"]))
+    assert rc != 0, out
+    line = next(ln for ln in out.splitlines() if ln.startswith("ERROR from nrvalidity0"))
+    for needle in (f"{cut} is 30000 bytes", "truncated",
+                   "not a whole number of 6144-byte 64x48 GRAY16_LE frames (4 frames + 5424 bytes)"):
+        assert needle in line, line
 
 
 def test_whole_frames_pass_the_size_check(gst_subprocess_env, tiny_clip):

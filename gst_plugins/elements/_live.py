@@ -3,6 +3,7 @@ processing latency answered to the LATENCY query, and reports of numba compilati
 from __future__ import annotations
 
 import time
+import weakref
 
 from ._gst import Gst, GstBase
 from ._props import Prop
@@ -35,8 +36,17 @@ class LiveTiming:
         self._nr_t0 = None
         self._nr_jit_seen = 0
         self._nr_in = self._nr_out = 0
-        self.sinkpad.add_probe(Gst.PadProbeType.BUFFER, self._nr_sink_probe)
-        self.srcpad.add_probe(Gst.PadProbeType.BUFFER, self._nr_src_probe)
+        # the probes hold the element weakly: a bound method would keep it alive through its own pads
+        ref = weakref.ref(self)
+
+        def probe(name):
+            def call(pad, info):
+                el = ref()
+                return getattr(el, name)(pad, info) if el is not None else Gst.PadProbeReturn.OK
+            return call
+
+        self.sinkpad.add_probe(Gst.PadProbeType.BUFFER, probe("_nr_sink_probe"))
+        self.srcpad.add_probe(Gst.PadProbeType.BUFFER, probe("_nr_src_probe"))
 
     def _nr_fixed_latency(self) -> float:
         return self.settings.processing_latency

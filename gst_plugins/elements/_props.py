@@ -285,8 +285,8 @@ class Properties:
             return
         old = getattr(self.settings, p.attr)
         if not p.playing and v != old and self._nr_running():
-            self.nr_warning(f"property '{p.name}' cannot change while {self._nr_running()} (set it in NULL "
-                            f"or READY); keeping {old!r}")
+            self.nr_warning(f"property '{p.name}' cannot change while PAUSED or PLAYING (set it in NULL or "
+                            f"READY); keeping {old!r}")
             return
         self._nr_invalid.pop(p.name, None)
         self.settings = self.settings._replace(**{p.attr: v})
