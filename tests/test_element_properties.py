@@ -97,7 +97,8 @@ def test_elements_md_property_tables_match(gst):
     """docs/ELEMENTS.md holds each element's property table as the table makes it."""
     doc = (ROOT / "docs" / "ELEMENTS.md").read_text()
     for factory, table in tables():
-        assert table.markdown() in doc, f"docs/ELEMENTS.md: the property table of {factory} is not current"
+        assert table.markdown() in doc, (f"docs/ELEMENTS.md: the property table of {factory} is not current "
+                                         f"(python -m gst_plugins.elements._doc)")
 
 
 def _strategy(p):

@@ -269,6 +269,20 @@ class Properties:
         install_refusal_handler()
         remember_element(self)
 
+    def set_property(self, name, value):
+        """Python's `set_property`: a number out of range or NaN raises ValueError naming the property,
+        the value and the range (GObject would only print a warning and keep the old value)."""
+        table = type(self).PROPERTIES
+        p = table.props.get(name) or table.props.get(str(name).replace("_", "-"))
+        if p is not None and p.kind in (int, float) and not isinstance(value, bool):
+            try:
+                _v, err = table.check(p.name, value)
+            except (TypeError, ValueError, OverflowError):
+                err = None                   # not a number: PyGObject's own TypeError follows
+            if err is not None:
+                raise ValueError(f"{self.get_name()}: {err}")
+        return super().set_property(name, value)
+
     def do_get_property(self, pspec):
         p = type(self).PROPERTIES[pspec.name]
         if p.readonly:

@@ -7,14 +7,14 @@ Run (30 fps live, the simulator's camera over the synthesised scene, into the ch
         videoconvert ! fakesink sync=true
 
 Modes: `location=` a clip folder of `nrhdr simulate` (clip.json + clip.raw; `loop`), or `scene=` an HDR
-file / "synthetic" rendered with the simulator's motion and noise model (`nrhdr_core.realtime.SceneCamera`: a
-path of `frames` frames, repeated; each frame is rendered when it is due, and kept for the repeats only
-while the whole path fits in CACHE_BYTES, so memory stays flat for any `frames`). Live (default): frame k of the sensor's timeline
-is exposed during [t0 + k T, t0 + (k+1) T) of the pipeline's running time (t0: the first request) and
-pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query answers one frame period
-(min) and RING periods (max). A camera driver holds RING frames: when downstream falls more than that
-behind, the oldest frames are lost at the source (`dropped`, DISCONT flag; offsets count sensor frames),
-so put a `queue` after the source, as after any live source. Not live
+file / "synthetic" rendered with the simulator's motion and noise model (`nrhdr_core.realtime.SceneCamera`:
+a path of `frames` frames, repeated; each frame is rendered when it is due, and kept for the repeats only
+while the whole path fits in CACHE_BYTES, so memory stays flat for any `frames`). Live (default): frame k
+of the sensor's timeline is exposed during [t0 + k T, t0 + (k+1) T) of the pipeline's running time (t0:
+the first request) and pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query
+answers one frame period (min) and RING periods (max). A camera driver holds RING frames: when downstream
+falls more than that behind, the oldest frames are lost at the source (`dropped`, DISCONT flag; offsets
+count sensor frames), so put a `queue` after the source, as after any live source. Not live
 (`is-live=false`): frames as fast as downstream takes them, PTS k T, no loss.
 """
 from __future__ import annotations
