@@ -281,6 +281,10 @@ APP = textwrap.dedent("""
     gone = []
     els = [Gst.ElementFactory.make(n, None) for n in gst_plugins.FACTORIES]
     assert all(e.is_floating() for e in els)
+    from gst_plugins.elements.nrtonemap import NrTonemap
+    direct = NrTonemap()                      # made by Python: the wrapper owns it, nothing floating
+    assert not direct.is_floating()
+    els.append(direct)
     p = Gst.Pipeline.new(None)
     for e in els:
         p.add(e)
@@ -289,7 +293,7 @@ APP = textwrap.dedent("""
     for el in p2.iterate_elements():
         el.weak_ref(lambda *a: gone.append(1))
     p.set_state(Gst.State.READY); p.set_state(Gst.State.NULL)
-    del els, e, el, p, p2
+    del els, e, el, p, p2, direct
     gc.collect()
     print("finalized", len(gone))
 """)
@@ -304,7 +308,7 @@ def test_no_floating_critical_and_elements_are_freed(gst_subprocess_env, tmp_pat
     out = p.stdout + p.stderr
     assert p.returncode == 0, out
     assert "CRITICAL" not in out, out
-    assert "finalized 12" in out, out      # 6 made by the factory + appsrc, 4 nrhdr, fakesink
+    assert "finalized 13" in out, out      # 6 by the factory, 1 by Python, appsrc + 4 nrhdr + fakesink
 
 
 # ---- nrexrsink: any location pattern, never over an old recording ----------------------------------------

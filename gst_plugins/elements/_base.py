@@ -41,9 +41,8 @@ def _has_gobject(wrapper) -> bool:
     """True when the instance already exists in C: made by g_object_new (gst_element_factory_make, the
     parser), not by calling the Python class."""
     try:
-        wrapper.ref_count  # noqa: B018 - raises while the wrapper has no GObject yet
-        return True
-    except Exception:  # noqa: BLE001
+        return wrapper.__gpointer__ is not None   # ValueError (a NULL pointer) before the GObject exists
+    except ValueError:
         return False
 
 
