@@ -8,8 +8,9 @@ Run (30 fps live, the simulator's camera over the synthesised scene, into the ch
 
 Modes: `location=` a clip folder of `nrhdr simulate` (clip.json + clip.raw; `loop`), or `scene=` an HDR
 file / "synthetic" rendered with the simulator's motion and noise model (`nrhdr_core.realtime.SceneCamera`:
-a path of `frames` frames, repeated; each frame is rendered when it is due, and kept for the repeats only
-while the whole path fits in CACHE_BYTES, so memory stays flat for any `frames`). Live (default): frame k
+a path of `frames` frames, repeated; a path of at most PRERENDER_PIXELS pixels is rendered at start, a
+longer one frame by frame when each is due, kept for the repeats only while the whole path fits in
+CACHE_BYTES, so memory stays flat for any `frames`). Live (default): frame k
 of the sensor's timeline is exposed during [t0 + k T, t0 + (k+1) T) of the pipeline's running time (t0:
 the first request) and pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query
 answers one frame period (min) and RING periods (max). A camera driver holds RING frames: when downstream
@@ -23,11 +24,12 @@ import math
 import os
 import threading
 
-from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, np, raw_template_caps,
-                      starting)
+from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, load_profile, np,
+                      raw_template_caps, starting)
 
 RING = 4  # frames a camera driver buffers (v4l2src's default); reported as the maximum latency
 CACHE_BYTES = 256 << 20  # rendered frames kept for the path's repeats when all of them fit
+PRERENDER_PIXELS = 10_000_000  # a path this small (all frames' pixels) is rendered at start (< ~1 s)
 
 PROPERTIES = PropertyTable("GstNrCamSrc", [
     Prop("location", str, "", "Clip folder",
@@ -77,6 +79,15 @@ class SceneFrames:
                      else cam.scene)
         self._keep = self.n * self.width * self.height * 2 <= cache_bytes
         self._frames: dict = {}
+
+    def prerender(self, max_pixels: int = PRERENDER_PIXELS) -> bool:
+        """Render the whole path now when it is small (a live source then keeps its frame rate from the
+        first frame); True when done."""
+        if not self._keep or self.n * self.width * self.height > max_pixels:
+            return False
+        for i in range(self.n):
+            self.frame(i)
+        return True
 
     def frame(self, k: int) -> np.ndarray:
         from nrhdr_core import sensor, simulate
@@ -151,8 +162,7 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
             if s.scene:
                 if s.profile:
                     return os.path.abspath(s.profile)
-                from nrhdr_core import profile as profiles
-                return self._cached_default_profile(profiles.default(s.height, s.width, seed=1))
+                return self._cached_default_profile(s.width, s.height)
         except (OSError, ValueError, KeyError):
             pass
         return ""
@@ -195,15 +205,15 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
         return True
 
     def _scene_camera(self):
-        from nrhdr_core import profile as profiles, realtime
+        from nrhdr_core import realtime
         s = self.settings
         try:
             if s.profile:
-                prof = profiles.load(s.profile)
+                prof = load_profile(s.profile)
                 self._profile_used = str(prof.path or s.profile)
             else:
-                prof = profiles.default(s.height, s.width, seed=1)
-                self._profile_used = self._cached_default_profile(prof)
+                self._profile_used = self._cached_default_profile(s.width, s.height)
+                prof = load_profile(self._profile_used)
         except (OSError, ValueError) as e:
             self.post_error(f"profile={s.profile}: {e}", kind="read")
             return None
@@ -213,21 +223,24 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
             self.post_error(f"scene={s.scene}: {e}", kind="read")
             return None
         cam = realtime.SceneCamera(scene, prof, frames=s.frames, seed=s.seed, exposure_stops=s.exposure)
+        frames = SceneFrames(cam)
+        when = "rendered at start" if frames.prerender() else "each rendered when it is due"
         Gst.info(f"{self.get_name()}: scene {name}, {cam.n}-frame path of {cam.width}x{cam.height} frames, "
-                 f"each rendered when it is due (simulator motion and noise)")
-        return SceneFrames(cam)
+                 f"{when} (simulator motion and noise)")
+        return frames
 
     @staticmethod
-    def _cached_default_profile(prof) -> str:
-        """Write the default profile once per size (nrvalidity needs it as a file): ~/.cache/nrhdr/."""
+    def _cached_default_profile(width: int, height: int) -> str:
+        """The default profile of this size as a file (nrvalidity needs one), written once:
+        ~/.cache/nrhdr/profiles/default_WxH.json."""
         from pathlib import Path
 
         from nrhdr_core import profile as profiles
         base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nrhdr" / "profiles"
-        path = base / f"default_{prof.width}x{prof.height}.json"
+        path = base / f"default_{width}x{height}.json"
         if not path.is_file():
             base.mkdir(parents=True, exist_ok=True)
-            profiles.save(prof, path)
+            profiles.save(profiles.default(height, width, seed=1), path)
         return str(path)
 
     def do_stop(self):
