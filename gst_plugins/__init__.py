@@ -23,7 +23,7 @@ _registered = False
 def _init_gstreamer_first() -> None:
     """Gst.init before any element module is imported: with GST_REGISTRY_FORK=no the registry scan runs in
     Gst.init, in this process, and the plugin loader imports the element shims; a half-imported element
-    module there would cache the python plugin with no elements in the registry (issue 11)."""
+    module there would cache the python plugin with no elements in the registry."""
     import gi
     gi.require_version("Gst", "1.0")
     from gi.repository import Gst
@@ -39,7 +39,7 @@ def register_all() -> list[str]:
     with _lock:
         _init_gstreamer_first()
         from .elements import ELEMENTS, element_class
-        from .elements._common import Gst
+        from .elements._gst import Gst
         if _registered:
             return list(ELEMENTS)
         for name in ELEMENTS:

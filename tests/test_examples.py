@@ -1,4 +1,4 @@
-"""The embedding examples (issue 11 item 5) run as subprocesses: a stub camera SDK feeding a live appsrc
+"""The embedding examples run as subprocesses: a stub camera SDK feeding a live appsrc
 with settings changed while playing, and an appsink pulling HDR frames as numpy arrays."""
 from __future__ import annotations
 
@@ -15,9 +15,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_example(name, args, env, timeout=240):
+    """Run an example with G_DEBUG=fatal-criticals: any GStreamer-CRITICAL (e.g. "The created element should
+    be floating") aborts it and fails the test."""
+    env = dict(env, G_DEBUG="fatal-criticals")
     p = subprocess.run([sys.executable, str(ROOT / "examples" / name), *map(str, args)], env=env, cwd=ROOT,
                        capture_output=True, text=True, timeout=timeout)
-    return p.returncode, p.stdout + p.stderr
+    out = p.stdout + p.stderr
+    assert "CRITICAL" not in out, out
+    return p.returncode, out
 
 
 def test_camera_appsrc_live_with_settings_changed_while_playing(gst_subprocess_env):

@@ -1,4 +1,4 @@
-"""GStreamer citizenship (issue 11): the one-block HDR frame through stock elements (identity dump=true,
+"""GStreamer citizenship: the one-block HDR frame through stock elements (identity dump=true,
 rtpgstpay ! rtpgstdepay, filesink then filesrc ! capsfilter), caps that follow the profile (videotestsrc,
 videoscale), pixel-aspect-ratio / interlace-mode pass-through, debug categories, Python warnings on the bus,
 zero-copy mapping and the buffer pool."""

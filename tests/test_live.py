@@ -1,4 +1,4 @@
-"""Live operation (issue #7): the method=auto controller on synthetic timings, processing-time estimates,
+"""Live operation: the method=auto controller on synthetic timings, processing-time estimates,
 nrcamsrc timestamps and frame counts, QoS skips and the LATENCY query in a live pipeline slower than its
 frame period, method=auto in the element, the tee recipe that records every frame, `nrhdr warmup`.
 
@@ -262,8 +262,8 @@ def _slow_live(gst, prof_path, qos=True, frames=100, leaky=False):
 def prof_live(tmp_path_factory):
     from nrhdr_core import profile
     path = tmp_path_factory.mktemp("prof") / "cam.json"
-    # 320 x 256: fse best must take longer than the 20 ms frame period (80 x 64 no longer did after the
-    # session-3 FSE speed-ups, 160 x 128 after session 4's, and these tests skipped)
+    # 320 x 256: fse best must take longer than the 20 ms frame period (smaller frames can be fast enough,
+    # and these tests would skip)
     profile.save(profile.default(256, 320, seed=4), path)
     return path
 
@@ -389,7 +389,7 @@ def test_auto_in_the_element_goes_down_under_load_and_up_again(gst, rng):
 @pytest.mark.gst
 def test_tee_recipe_records_every_frame_while_the_display_drops(gst_subprocess_env, tmp_path):
     # 320 x 240 with FSE best: the display branch is far slower than 50 frames/s on any machine (at 80 x 64
-    # the faster kernels of session 4 kept up on a quiet moment, and the test could not see a drop)
+    # it can keep up on a quiet moment, and the test could not see a drop)
     clip, _prof, raws = make_test_clip(tmp_path / "clip", width=320, height=240, frames=6, fps=25)
     out = tmp_path / "rec"
     env = dict(gst_subprocess_env, FRAMES="40", FPS="50", METHOD="fse", PRESET="best", VERBOSE="1", STATS="true")

@@ -8,29 +8,105 @@ Run (30 fps live, the simulator's camera over the synthesised scene, into the ch
 
 Modes: `location=` a clip folder of `nrhdr simulate` (clip.json + clip.raw; `loop`), or `scene=` an HDR
 file / "synthetic" rendered with the simulator's motion and noise model (`nrhdr_core.realtime.SceneCamera`:
-`frames` frames rendered once at start, then repeated). Live (default): frame k of the sensor's timeline
-is exposed during [t0 + k T, t0 + (k+1) T) of the pipeline's running time (t0: the first request) and
-pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query answers one frame period
-(min) and RING periods (max). A camera driver holds RING frames: when downstream falls more than that
-behind, the oldest frames are lost at the source (`dropped`, DISCONT flag; offsets count sensor frames),
-so put a `queue` after the source, as after any live source. Not live
+a path of `frames` frames, repeated; a path of at most PRERENDER_PIXELS pixels is rendered at start, a
+longer one frame by frame when each is due, kept for the repeats only while the whole path fits in
+CACHE_BYTES, so memory stays flat for any `frames`). Live (default): frame k
+of the sensor's timeline is exposed during [t0 + k T, t0 + (k+1) T) of the pipeline's running time (t0:
+the first request) and pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query
+answers one frame period (min) and RING periods (max). A camera driver holds RING frames: when downstream
+falls more than that behind, the oldest frames are lost at the source (`dropped`, DISCONT flag; offsets
+count sensor frames), so put a `queue` after the source, as after any live source. Not live
 (`is-live=false`): frames as fast as downstream takes them, PTS k T, no loss.
 """
 from __future__ import annotations
 
+import math
 import os
 import threading
 
-from ._common import (MUTABLE_READY, ErrorPoster, GObject, Gst, GstBase, GstVideo, np,
-                      raw_template_caps)
+from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, load_profile, np,
+                      raw_template_caps, starting)
 
 RING = 4  # frames a camera driver buffers (v4l2src's default); reported as the maximum latency
-_RW = GObject.ParamFlags.READWRITE
-_RO = GObject.ParamFlags.READABLE
+CACHE_BYTES = 256 << 20  # rendered frames kept for the path's repeats when all of them fit
+PRERENDER_PIXELS = 10_000_000  # a path this small (all frames' pixels) is rendered at start (< ~1 s)
+
+PROPERTIES = PropertyTable("GstNrCamSrc", [
+    Prop("location", str, "", "Clip folder",
+         "Clip folder written by 'nrhdr simulate' (clip.json + clip.raw); exclusive with 'scene'"),
+    Prop("scene", str, "", "HDR scene",
+         "HDR image (OpenEXR, .hdr, ...) or 'synthetic', rendered with the simulator's camera motion and "
+         "sensor noise; exclusive with 'location'"),
+    Prop("profile", str, "", "Camera profile",
+         "Scene mode: camera profile JSON (size, mask, noise); empty = the default profile of width x height "
+         "(written to a cache file, see 'profile-path'). Clip mode: ignored (the clip's camera.json)"),
+    Prop("profile-path", str, "", "Profile in use",
+         "The camera profile JSON of the frames (resolved from location / scene / profile / width / height): "
+         "give it to nrvalidity profile=...", readonly=True),
+    Prop("loop", bool, False, "Loop", "Clip mode: start again at the first frame after the last (else EOS)"),
+    Prop("width", int, 640, "Width", "Scene mode without a profile: frame width", minimum=2, maximum=16384),
+    Prop("height", int, 480, "Height", "Scene mode without a profile: frame height", minimum=2,
+         maximum=16384),
+    Prop("fps", int, 0, "Frame rate", "Frames per second; 0 = the clip's rate (clip mode) or 30 (scene mode)",
+         minimum=0, maximum=1000),
+    Prop("frames", int, 30, "Frames of the path",
+         "Scene mode: frames of the camera path (then it repeats); each frame is rendered when it is due",
+         minimum=1, maximum=100000),
+    Prop("seed", int, 0, "Noise seed", "Scene mode: seed of the sensor noise", minimum=0, maximum=2147483647),
+    Prop("exposure", float, 0.0, "Exposure",
+         "Scene mode: stops relative to auto exposure (as nrhdr simulate --exposure)", minimum=-20.0,
+         maximum=20.0),
+    Prop("is-live", bool, True, "Live",
+         "Live source: frames at the frame rate on the pipeline clock (a camera); false = as fast as "
+         "downstream takes them (a file)"),
+    Prop("dropped", "uint64", 0, "Frames dropped",
+         "Live: sensor frames lost because downstream had not taken the previous one in time", readonly=True),
+])
 
 
-class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
+class SceneFrames:
+    """Frame i of a `nrhdr_core.realtime.SceneCamera` path rendered on demand (view at path position
+    i / (n - 1), sensor noise seeded by (seed, i)), the same frames on every repeat. Rendered frames are
+    kept only when the whole path fits in `cache_bytes`."""
+
+    def __init__(self, cam, cache_bytes: int = CACHE_BYTES):
+        from scipy.ndimage import gaussian_filter
+        self.cam = cam
+        self.n, self.width, self.height = cam.n, cam.width, cam.height
+        # the anti-aliasing of simulate.simulate_clip: the view shrinks the scene ~W * fov / w
+        shrink = max(cam.scene.shape[1] * cam.motion.fov / cam.width, 1.0)
+        self._pre = (gaussian_filter(cam.scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2
+                     else cam.scene)
+        self._keep = self.n * self.width * self.height * 2 <= cache_bytes
+        self._frames: dict = {}
+
+    def prerender(self, max_pixels: int = PRERENDER_PIXELS) -> bool:
+        """Render the whole path now when it is small (a live source then keeps its frame rate from the
+        first frame); True when done."""
+        if not self._keep or self.n * self.width * self.height > max_pixels:
+            return False
+        for i in range(self.n):
+            self.frame(i)
+        return True
+
+    def frame(self, k: int) -> np.ndarray:
+        from nrhdr_core import sensor, simulate
+        i = k % self.n
+        f = self._frames.get(i)
+        if f is None:
+            cam = self.cam
+            t = i / max(self.n - 1, 1)
+            flux = simulate.view(cam.scene, self.height, self.width, t, cam.motion, prefiltered=self._pre)
+            rng = np.random.default_rng((cam.seed, i))
+            f = sensor.capture(flux * np.float32(cam.k), cam.profile, rng, sensor_model=cam.sensor_model)
+            if self._keep:
+                self._frames[i] = f
+        return f
+
+
+class NrCamSrc(NrElement, GstBase.BaseSrc):
     __gtype_name__ = "GstNrCamSrc"
+    PROPERTIES = PROPERTIES
     __gstmetadata__ = (
         "nrhdr live camera stand-in",
         "Source/Video",
@@ -46,17 +122,9 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
 
     def __init__(self):
         super().__init__()
-        self._location = ""
-        self._scene = ""
-        self._profile = ""
-        self._loop = False
-        self._width, self._height, self._fps = 640, 480, 0
-        self._frames = 30
-        self._seed = 0
-        self._exposure = 0.0
-        self._live = True
         self._cam = None
         self._vi = None
+        self._caps = None
         self._profile_used = ""
         self._lock = threading.Lock()
         self._clock_id = None
@@ -71,224 +139,108 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
         self._pushed = 0
         self._dropped = 0
 
-    # ---- properties ---------------------------------------------------------------------------------
-    @GObject.Property(type=str, default="", nick="Clip folder",
-                      blurb="Clip folder written by 'nrhdr simulate' (clip.json + clip.raw); exclusive "
-                            "with 'scene'", flags=_RW | MUTABLE_READY)
-    def location(self):
-        return self._location
+    def nr_property_changed(self, name, value):
+        if name == "is-live":
+            self.set_live(bool(value))
 
-    @location.setter
-    def location(self, value):
-        self._location = value or ""
+    def nr_read(self, name):
+        if name == "dropped":
+            return self._dropped
+        return self._resolved_profile()
 
-    @GObject.Property(type=str, default="", nick="HDR scene",
-                      blurb="HDR image (OpenEXR, .hdr, ...) or 'synthetic', rendered with the simulator's "
-                            "camera motion and sensor noise; exclusive with 'location'",
-                      flags=_RW | MUTABLE_READY)
-    def scene(self):
-        return self._scene
-
-    @scene.setter
-    def scene(self, value):
-        self._scene = value or ""
-
-    @GObject.Property(type=str, default="", nick="Camera profile",
-                      blurb="Scene mode: camera profile JSON (size, mask, noise); empty = the default "
-                            "profile of width x height (written to a cache file, see 'profile-path'). "
-                            "Clip mode: ignored (the clip's camera.json)", flags=_RW | MUTABLE_READY)
-    def profile(self):
-        return self._profile
-
-    @profile.setter
-    def profile(self, value):
-        self._profile = value or ""
-
-    @GObject.Property(type=str, default="", nick="Profile in use",
-                      blurb="The camera profile JSON of the frames (read-only; resolved from location / "
-                            "scene / profile / width / height): give it to nrvalidity profile=...",
-                      flags=_RO)
-    def profile_path(self):
+    def _resolved_profile(self) -> str:
+        """The profile JSON of the frames; before start resolved from the settings (an app can hand it to
+        nrvalidity before playing); "" when it cannot be resolved."""
         if self._profile_used:
             return self._profile_used
-        try:  # before start: resolve it (an app can hand it to nrvalidity before playing)
-            if self._location:
+        s = self.settings
+        try:
+            if s.location:
                 from nrhdr_core import simulate
-                info = simulate.load_clip(self._location)
+                info = simulate.load_clip(s.location)
                 return os.path.join(info["dir"], info.get("profile", "camera.json"))
-            if self._scene:
-                if self._profile:
-                    return os.path.abspath(self._profile)
-                from nrhdr_core import profile as profiles
-                return self._cached_default_profile(profiles.default(self._height, self._width, seed=1))
+            if s.scene:
+                if s.profile:
+                    return os.path.abspath(s.profile)
+                return self._cached_default_profile(s.width, s.height)
         except (OSError, ValueError, KeyError):
             pass
         return ""
 
-    @GObject.Property(type=bool, default=False, nick="Loop",
-                      blurb="Clip mode: start again at the first frame after the last (else EOS)",
-                      flags=_RW | MUTABLE_READY)
-    def loop(self):
-        return self._loop
-
-    @loop.setter
-    def loop(self, value):
-        self._loop = bool(value)
-
-    @GObject.Property(type=int, default=640, minimum=2, maximum=16384, nick="Width",
-                      blurb="Scene mode without a profile: frame width", flags=_RW | MUTABLE_READY)
-    def width(self):
-        return self._width
-
-    @width.setter
-    def width(self, value):
-        self._width = int(value)
-
-    @GObject.Property(type=int, default=480, minimum=2, maximum=16384, nick="Height",
-                      blurb="Scene mode without a profile: frame height", flags=_RW | MUTABLE_READY)
-    def height(self):
-        return self._height
-
-    @height.setter
-    def height(self, value):
-        self._height = int(value)
-
-    @GObject.Property(type=int, default=0, minimum=0, maximum=1000, nick="Frame rate",
-                      blurb="Frames per second; 0 = the clip's rate (clip mode) or 30 (scene mode)",
-                      flags=_RW | MUTABLE_READY)
-    def fps(self):
-        return self._fps
-
-    @fps.setter
-    def fps(self, value):
-        self._fps = int(value)
-
-    @GObject.Property(type=int, default=30, minimum=1, maximum=100000, nick="Frames rendered",
-                      blurb="Scene mode: frames of the camera path, rendered once at start and repeated",
-                      flags=_RW | MUTABLE_READY)
-    def frames(self):
-        return self._frames
-
-    @frames.setter
-    def frames(self, value):
-        self._frames = int(value)
-
-    @GObject.Property(type=int, default=0, minimum=0, maximum=2147483647, nick="Noise seed",
-                      blurb="Scene mode: seed of the sensor noise", flags=_RW | MUTABLE_READY)
-    def seed(self):
-        return self._seed
-
-    @seed.setter
-    def seed(self, value):
-        self._seed = int(value)
-
-    @GObject.Property(type=float, default=0.0, minimum=-20.0, maximum=20.0, nick="Exposure",
-                      blurb="Scene mode: stops relative to auto exposure (as nrhdr simulate --exposure)",
-                      flags=_RW | MUTABLE_READY)
-    def exposure(self):
-        return self._exposure
-
-    @exposure.setter
-    def exposure(self, value):
-        self._exposure = float(value)
-
-    @GObject.Property(type=bool, default=True, nick="Live",
-                      blurb="Live source: frames at the frame rate on the pipeline clock (a camera); "
-                            "false = as fast as downstream takes them (a file)", flags=_RW | MUTABLE_READY)
-    def is_live(self):
-        return self._live
-
-    @is_live.setter
-    def is_live(self, value):
-        self._live = bool(value)
-        self.set_live(self._live)
-
-    @GObject.Property(type=GObject.TYPE_UINT64, default=0, nick="Frames dropped",
-                      blurb="Live: sensor frames lost because downstream had not taken the previous "
-                            "one in time (read-only)", flags=_RO)
-    def dropped(self):
-        return self._dropped
-
     # ---- state --------------------------------------------------------------------------------------
     def _fps_value(self, default):
-        return self._fps if self._fps > 0 else default
+        return self.settings.fps if self.settings.fps > 0 else default
 
+    @starting
     def do_start(self):
-        self.reset_errors()
-        try:
-            from nrhdr_core import realtime
-            if bool(self._location) == bool(self._scene):
-                self.post_error("set exactly one of 'location' (a clip folder of nrhdr simulate) and "
-                                "'scene' (an HDR image or 'synthetic')", kind="settings")
-                return False
-            if self._location:
-                try:
-                    cam = realtime.ClipCamera(self._location, loop=self._loop)
-                except (OSError, ValueError, KeyError) as e:
-                    self.post_error(f"location={self._location}: {e}", kind="read")
-                    return False
-                fps = self._fps_value(cam.fps)
-                self._profile_used = cam.profile_path
-            else:
-                cam = self._scene_camera()
-                if cam is None:
-                    return False
-                fps = self._fps_value(30)
-            caps = Gst.Caps.from_string(f"video/x-raw, format=GRAY16_LE, width={cam.width}, "
-                                        f"height={cam.height}, framerate={fps}/1, "
-                                        f"pixel-aspect-ratio=1/1")
-            self._vi = GstVideo.VideoInfo.new_from_caps(caps)
-            self._caps = caps
-            self._period = Gst.SECOND // fps
-            self._fps_n = fps
-            self._cam = cam
-            self._reset_counters()
-            self._flushing = False
-            self.set_blocksize(self._vi.size)
-            return True
-        except Exception as e:  # noqa: BLE001
-            self.post_exception("start", e)
+        from nrhdr_core import realtime
+        s = self.settings
+        if bool(s.location) == bool(s.scene):
+            self.post_error("set exactly one of 'location' (a clip folder of nrhdr simulate) and "
+                            "'scene' (an HDR image or 'synthetic')", kind="settings")
             return False
+        if s.location:
+            try:
+                cam = realtime.ClipCamera(s.location, loop=s.loop)
+            except (OSError, ValueError, KeyError) as e:
+                self.post_error(f"location={s.location}: {e}", kind="read")
+                return False
+            fps = self._fps_value(cam.fps)
+            self._profile_used = cam.profile_path
+        else:
+            cam = self._scene_camera()
+            if cam is None:
+                return False
+            fps = self._fps_value(30)
+        caps = Gst.Caps.from_string(f"video/x-raw, format=GRAY16_LE, width={cam.width}, "
+                                    f"height={cam.height}, framerate={fps}/1, pixel-aspect-ratio=1/1")
+        self._vi = GstVideo.VideoInfo.new_from_caps(caps)
+        self._caps = caps
+        self._period = Gst.SECOND // fps
+        self._fps_n = fps
+        self._cam = cam
+        self._reset_counters()
+        self._flushing = False
+        self.set_blocksize(self._vi.size)
+        return True
 
     def _scene_camera(self):
-        from nrhdr_core import profile as profiles, realtime
+        from nrhdr_core import realtime
+        s = self.settings
         try:
-            if self._profile:
-                prof = profiles.load(self._profile)
-                self._profile_used = str(prof.path or self._profile)
+            if s.profile:
+                prof = load_profile(s.profile)
+                self._profile_used = str(prof.path or s.profile)
             else:
-                prof = profiles.default(self._height, self._width, seed=1)
-                self._profile_used = self._cached_default_profile(prof)
+                self._profile_used = self._cached_default_profile(s.width, s.height)
+                prof = load_profile(self._profile_used)
         except (OSError, ValueError) as e:
-            self.post_error(f"profile={self._profile}: {e}", kind="read")
+            self.post_error(f"profile={s.profile}: {e}", kind="read")
             return None
         try:
-            scene, name = realtime.load_scene(self._scene, prof.height)
+            scene, name = realtime.load_scene(s.scene, prof.height)
         except (OSError, ValueError) as e:
-            self.post_error(f"scene={self._scene}: {e}", kind="read")
+            self.post_error(f"scene={s.scene}: {e}", kind="read")
             return None
-        cam = realtime.SceneCamera(scene, prof, frames=self._frames, seed=self._seed,
-                                   exposure_stops=self._exposure)
-        text = (f"{self.get_name()}: rendering {cam.n} frames {cam.width}x{cam.height} of scene {name} "
-                f"(simulator motion and noise; once, before playing)")
-        Gst.info(text)
-        if cam.n * cam.width * cam.height > 10_000_000:  # takes seconds: say so on the bus too
-            self.message_full(Gst.MessageType.INFO, Gst.core_error_quark(), int(Gst.CoreError.FAILED), text,
-                              text, __file__, "start", 0)  # gst-launch prints an INFO's debug text only
-        cam.render_all()
-        return cam
+        cam = realtime.SceneCamera(scene, prof, frames=s.frames, seed=s.seed, exposure_stops=s.exposure)
+        frames = SceneFrames(cam)
+        when = "rendered at start" if frames.prerender() else "each rendered when it is due"
+        Gst.info(f"{self.get_name()}: scene {name}, {cam.n}-frame path of {cam.width}x{cam.height} frames, "
+                 f"{when} (simulator motion and noise)")
+        return frames
 
     @staticmethod
-    def _cached_default_profile(prof) -> str:
-        """Write the default profile once per size (nrvalidity needs it as a file): ~/.cache/nrhdr/."""
+    def _cached_default_profile(width: int, height: int) -> str:
+        """The default profile of this size as a file (nrvalidity needs one), written once:
+        ~/.cache/nrhdr/profiles/default_WxH.json."""
         from pathlib import Path
 
         from nrhdr_core import profile as profiles
         base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nrhdr" / "profiles"
-        path = base / f"default_{prof.width}x{prof.height}.json"
+        path = base / f"default_{width}x{height}.json"
         if not path.is_file():
             base.mkdir(parents=True, exist_ok=True)
-            profiles.save(prof, path)
+            profiles.save(profiles.default(height, width, seed=1), path)
         return str(path)
 
     def do_stop(self):
@@ -309,7 +261,7 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
 
     def do_gst_base_src_query(self, query):
         if query.type == Gst.QueryType.LATENCY and self._cam is not None:
-            if self._live:
+            if self.settings.is_live:
                 # a frame is complete one period after its PTS (min); it stays available while the
                 # camera's ring of RING frames holds it (max)
                 query.set_latency(True, self._period, RING * self._period)
@@ -335,72 +287,74 @@ class NrCamSrc(ErrorPoster, GstBase.BaseSrc):
         """Start of sensor frame k relative to frame 0 (ns, exact for any integer rate)."""
         return k * Gst.SECOND // self._fps_n
 
-    def _wait_live(self):
-        """Live: wait until frame self._next is complete, skipping frames downstream missed; returns
-        (FlowReturn, frame index, pts, discont)."""
+    def _live_frame(self):
+        """Live: the index of the next frame to push, skipping frames downstream missed (lost in the
+        camera's ring): (frame index, discont)."""
         clock = self.get_clock()
+        k = self._next
         if clock is None:
-            return Gst.FlowReturn.OK, self._next, self._t(self._next), False
-        base = self.get_base_time()
-        now = clock.get_time() - base
+            return k, False
+        now = clock.get_time() - self.get_base_time()
         if self._origin is None:
             self._origin = now
-        t = self._t
-        k = self._next
-        discont = False
-        if now >= self._origin + t(k + 1 + RING):       # frame k was overwritten in the ring
+        if now >= self._origin + self._t(k + 1 + RING):       # frame k was overwritten in the ring
             newest = (now - self._origin) * self._fps_n // Gst.SECOND - 1
             oldest = newest - RING + 1
             if oldest > k:
                 self._dropped += oldest - k
-                k, discont = oldest, True
-        due = base + self._origin + t(k + 1)
+                return oldest, True
+        return k, False
+
+    def _wait_complete(self, k: int):
+        """Live: wait until frame k is complete (its exposure period has passed); FlowReturn."""
+        clock = self.get_clock()
+        if clock is None:
+            return Gst.FlowReturn.OK
+        due = self.get_base_time() + self._origin + self._t(k + 1)
         with self._lock:
             if self._flushing:
-                return Gst.FlowReturn.FLUSHING, k, 0, False
+                return Gst.FlowReturn.FLUSHING
             self._clock_id = clock.new_single_shot_id(due)
         ret, _jitter = Gst.Clock.id_wait(self._clock_id)
         with self._lock:
             self._clock_id = None
             if self._flushing or ret == Gst.ClockReturn.UNSCHEDULED:
-                return Gst.FlowReturn.FLUSHING, k, 0, False
-        return Gst.FlowReturn.OK, k, self._origin + t(k), discont
+                return Gst.FlowReturn.FLUSHING
+        return Gst.FlowReturn.OK
 
+    @guarded(lambda self: f"frame {self._next}", (Gst.FlowReturn.ERROR, None))
     def do_create(self, offset, length, buf0):
+        cam = self._cam
+        if cam is None:
+            self.post_error("not started", kind="settings")
+            return Gst.FlowReturn.ERROR, None
+        live = self.settings.is_live
+        k, discont = self._live_frame() if live else (self._next, False)
+        frame = cam.frame(k)          # rendered now (scene mode), while frame k is being exposed
+        if frame is None:
+            return Gst.FlowReturn.EOS, None
+        if live:
+            ret = self._wait_complete(k)
+            if ret != Gst.FlowReturn.OK:
+                return ret, None
+        vi = self._vi
+        buf = Gst.Buffer.new_allocate(None, vi.size, None)
+        ok, mi = buf.map(Gst.MapFlags.WRITE)
+        if not ok:
+            raise RuntimeError("cannot map a new buffer for writing")
         try:
-            cam = self._cam
-            if cam is None:
-                self.post_error("not started", kind="settings")
-                return Gst.FlowReturn.ERROR, None
-            if self._live:
-                ret, k, pts, discont = self._wait_live()
-                if ret != Gst.FlowReturn.OK:
-                    return ret, None
-            else:
-                k, pts, discont = self._next, self._t(self._next), False
-            frame = cam.frame(k)
-            if frame is None:
-                return Gst.FlowReturn.EOS, None
-            vi = self._vi
-            buf = Gst.Buffer.new_allocate(None, vi.size, None)
-            ok, mi = buf.map(Gst.MapFlags.WRITE)
-            if not ok:
-                raise RuntimeError("cannot map a new buffer for writing")
-            try:
-                dst = np.ndarray((vi.height, vi.width), "<u2", buffer=mi.data, offset=vi.offset[0],
-                                 strides=(vi.stride[0], 2))
-                np.copyto(dst, frame)
-            finally:
-                buf.unmap(mi)
-            buf.pts = pts
-            buf.dts = Gst.CLOCK_TIME_NONE
-            buf.duration = self._t(k + 1) - self._t(k)
-            buf.offset = k
-            buf.offset_end = k + 1
-            if discont or self._pushed == 0:
-                buf.set_flags(Gst.BufferFlags.DISCONT)
-            self._next = k + 1
-            self._pushed += 1
-            return Gst.FlowReturn.OK, buf
-        except Exception as e:  # noqa: BLE001
-            return self.post_exception(f"frame {self._next}", e), None
+            dst = np.ndarray((vi.height, vi.width), "<u2", buffer=mi.data, offset=vi.offset[0],
+                             strides=(vi.stride[0], 2))
+            np.copyto(dst, frame)
+        finally:
+            buf.unmap(mi)
+        buf.pts = self._origin + self._t(k) if live and self._origin is not None else self._t(k)
+        buf.dts = Gst.CLOCK_TIME_NONE
+        buf.duration = self._t(k + 1) - self._t(k)
+        buf.offset = k
+        buf.offset_end = k + 1
+        if discont or self._pushed == 0:
+            buf.set_flags(Gst.BufferFlags.DISCONT)
+        self._next = k + 1
+        self._pushed += 1
+        return Gst.FlowReturn.OK, buf

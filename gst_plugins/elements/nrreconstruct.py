@@ -1,43 +1,60 @@
 """nrreconstruct: fills the missing pixels of HDR frames in place (paper 2.2, 2.4, 5).
 
-`nrhdr_core.reconstruction.reconstruct(values, known, method, preset, lower, upper)` on the mapped frame;
-known = reason VALID; clipped pixels' values are lower bounds and too-dark pixels' upper bounds
-(`use-bounds`). Filled pixels get the RECONSTRUCTED bit (their reason is kept). `method` and `preset` can
-change while PLAYING: the setter swaps an immutable parameter object that the streaming thread reads once
-per frame. Posts an element message "nrhdr-frame-stats" per frame.
+`nrhdr_core.reconstruction.reconstruct_frame` on the mapped frame; known = reason VALID; clipped pixels'
+values are lower bounds and too-dark pixels' upper bounds (`use-bounds`). Filled pixels get the
+RECONSTRUCTED bit (their reason is kept). `method` and `preset` can change while PLAYING: the streaming
+thread reads the settings snapshot once per frame. Posts an element message "nrhdr-frame-stats" per frame
+when `post-stats` is on.
 
 Live (docs/ELEMENTS.md "Live operation"): QoS on by default and LATENCY answered with the processing time
-(`_common.LiveTiming`); `method=auto` picks per frame the most accurate rung of
-`nrhdr_core.realtime.LADDER` that fits `budget-ms` (default 70 % of the frame period), with hysteresis
-(`nrhdr_core.realtime.AutoController`).
+(`LiveTiming`); `method=auto` picks per frame the most accurate rung of `nrhdr_core.realtime.LADDER` that
+fits `budget-ms` (default 70 % of the frame period), with hysteresis (`nrhdr_core.realtime.AutoController`).
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 
-from ._common import (MUTABLE_PLAYING, Choice, ErrorPoster, GObject, Gst, GstBase, HdrInfo,
-                      hdr_template_caps, map_hdr, np)
-from ._common import debug_category  # noqa: E402  (issue 11: GST_DEBUG=nrreconstruct:6)
-from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
+from nrhdr_core.fse import FSE_PRESETS
+from nrhdr_core.reconstruction import FUSION_CHOICES, METHODS
 
-METHODS = ("fse", "linear", "nearest", "preview", "auto")
+from ._common import (LATENCY_PROP, GObject, Gst, GstBase, HdrInfo, LiveTiming, NrElement, Prop, PropertyTable,
+                      debug_category, guarded, hdr_template_caps, load_profile, map_hdr, starting)
+
 BUDGET_SHARE = 0.7  # method=auto without budget-ms: this share of the frame period (the rest: other stages)
-PRESETS = ("preview", "fast", "balanced", "best")
-FUSIONS = ("auto", "fast", "accurate")   # reconstruction.FUSION_CHOICES (not imported: no numba at import)
 STATS_MESSAGE = "nrhdr-frame-stats"
 
+PROPERTIES = PropertyTable("GstNrReconstruct", [
+    Prop("method", METHODS + ("auto",), "fse", "Method",
+         "Reconstruction method: 'fse' = Frequency Selective Extrapolation (paper, best), 'linear' = "
+         "Delaunay-linear, 'nearest' = nearest known pixel, 'preview' = fast pull-push for live preview, "
+         "'auto' = per frame the most accurate of fse best/balanced/fast/preview and preview that fits "
+         "budget-ms", playing=True),
+    Prop("preset", tuple(FSE_PRESETS), "balanced", "Preset",
+         "FSE parameter preset, speed against quality; ignored by other methods", playing=True),
+    Prop("budget-ms", float, 0.0, "Time budget (ms)",
+         "method=auto: milliseconds per frame the reconstruction may take; 0 = 70 % of the frame period of "
+         "the caps (30 frames a second when the caps have no framerate)", minimum=0.0, maximum=60000.0,
+         playing=True),
+    Prop("use-bounds", bool, True, "Use bounds",
+         "Keep reconstructed clipped pixels at or above their clip level and too-dark pixels at or below "
+         "l_min x ND (the bounds their state implies)", playing=True),
+    Prop("noise-fusion", FUSION_CHOICES, "auto", "Noise fusion",
+         "How NOISY pixels (nrvalidity dark-policy=weighted) are fused with their noisy measurement: "
+         "'accurate' = from the measured 3 x 3 neighbours and the pixel by inverse noise variance, 'fast' = "
+         "the reconstruction and the pixel (about 25 % less time, about 0.3 dB lower in dark regions; "
+         "docs/BENCHMARKS.md), 'auto' = fast for method=preview (live), accurate for the others",
+         playing=True),
+    Prop("post-stats", bool, False, "Post statistics",
+         "Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing = fraction of pixels "
+         "reconstructed, method, seconds). Off by default: an application that never reads the bus would "
+         "keep every message", playing=True),
+    LATENCY_PROP,
+])
 
-@dataclasses.dataclass(frozen=True)
-class ReconParams:
-    method: str = "fse"
-    preset: str = "balanced"
-    use_bounds: bool = True
-    noise_fusion: str = "auto"
 
-
-class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
+class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrReconstruct"
+    PROPERTIES = PROPERTIES
     DEBUG_CATEGORY = debug_category("nrreconstruct", "nrhdr missing-pixel reconstruction")
     __gstmetadata__ = (
         "nrhdr missing-pixel reconstruction",
@@ -53,187 +70,82 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     )
 
     do_gst_base_transform_query = LiveTiming.nr_live_query
-    processing_latency = live_latency_property()
 
     def __init__(self):
         super().__init__()
         self.nr_live_init()
-        self._budget_ms = 0.0
         self._auto = None
         self._last_pts, self._skipped = None, 0
-        self._params = ReconParams()
-        self._method = Choice("method", METHODS, "fse")
-        self._preset = Choice("preset", PRESETS, "balanced")
-        self._fusion = Choice("noise-fusion", FUSIONS, "auto")
-        self._post_stats = False   # off by default: unread bus messages would pile up (issue 9)
         self._info = None
         self._noise = None
         self._frames = 0
         self.set_in_place(True)
         self.set_passthrough(False)
 
-    # ---- properties (method/preset/use-bounds mutable while PLAYING) ---------------------------------
-    @GObject.Property(type=str, default="fse", nick="Method",
-                      blurb="Reconstruction method: 'fse' = Frequency Selective Extrapolation (paper, best), "
-                            "'linear' = Delaunay-linear, 'nearest' = nearest known pixel, 'preview' = fast "
-                            "pull-push for live preview, 'auto' = per frame the most accurate of fse "
-                            "best/balanced/fast/preview and preview that fits budget-ms (one of: fse, "
-                            "linear, nearest, preview, auto). Changeable while PLAYING",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
-    def method(self):
-        return self._params.method
-
-    @method.setter
-    def method(self, value):
-        v = self.set_choice(self._method, value)
-        if v is not None:
-            self._params = dataclasses.replace(self._params, method=v)
-
-    @GObject.Property(type=str, default="balanced", nick="Preset",
-                      blurb="FSE parameter preset, speed against quality (one of: preview, fast, balanced, "
-                            "best); ignored by other methods. Changeable while PLAYING",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
-    def preset(self):
-        return self._params.preset
-
-    @preset.setter
-    def preset(self, value):
-        v = self.set_choice(self._preset, value)
-        if v is not None:
-            self._params = dataclasses.replace(self._params, preset=v)
-
-    @GObject.Property(type=float, default=0.0, minimum=0.0, maximum=60000.0, nick="Time budget (ms)",
-                      blurb="method=auto: milliseconds per frame the reconstruction may take; 0 = 70 % of "
-                            "the frame period of the caps (30 frames a second when the caps have no framerate)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
-    def budget_ms(self):
-        return self._budget_ms
-
-    @budget_ms.setter
-    def budget_ms(self, value):
-        self._budget_ms = float(value)
-
-    @GObject.Property(type=bool, default=True, nick="Use bounds",
-                      blurb="Keep reconstructed clipped pixels at or above their clip level and too-dark "
-                            "pixels at or below l_min x ND (the bounds their state implies)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
-    def use_bounds(self):
-        return self._params.use_bounds
-
-    @use_bounds.setter
-    def use_bounds(self, value):
-        self._params = dataclasses.replace(self._params, use_bounds=bool(value))
-
-    @GObject.Property(type=str, default="auto", nick="Noise fusion",
-                      blurb="How NOISY pixels (nrvalidity dark-policy=weighted) are fused with their noisy "
-                            "measurement: 'accurate' = from the measured 3 x 3 neighbours and the pixel by "
-                            "inverse noise variance, 'fast' = the reconstruction and the pixel (about 25 % "
-                            "less time, about 0.3 dB lower in dark regions; docs/BENCHMARKS.md), 'auto' "
-                            "(default) = fast for method=preview (live), accurate for the others. "
-                            "Changeable while PLAYING",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
-    def noise_fusion(self):
-        return self._params.noise_fusion
-
-    @noise_fusion.setter
-    def noise_fusion(self, value):
-        v = self.set_choice(self._fusion, value)
-        if v is not None:
-            self._params = dataclasses.replace(self._params, noise_fusion=v)
-
-    @GObject.Property(type=bool, default=False, nick="Post statistics",
-                      blurb="Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing "
-                            "= fraction of pixels reconstructed, method, seconds). Off by default: an "
-                            "application that never reads the bus would keep every message",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
-    def post_stats(self):
-        return self._post_stats
-
-    @post_stats.setter
-    def post_stats(self, value):
-        self._post_stats = bool(value)
-
     # ---- state --------------------------------------------------------------------------------------
+    @starting
     def do_start(self):
-        self.reset_errors()
-        try:
-            for c in (self._method, self._preset, self._fusion):
-                if c.invalid:
-                    self.post_error(c.invalid, kind="settings")
-                    return False
-            from nrhdr_core import realtime, reconstruction
-            m = self._params.method
-            for wm in (("preview", "fse") if m == "auto" else (m,)):  # others compile on first use
-                self.nr_warmup(reconstruction.warmup, wm)
-            self._auto = realtime.AutoController()
-            self.nr_live_reset()
-            self._last_pts, self._skipped = None, 0
-            self._frames = 0
-            return True
-        except Exception as e:  # noqa: BLE001
-            self.post_exception("start", e)
-            return False
+        from nrhdr_core import realtime, reconstruction
+        m = self.settings.method
+        for wm in (("preview", "fse") if m == "auto" else (m,)):  # others compile on first use
+            self.nr_warmup(reconstruction.warmup, wm)
+        self._auto = realtime.AutoController()
+        self.nr_live_reset()
+        self._last_pts, self._skipped = None, 0
+        self._frames = 0
+        return True
 
     def do_stop(self):
         self._info = None
         return True
 
+    @guarded("set_caps", False)
     def do_set_caps(self, incaps, outcaps):
-        try:
-            self._info = HdrInfo.from_caps(incaps)
-            self._noise = None              # the profile may have changed with the caps
-            self.gst_debug(f"caps {incaps.to_string()}")
-            return True
-        except Exception as e:  # noqa: BLE001
-            self.post_exception("set_caps", e)
-            return False
+        self._info = HdrInfo.from_caps(incaps)
+        self._noise = None              # the profile may have changed with the caps
+        self.gst_debug(f"caps {incaps.to_string()}")
+        return True
 
     # ---- data ---------------------------------------------------------------------------------------
+    @guarded(lambda self: f"frame {self._frames} (method={self.settings.method}, preset={self.settings.preset})",
+             Gst.FlowReturn.ERROR)
     def do_transform_ip(self, buf):
-        p = self._params  # one read per frame: a consistent parameter set
-        try:
-            if self._info is None:
-                self.post_error("no caps negotiated before the first buffer", kind="negotiation")
-                return Gst.FlowReturn.NOT_NEGOTIATED
-            from nrhdr_core import reconstruction
-            self._count_gap(buf)
-            t0 = time.perf_counter()
-            picked = {"method": p.method, "preset": p.preset, "rung": None, "budget": None}
+        p = self.settings  # one read per frame: a consistent parameter set
+        if self._info is None:
+            self.post_error("no caps negotiated before the first buffer", kind="negotiation")
+            return Gst.FlowReturn.NOT_NEGOTIATED
+        from nrhdr_core import reconstruction
+        self._count_gap(buf)
+        t0 = time.perf_counter()
+        picked = {"method": p.method, "preset": p.preset, "rung": None, "budget": None}
 
-            def choose(share):  # method=auto: the most accurate rung that fits the frame period (issue 7)
-                if p.method != "auto":
-                    return p.method, p.preset
-                budget = self._budget()
-                rung = self._auto.choose(budget, share)
-                picked.update(method=rung.method, preset=rung.preset or p.preset, rung=rung, budget=budget)
-                return picked["method"], picked["preset"]
+        def choose(share):  # method=auto: the most accurate rung that fits the frame period
+            budget = self._budget(p)
+            rung = self._auto.choose(budget, share)
+            picked.update(method=rung.method, preset=rung.preset or p.preset, rung=rung, budget=budget)
+            return picked["method"], picked["preset"]
 
-            with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
-                # one fused pass for known mask + bounds, in place, measured pixels untouched (perf, #7);
-                # NOISY pixels fused with the profile's noise model (issue 8)
-                # a fixed method goes by name (the preview's fused path; no share callback needed)
-                n_miss = reconstruction.reconstruct_frame(values, state,
-                                                          method=choose if p.method == "auto" else p.method,
-                                                          preset=p.preset,
-                                                          use_bounds=p.use_bounds, noise=self._noise_model(),
-                                                          fusion=p.noise_fusion)
-            method, preset, rung, budget = picked["method"], picked["preset"], picked["rung"], picked["budget"]
-            share = n_miss / float(self._info.pixels)
-            dt = time.perf_counter() - t0
-            if self.gst_debug_enabled(Gst.DebugLevel.LOG):  # per-frame line (GST_DEBUG=nrreconstruct:6)
-                self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: " + (
-                    f"{n_miss} missing pixels ({100.0 * n_miss / self._info.pixels:.2f} %) filled by "
-                    f"method={method} preset={preset} in {dt * 1e3:.2f} ms" if n_miss else
-                    f"skipped: no pixel missing ({dt * 1e3:.2f} ms)"))
-            if rung is not None:
-                self._auto.record(rung, dt, share, budget)
-            if self._post_stats:
-                chosen = "none" if not n_miss else (f"fse/{preset}" if method == "fse" else method)
-                self._post_frame_stats(share, method, dt, chosen, preset if method == "fse" else "")
-            self._frames += 1
-            return Gst.FlowReturn.OK
-        except Exception as e:  # noqa: BLE001
-            return self.post_exception(f"frame {self._frames} (method={p.method}, preset={p.preset})", e)
+        with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
+            # one fused pass for known mask + bounds, in place, measured pixels untouched; NOISY pixels
+            # fused with the profile's noise model; a fixed method goes by name
+            n_miss = reconstruction.reconstruct_frame(values, state,
+                                                      method=choose if p.method == "auto" else p.method,
+                                                      preset=p.preset, use_bounds=p.use_bounds,
+                                                      noise=self._noise_model(), fusion=p.noise_fusion)
+        method, preset, rung, budget = picked["method"], picked["preset"], picked["rung"], picked["budget"]
+        share = n_miss / float(self._info.pixels)
+        dt = time.perf_counter() - t0
+        if self.gst_debug_enabled(Gst.DebugLevel.LOG):  # per-frame line (GST_DEBUG=nrreconstruct:6)
+            self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(buf.pts)}: " + (
+                f"{n_miss} missing pixels ({100.0 * share:.2f} %) filled by method={method} preset={preset} "
+                f"in {dt * 1e3:.2f} ms" if n_miss else f"skipped: no pixel missing ({dt * 1e3:.2f} ms)"))
+        if rung is not None:
+            self._auto.record(rung, dt, share, budget)
+        if p.post_stats:
+            chosen = "none" if not n_miss else (f"fse/{preset}" if method == "fse" else method)
+            self._post_frame_stats(share, method, dt, chosen, preset if method == "fse" else "")
+        self._frames += 1
+        return Gst.FlowReturn.OK
 
     def _count_gap(self, buf) -> None:
         """Frames skipped upstream (QoS drops in earlier elements, frames lost at a live source): PTS
@@ -245,22 +157,21 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
             return
         self._skipped += max(int(round((pts - last) / dur)) - 1, 0)
 
-    def _budget(self) -> float:
+    def _budget(self, p) -> float:
         """Seconds per frame for method=auto: budget-ms, else BUDGET_SHARE of the frame period."""
-        if self._budget_ms > 0:
-            return self._budget_ms / 1e3
+        if p.budget_ms > 0:
+            return p.budget_ms / 1e3
         i = self._info
         period = i.fps_d / i.fps_n if i.fps_n > 0 else 1 / 30
         return BUDGET_SHARE * period
 
     def _noise_model(self):
         """The noise model NOISY pixels (nrvalidity dark-policy=weighted) are fused with: the profile
-        named in the caps, else the default sensor's noise (issue 8). Loaded once per caps."""
+        named in the caps, else the default sensor's noise. Loaded once per caps."""
         if self._noise is None:
             from nrhdr_core import validity
             noise = None
             if self._info.profile:
-                from ._common import load_profile
                 try:
                     noise = load_profile(self._info.profile)
                 except ValueError:
@@ -270,13 +181,13 @@ class NrReconstruct(ErrorPoster, LiveTiming, GstBase.BaseTransform):
 
     def _post_frame_stats(self, missing: float, method: str, seconds: float, chosen: str = "",
                           preset: str = "") -> None:
+        """Fields: the method (and fse preset) used for this frame, late frames QoS dropped before it,
+        frames skipped upstream, and the processing latency answered to the LATENCY query."""
         s = Gst.Structure.new_empty(STATS_MESSAGE)
         s.set_value("frame", GObject.Value(GObject.TYPE_UINT64, self._frames))
         s.set_value("missing", GObject.Value(GObject.TYPE_DOUBLE, float(missing)))
         s.set_value("method", method)
         s.set_value("seconds", GObject.Value(GObject.TYPE_DOUBLE, float(seconds)))
-        # live operation (issue #7): what method=auto (or the fixed method) used for this frame, late
-        # frames QoS dropped before this one, and the processing latency answered to the LATENCY query
         s.set_value("preset", preset)
         s.set_value("chosen", chosen)
         s.set_value("qos-dropped", GObject.Value(GObject.TYPE_UINT64, self.nr_qos_skipped()))

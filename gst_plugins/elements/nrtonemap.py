@@ -10,45 +10,60 @@ video does not flicker. pixel-aspect-ratio and interlace-mode pass through.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 
-from ._common import LiveTiming, live_latency_property  # live operation: QoS, latency (issue #7)
-from ._common import (CONTROLLABLE, HDR_MEDIA_TYPE, MUTABLE_PLAYING, MUTABLE_READY, Choice, ErrorPoster,
-                      GObject, Gst, GstBase, GstVideo, HdrInfo, copy_fields, debug_category, hdr_template_caps,
-                      map_hdr, map_video, np, transform_caps_by_structure)
+from nrhdr_core.tonemap import DEFAULT_CONTRAST, REFERENCE_WHITE_NITS, TRANSFERS as HDR_TRANSFERS
+
+from ._common import (HDR_MEDIA_TYPE, LATENCY_PROP, Gst, GstBase, GstVideo, HdrInfo, LiveTiming, NrElement,
+                      Prop, PropertyTable, copy_fields, debug_category, guarded, hdr_template_caps, map_hdr,
+                      map_video, np, raw_template_caps, starting, transform_caps_by_structure)
 
 NORMALISE = ("caps", "fixed", "smoothed")
-TRANSFERS = ("log", "pq", "hlg")
+TRANSFERS = ("log",) + HDR_TRANSFERS
 COLORIMETRY = {"pq": "bt2100-pq", "hlg": "bt2100-hlg"}
 LOG_FORMATS = ("GRAY8", "GRAY16_LE")
 HDR_FORMATS = ("GRAY16_LE", "GRAY16_BE")   # BE: pngenc writes 16-bit PNG from it directly
-DEFAULT_CONTRAST = 1000.0  # = nrhdr_core.tonemap.DEFAULT_CONTRAST (not imported here: keeps import light)
-DEFAULT_REFERENCE_WHITE = 203.0  # = nrhdr_core.tonemap.REFERENCE_WHITE_NITS (ITU-R BT.2408)
-_INT = "(int)[1,2147483647]"
-_FPS = "(fraction)[0/1,2147483647/1]"
 
 
 def _src_template() -> Gst.Caps:
-    return Gst.Caps.from_string(
-        f"video/x-raw, format=(string){{ GRAY8, GRAY16_LE }}, width={_INT}, height={_INT}, framerate={_FPS}; "
-        f"video/x-raw, format=(string){{ GRAY16_LE, GRAY16_BE }}, width={_INT}, height={_INT}, "
-        f"framerate={_FPS}, colorimetry=(string){{ bt2100-pq, bt2100-hlg }}")
+    caps = raw_template_caps("{ GRAY8, GRAY16_LE }")
+    caps.append(raw_template_caps("{ GRAY16_LE, GRAY16_BE }", "colorimetry=(string){ bt2100-pq, bt2100-hlg }"))
+    return caps
 
 
-@dataclasses.dataclass(frozen=True)
-class ToneParams:
-    normalise: str = "caps"
-    white: float = 0.0
-    exposure: float = 0.0
-    contrast: float = DEFAULT_CONTRAST
-    smoothing: float = 0.1
-    reference_white: float = DEFAULT_REFERENCE_WHITE
+PROPERTIES = PropertyTable("GstNrTonemap", [
+    Prop("normalise", NORMALISE, "caps", "Normaliser",
+         "Where the white (value mapped to full scale) comes from: 'caps' = the caps field white (4094 x ND, "
+         "set by nrvalidity from the profile); 'fixed' = the white property; 'smoothed' = a high percentile "
+         "of each frame smoothed over time (smoothing)", playing=True),
+    Prop("transfer", TRANSFERS, "log", "Transfer function",
+         "Output: 'log' = the paper's logarithmic tone mapping to SDR GRAY8/GRAY16_LE; 'pq' = SMPTE ST 2084, "
+         "'hlg' = ARIB STD-B67: 10-bit BT.2100 narrow-range codes (64..940) << 6 in GRAY16_LE/BE, "
+         "colorimetry bt2100-pq / bt2100-hlg"),
+    Prop("reference-white", float, REFERENCE_WHITE_NITS, "Reference white (cd/m2)",
+         "transfer=pq/hlg: display luminance of the scene's diffuse white (the caps' diffuse-white = the "
+         "regular pixels' white; with normalise=fixed/smoothed the white); brighter values keep their ratio "
+         "(ITU-R BT.2408: 203)", minimum=1.0, maximum=10000.0, playing=True, controllable=True),
+    Prop("white", float, 0.0, "White",
+         "Linear value mapped to full scale (log) or to reference-white (pq/hlg) with normalise=fixed; 0 = "
+         "the caps' white", minimum=0.0, maximum=1e12, playing=True, controllable=True),
+    Prop("exposure", float, 0.0, "Exposure", "Exposure correction in stops (x 2^exposure before tone mapping)",
+         minimum=-20.0, maximum=20.0, playing=True, controllable=True),
+    Prop("contrast", float, DEFAULT_CONTRAST, "Contrast",
+         "Contrast q of the logarithmic curve y = log(1 + q x) / log(1 + q): larger = more shadow detail",
+         minimum=1e-3, maximum=1e9, playing=True, controllable=True),
+    Prop("smoothing", float, 0.1, "Smoothing speed",
+         "normalise=smoothed: weight of the current frame in the running white, white = speed * frame + "
+         "(1 - speed) * previous (1 = no smoothing)", minimum=0.001, maximum=1.0, playing=True,
+         controllable=True),
+    LATENCY_PROP,
+])
 
 
-class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
+class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
     __gtype_name__ = "GstNrTonemap"
+    PROPERTIES = PROPERTIES
     DEBUG_CATEGORY = debug_category("nrtonemap", "nrhdr tone mapping and HDR (PQ/HLG) output")
     __gstmetadata__ = (
         "nrhdr tone mapping and HDR output",
@@ -64,14 +79,11 @@ class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
     )
 
     do_gst_base_transform_query = LiveTiming.nr_live_query
-    processing_latency = live_latency_property()
+    do_before_transform = NrElement.nr_before_transform
 
     def __init__(self):
         super().__init__()
         self.nr_live_init()
-        self._params = ToneParams()
-        self._normalise = Choice("normalise", NORMALISE, "caps")
-        self._transfer = Choice("transfer", TRANSFERS, "log")
         self._out_transfer = "log"
         self._byteswap = False
         self._in_info = None
@@ -83,113 +95,14 @@ class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
         self.set_in_place(False)
         self.set_passthrough(False)
 
-    def _update(self, **kw):
-        self._params = dataclasses.replace(self._params, **kw)
-
-    # ---- properties ---------------------------------------------------------------------------------
-    @GObject.Property(type=str, default="caps", nick="Normaliser",
-                      blurb="Where the white (value mapped to full scale) comes from: 'caps' = the caps field "
-                            "white (4094 x ND, set by nrvalidity from the profile); 'fixed' = the white "
-                            "property; 'smoothed' = a high percentile of each frame smoothed over time "
-                            "(smoothing) (one of: caps, fixed, smoothed)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING)
-    def normalise(self):
-        return self._params.normalise
-
-    @normalise.setter
-    def normalise(self, value):
-        v = self.set_choice(self._normalise, value)
-        if v is not None:
-            self._update(normalise=v)
-
-    @GObject.Property(type=str, default="log", nick="Transfer function",
-                      blurb="Output: 'log' = the paper's logarithmic tone mapping to SDR GRAY8/GRAY16_LE; "
-                            "'pq' = SMPTE ST 2084, 'hlg' = ARIB STD-B67: 10-bit BT.2100 narrow-range codes "
-                            "(64..940) << 6 in GRAY16_LE/BE, colorimetry bt2100-pq / bt2100-hlg "
-                            "(one of: log, pq, hlg)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_READY)
-    def transfer(self):
-        return self._transfer.value
-
-    @transfer.setter
-    def transfer(self, value):
-        self.set_choice(self._transfer, value)
-
-    @GObject.Property(type=float, default=DEFAULT_REFERENCE_WHITE, minimum=1.0, maximum=10000.0,
-                      nick="Reference white (cd/m2)",
-                      blurb="transfer=pq/hlg: display luminance of the scene's diffuse white (the caps' "
-                            "diffuse-white = the regular pixels' white; with normalise=fixed/smoothed the "
-                            "white); brighter values keep their ratio (ITU-R BT.2408: 203)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
-    def reference_white(self):
-        return self._params.reference_white
-
-    @reference_white.setter
-    def reference_white(self, value):
-        self._update(reference_white=float(value))
-
-    @GObject.Property(type=float, default=0.0, minimum=0.0, maximum=1e12, nick="White",
-                      blurb="Linear value mapped to full scale (log) or to reference-white (pq/hlg) with "
-                            "normalise=fixed; 0 = the caps' white",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
-    def white(self):
-        return self._params.white
-
-    @white.setter
-    def white(self, value):
-        self._update(white=float(value))
-
-    @GObject.Property(type=float, default=0.0, minimum=-20.0, maximum=20.0, nick="Exposure",
-                      blurb="Exposure correction in stops (x 2^exposure before tone mapping)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
-    def exposure(self):
-        return self._params.exposure
-
-    @exposure.setter
-    def exposure(self, value):
-        self._update(exposure=float(value))
-
-    @GObject.Property(type=float, default=DEFAULT_CONTRAST, minimum=1e-3, maximum=1e9, nick="Contrast",
-                      blurb="Contrast q of the logarithmic curve y = log(1 + q x) / log(1 + q): larger = "
-                            "more shadow detail",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
-    def contrast(self):
-        return self._params.contrast
-
-    @contrast.setter
-    def contrast(self, value):
-        self._update(contrast=float(value))
-
-    @GObject.Property(type=float, default=0.1, minimum=0.001, maximum=1.0, nick="Smoothing speed",
-                      blurb="normalise=smoothed: weight of the current frame in the running white, "
-                            "white = speed * frame + (1 - speed) * previous (1 = no smoothing)",
-                      flags=GObject.ParamFlags.READWRITE | MUTABLE_PLAYING | CONTROLLABLE)
-    def smoothing(self):
-        return self._params.smoothing
-
-    @smoothing.setter
-    def smoothing(self, value):
-        self._update(smoothing=float(value))
-
     # ---- state --------------------------------------------------------------------------------------
+    @starting
     def do_start(self):
-        self.reset_errors()
-        try:
-            for c in (self._normalise, self._transfer):
-                if c.invalid:
-                    self.post_error(c.invalid, kind="settings")
-                    return False
-            from nrhdr_core import tonemap
-            if self._transfer.value == "log":
-                self.nr_warmup(tonemap.warmup)
-            else:
-                self.nr_warmup(tonemap.warmup_hdr)
-            self._tracker = None
-            self._frames = 0
-            return True
-        except Exception as e:  # noqa: BLE001
-            self.post_exception("start", e)
-            return False
+        from nrhdr_core import tonemap
+        self.nr_warmup(tonemap.warmup if self.settings.transfer == "log" else tonemap.warmup_hdr)
+        self._tracker = None
+        self._frames = 0
+        return True
 
     def do_stop(self):
         self._in_info = self._out_info = None
@@ -203,7 +116,7 @@ class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
 
     # ---- caps ---------------------------------------------------------------------------------------
     def do_transform_caps(self, direction, caps, filt):
-        transfer = self._transfer.value
+        transfer = self.settings.transfer
 
         def to_raw(s):
             out = []
@@ -249,33 +162,30 @@ class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
             self.gst_debug(f"decide_allocation: {e}")
         return GstBase.BaseTransform.do_decide_allocation(self, query)
 
+    @guarded("set_caps", False)
     def do_set_caps(self, incaps, outcaps):
-        try:
-            self._in_info = HdrInfo.from_caps(incaps)
-            vi = GstVideo.VideoInfo.new_from_caps(outcaps)
-            if vi is None:
-                self.post_error(f"cannot parse output caps {outcaps.to_string()}", kind="format")
-                return False
-            fmt = vi.finfo.format
-            transfer = self._transfer.value
-            formats = LOG_FORMATS if transfer == "log" else HDR_FORMATS
-            if vi.finfo.name not in formats:
-                self.post_error(f"output format {vi.finfo.name} does not fit transfer={transfer} (needs "
-                                f"{' or '.join(formats)})", kind="format")
-                return False
-            self._out_dtype = np.uint8 if fmt == GstVideo.VideoFormat.GRAY8 else np.dtype("<u2")
-            self._byteswap = fmt == GstVideo.VideoFormat.GRAY16_BE
-            self._out_transfer = transfer
-            self._out_info = vi
-            self._tracker = None
-            self.gst_debug(f"caps: {incaps.to_string()} -> {outcaps.to_string()} (transfer={transfer})")
-            return True
-        except Exception as e:  # noqa: BLE001
-            self.post_exception("set_caps", e)
+        self._in_info = HdrInfo.from_caps(incaps)
+        vi = GstVideo.VideoInfo.new_from_caps(outcaps)
+        if vi is None:
+            self.post_error(f"cannot parse output caps {outcaps.to_string()}", kind="format")
             return False
+        fmt = vi.finfo.format
+        transfer = self.settings.transfer
+        formats = LOG_FORMATS if transfer == "log" else HDR_FORMATS
+        if vi.finfo.name not in formats:
+            self.post_error(f"output format {vi.finfo.name} does not fit transfer={transfer} (needs "
+                            f"{' or '.join(formats)})", kind="format")
+            return False
+        self._out_dtype = np.uint8 if fmt == GstVideo.VideoFormat.GRAY8 else np.dtype("<u2")
+        self._byteswap = fmt == GstVideo.VideoFormat.GRAY16_BE
+        self._out_transfer = transfer
+        self._out_info = vi
+        self._tracker = None
+        self.gst_debug(f"caps: {incaps.to_string()} -> {outcaps.to_string()} (transfer={transfer})")
+        return True
 
     # ---- data ---------------------------------------------------------------------------------------
-    def _white(self, p: ToneParams, values, hdr: bool = False) -> float:
+    def _white(self, p, values, hdr: bool = False) -> float:
         """The normaliser: full scale of the log curve, or (hdr) the value shown at reference white."""
         from nrhdr_core import tonemap
         if p.normalise == "smoothed":
@@ -297,39 +207,31 @@ class NrTonemap(ErrorPoster, LiveTiming, GstBase.BaseTransform):
                              "normalise=fixed white=... or normalise=smoothed)")
         return w
 
-    def do_before_transform(self, buf):
-        try:
-            self.sync_controlled(buf)
-        except Exception as e:  # noqa: BLE001
-            self.gst_warn(f"controller sync failed: {e}")
-
+    @guarded(lambda self: f"frame {self._frames}", Gst.FlowReturn.ERROR)
     def do_transform(self, inbuf, outbuf):
-        p = self._params
-        try:
-            if self._in_info is None or self._out_info is None:
-                self.post_error("no caps negotiated before the first buffer", kind="negotiation")
-                return Gst.FlowReturn.NOT_NEGOTIATED
-            from nrhdr_core import tonemap
-            transfer = self._out_transfer
-            t0 = time.perf_counter()
-            with self.warnings_to_bus(), map_hdr(inbuf, self._in_info, write=False) as (values, _state), \
-                    map_video(outbuf, self._out_info, self._out_dtype, write=True) as out:
-                white = self._white(p, values, hdr=transfer != "log")
-                if not (math.isfinite(white) and white > 0):
-                    raise ValueError(f"tone mapping white is {white}")
-                # kernels write straight into the mapped output (strided rows are fine for numba)
-                if transfer == "log":
-                    tonemap.log_tonemap(values, white, exposure_stops=p.exposure, contrast=p.contrast, out=out)
-                else:
-                    tonemap.hdr_encode(values, white, transfer, reference_white=p.reference_white,
-                                       exposure_stops=p.exposure, out=out)
-                    if self._byteswap:
-                        out.byteswap(inplace=True)
-            if self.gst_debug_enabled(Gst.DebugLevel.LOG):
-                self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(inbuf.pts)}: {transfer} "
-                             f"white={white:.6g} exposure={p.exposure:+.2f} in "
-                             f"{(time.perf_counter() - t0) * 1e3:.2f} ms")
-            self._frames += 1
-            return Gst.FlowReturn.OK
-        except Exception as e:  # noqa: BLE001
-            return self.post_exception(f"frame {self._frames}", e)
+        p = self.settings  # one read per frame: a consistent parameter set
+        if self._in_info is None or self._out_info is None:
+            self.post_error("no caps negotiated before the first buffer", kind="negotiation")
+            return Gst.FlowReturn.NOT_NEGOTIATED
+        from nrhdr_core import tonemap
+        transfer = self._out_transfer
+        t0 = time.perf_counter()
+        with self.warnings_to_bus(), map_hdr(inbuf, self._in_info, write=False) as (values, _state), \
+                map_video(outbuf, self._out_info, self._out_dtype, write=True, exact=False) as out:
+            white = self._white(p, values, hdr=transfer != "log")
+            if not (math.isfinite(white) and white > 0):
+                raise ValueError(f"tone mapping white is {white}")
+            # kernels write straight into the mapped output (strided rows are fine for numba)
+            if transfer == "log":
+                tonemap.log_tonemap(values, white, exposure_stops=p.exposure, contrast=p.contrast, out=out)
+            else:
+                tonemap.hdr_encode(values, white, transfer, reference_white=p.reference_white,
+                                   exposure_stops=p.exposure, out=out)
+                if self._byteswap:
+                    out.byteswap(inplace=True)
+        if self.gst_debug_enabled(Gst.DebugLevel.LOG):
+            self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(inbuf.pts)}: {transfer} "
+                         f"white={white:.6g} exposure={p.exposure:+.2f} in "
+                         f"{(time.perf_counter() - t0) * 1e3:.2f} ms")
+        self._frames += 1
+        return Gst.FlowReturn.OK

@@ -1,0 +1,65 @@
+"""Camera profiles for the elements: `nrhdr_core.profile.load` behind a small cache keyed on every file
+the profile is made of (the JSON, the mask PNG and the crosstalk calibration it names, each with its
+mtime and size), so a replaced mask or calibration is read again."""
+from __future__ import annotations
+
+import json
+import os
+import threading
+
+_cache: dict = {}
+_lock = threading.Lock()
+_MAX = 8
+
+
+def _stat(path: str):
+    try:
+        st = os.stat(path)
+        return (path, st.st_mtime_ns, st.st_size)
+    except OSError:
+        return (path, None, None)
+
+
+def profile_files(path: str) -> list[str]:
+    """The files the profile JSON at `path` reads: itself, its mask and its crosstalk calibration file
+    (names relative to its folder, docs/PROFILE.md); only the JSON when it cannot be parsed."""
+    out = [path]
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, ValueError):
+        return out
+    if not isinstance(doc, dict):
+        return out
+    folder = os.path.dirname(path)
+    names = [doc.get("mask")]
+    xt = doc.get("crosstalk")
+    if isinstance(xt, dict):
+        names.append(xt.get("file"))
+    out += [os.path.join(folder, n) for n in names if isinstance(n, str) and n]
+    return out
+
+
+def cache_key(path: str) -> tuple:
+    return tuple(_stat(f) for f in profile_files(path))
+
+
+def load_profile(path: str):
+    """nrhdr_core.profile.load through the cache; ProfileError (a ValueError) propagates with its message
+    naming the file and the field."""
+    from nrhdr_core import profile as profile_mod
+    if not path:
+        raise profile_mod.ProfileError("no camera profile set (property 'profile' is empty)")
+    ap = os.path.abspath(os.path.expanduser(path))
+    key = cache_key(ap)
+    with _lock:
+        p = _cache.get(key)
+    if p is not None:
+        return p
+    p = profile_mod.load(ap)
+    if key == cache_key(ap):          # unchanged while it was read: cache it
+        with _lock:
+            if len(_cache) >= _MAX:
+                _cache.clear()
+            _cache[key] = p
+    return p
