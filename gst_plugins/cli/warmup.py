@@ -41,9 +41,11 @@ def _stages():
     ]
 
 
-def run_warmup(out=sys.stdout) -> tuple[int, float]:
-    """Compile (or load from cache) every kernel; prints a line per stage; returns (compiled, seconds)."""
+def run_warmup(out=None) -> tuple[int, float]:
+    """Compile (or load from cache) every kernel; prints a line per stage to `out` (default: stdout);
+    returns (compiled, seconds)."""
     from nrhdr_core.realtime import JitWatch
+    out = sys.stdout if out is None else out
     stages = _stages()
     total_n, t_all = 0, time.perf_counter()
     for i, (element, what, fn) in enumerate(stages, 1):
