@@ -17,8 +17,9 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
   with white = the profile's white (the caps' field) unless given.
 
 The settings' vocabularies are the stages' own (`validity.MODES`, `validity.DARK_POLICIES`, `crosstalk.MODES`,
-`crosstalk.LUT_FORMS`, `fse.FSE_PRESETS`, `tonemap.TRANSFERS`). `warmup` is the one entry point that compiles
-the chain's numba kernels (`nrhdr warmup`, the elements' start, `nrhdr batch`).
+`crosstalk.LUT_FORMS`, `reconstruction.METHODS`, `reconstruction.FUSION_CHOICES`, `fse.FSE_PRESETS`,
+`tonemap.TRANSFERS`). `warmup` is the one entry point that compiles the chain's numba kernels (`nrhdr warmup`,
+the elements' start, `nrhdr batch`).
 """
 from __future__ import annotations
 
@@ -30,13 +31,12 @@ import numpy as np
 from .crosstalk import LUT_FORMS
 from .crosstalk import MODES as CROSSTALK_MODES
 from .fse import FSE_PRESETS
+from .reconstruction import FUSION_CHOICES as NOISE_FUSIONS
+from .reconstruction import METHODS
 from .tonemap import TRANSFERS as HDR_TRANSFERS
 from .validity import DARK_POLICIES
 from .validity import MODES as VALIDITY_MODES
 
-# nrreconstruct's methods and noise-fusion settings: reconstruction.py's, copied here (import light)
-METHODS = ("fse", "linear", "nearest", "preview")
-NOISE_FUSIONS = ("auto", "accurate", "fast")
 PRESETS = tuple(FSE_PRESETS)
 TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
 STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
