@@ -564,7 +564,7 @@ def _lut_kernel_compact(values, state, rec, dscale, clip_rel, qs, qo, f0, clip_f
             a = np.float32(rec[y, x, j])
             d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dscale[grp]
             f = max((mm + d) * s, zero)
-            # below the dark knot: between (black, f0) and the knot, as `_lut_eval`
+            # below the dark knot: between (black, f0) and the knot, as `lut_eval`
             fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
             f = fb if m <= c0 else f
             # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
