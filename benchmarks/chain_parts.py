@@ -1,4 +1,4 @@
-"""Where the 1080p chain's time goes, element by element, through GStreamer (issue 7 item 3, helper lut).
+"""Where the 1080p chain's time goes, element by element, through GStreamer (docs/BENCHMARKS.md).
 
     PYTHONPATH=. .venv/bin/python benchmarks/chain_parts.py --clip DIR [--parts parse,validity,...] [--reps 2]
 

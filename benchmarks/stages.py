@@ -1,11 +1,12 @@
-"""Per-stage cost of the chain, in-process, at camera resolution (issue 7 item 3).
+"""Per-stage cost of the chain, in-process, at camera resolution (docs/BENCHMARKS.md).
 
     PYTHONPATH=. .venv/bin/python benchmarks/stages.py --width 1920 --height 1080
     PYTHONPATH=. .venv/bin/python benchmarks/stages.py --width 640 --height 480 --missing 0.5
+    PYTHONPATH=. .venv/bin/python benchmarks/stages.py --only validity,crosstalk --threads 1 --cpu --min
 
 One frame of an HDR scene (../shared/data/hdr/MtTamWest.exr, or a synthetic scene when absent) is captured
 by the sensor model at the requested size and pushed through the stages the elements run:
-classify (nrvalidity), crosstalk `lut` with a calibration of `--knots` knots per pixel (nrcrosstalk),
+classify (nrvalidity; the default mode with both dark policies, and mode best), crosstalk `lut` with a calibration of `--knots` knots per pixel (nrcrosstalk),
 known mask + bounds (nrreconstruct's preparation), each reconstruction method, write-back of the filled
 pixels, tone mapping (nrtonemap). `--missing p` replaces the scene's missing pixels by a uniform random
 mask with share p (no bounds) for the reconstruction stages.
@@ -103,9 +104,11 @@ def main(argv=None):
                     help="uniform random missing share for the reconstruction stages (default: the scene's)")
     ap.add_argument("--scene", default=str(DATA / "hdr" / "MtTamWest.exr"))
     ap.add_argument("--knots", type=int, default=40)
-    ap.add_argument("--dark-policy", default="weighted", choices=("weighted", "threshold"),
+    ap.add_argument("--dark-policy", default="weighted", choices=validity.DARK_POLICIES,
                     help="nrvalidity's dark policy for the frame stages (default weighted, the elements' "
-                         "default: NOISY pixels fused with the profile's noise, issue 8)")
+                         "default: NOISY pixels fused with the profile's noise)")
+    ap.add_argument("--only", default="", help="comma-separated stage groups to run: validity, crosstalk (the "
+                                               "frame stages up to the crosstalk correction); default: all")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--fse-repeat", type=int, default=3)
     ap.add_argument("--skip", default="", help="comma-separated stage names to skip (e.g. nearest,fse_fast)")
@@ -125,6 +128,9 @@ def main(argv=None):
         from numba import set_num_threads
         set_num_threads(a.threads)
     skip = {s.strip() for s in a.skip.split(",") if s.strip()}
+    only = {s.strip() for s in a.only.split(",") if s.strip()}
+    if only - {"validity", "crosstalk"}:
+        ap.error(f"--only takes validity and crosstalk, got {a.only!r}")
     h, w = a.height, a.width
     from numba import get_num_threads
     flux, prof, scene_name = scene_flux(h, w, a.scene)
@@ -158,6 +164,12 @@ def main(argv=None):
     values = np.empty((h, w), np.float32)
     state = np.empty((h, w), np.uint8)
     rec("classify", timeit(lambda: validity.classify(raw, prof, values=values, state=state), a.repeat))
+    if not only or "validity" in only:
+        rec("classify weighted", timeit(lambda: validity.classify(raw, prof, values=values, state=state,
+                                                                  dark_policy="weighted"), a.repeat))
+        rec("classify best", timeit(lambda: validity.classify(raw, prof, mode="best", values=values, state=state),
+                                    a.repeat))
+        validity.classify(raw, prof, values=values, state=state)
     v0, s0 = values.copy(), state.copy()
 
     # ---- crosstalk lut --------------------------------------------------------------------------------
@@ -166,15 +178,19 @@ def main(argv=None):
     def reset_x():
         np.copyto(vx, v0)
         np.copyto(sx, s0)
-    rec("crosstalk_lut", timeit(lambda: crosstalk.correct(vx, sx, prof_x, mode="lut"), a.repeat, reset_x))
-    # ---- crosstalk lut, compact form (nrcrosstalk lut=compact, its default; helper lut, issue 7) --------
-    if hasattr(crosstalk, "compact_for"):
-        t0 = time.perf_counter()
+    if not only or "crosstalk" in only:
+        rec("crosstalk_lut", timeit(lambda: crosstalk.correct(vx, sx, prof_x, mode="lut"), a.repeat, reset_x))
+        # ---- crosstalk lut, compact form (nrcrosstalk lut=compact, its default) ----------------------------
+        t0 = CLOCK()
         crosstalk.compact_for(prof_x)                     # derived once, when the element starts
-        res["compact_derive_s"] = round(time.perf_counter() - t0, 2)
+        res["compact_derive_s"] = round(CLOCK() - t0, 2)
+        print(f"  {'(compact LUT derivation)':<28s} {res['compact_derive_s']:9.2f} s", flush=True)
         rec("crosstalk_lut_compact", timeit(lambda: crosstalk.correct(vx, sx, prof_x, mode="lut", lut="compact"),
                                             a.repeat, reset_x))
-    # ---- end of the compact LUT stage ------------------------------------------------------------------
+    if only:
+        if a.json:
+            Path(a.json).write_text(json.dumps(res, indent=2) + "\n")
+        return res
 
     # ---- reconstruction inputs -------------------------------------------------------------------------
     if a.missing is not None:
@@ -236,9 +252,9 @@ def main(argv=None):
             kw = {} if preset is None else {"preset": preset}
             rec(f"frame_{name}", timeit(lambda m=method, kw=kw: reconstruction.reconstruct_frame(vw, sw, method=m, **kw),
                                         a.repeat if method != "fse" else a.fse_repeat, frame_setup))
-        # nrreconstruct's frame exactly as the element runs it (issue 7): states from nrvalidity's default
+        # nrreconstruct's frame exactly as the element runs it: states from nrvalidity's default
         # dark policy, NOISY pixels fused with the profile's noise; the fused preview path against the
-        # general path (prepare, reconstruct, write-back) it replaced, same bits, same run
+        # general path (prepare, reconstruct, write-back), same bits, same run
         if a.missing is None:
             vn, sn = validity.classify(raw, prof, dark_policy=a.dark_policy)
         else:
@@ -264,18 +280,6 @@ def main(argv=None):
             if nz.any():
                 rec("  of which fuse_noisy", timeit(
                     lambda: reconstruction.fuse_noisy(g, vn, kn, nz, prof), a.repeat))
-            # -- helper fsenoisy (issue 7): nrreconstruct method=fse preset=fast's frame with the NOISY pixels
-            # fused (accurate), FSE skipping them (the default) against FSE reconstructing them (before)
-            if "fse_fast" not in skip and nz.any() and hasattr(reconstruction, "NOISY_SKIP"):
-                for label, flag in (("skips NOISY", True), ("FSE at NOISY, before", False)):
-                    def element_fse(flag=flag):
-                        old, reconstruction.NOISY_SKIP = reconstruction.NOISY_SKIP, flag
-                        try:
-                            reconstruction.reconstruct_frame(vw, sw, method="fse", preset="fast", noise=prof)
-                        finally:
-                            reconstruction.NOISY_SKIP = old
-                    rec(f"element_fse_fast ({label})", timeit(element_fse, a.fse_repeat, frame_setup_n))
-            # -- end helper fsenoisy
             vv0, ss0 = vn.copy(), np.zeros_like(sn)
             rec("element_preview none missing", timeit(
                 lambda: reconstruction.reconstruct_frame(vv0, ss0, method="preview", noise=prof), a.repeat))
@@ -293,7 +297,7 @@ def main(argv=None):
         tot = sum(ms[c] for c in chain)
         res["chain_preview_ms"] = round(tot, 2)
         print(f"  chain with preview ({' + '.join(chain)}): {tot:.1f} ms = {1e3 / tot:.1f} frames/s")
-    if "crosstalk_lut_compact" in ms and all(c in ms for c in chain):   # helper lut: nrcrosstalk's default form
+    if "crosstalk_lut_compact" in ms and all(c in ms for c in chain):   # nrcrosstalk's default form
         tot = sum(ms["crosstalk_lut_compact" if c == "crosstalk_lut" else c] for c in chain)
         res["chain_preview_compact_ms"] = round(tot, 2)
         print(f"  chain with preview and the compact LUT: {tot:.1f} ms = {1e3 / tot:.1f} frames/s")

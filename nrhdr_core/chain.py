@@ -7,25 +7,39 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
 
 - nrvalidity:    ``validity.classify(raw, profile, mode=mode, l_min=l_min, dark_policy=dark_policy)`` (l_min None =
   the profile's)
-- nrcrosstalk:   ``crosstalk.correct(values, state, crosstalk_profile, mode)`` unless mode is 'off'
+- nrcrosstalk:   ``crosstalk.correct(values, state, crosstalk_profile, mode, lut=crosstalk_lut)`` unless mode is
+  'off'
 - nrreconstruct: ``reconstruction.reconstruct_frame(values, state, method=, preset=, use_bounds=,
   noise=profile, fusion=noise_fusion)`` (known mask and bounds in one pass, reconstruction, NOISY pixels fused with the
   profile's noise model, missing pixels written back with the RECONSTRUCTED bit)
 - nrexrsink:     ``io.write_exr(path, values, state)``
 - nrtonemap (normalise=caps/fixed): ``tonemap.log_tonemap(values, white, exposure_stops=, contrast=)``
   with white = the profile's white (the caps' field) unless given.
+
+The settings' vocabularies are the stages' own (`validity.MODES`, `validity.DARK_POLICIES`, `crosstalk.MODES`,
+`crosstalk.LUT_FORMS`, `reconstruction.METHODS`, `reconstruction.FUSION_CHOICES`, `fse.FSE_PRESETS`,
+`tonemap.TRANSFERS`). `warmup` is the one entry point that compiles the chain's numba kernels (`nrhdr warmup`,
+the elements' start, `nrhdr batch`).
 """
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 
 import numpy as np
 
-CROSSTALK_MODES = ("kernel", "lut", "off")      # nrcrosstalk's modes (default kernel)
-VALIDITY_MODES = ("all", "best", "threshold")   # nrvalidity's modes (default threshold)
-DARK_POLICIES = ("weighted", "threshold")       # nrvalidity's dark-policy (default weighted, issue 8)
-METHODS = ("fse", "linear", "nearest", "preview")
-PRESETS = ("preview", "fast", "balanced", "best")
+from .crosstalk import LUT_FORMS
+from .crosstalk import MODES as CROSSTALK_MODES
+from .fse import FSE_PRESETS
+from .reconstruction import FUSION_CHOICES as NOISE_FUSIONS
+from .reconstruction import METHODS
+from .tonemap import TRANSFERS as HDR_TRANSFERS
+from .validity import DARK_POLICIES
+from .validity import MODES as VALIDITY_MODES
+
+PRESETS = tuple(FSE_PRESETS)
+TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
+STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,7 +49,7 @@ class ChainSettings:
     l_min: float | None = None       # nrvalidity l-min (None = the profile's; the element's -1)
     dark_policy: str = "weighted"    # nrvalidity dark-policy
     crosstalk: str = "kernel"        # nrcrosstalk mode
-    crosstalk_lut: str = "compact"   # nrcrosstalk lut (mode=lut: compact = fast, full = accurate; issue 7)
+    crosstalk_lut: str = "compact"   # nrcrosstalk lut (mode=lut: compact = fast, full = accurate)
     method: str = "fse"              # nrreconstruct method
     preset: str = "fast"             # nrreconstruct preset
     use_bounds: bool = True          # nrreconstruct use-bounds
@@ -45,9 +59,9 @@ class ChainSettings:
     contrast: float = 1000.0         # nrtonemap contrast (= tonemap.DEFAULT_CONTRAST)
 
     def __post_init__(self):
-        for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES), ("crosstalk", CROSSTALK_MODES),
-                              ("crosstalk_lut", ("compact", "full")), ("method", METHODS), ("preset", PRESETS),
-                              ("noise_fusion", ("auto", "accurate", "fast"))):
+        for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES),
+                              ("crosstalk", CROSSTALK_MODES), ("crosstalk_lut", LUT_FORMS), ("method", METHODS),
+                              ("preset", PRESETS), ("noise_fusion", NOISE_FUSIONS)):
             v = getattr(self, name)
             if v not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {v!r}")
@@ -93,24 +107,103 @@ def tonemap_frame(values: np.ndarray, profile, settings: ChainSettings = ChainSe
     return tonemap.log_tonemap(values, white, exposure_stops=settings.exposure, contrast=settings.contrast)
 
 
-def warmup(settings: ChainSettings = ChainSettings(), tone: bool = False, calibrated: bool = True) -> None:
-    """Compile (or load from numba's cache) exactly the kernels and signatures `process_frame` uses with
-    `settings`, by running it on a tiny synthetic frame with dark, valid and clipped pixels of both kinds
-    (`calibrated`: with an identity crosstalk calibration, as a calibrated profile would). Never called at
-    import."""
-    from . import crosstalk
-    from . import profile as profile_mod
-    rng = np.random.default_rng(0)
-    mask = rng.random((12, 16)) < 0.5
-    prof = profile_mod.make(mask)
-    if calibrated and settings.crosstalk != "off":
-        prof = prof.replace(crosstalk=crosstalk.identity_calibration(mask, nd=prof.nd,
-                                                                     black_level=prof.black_level,
-                                                                     clip_code=prof.clip_code))
-    _, xx = np.mgrid[0:12, 0:16]
-    raw = np.clip(10.0 ** (0.5 + 3.8 * xx / 15.0), 0, prof.max_code).astype(np.uint16)
-    values, _ = process_frame(raw, prof, settings)
-    if calibrated and settings.crosstalk != "off":
-        process_frame(raw, prof.replace(crosstalk=None), settings)
-    if tone:
-        tonemap_frame(values, prof, settings)
+def _warm_frame(prof, s: ChainSettings, raw: np.ndarray):
+    """(values, state) of the kind `validity.classify` makes with settings `s` (every state the settings can
+    produce, in both pixel kinds), written in numpy so that a stage's warm-up compiles only its own kernels."""
+    from .states import ATTENUATED, CLIPPED, DARK, DISCARDED, NOISY
+    att = prof.mask
+    values = (np.maximum(raw.astype(np.float32) - np.float32(prof.black_level), np.float32(1.0))
+              * np.where(att, np.float32(prof.nd), np.float32(1.0))).astype(np.float32)
+    reason = np.zeros(raw.shape, np.uint8)
+    reason[:, -3:] = CLIPPED
+    reason[:, :2] = DARK
+    if s.mode == "threshold" and s.dark_policy == "weighted":
+        reason[::2, 2] = NOISY
+    if s.mode == "best":
+        reason[1::3, 4:8] = DISCARDED
+    state = (reason | np.where(att, np.uint8(ATTENUATED), np.uint8(0))).astype(np.uint8)
+    return values, state
+
+
+def _padded(a: np.ndarray, pad: int) -> np.ndarray:
+    """`a` as a view with rows `pad` elements longer than its width (GStreamer pads video rows to 4 bytes)."""
+    out = np.zeros((a.shape[0], a.shape[1] + pad), a.dtype)[:, :a.shape[1]]
+    out[...] = a
+    return out
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a = a.copy() if a.flags.c_contiguous else a
+    a.setflags(write=False)
+    return a
+
+
+def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), tone: bool = False,
+           calibrated: bool = True, *, stages: Iterable[str] = STAGES, transfers: Iterable[str] = (),
+           elements: bool = False) -> None:
+    """Compile (or load from numba's cache) exactly the kernels and signatures the chain runs with `settings`
+    (one `ChainSettings` or several), on a tiny synthetic frame. Never called at import; `nrhdr warmup`, the
+    elements' start and `batch` call it.
+
+    - `stages` (of STAGES): ``validity`` (`validity.classify`), ``crosstalk`` (`crosstalk.correct`; nothing
+      with mode off or without a calibration), ``reconstruction`` (`reconstruction.warmup` of each method,
+      then `reconstruction.reconstruct_frame` with the settings' preset, bounds and noise fusion),
+      ``tonemap`` (the `transfers`). Each stage's input frame is made in numpy, so a stage compiles its own
+      kernels only.
+    - `tone`: the log tone map of `tonemap_frame` (the same as "log" in `transfers`).
+    - `transfers` (of TRANSFERS): nrtonemap's outputs: "log" (GRAY8, and GRAY16 with `elements`), "pq",
+      "hlg" (`tonemap.hdr_encode`).
+    - `calibrated`: the profile has a crosstalk calibration (an identity one here), as nrcrosstalk applies it.
+    - `elements`: also the array types of the GStreamer elements' mapped buffers, which numba compiles
+      apart: read-only raw frames with packed or padded rows (nrvalidity), a read-only HDR frame and padded
+      output rows (nrtonemap)."""
+    from . import crosstalk, profile, reconstruction, tonemap, validity
+    sets = [settings] if isinstance(settings, ChainSettings) else list(settings)
+    stages = tuple(stages)
+    transfers = tuple(transfers) + (("log",) if tone else ())
+    for name, given, allowed in (("stage", stages, STAGES), ("transfer", transfers, TRANSFERS)):
+        bad = [x for x in given if x not in allowed]
+        if bad:
+            raise ValueError(f"warm-up {name} must be one of {', '.join(allowed)}, got {bad[0]!r}")
+    h, w = 12, 16
+    mask = np.random.default_rng(0).random((h, w)) < 0.5
+    prof = profile.make(mask)
+    _, xx = np.mgrid[0:h, 0:w]
+    raw = np.clip(10.0 ** (0.5 + 3.8 * xx / (w - 1)), 0, prof.max_code).astype(np.uint16)
+
+    if "validity" in stages:
+        raws = [raw] + ([_read_only(raw), _read_only(_padded(raw, 2))] if elements else [])
+        for mode, dark_policy, l_min in dict.fromkeys((s.mode, s.dark_policy, s.l_min) for s in sets):
+            for r in raws:
+                validity.classify(r, prof, mode=mode, l_min=l_min, dark_policy=dark_policy)
+
+    if "crosstalk" in stages and calibrated:
+        prof_x = prof.replace(crosstalk=crosstalk.identity_calibration(
+            mask, nd=prof.nd, black_level=prof.black_level, clip_code=prof.clip_code))
+        for s in {(s.crosstalk, s.crosstalk_lut): s for s in sets if s.crosstalk != "off"}.values():
+            values, state = _warm_frame(prof, s, raw)
+            crosstalk.correct(values, state, prof_x, s.crosstalk, lut=s.crosstalk_lut)
+
+    if "reconstruction" in stages:
+        for method in dict.fromkeys(s.method for s in sets):
+            reconstruction.warmup(method)
+        for s in {(s.method, s.preset, s.use_bounds, s.noise_fusion, s.mode, s.dark_policy): s
+                  for s in sets}.values():
+            values, state = _warm_frame(prof, s, raw)
+            reconstruction.reconstruct_frame(values, state, method=s.method, preset=s.preset,
+                                             use_bounds=s.use_bounds, noise=prof, fusion=s.noise_fusion)
+
+    if "tonemap" in stages and transfers:
+        values, _ = _warm_frame(prof, sets[0], raw)
+        inputs = [values] + ([_read_only(values)] if elements else [])
+        white = float(prof.white)
+        for transfer in dict.fromkeys(transfers):
+            dtypes = (np.uint8, np.uint16) if transfer == "log" and elements else (
+                (np.uint8,) if transfer == "log" else (np.uint16,))
+            for v in inputs:
+                for dt in dtypes:
+                    for out in [np.empty((h, w), dt)] + ([_padded(np.empty((h, w), dt), 4)] if elements else []):
+                        if transfer == "log":
+                            tonemap.log_tonemap(v, white, out=out)
+                        else:
+                            tonemap.hdr_encode(v, white, transfer, out=out)

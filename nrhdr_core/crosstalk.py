@@ -39,22 +39,19 @@ from pathlib import Path
 import numpy as np
 from numba import njit, prange
 
+from .states import ATTENUATED, CLIPPED, DARK, FLAG_MASK, NOISY, REASON_MASK, UNCALIBRATED, VALID
+
 MODES = ("lut", "kernel", "off")
 # kernel mode: a pixel that received more spill from clipped neighbours (whose flux is only estimated) than
 # its own signal (CLIP_SHARE x its corrected code) is unreliable and becomes UNCALIBRATED (value: the kernel
 # estimate); None disables it. See docs/CROSSTALK.md for the trade-off.
 CLIP_SHARE = 1.0
-_MODE_ID = {"lut": 0, "kernel": 1}
 CALIB_FORMAT = "nrhdr-crosstalk"
 CALIB_VERSION = 1
 
 # the 8 neighbour directions (dy, dx), source = target + (dy, dx); index d is used everywhere
 DIRS = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)], dtype=np.int64)
 
-# state byte (duplicated from validity to keep numba kernels free of module globals lookups)
-_VALID, _CLIPPED, _DARK, _UNCAL = 0, 1, 2, 4
-_ATT = 0x80
-_NOISY = 5   # validity.NOISY (dark policy "weighted"): a measurement below l_min, corrected like DARK
 
 
 # ======================================================================================================
@@ -409,114 +406,98 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
 # Correction kernels (numba)
 # ======================================================================================================
 
-@njit(cache=True, nogil=True)
-def _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
-    """Flux of code m (above black) for pixel (y, x); returns (flux, ok). ok False: above the calibrated
-    range (or no range)."""
-    if n < 2:
-        return np.float32(0.0), False
-    c0 = np.float32(codes_q[y, x, 0]) * qs - qo
-    if m <= c0:
-        # below the pixel's first (dark) knot: between (black level, flux 0) and the first knot, never
-        # negative. (Extrapolating the first segment divided by c1 - c0, ~1 DN for attenuated pixels, and
-        # sent codes inside the dark noise to -24000 DN.)
-        f0 = max(np.float32(knot_flux[0]), np.float32(0.0))
-        if c0 > 0:
-            return f0 * (max(m, np.float32(0.0)) / c0), True
-        return f0, True
-    last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
-    if m <= last_c:
-        # binary search: first knot k >= 1 with code >= m
-        lo = 1
-        hi = n - 1
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if np.float32(codes_q[y, x, mid]) * qs - qo >= m:
-                hi = mid
-            else:
-                lo = mid + 1
-        c = np.float32(codes_q[y, x, lo]) * qs - qo
-        pc = np.float32(codes_q[y, x, lo - 1]) * qs - qo
-        f = np.float32(knot_flux[lo])
-        pf = np.float32(knot_flux[lo - 1])
-        return pf + (m - pc) * (f - pf) / max(c - pc, np.float32(1e-3)), True
-    prev_c = last_c
-    prev_f = np.float32(knot_flux[n - 1])
-    # between the last knot and the clipping point (measured: the pixel clipped before the next knot)
-    if cflux == cflux and clip_rel > prev_c and m <= clip_rel:
-        return prev_f + (m - prev_c) * (cflux - prev_f) / (clip_rel - prev_c), True
-    return np.float32(0.0), False
-
-
 @njit(cache=True, nogil=True, inline="always")
-def _lut_eval_count(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m):
-    """`_lut_eval` with the knot found without a data-dependent branch per step (issue 7 item 3): the
-    smallest quantised code Q with Q * qs - qo >= m is computed once (that float32 map is monotone in
-    the code, so `code_k >= m` <=> `q_k >= Q` exactly), then the knot is 1 + the count of the pixel's
-    knots 1..n-1 below Q (knots are increasing): the same bracket as the binary search, the same result."""
-    if n < 2:
-        return np.float32(0.0), False
-    c0 = np.float32(codes_q[y, x, 0]) * qs - qo
-    last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
-    if m <= c0 or m > last_c:
-        return _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m)
+def code_threshold(m, qs, qo):
+    """The smallest quantised code Q with Q * qs - qo >= m (`quantize_codes`): that float32 map is monotone
+    in Q, so a knot's code is >= m exactly when its quantised code is >= Q."""
     qe = int(math.ceil((np.float64(m) + np.float64(qo)) / np.float64(qs)))
     qe = min(max(qe, 0), 65536)
     while qe <= 65535 and np.float32(qe) * qs - qo < m:
         qe += 1
     while qe > 0 and np.float32(qe - 1) * qs - qo >= m:
         qe -= 1
-    cnt = 0
-    for k in range(1, n):
-        cnt += 1 if np.int32(codes_q[y, x, k]) < qe else 0
-    lo = 1 + cnt
-    c = np.float32(codes_q[y, x, lo]) * qs - qo
-    pc = np.float32(codes_q[y, x, lo - 1]) * qs - qo
-    f = np.float32(knot_flux[lo])
-    pf = np.float32(knot_flux[lo - 1])
-    return pf + (m - pc) * (f - pf) / max(c - pc, np.float32(1e-3)), True
+    return qe
+
+
+@njit(cache=True, nogil=True, inline="always")
+def lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m, qe=-1):
+    """Flux of code `m` (above black) on pixel (y, x)'s calibrated code-to-flux curve (paper 3.2): the one
+    evaluator of the full table, used by the `lut` and `kernel` modes and by `compact_lut`. Returns
+    (flux, ok); ok is False above the calibrated range, without a range (n < 2) or for NaN.
+
+    Piecewise linear through the pixel's knots (code_k = codes_q * qs - qo, flux knot_flux[k]); below the
+    dark knot c0 the chord from (black level, flux 0), never negative; above the last knot up to the clip
+    code (`clip_rel`) towards the pixel's clipping flux `cflux` when it was measured. Inside the range the
+    knot is found without a data-dependent branch per step: 1 + the count of knots 1..n-1 whose quantised
+    code is below `code_threshold(m)` (the knots increase), the same bracket as a binary search. `qe`: that
+    threshold when the caller has it (one code for many pixels), else -1."""
+    if n < 2:
+        return np.float32(0.0), False
+    c0 = np.float32(codes_q[y, x, 0]) * qs - qo
+    if m <= c0:
+        f0 = max(np.float32(knot_flux[0]), np.float32(0.0))
+        if c0 > 0:
+            return f0 * (max(m, np.float32(0.0)) / c0), True
+        return f0, True
+    last_c = np.float32(codes_q[y, x, n - 1]) * qs - qo
+    if m <= last_c:
+        if qe < 0:
+            qe = code_threshold(m, qs, qo)
+        cnt = 0
+        for k in range(1, n):
+            cnt += 1 if np.int32(codes_q[y, x, k]) < qe else 0
+        lo = 1 + cnt
+        c = np.float32(codes_q[y, x, lo]) * qs - qo
+        pc = np.float32(codes_q[y, x, lo - 1]) * qs - qo
+        f = np.float32(knot_flux[lo])
+        pf = np.float32(knot_flux[lo - 1])
+        return pf + (m - pc) * (f - pf) / max(c - pc, np.float32(1e-3)), True
+    prev_f = np.float32(knot_flux[n - 1])
+    # between the last knot and the clipping point (measured: the pixel clipped before the next knot)
+    if cflux == cflux and clip_rel > last_c and m <= clip_rel:
+        return prev_f + (m - last_c) * (cflux - prev_f) / (clip_rel - last_c), True
+    return np.float32(0.0), False
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _lut_kernel(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, nd):
-    """`lut` mode in place (the mode-0 path of `_correct_kernel`, same results): rows in parallel, the
-    knot of each pixel by `_lut_eval_count` (was a walk from the row's previous knot: 1.4x slower, the
-    same results)."""
+    """`lut` mode in place with the full table: VALID pixels take their LUT flux (UNCALIBRATED outside the
+    range), DARK pixels their bound's flux when positive, CLIPPED pixels at most their clipping flux."""
     h, w = values.shape
     ndf = np.float32(nd)
     for y in prange(h):
         for x in range(w):
             st = state[y, x]
-            reason = st & 0x0F
-            if reason == _CLIPPED:
+            reason = st & REASON_MASK
+            if reason == CLIPPED:
                 cf = clip_flux[y, x]
                 if cf == cf and cf < values[y, x]:
                     values[y, x] = cf
                 continue
-            if reason != _VALID and reason != _DARK:
+            if reason != VALID and reason != DARK:
                 continue
-            att = (st & _ATT) != 0
+            att = (st & ATTENUATED) != 0
             s = ndf if att else np.float32(1.0)
-            f, ok = _lut_eval_count(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel,
-                                    clip_flux[y, x], values[y, x] / s)
-            if reason == _VALID:
+            f, ok = lut_eval(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel, clip_flux[y, x],
+                             values[y, x] / s)
+            if reason == VALID:
                 if ok:
                     values[y, x] = f
                 else:
-                    state[y, x] = (st & 0xF0) | _UNCAL
+                    state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
             elif ok and f > 0:
                 values[y, x] = f
 
 
-# ---- compact LUT (issue 7 item 3): the `lut` mode's fast setting -------------------------------------------
+# ---- compact LUT: the `lut` mode's fast setting (docs/CROSSTALK.md "Compact LUT") ------------------------
 # The full table holds K uint16 knot codes per pixel (K = 40: 166 MB at 1080p) and searches them for every
 # pixel of every frame (~30 ms per 1080p frame on one core). The compact form is derived from it at load
 # time: each pixel's correction D(m) = F(m) / s - m (flux in code units minus the code, s = ND or 1) sampled
 # at COMPACT_POINTS codes m_j = top * (j / G)^2 (dense at low codes, where the curves bend at the dark
 # level), stored as int16 (one scale per pixel group) in a 32-byte record with the pixel's dark knot and the
 # top of its range. Evaluating it is a square root, two reads and a lerp: no search. Error against the full
-# table: `compact_error`, docs/CROSSTALK.md "Compact LUT". (A low-rank model of the same curves, SVD of the
-# pixels x grid matrix, was measured too: rank 8 has about the same error and costs 4x more per pixel.)
+# table: docs/CROSSTALK.md "Compact LUT" (a low-rank model of the same curves, rank 8 of the pixels x grid
+# matrix, has about the same error and costs 4x more per pixel).
 
 COMPACT_POINTS = 14                 # grid points per pixel (G = 13 segments); + c0 + top = 16 int16 = 32 bytes
 LUT_FORMS = ("full", "compact")
@@ -549,6 +530,9 @@ def _grid_residual(codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, ys,
     above its range its last segment (the compact form's lerp then follows it up to the range's top). rng_out[i] =
     (c0, top)."""
     n_pix, g = out.shape
+    gq = np.empty(g, np.int64)
+    for j in range(g):
+        gq[j] = code_threshold(gcodes[j], qs, qo)
     for i in prange(n_pix):
         y = ys[i]
         x = xs[i]
@@ -568,26 +552,16 @@ def _grid_residual(codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, ys,
         rng_out[i, 1] = top
         first = -1
         last = -1
-        k = 1                     # merge walk: grid codes and knots both increase (as `_lut_eval`'s search)
-        ck = np.float32(codes_q[y, x, 1]) * qs - qo
         for j in range(g):
             m = gcodes[j]
             if m > c0 and m <= top:
-                if m <= last_c:
-                    while ck < m:
-                        k += 1
-                        ck = np.float32(codes_q[y, x, k]) * qs - qo
-                    pc = np.float32(codes_q[y, x, k - 1]) * qs - qo
-                    pf = np.float32(knot_flux[k - 1])
-                    f = pf + (m - pc) * (np.float32(knot_flux[k]) - pf) / max(ck - pc, np.float32(1e-3))
-                else:
-                    f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m)
+                f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m, gq[j])
                 out[i, j] = f / s - m
                 if first < 0:
                     first = j
                 last = j
         if first < 0:      # range narrower than a grid step: evaluate at its top
-            f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, top)
+            f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, top)
             for j in range(g):
                 out[i, j] = f / s - top
             continue
@@ -663,7 +637,7 @@ def _lut_kernel_compact(values, state, rec, dscale, clip_rel, qs, qo, f0, clip_f
         for x in range(w):
             st = state[y, x]
             v = values[y, x]
-            grp = np.int64(st >> 7)              # the ATTENUATED bit: group 1
+            grp = np.int64((st & ATTENUATED) != 0)    # group 1: attenuated
             s = sc[grp]
             m = v * inv[grp]
             c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
@@ -676,65 +650,20 @@ def _lut_kernel_compact(values, state, rec, dscale, clip_rel, qs, qo, f0, clip_f
             a = np.float32(rec[y, x, j])
             d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dscale[grp]
             f = max((mm + d) * s, zero)
-            # below the dark knot: between (black, f0) and the knot, as `_lut_eval`
+            # below the dark knot: between (black, f0) and the knot, as `lut_eval`
             fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
             f = fb if m <= c0 else f
             # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
             ok = (m <= top) & (tq != _NO_RANGE)
-            reason = st & 0x0F
+            reason = st & REASON_MASK
             cf = clip_flux[y, x]
             nv = v
-            nv = f if ((reason == _VALID) & ok) | ((reason == _DARK) & ok & (f > zero)) else nv
-            nv = cf if ((reason == _CLIPPED) & (cf < v)) else nv     # NaN clip flux: no change
+            nv = f if ((reason == VALID) & ok) | ((reason == DARK) & ok & (f > zero)) else nv
+            nv = cf if ((reason == CLIPPED) & (cf < v)) else nv     # NaN clip flux: no change
             values[y, x] = nv
-            # (reason VALID is 0: st | UNCAL is (st & 0xF0) | UNCAL; arithmetic, not a select: 2x faster)
-            state[y, x] = st | (np.uint8(_UNCAL) * np.uint8((reason == _VALID) & (not ok)))
-
-
-def compact_error(calib: CrosstalkCalibration, compact: CompactLut, mask: np.ndarray, codes_per_pixel: int = 4,
-                  seed: int = 0) -> dict:
-    """Error of the compact LUT against the full table at random codes inside every pixel's calibrated
-    range (uniform in code): abs error in DN (flux units) and relative to the full table's flux, as
-    percentiles, and the peak signal-to-error ratio in dB against the sensor's white (clip flux)."""
-    h, w = calib.shape
-    rng = np.random.default_rng(seed)
-    clip_rel = float(calib.clip_code) - float(calib.black_level)
-    st = np.where(np.asarray(mask, bool), np.uint8(_ATT), np.uint8(0))
-    s = np.where(st != 0, np.float32(compact.nd), np.float32(1.0))
-    errs, rels, fulls = [], [], []
-    n_state = n_all = 0
-    for _ in range(codes_per_pixel):
-        m = (rng.random((h, w)) * clip_rel).astype(np.float32)
-        v1 = m * s
-        s1 = st.copy()
-        v2 = v1.copy()
-        s2 = st.copy()
-        _lut_kernel(v1, s1, calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
-                    calib.knot_flux, np.float32(clip_rel), calib.clip_flux, compact.nd)
-        _compact_apply(v2, s2, compact, calib.clip_flux)
-        both = ((s1 & 0x0F) == _VALID) & ((s2 & 0x0F) == _VALID)
-        e = np.abs(v2[both].astype(np.float64) - v1[both])
-        errs.append(e)
-        rels.append(e / np.maximum(np.abs(v1[both]), 1.0))
-        fulls.append(v1[both])
-        n_state += int(np.sum((s1 & 0x0F) != (s2 & 0x0F)))
-        n_all += int(s1.size)
-    e = np.concatenate(errs)
-    r = np.concatenate(rels)
-    white = float(np.nanmax(calib.clip_flux)) if np.any(np.isfinite(calib.clip_flux)) else float(
-        np.max(np.concatenate(fulls)))
-    rms = float(np.sqrt(np.mean(e * e)))
-    return {"abs_dn_median": float(np.median(e)), "abs_dn_p99": float(np.percentile(e, 99)),
-            "abs_dn_max": float(e.max()), "rel_pct_median": 100 * float(np.median(r)),
-            "rel_pct_p99": 100 * float(np.percentile(r, 99)), "rms_dn": rms,
-            "psnr_db": float(20 * np.log10(white / max(rms, 1e-12))),
-            "state_differs_pct": 100.0 * n_state / max(n_all, 1)}
-
-
-def _compact_apply(values, state, compact: CompactLut, clip_flux):
-    _lut_kernel_compact(values, state, compact.rec, compact.dscale, np.float32(compact.clip_rel),
-                        np.float32(compact.qscale), np.float32(compact.qoffset), np.float32(compact.f0),
-                        clip_flux, compact.nd)
+            # (reason VALID is 0: st | UNCALIBRATED is (st & FLAG_MASK) | UNCALIBRATED; arithmetic, not a
+            # select: 2x faster)
+            state[y, x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
 
 
 @njit(cache=True, nogil=True)
@@ -772,7 +701,7 @@ def _source_spill(est, state, nd, sig_e, sigma, out):
     for y in prange(h):
         buf = np.empty(8, np.float32)
         for x in range(w):
-            t = np.float32(1.0) / np.float32(nd) if (state[y, x] & _ATT) != 0 else np.float32(1.0)
+            t = np.float32(1.0) / np.float32(nd) if (state[y, x] & ATTENUATED) != 0 else np.float32(1.0)
             _spill_vec(sig_e, sigma, est[y, x] * t, buf)
             for d in range(8):
                 out[d, y, x] = buf[d]
@@ -785,13 +714,13 @@ def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip
     for y in prange(h):
         for x in range(w):
             st = state[y, x]
-            s = np.float32(nd) if (st & _ATT) != 0 else np.float32(1.0)
+            s = np.float32(nd) if (st & ATTENUATED) != 0 else np.float32(1.0)
             v = values[y, x]
             lut_out[y, x] = v
             ok_out[y, x] = False
-            if (st & 0x0F) == _VALID:
-                f, ok = _lut_eval(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel,
-                                  clip_flux[y, x], v / s)
+            if (st & REASON_MASK) == VALID:
+                f, ok = lut_eval(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel,
+                                 clip_flux[y, x], v / s)
                 if ok:
                     lut_out[y, x] = f
                     ok_out[y, x] = True
@@ -799,7 +728,10 @@ def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip
 
 @njit(cache=True, nogil=True, parallel=True)
 def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux,
-                    nd, mode, dirs, sig_e, sigma, alpha, iters, src_spill, clip_share):
+                    nd, dirs, sig_e, sigma, alpha, iters, src_spill, clip_share):
+    """`kernel` mode: each VALID pixel's LUT flux after removing the difference between the spill its actual
+    neighbours send (`src_spill`) and what flat neighbours at its flux would send, `iters` times; CLIPPED and
+    DARK/NOISY pixels as in `_lut_kernel`."""
     h, w = values.shape
     ndf = np.float32(nd)
     for y in prange(h):
@@ -807,57 +739,56 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
         flat_reg = np.empty(8, np.float32)
         for x in range(w):
             st = state[y, x]
-            reason = st & 0x0F
-            att = (st & _ATT) != 0
+            reason = st & REASON_MASK
+            att = (st & ATTENUATED) != 0
             s = ndf if att else np.float32(1.0)
             n = n_knots[y, x]
             cf = clip_flux[y, x]
-            if reason == _VALID:
+            if reason == VALID:
                 m = src[y, x] / s
-                f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m)
+                f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m)
                 if not ok:
-                    state[y, x] = (st & 0xF0) | _UNCAL
+                    state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
                     continue
-                if mode == 1:
-                    a = alpha[y, x]
+                a = alpha[y, x]
+                from_clipped = np.float32(0.0)
+                for _ in range(iters):
+                    # what flat neighbours at this pixel's flux would send (the LUT's assumption)
+                    _spill_vec(sig_e, sigma, f / ndf, flat_att)
+                    _spill_vec(sig_e, sigma, f, flat_reg)
+                    delta = np.float32(0.0)
                     from_clipped = np.float32(0.0)
-                    for _ in range(iters):
-                        # what flat neighbours at this pixel's flux would send (the LUT's assumption)
-                        _spill_vec(sig_e, sigma, f / ndf, flat_att)
-                        _spill_vec(sig_e, sigma, f, flat_reg)
-                        delta = np.float32(0.0)
-                        from_clipped = np.float32(0.0)
-                        for d in range(8):
-                            yy = y + dirs[d, 0]
-                            xx = x + dirs[d, 1]
-                            if yy < 0 or yy >= h or xx < 0 or xx >= w:
-                                continue
-                            stn = state[yy, xx]
-                            if (stn & 0x0F) == _DARK and est[yy, xx] > f:
-                                continue        # an upper bound only: assume no brighter than this pixel
-                            flat = flat_att[d] if (stn & _ATT) != 0 else flat_reg[d]
-                            delta += src_spill[d, yy, xx] - flat
-                            if (stn & 0x0F) == _CLIPPED:
-                                from_clipped += src_spill[d, yy, xx]
-                        f2, ok2 = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m - a * delta)
-                        if not ok2:
-                            break
-                        f = f2
-                    if f < 0:
-                        f = np.float32(0.0)
-                    if a * from_clipped > clip_share * max(f / s, np.float32(1.0)):
-                        # more spill from clipped neighbours than own signal: their flux is only an
-                        # estimate (>= their bound), so this pixel is unreliable; leave it to reconstruction
-                        values[y, x] = f
-                        state[y, x] = (st & 0xF0) | _UNCAL
-                        continue
+                    for d in range(8):
+                        yy = y + dirs[d, 0]
+                        xx = x + dirs[d, 1]
+                        if yy < 0 or yy >= h or xx < 0 or xx >= w:
+                            continue
+                        stn = state[yy, xx]
+                        if (stn & REASON_MASK) == DARK and est[yy, xx] > f:
+                            continue        # an upper bound only: assume no brighter than this pixel
+                        flat = flat_att[d] if (stn & ATTENUATED) != 0 else flat_reg[d]
+                        delta += src_spill[d, yy, xx] - flat
+                        if (stn & REASON_MASK) == CLIPPED:
+                            from_clipped += src_spill[d, yy, xx]
+                    f2, ok2 = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m - a * delta)
+                    if not ok2:
+                        break
+                    f = f2
+                if f < 0:
+                    f = np.float32(0.0)
+                if a * from_clipped > clip_share * max(f / s, np.float32(1.0)):
+                    # more spill from clipped neighbours than own signal: their flux is only an
+                    # estimate (>= their bound), so this pixel is unreliable; leave it to reconstruction
+                    values[y, x] = f
+                    state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
+                    continue
                 values[y, x] = f
-            elif reason == _CLIPPED:
+            elif reason == CLIPPED:
                 # the true flux is at least the flux at which this pixel clips
                 if cf == cf and cf < values[y, x]:
                     values[y, x] = cf
-            elif reason == _DARK or reason == _NOISY:
-                f, ok = _lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, src[y, x] / s)
+            elif reason == DARK or reason == NOISY:
+                f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, src[y, x] / s)
                 if ok and f > 0:
                     values[y, x] = f
 
@@ -869,16 +800,16 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
     h, w = values.shape
     for y in prange(h):
         for x in range(w):
-            reason = state[y, x] & 0x0F
+            reason = state[y, x] & REASON_MASK
             v = lut[y, x]
-            if reason == _CLIPPED:
+            if reason == CLIPPED:
                 # a clipped neighbour's bound (e.g. an attenuated pixel's clipping flux) is a lower bound
                 # for this pixel too: the region is at least that bright
                 for dy in range(-1, 2):
                     for dx in range(-1, 2):
                         yy = y + dy
                         xx = x + dx
-                        if 0 <= yy < h and 0 <= xx < w and (state[yy, xx] & 0x0F) == _CLIPPED \
+                        if 0 <= yy < h and 0 <= xx < w and (state[yy, xx] & REASON_MASK) == CLIPPED \
                                 and lut[yy, xx] > v:
                             v = lut[yy, xx]
                 acc = np.float32(0.0)
@@ -945,7 +876,9 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     if mode == "lut":
         # per pixel, in place (no copy of the frame)
         if lut == "compact":
-            _compact_apply(values, state, compact_for(profile), calib.clip_flux)
+            c = compact_for(profile)
+            _lut_kernel_compact(values, state, c.rec, c.dscale, np.float32(c.clip_rel), np.float32(c.qscale),
+                                np.float32(c.qoffset), np.float32(c.f0), calib.clip_flux, c.nd)
         else:
             _lut_kernel(values, state, *args)
         return values, state
@@ -963,16 +896,16 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         if p > 0:
             state[:] = state0
         values[:] = src
-        _correct_kernel(values, state, src, est, *args, 1, DIRS, calib.sig_e, calib.sigma, calib.alpha,
+        _correct_kernel(values, state, src, est, *args, DIRS, calib.sig_e, calib.sigma, calib.alpha,
                         int(iterations), spill, np.float32(clip_share if clip_share is not None else np.inf))
         lut[:] = values
-        ok[:] = (state & 0x0F) == _VALID
+        ok[:] = (state & REASON_MASK) == VALID
     return values, state
 
 
 def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float = 0.0,
                          clip_code: int = 4094) -> CrosstalkCalibration:
-    """A calibration that maps every code to code * s (zero crosstalk); for warmup() and tests."""
+    """A calibration that maps every code to code * s (zero crosstalk); for `chain.warmup` and tests."""
     mask = np.asarray(mask, bool)
     h, w = mask.shape
     top = float(clip_code) - black_level
@@ -986,31 +919,3 @@ def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float 
         clip_flux=np.full((h, w), np.nan, np.float32), nd=nd, black_level=black_level,
         clip_code=clip_code, sig_e=np.array([0.0, 1.0], np.float32), sigma=np.zeros((8, 2), np.float32),
         alpha=np.ones((h, w), np.float32), info={"identity": True})
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class _Sensor:
-    """What `correct` reads from a camera profile (mask, nd, crosstalk): warmup's stand-in, so that this
-    module never imports profile.py (profile.py imports it for the calibration file; issue 13: no cycle)."""
-    mask: np.ndarray
-    nd: float
-    crosstalk: CrosstalkCalibration
-
-    @property
-    def height(self) -> int:
-        return int(self.mask.shape[0])
-
-    @property
-    def width(self) -> int:
-        return int(self.mask.shape[1])
-
-
-def warmup() -> None:
-    """Compile the kernels on a tiny frame (elements call this in do_start, never at import)."""
-    mask = np.zeros((3, 3), bool)
-    mask[1, 1] = True
-    p = _Sensor(mask, 6.35, identity_calibration(mask, nd=6.35, clip_code=4094))
-    for mode, lut in (("lut", "full"), ("lut", "compact"), ("kernel", "full")):
-        v = np.ones((3, 3), np.float32) * 10
-        s = np.zeros((3, 3), np.uint8)
-        correct(v, s, p, mode=mode, lut=lut)

@@ -1,5 +1,5 @@
-"""Measurements: PSNR (linear and log domain), SSIM, flat-field SNR per pixel class (paper Eq. 4-7,
-Fig. 3/5/9) and the valid-pixel ratio over flux (Fig. 4 / 8b)."""
+"""Measurements: PSNR (linear and log domain), SSIM, the SNR of a flat field (paper Eq. 4, Fig. 3/5/9) and
+the HDR quality metrics of `nrhdr compare` (log2 PSNR, PU21-PSNR, pixels stops off, per luminance region)."""
 from __future__ import annotations
 
 import numpy as np
@@ -46,16 +46,7 @@ def snr_db(samples: np.ndarray) -> float:
     return float("inf") if sd == 0 else 20.0 * np.log10(s.mean() / sd)
 
 
-def flat_field_snr(values: np.ndarray, known: np.ndarray, mask: np.ndarray) -> dict:
-    """SNR of a flat field (one frame, ND-scaled values) per pixel class over known pixels:
-    'regular' (Eq. 4), 'attenuated' (Eq. 5) and 'global' (Eq. 7, all known pixels)."""
-    out = {}
-    for name, sel in (("regular", known & ~mask), ("attenuated", known & mask), ("global", known)):
-        out[name] = snr_db(values[sel]) if sel.sum() > 2 else float("nan")
-    return out
-
-
-# ---- HDR quality metrics (issue 8) -------------------------------------------------------------------
+# ---- HDR quality metrics ----------------------------------------------------------------------------
 
 # PU21 encoding, Mantiuk & Azimi, "PU21: A novel perceptually uniform encoding for adapting existing
 # quality metrics for HDR", Picture Coding Symposium 2021; parameters of the recommended
@@ -148,7 +139,7 @@ REGIONS = ("all", "dark", "mid", "bright")
 
 
 def clip_report(pairs, dark_level: float, bright_level: float, white: float) -> dict:
-    """`hdr_report` over the frames of a clip (issue 8; `nrhdr compare` and `benchmarks/hdr_quality.py`):
+    """`hdr_report` over the frames of a clip (`nrhdr compare` and `benchmarks/hdr_quality.py`):
     `pairs` yields (truth, test) linear frames; both are capped at `white` (the ND camera's clip-equivalent
     white, so an unmodified camera's clipped highlights count against it), the log2 peak is log2(white);
     per region the mean over frames of log2 PSNR and PU21-PSNR, and the summed pixel counts and pixels

@@ -327,8 +327,8 @@ class JitWatch:
 
     @classmethod
     def since(cls, snap: tuple[int, float]) -> tuple[int, float, list[str]]:
-        cls.install()
         """Compilations since `snap`: (count, seconds, last few kernel names)."""
+        cls.install()
         with cls._lock:
             n = cls.count - snap[0]
             names = sorted(set(list(cls.names)[-n:]))[:8] if n > 0 else []

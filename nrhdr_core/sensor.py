@@ -68,11 +68,6 @@ def snr_global_db(mu_electrons, nd: float):
     return 20.0 * np.log10(math.sqrt(2.0 / (1.0 + nd)) * mu / np.sqrt(mu))
 
 
-def global_variance(sigma2_d0, nd: float):
-    """Eq. 6: sigma_global^2 = (1 + ND) / 2 * sigma_d0^2."""
-    return (1.0 + nd) / 2.0 * np.asarray(sigma2_d0, dtype=np.float64)
-
-
 def zero_db_signal_dn(profile: CameraProfile) -> float:
     """Signal s (DN above black) where SNR = 0 dB for this sensor: s^2 = g s + (g sigma_r)^2 + 1/12,
     with shot, read and quantisation noise (the 'SNR < 0 dB' lower limit of paper Fig. 3/4)."""

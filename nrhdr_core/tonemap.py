@@ -20,28 +20,13 @@ from numba import njit, prange
 DEFAULT_CONTRAST = 1000.0
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _log_kernel(values, scale, q, inv_den, out_max, out):
-    h, w = values.shape
-    for y in prange(h):
-        for x in range(w):
-            v = values[y, x] * scale
-            if not (v > 0.0):  # also maps NaN to black
-                v = np.float32(0.0)
-            elif v > 1.0:
-                v = np.float32(1.0)
-            t = math.log1p(q * v) * inv_den
-            out[y, x] = np.uint16(t * out_max + np.float32(0.5)) if out_max > 255 else np.uint8(
-                t * out_max + np.float32(0.5))
-
-
-# ---- vectorisable log1p (perf, issue 7 item 3): math.log1p is a scalar libm call per pixel (~37 ms per
+# ---- vectorisable log1p: math.log1p is a scalar libm call per pixel (~37 ms per
 # 1080p frame on one core); this evaluates log via exponent/mantissa split (integer view of a row buffer)
 # and the Cephes logf polynomial (~1 ulp), with log1p(a) = log(u) * a / (u - 1), u = 1 + a (Kahan's
-# correction of the rounding of 1 + a). Same codes as the libm path except for values within ~1e-6 of a
-# rounding boundary (tests/test_perf_kernels.py).
+# correction of the rounding of 1 + a). Same codes as math.log1p except for values within ~1e-6 of a
+# rounding boundary (tests/tonemap_reference.py, tests/test_perf_kernels.py).
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _log_kernel_fast(values, scale, q, inv_den, out_max, out):
+def _log_kernel(values, scale, q, inv_den, out_max, out):
     h, w = values.shape
     nch = min(h, 64)
     for c in prange(nch):
@@ -106,7 +91,7 @@ def log_tonemap(values: np.ndarray, white: float, exposure_stops: float = 0.0,
     out_max = 255.0 if out.dtype == np.uint8 else 65535.0
     scale = np.float32(2.0 ** exposure_stops / white)
     q = np.float32(contrast)
-    _log_kernel_fast(v, scale, q, np.float32(1.0 / math.log1p(contrast)), np.float32(out_max), out)
+    _log_kernel(v, scale, q, np.float32(1.0 / math.log1p(contrast)), np.float32(out_max), out)
     return out
 
 
@@ -133,15 +118,6 @@ class WhiteTracker:
 
     def reset(self) -> None:
         self.white = None
-
-
-def warmup() -> None:
-    log_tonemap(np.ones((2, 2), np.float32), 1.0)
-    log_tonemap(np.ones((2, 2), np.float32), 1.0, dtype=np.uint16)
-    v = np.ones((2, 2), np.float32)
-    v.setflags(write=False)        # nrtonemap maps its input read-only: numba compiles that signature apart
-    log_tonemap(v, 1.0)
-    log_tonemap(v, 1.0, dtype=np.uint16)
 
 
 # ---- HDR transfer functions (ITU-R BT.2100) --------------------------------------------------------------
@@ -254,7 +230,3 @@ def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
     else:
         _hdr_kernel(v, gain * hlg_reference_E(reference_white), 1, out)
     return out
-
-
-def warmup_hdr() -> None:
-    hdr_encode(np.ones((2, 2), np.float32), 1.0, "pq")

@@ -11,9 +11,14 @@ Selection modes (section 2.3, Fig. 3/4):
 - ``threshold``: attenuated pixels below ``l_min`` (code above black) are invalid; the paper's practical
   choice and the default.
 
-Dark policy (threshold mode, issue 8): ``threshold`` is the paper's; ``weighted`` keeps attenuated pixels
-between SNR 0 dB and ``WEIGHTED_LEVEL x l_min`` as NOISY measurements that the reconstruction fuses by
-their noise (`reconstruction.fuse_noisy`).
+ND scaling (Eq. 3, `scale_nd`): an attenuated pixel's signal (code - black) is multiplied by the ND factor,
+so that every value is linear DN of a regular pixel; its bounds are scaled the same way.
+
+Dark policy (threshold mode; docs/FSE.md "Noise-aware dark pixels"): ``threshold`` is the paper's;
+``weighted`` keeps attenuated pixels between SNR 0 dB and ``WEIGHTED_LEVEL x l_min`` as NOISY measurements
+that the reconstruction fuses by their noise (`reconstruction.fuse_noisy`).
+
+All of it is one numba pass (`_classify_kernel`); the pixel states are those of `states.py`.
 """
 from __future__ import annotations
 
@@ -32,7 +37,6 @@ DARK_POLICIES = ("threshold", "weighted")
 # measured on the shared HDR scenes: x4 (l_min 100 -> 400) gains +1.2 dB log PSNR in mid-tones over x1
 # and is the best of 1, 4, 10, 41 (docs/FSE.md "Noise-aware dark pixels")
 WEIGHTED_LEVEL = 4.0
-_MODE_ID = {m: i for i, m in enumerate(MODES)}
 
 
 def known_mask(state: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -55,8 +59,9 @@ def bounds(values: np.ndarray, state: np.ndarray, lower: np.ndarray | None = Non
            upper: np.ndarray | None = None):
     """(lower, upper) float32 arrays, NaN where there is no bound: CLIPPED pixels are at least their
     value, DARK pixels at most their value (paper 2.3; fse-reference 'Quirks'); a clipped regular pixel
-    whose attenuated neighbours are all clipped too is at least what they imply (`clip_lower_bound`,
-    issue 8). `lower`/`upper`: optional float32 arrays to fill. One numba pass (`prepare`)."""
+    whose attenuated neighbours are all clipped too is at least the smallest of their lower bounds
+    (`_clip_lower_at`: light that saturates the ND pixels around it saturates it at least as much).
+    `lower`/`upper`: optional float32 arrays to fill. One numba pass (`prepare`)."""
     values = np.asarray(values)
     state = np.asarray(state)
     if values.ndim != 2 or state.dtype != np.uint8 or values.shape != state.shape:
@@ -86,7 +91,7 @@ def _known_kernel(state, known):
 def _prepare_kernel(values, state, known, lower, upper, with_bounds):
     """One pass: known mask, bounds, counts of missing (not VALID, not RECONSTRUCTED) and of
     not-VALID pixels. The clipped-neighbour bound is computed per row from column aggregates
-    (`clip_lower_row`), only in rows that have a clipped regular pixel (issue 7)."""
+    (`clip_lower_row`), only in rows that have a clipped regular pixel."""
     h, w = state.shape
     nan = np.float32(np.nan)
     n_miss = 0
@@ -109,7 +114,7 @@ def _prepare_kernel(values, state, known, lower, upper, with_bounds):
                 cl = r == CLIPPED
                 lo = v if cl else nan
                 m = lower[y, x]
-                # saturated ND neighbours imply more for a clipped regular pixel (issue 8)
+                # saturated ND neighbours imply more for a clipped regular pixel
                 lo = m if (cl & ((st & ATTENUATED) == 0) & (m == m) & (m > v)) else lo
                 lower[y, x] = lo
                 upper[y, x] = v if r == DARK else nan
@@ -134,7 +139,7 @@ def clip_lower_row(values, state, y, mrow):
     of mrow are overwritten with scratch values): the 3 x 3 test from per-column aggregates of rows
     y-1..y+1 (count of attenuated pixels, any of them not clipped, smallest clipped value), branch-free
     so it vectorises; the rare pixel without an attenuated 3 x 3 neighbour takes the 5 x 5 scan. Same
-    result as `_clip_lower_at` (a minimum does not depend on the scan order; issue 7)."""
+    result as `_clip_lower_at` (a minimum does not depend on the scan order)."""
     h, w = state.shape
     natt = np.zeros(w, np.int32)
     bad = np.zeros(w, np.int32)
@@ -249,15 +254,6 @@ def write_back(values: np.ndarray, state: np.ndarray, result: np.ndarray) -> int
     return int(_write_back_kernel(values, state, result, np.uint8(RECONSTRUCTED)))
 
 
-def clip_lower_bound(values: np.ndarray, state: np.ndarray, lower: np.ndarray) -> np.ndarray:
-    """Raise, in place, the lower bound of every clipped regular pixel whose attenuated pixels in its
-    3 x 3 neighbourhood (5 x 5 when the 3 x 3 has none) are all clipped to the smallest of their lower
-    bounds: light that saturates the ND pixels around it saturates it at least as much (issue 8/9: a
-    saturated area is reconstructed as a uniform area at the ND pixels' clip level, not the mask)."""
-    _clip_lower_kernel(np.ascontiguousarray(values, np.float32), np.ascontiguousarray(state), lower)
-    return lower
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _clip_lower_at(values, state, y, x, h, w):
     """Smallest lower bound of the attenuated pixels around (y, x) when all of them are clipped (3 x 3,
@@ -281,80 +277,23 @@ def _clip_lower_at(values, state, y, x, h, w):
     return np.float32(np.nan)
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _clip_lower_kernel(values, state, lower):
-    h, w = state.shape
-    for y in prange(h):
-        for x in range(w):
-            st = state[y, x]
-            if (st & ATTENUATED) == 0 and (st & REASON_MASK) == CLIPPED:
-                m = _clip_lower_at(values, state, y, x, h, w)
-                if m == m and not (lower[y, x] >= m):     # NaN-safe: raise only
-                    lower[y, x] = m
-    return lower
-
-
-@njit(cache=True, nogil=True)
-def _mark_noisy_kernel(raw, state, values, black, s0, nd, lm_nd):
-    h, w = state.shape
-    c = 0
-    for y in range(h):
-        for x in range(w):
-            st = state[y, x]
-            if (st & REASON_MASK) != DARK or (st & ATTENUATED) == 0:
-                continue
-            sig = np.float32(raw[y, x]) - black
-            if sig >= s0:
-                values[y, x] = sig * nd
-                state[y, x] = (st & np.uint8(0xF0)) | np.uint8(NOISY)
-                c += 1
-            else:
-                values[y, x] = lm_nd
-    return c
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, mode, values, state):
-    h, w = raw.shape
-    for y in prange(h):
-        for x in range(w):
-            code = np.float32(raw[y, x])
-            att = mask[y, x]
-            s = np.float32(nd) if att else np.float32(1.0)
-            sig = code - np.float32(black)
-            st = np.uint8(ATTENUATED) if att else np.uint8(0)
-            if raw[y, x] >= clip_code:
-                values[y, x] = (np.float32(clip_code) - np.float32(black)) * s
-                state[y, x] = st | np.uint8(CLIPPED)
-                continue
-            thr = np.float32(dark_att) if att else np.float32(dark_reg)
-            if sig < thr:
-                values[y, x] = thr * s
-                state[y, x] = st | np.uint8(DARK)
-                continue
-            values[y, x] = sig * s
-            reason = VALID
-            if mode == 1 and att:
-                # best pixel only: drop when a valid regular neighbour exists (8-neighbourhood)
-                for dy in range(-1, 2):
-                    yy = y + dy
-                    if yy < 0 or yy >= h:
-                        continue
-                    for dx in range(-1, 2):
-                        xx = x + dx
-                        if xx < 0 or xx >= w or (dy == 0 and dx == 0) or mask[yy, xx]:
-                            continue
-                        c2 = raw[yy, xx]
-                        if c2 < clip_code and np.float32(c2) - np.float32(black) >= np.float32(dark_reg):
-                            reason = DISCARDED
-            state[y, x] = st | np.uint8(reason)
+@njit(cache=True, nogil=True, inline="always")
+def scale_nd(signal, attenuated, nd):
+    """ND scaling (paper 2.3, Eq. 3): the signal (code - black level) of a pixel behind the ND filter times
+    the filter's attenuation `nd`, a regular pixel's unchanged, so that both are linear DN of a regular
+    pixel. Bounds are scaled the same way (a threshold or clip level of an attenuated pixel times `nd`)."""
+    return signal * (nd if attenuated else np.float32(1.0))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _classify_fused_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, weighted, s0, lm, values, state):
-    """Modes 'all' and 'threshold' in one pass, the dark policy included (issue 7: was `_classify_kernel`
-    then a serial `_mark_noisy_kernel` pass over the frame). Same results as those two; written with
-    arithmetic and selects, no data-dependent branches (ND and regular pixels alternate at random)."""
+def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, weighted, best, s0, lm, values, state):
+    """Every selection mode and dark policy of `classify` in one pass per row (paper 2.3, Eq. 3): CLIPPED at
+    `clip_code` (value: the lower bound (clip - black) x s), DARK below the threshold of the pixel's kind
+    (value: the threshold x s as upper bound), else VALID with its ND-scaled measurement (`scale_nd`).
+    `weighted` (dark policy): DARK attenuated pixels at or above SNR 0 dB (`s0`) become NOISY with their
+    measurement, those below keep l_min x ND (`lm`) as bound. `best`: a VALID attenuated pixel with a VALID
+    regular pixel among its 8 neighbours becomes DISCARDED. The per-pixel rules are written with arithmetic
+    and selects, no data-dependent branches (ND and regular pixels alternate at random)."""
     h, w = raw.shape
     ndf = np.float32(nd)
     bl = np.float32(black)
@@ -363,25 +302,52 @@ def _classify_fused_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, 
     treg = np.float32(dark_reg)
     s0f = np.float32(s0)
     lmf = np.float32(lm)
-    for y in prange(h):
-        for x in range(w):
-            r = raw[y, x]
-            att = mask[y, x]
-            s = ndf if att else np.float32(1.0)
-            sig = np.float32(r) - bl
-            clipped = r >= clip_code
-            thr = tatt if att else treg
-            dark = (sig < thr) & (not clipped)
-            wa = weighted & att
-            noisy = dark & wa & (sig >= s0f)
-            dval = lmf * s if wa else thr * s          # weighted: below SNR 0 dB the bound is l_min x ND
-            v = sig * s
-            v = dval if (dark & (not noisy)) else v
-            v = top * s if clipped else v
-            values[y, x] = v
-            reason = (np.uint8(CLIPPED) * np.uint8(clipped) + np.uint8(NOISY) * np.uint8(noisy)
-                      + np.uint8(DARK) * np.uint8(dark & (not noisy)))
-            state[y, x] = (np.uint8(ATTENUATED) * np.uint8(att)) | reason
+    if best:
+        for y in prange(h):
+            _classify_row(raw, mask, y, ndf, bl, clip_code, top, tatt, treg, weighted, s0f, lmf, values, state)
+            for x in range(w):
+                if state[y, x] == ATTENUATED | VALID and _valid_regular_neighbour(raw, mask, y, x, bl, clip_code,
+                                                                                  treg):
+                    state[y, x] = ATTENUATED | DISCARDED
+    else:
+        for y in prange(h):
+            _classify_row(raw, mask, y, ndf, bl, clip_code, top, tatt, treg, weighted, s0f, lmf, values, state)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _classify_row(raw, mask, y, ndf, bl, clip_code, top, tatt, treg, weighted, s0f, lmf, values, state):
+    """Row y of `_classify_kernel` without the best-pixel selection."""
+    for x in range(raw.shape[1]):
+        r = raw[y, x]
+        att = mask[y, x]
+        sig = np.float32(r) - bl
+        clipped = r >= clip_code
+        thr = tatt if att else treg
+        dark = (sig < thr) & (not clipped)
+        wa = weighted & att
+        noisy = dark & wa & (sig >= s0f)
+        dval = scale_nd(lmf, att, ndf) if wa else scale_nd(thr, att, ndf)
+        v = scale_nd(sig, att, ndf)
+        v = dval if (dark & (not noisy)) else v
+        v = scale_nd(top, att, ndf) if clipped else v
+        values[y, x] = v
+        reason = (np.uint8(CLIPPED) * np.uint8(clipped) + np.uint8(NOISY) * np.uint8(noisy)
+                  + np.uint8(DARK) * np.uint8(dark & (not noisy)))
+        state[y, x] = (np.uint8(ATTENUATED) * np.uint8(att)) | reason
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _valid_regular_neighbour(raw, mask, y, x, bl, clip_code, treg):
+    """True if a regular pixel among the 8 neighbours of (y, x) is valid (not clipped, signal >= treg)."""
+    h, w = raw.shape
+    for yy in range(max(y - 1, 0), min(y + 2, h)):
+        for xx in range(max(x - 1, 0), min(x + 2, w)):
+            if mask[yy, xx] or (yy == y and xx == x):
+                continue
+            c2 = raw[yy, xx]
+            if c2 < clip_code and np.float32(c2) - bl >= treg:
+                return True
+    return False
 
 
 class FrameError(ValueError):
@@ -391,13 +357,13 @@ class FrameError(ValueError):
 def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l_min: float | None = None,
              values: np.ndarray | None = None, state: np.ndarray | None = None,
              dark_policy: str = "threshold"):
-    """Classify a raw frame (uint16 (H, W)) into (values float32, state uint8), Eq. 3. Output arrays may be
-    passed in (e.g. mapped GStreamer memory) and are filled in place. `l_min` overrides the profile's.
+    """Classify a raw frame (uint16 (H, W)) into (values float32, state uint8), paper 2.3 Eq. 3. Output arrays
+    may be passed in (e.g. mapped GStreamer memory) and are filled in place. `l_min` overrides the profile's.
     `dark_policy` (mode "threshold" only): "threshold" = the paper's hard l_min (DARK, value = upper
     bound); "weighted" = attenuated pixels between SNR 0 dB and WEIGHTED_LEVEL x l_min become NOISY
-    with their measured value, which the reconstruction fuses with its estimate by their noise
-    (`mark_noisy`, issue 8); below SNR 0 dB they stay DARK with that level as upper bound."""
-    if mode not in _MODE_ID:
+    with their measurement, which the reconstruction fuses with its estimate by their noise; below
+    SNR 0 dB they stay DARK with l_min x ND as upper bound."""
+    if mode not in MODES:
         raise FrameError(f"selection mode must be one of {MODES}, got {mode!r}")
     if dark_policy not in DARK_POLICIES:
         raise FrameError(f"dark policy must be one of {DARK_POLICIES}, got {dark_policy!r}")
@@ -415,32 +381,15 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
     lm = profile.l_min if l_min is None else float(l_min)
     if not (np.isfinite(lm) and lm >= 0):
         raise FrameError(f"l_min must be a finite number >= 0, got {l_min!r}")
+    weighted = mode == "threshold" and dark_policy == "weighted"
     if mode == "threshold":
-        dark_att, dark_reg = lm, -np.inf
-        if dark_policy == "weighted":
-            dark_att = lm * WEIGHTED_LEVEL
+        dark_att, dark_reg = (lm * WEIGHTED_LEVEL if weighted else lm), -np.inf
     else:
         dark_att, dark_reg = s0, s0
-    if mode == "best":
-        _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
-                         float(profile.nd), float(dark_att), float(dark_reg), _MODE_ID[mode], values, state)
-        return values, state
-    _classify_fused_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code),
-                           float(profile.nd), float(dark_att), float(dark_reg),
-                           dark_policy == "weighted" and mode == "threshold", float(s0), float(lm), values, state)
+    _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code), float(profile.nd),
+                     float(dark_att), float(dark_reg), weighted, mode == "best", float(s0), float(lm), values,
+                     state)
     return values, state
-
-
-def mark_noisy(raw: np.ndarray, profile: CameraProfile, values: np.ndarray, state: np.ndarray,
-               l_min: float | None = None) -> int:
-    """Dark policy "weighted" (issue 8, beyond the paper): DARK attenuated pixels whose signal is at or
-    above SNR = 0 dB become NOISY and carry their measurement ((code - black) * ND, Eq. 3) instead of a
-    bound; below 0 dB they stay DARK with l_min x ND as upper bound (a tighter 0 dB bound was measured
-    to bias flat fields of 16-32 DN low: noise puts true values above it). Returns the NOISY count."""
-    lm = profile.l_min if l_min is None else float(l_min)
-    return int(_mark_noisy_kernel(raw, state, values, np.float32(profile.black_level),
-                                  np.float32(zero_db_signal_dn(profile)), np.float32(profile.nd),
-                                  np.float32(lm * profile.nd)))
 
 
 def noisy_mask(state: np.ndarray) -> np.ndarray:
@@ -473,17 +422,3 @@ def measurement_variance(values, profile, regular=False) -> np.ndarray:
 def valid_ratio(state: np.ndarray) -> float:
     """Share of known pixels (paper Fig. 4 / 8b)."""
     return float(np.mean(known_mask(state)))
-
-
-def warmup() -> None:
-    """Compile the kernel on a tiny frame (elements call this in do_start, never at import)."""
-    from .profile import make
-    p = make(np.array([[True, False], [False, True]]))
-    classify(np.zeros((2, 2), np.uint16), p)
-    classify(np.zeros((2, 2), np.uint16), p, mode="best")
-    v, s = classify(np.array([[4095, 4095], [3, 4095]], np.uint16), p, dark_policy="weighted")
-    bounds(v, s)
-    raw = np.zeros((2, 2), np.uint16)
-    raw.setflags(write=False)      # the element classifies read-only mapped buffer memory: its own signature
-    classify(raw, p)
-    classify(raw, p, dark_policy="weighted")

@@ -33,7 +33,8 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
 fi
 
 # Compile the numba kernels once into numba's cache (next to the sources), so the first pipeline runs at
-# full speed (issue #7). Again whenever a core source is newer than the stamp.
+# full speed (`nrhdr warmup` = nrhdr_core.chain.warmup for every stage and setting). Again whenever a core
+# source is newer than the stamp.
 warm=.venv/.nrhdr-warm
 if [ ! -f "$warm" ] || [ -n "$(find nrhdr_core -name '*.py' -newer "$warm" -print -quit)" ]; then
   echo "setup: compiling the numba kernels once (nrhdr warmup)"

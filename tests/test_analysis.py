@@ -43,8 +43,8 @@ def test_run_writes_plots(tmp_path):
 
 
 def test_low_end_matches_eq4_eq5_and_expected_snr_rule():
-    # issue 10: below Phi' ~ 1e-3 the measured SNR followed only pixels above a per-sample threshold (22 dB,
-    # inf); now the SNR is over all pixels of the class (Eq. 4, 5) and the 0 dB rule uses the expected SNR
+    # far below Phi' ~ 1e-3 too the SNR is over all pixels of the class (Eq. 4, 5) and the 0 dB rule uses the
+    # expected SNR
     from nrhdr_core import sensor
     p = analysis.ideal_profile(128, seed=4, nd=6.35)
     flux = np.array([1e-4, 2e-4, 6e-4, 3e-3])              # mu = 0.4 .. 12 electrons

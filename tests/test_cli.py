@@ -56,3 +56,35 @@ def test_command_table_lists_every_subcommand():
         mod = importlib.import_module(f"gst_plugins.cli.{module}")
         func = sub.choices[name].get_default("func")
         assert func.__module__ == mod.__name__ and func.__name__ == "cmd_" + name.replace("-", "_")
+
+
+def test_warmup_compiles_through_chain_warmup_only_and_never_suggests_itself(monkeypatch, capfd):
+    """`nrhdr warmup`: one `chain.warmup` call per stage line, together every stage of the chain with the
+    elements' array types; no pipeline runs, so nothing printed while it compiles asks the user to run
+    `nrhdr warmup` (the elements' compile report says that)."""
+    from numba import njit
+
+    from gst_plugins import runtime
+    from nrhdr_core import chain
+    calls = []
+
+    def fake_warmup(settings, tone=False, calibrated=True, *, stages=chain.STAGES, transfers=(), elements=False):
+        calls.append((tuple(stages), tuple(transfers), elements))
+
+        @njit
+        def fresh(x):          # a cold cache: one compilation per stage
+            return x + 1
+        fresh(len(calls))
+
+    monkeypatch.setattr(chain, "warmup", fake_warmup)
+    monkeypatch.setattr(runtime, "run_pipeline", lambda *a, **k: pytest.fail("nrhdr warmup ran a pipeline"))
+    assert cli.main(["warmup"]) == 0
+    out, err = capfd.readouterr()
+    lines = [x for x in out.splitlines() if x.startswith("nrhdr warmup: [")]
+    assert len(lines) == len(calls) == 7
+    assert all("1 function(s) compiled into the cache" in x for x in lines)
+    assert "run 'nrhdr warmup'" not in out + err and "numba compiled" not in out + err
+    assert {s for st, _, _ in calls for s in st} == set(chain.STAGES)
+    assert {t for _, tr, _ in calls for t in tr} == set(chain.TRANSFERS)
+    assert all(el for _, _, el in calls)
+    assert cli.main(["warmup", "--check"]) == 1       # each stage compiled: the cache was cold

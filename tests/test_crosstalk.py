@@ -271,8 +271,29 @@ def test_load_rejects_corrupt_and_mismatched(tmp_path):
         crosstalk.load_calibration({"file": "x"}, tmp_path, (12, 14))
 
 
-def test_warmup_runs():
-    crosstalk.warmup()
+def test_chain_warmup_compiles_what_the_elements_run():
+    """After `chain.warmup` of the validity and crosstalk stages with the elements' array types, the calls the
+    elements make compile nothing: classify of a read-only raw frame with padded rows (GStreamer pads GRAY16
+    rows to 4 bytes), correct in every mode and LUT form."""
+    from nrhdr_core import chain
+    from nrhdr_core.realtime import JitWatch
+    pairs = [(x, lut) for x in crosstalk.MODES for lut in crosstalk.LUT_FORMS]
+    chain.warmup([chain.ChainSettings(crosstalk=x, crosstalk_lut=lut) for x, lut in pairs],
+                 stages=("validity", "crosstalk"), elements=True)
+    p = profile.default(20, 31, seed=1)
+    p = p.replace(crosstalk=crosstalk.identity_calibration(p.mask, nd=p.nd, clip_code=p.clip_code))
+    buf = np.random.default_rng(0).integers(0, 4096, (20, 32)).astype(np.uint16)
+    raw = buf[:, :31]
+    raw.setflags(write=False)
+    snap = JitWatch.snapshot()
+    v, s = validity.classify(raw, p, dark_policy="weighted")
+    for x, lut in pairs:
+        crosstalk.correct(v.copy(), s.copy(), p, x, lut=lut)
+    assert JitWatch.since(snap)[0] == 0
+    with pytest.raises(ValueError, match="stage"):
+        chain.warmup(stages=("crosstalks",))
+    with pytest.raises(ValueError, match="transfer"):
+        chain.warmup(stages=("tonemap",), transfers=("gamma",))
 
 
 def test_kernel_mode_drops_pixels_dominated_by_clipped_neighbours():

@@ -6,6 +6,9 @@ import numba
 import pytest
 from scipy import ndimage
 
+import crosstalk_reference
+import tonemap_reference
+import validity_reference
 from nrhdr_core import crosstalk, fse, profile as profiles, reconstruction as R, validity as V
 
 SHAPES = [(1, 1), (1, 9), (9, 1), (2, 2), (3, 5), (17, 33), (40, 63)]
@@ -131,7 +134,7 @@ def test_prepare_known_bounds_write_back_equal_numpy(shape, rng, threads):
     reason = st & V.REASON_MASK
     miss = (reason != V.VALID) & ((st & V.RECONSTRUCTED) == 0)
     lo_ref = np.where(reason == V.CLIPPED, v, np.nan).astype(np.float32)
-    V.clip_lower_bound(v, st, lo_ref)     # issue 8: clipped regular pixels amid clipped ND pixels
+    validity_reference.clip_lower_bound(v, st, lo_ref)     # clipped regular pixels amid clipped ND pixels
     hi_ref = np.where(reason == V.DARK, v, np.nan).astype(np.float32)
     res = rng.standard_normal(shape).astype(np.float32)
     for t in threads:
@@ -170,7 +173,7 @@ def _element_reference(values, state, method, use_bounds):
         if use_bounds:
             reason = state & V.REASON_MASK
             lower = np.where(reason == V.CLIPPED, values, np.nan).astype(np.float32)
-            V.clip_lower_bound(values, state, lower)   # issue 8: the neighbour rule of validity.bounds
+            validity_reference.clip_lower_bound(values, state, lower)   # the neighbour rule of validity.bounds
             upper = np.where(reason == V.DARK, values, np.nan).astype(np.float32)
         out = R.reconstruct(values, known, method=method, lower=lower, upper=upper)
         np.copyto(values, out, where=missing)
@@ -216,34 +219,6 @@ def _element_reference_fse(v, s, use_bounds):
 
 
 # ---- crosstalk lut ---------------------------------------------------------------------------------------------
-def _lut_eval_reference(codes, n, knot_flux, clip_rel, cflux, m):
-    """The previous per-pixel LUT evaluation (binary search), in float32 like the kernel."""
-    f32 = np.float32
-    if n < 2:
-        return f32(0.0), False
-    c0, c1 = codes[0], codes[1]
-    if m <= c0:
-        # below the first (dark) knot: between (black, 0) and the first knot, never negative (helper perf2)
-        f0 = max(f32(knot_flux[0]), f32(0.0))
-        return (f0 * (max(m, f32(0.0)) / c0) if c0 > 0 else f0), True
-    last_c = codes[n - 1]
-    if m <= last_c:
-        lo, hi = 1, n - 1
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if codes[mid] >= m:
-                hi = mid
-            else:
-                lo = mid + 1
-        c, pc = codes[lo], codes[lo - 1]
-        f, pf = f32(knot_flux[lo]), f32(knot_flux[lo - 1])
-        return pf + (m - pc) * (f - pf) / max(c - pc, f32(1e-3)), True
-    prev_f = f32(knot_flux[n - 1])
-    if cflux == cflux and clip_rel > last_c and m <= clip_rel:
-        return prev_f + (m - last_c) * (cflux - prev_f) / (clip_rel - last_c), True
-    return f32(0.0), False
-
-
 def test_crosstalk_lut_equals_the_binary_search_reference(rng, threads):
     h, w, kn = 13, 17, 9
     prof = profiles.default(h, w)
@@ -265,27 +240,7 @@ def test_crosstalk_lut_equals_the_binary_search_reference(rng, threads):
     v0 = (rng.uniform(-20, top * 1.2, (h, w)).astype(np.float32) * scale).astype(np.float32)
     st0 = rng.choice(np.array([V.VALID, V.CLIPPED, V.DARK, V.DISCARDED], np.uint8), (h, w), p=[.7, .1, .1, .1])
     st0 |= np.where(prof.mask, V.ATTENUATED, 0).astype(np.uint8)
-    # reference
-    cq = q.astype(np.float32) * np.float32(qs) - np.float32(qo)
-    clip_rel = np.float32(float(prof.clip_code) - float(prof.black_level))
-    v_ref, s_ref = v0.copy(), st0.copy()
-    for y in range(h):
-        for x in range(w):
-            r = st0[y, x] & 0x0F
-            sc = scale[y, x]
-            if r == V.VALID:
-                f, ok = _lut_eval_reference(cq[y, x], n_knots[y, x], flux, clip_rel, clip_flux[y, x], v0[y, x] / sc)
-                if ok:
-                    v_ref[y, x] = f
-                else:
-                    s_ref[y, x] = (st0[y, x] & 0xF0) | V.UNCALIBRATED
-            elif r == V.CLIPPED:
-                if clip_flux[y, x] == clip_flux[y, x] and clip_flux[y, x] < v0[y, x]:
-                    v_ref[y, x] = clip_flux[y, x]
-            elif r == V.DARK:
-                f, ok = _lut_eval_reference(cq[y, x], n_knots[y, x], flux, clip_rel, clip_flux[y, x], v0[y, x] / sc)
-                if ok and f > 0:
-                    v_ref[y, x] = f
+    v_ref, s_ref = crosstalk_reference.lut_correct(v0, st0, calib, prof.nd)
     for t in threads:
         numba.set_num_threads(t)
         vv, ss = v0.copy(), st0.copy()
@@ -333,18 +288,16 @@ def test_fse_result_does_not_depend_on_thread_count(rng, threads):
 
 # ---- tone mapping ---------------------------------------------------------------------------------------------
 def test_fast_log_tonemap_matches_the_libm_kernel(rng):
-    import math
     from nrhdr_core import tonemap
     v = np.exp(rng.uniform(np.log(1e-4), np.log(5e4), (61, 67))).astype(np.float32)
     v[::7, ::5] = np.nan
     v[::11, ::3] = -2.0
     v[0, :5] = [0.0, 1e-30, 26000.0, 26000.0 * (1 + 1e-7), np.inf]
-    for dt, om in ((np.uint8, 255.0), (np.uint16, 65535.0)):
+    for dt in (np.uint8, np.uint16):
         for q in (1000.0, 100.0, 2.0):
             a, b = np.empty(v.shape, dt), np.empty(v.shape, dt)
-            args = (np.float32(1 / 26000.0), np.float32(q), np.float32(1 / math.log1p(q)), np.float32(om))
-            tonemap._log_kernel(v, *args, a)
-            tonemap._log_kernel_fast(v, *args, b)
+            tonemap_reference.log_tonemap(v, 26000.0, q, a)
+            tonemap.log_tonemap(v, 26000.0, contrast=q, out=b)
             d = np.abs(a.astype(int) - b.astype(int))
             assert d.max() <= (0 if dt == np.uint8 else 1) and (d > 0).mean() < 1e-3
 
@@ -363,9 +316,8 @@ def test_import_sets_passive_openmp_wait_unless_the_user_chose():
     assert out.stdout.strip() == "ACTIVE"
 
 
-def test_crosstalk_lut_walk_equals_the_mode0_correction_kernel(rng, threads):
-    """The lut pass (knot search walking from the row's previous knot) against `_correct_kernel` in mode 0
-    (binary search) on a smooth frame with noise, every state, odd size."""
+def test_crosstalk_lut_on_a_smooth_frame_equals_the_reference(rng, threads):
+    """The full LUT on a smooth frame with noise (codes across every knot), every state, odd size."""
     import sys
     from pathlib import Path
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -373,18 +325,13 @@ def test_crosstalk_lut_walk_equals_the_mode0_correction_kernel(rng, threads):
     h, w = 37, 131
     prof = profiles.default(h, w)
     px = prof.replace(crosstalk=stages.synthetic_calibration(prof, 24, seed=3))
-    cal = px.crosstalk
     top = float(prof.clip_code) - float(prof.black_level)
     yy, xx = np.mgrid[0:h, 0:w]
     base = np.exp(np.log(top * 3) * (xx / w)) * (1 + 0.1 * rng.standard_normal((h, w)))
     v0 = np.where(prof.mask, base, base / prof.nd).astype(np.float32) * np.where(prof.mask, prof.nd, 1).astype(np.float32)
     st0 = rng.choice(np.array([V.VALID, V.CLIPPED, V.DARK, V.DISCARDED], np.uint8), (h, w), p=[.7, .1, .1, .1])
     st0 |= np.where(prof.mask, V.ATTENUATED, 0).astype(np.uint8)
-    args = (cal.codes_q, cal.n_knots, np.float32(cal.qscale), np.float32(cal.qoffset), cal.knot_flux,
-            np.float32(float(cal.clip_code) - float(cal.black_level)), cal.clip_flux, float(prof.nd))
-    ref_v, ref_s = v0.copy(), st0.copy()
-    crosstalk._correct_kernel(ref_v, ref_s, v0.copy(), v0.copy(), *args, 0, crosstalk.DIRS, cal.sig_e, cal.sigma,
-                              cal.alpha, 0, np.zeros((8, 1, 1), np.float32), np.float32(np.inf))
+    ref_v, ref_s = crosstalk_reference.lut_correct(v0, st0, px.crosstalk, prof.nd)
     for t in threads:
         numba.set_num_threads(t)
         vv, ss = v0.copy(), st0.copy()
@@ -509,9 +456,9 @@ def test_clamp_kernel_parallel_equals_serial(shape, rng, threads):
                 assert np.array_equal(got, ref, equal_nan=True)
 
 
-def test_lut_count_search_equals_the_binary_search_at_the_knots(rng):
-    """`_lut_eval_count` (quantised threshold + count) against `_lut_eval` (binary search) for codes exactly
-    at every knot, one float32 step either side, between knots and outside the range (helper perf2)."""
+def test_lut_eval_equals_the_binary_search_at_the_knots(rng):
+    """`crosstalk.lut_eval` (quantised threshold + count) against the binary search of the reference for codes
+    exactly at every knot, one float32 step either side, between knots and outside the range."""
     h, w, kn = 3, 4, 12
     flux = np.concatenate([[0.0], 4094.0 * 6.35 * np.geomspace(1e-3, 1.0, kn - 1)])
     codes = (flux[None, None, :] / 6.35 * (1.0 + 0.05 * rng.standard_normal((h, w)))[:, :, None]).astype(np.float32)
@@ -521,14 +468,15 @@ def test_lut_count_search_equals_the_binary_search_at_the_knots(rng):
     kf = flux.astype(np.float64)
     for y in range(h):
         for x in range(w):
+            cq = q[y, x].astype(np.float32) * qs - qo
             for n in (0, 1, 2, 5, kn):
-                cs = q[y, x, :max(n, 1)].astype(np.float32) * qs - qo
+                cs = cq[:max(n, 1)]
                 ms = [cs, np.nextafter(cs, np.float32(np.inf)), np.nextafter(cs, np.float32(-np.inf)),
-                      (cs[:-1] + cs[1:]) / 2 if n > 1 else cs, np.array([-5.0, 1e5], np.float32)]
+                      (cs[:-1] + cs[1:]) / 2 if n > 1 else cs, np.array([-5.0, 1e5, np.nan], np.float32)]
                 for m in np.concatenate(ms).astype(np.float32):
                     for cflux in (np.float32(np.nan), np.float32(2e5)):
-                        a = crosstalk._lut_eval_count(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
-                        b = crosstalk._lut_eval(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
+                        a = crosstalk.lut_eval(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
+                        b = crosstalk_reference.lut_eval(cq, n, kf, np.float32(4094.0), cflux, m)
                         assert a[1] == b[1] and (a[0] == b[0] or (np.isnan(a[0]) and np.isnan(b[0])))
 
 

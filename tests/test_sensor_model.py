@@ -45,7 +45,8 @@ def test_global_snr_matches_eq6_eq7(nd, rng):
     raw = sensor.capture(np.full(p.mask.shape, mu), p, rng)
     v, s = validity.classify(raw, p, "all")
     var_meas = v.astype(np.float64).var()
-    assert var_meas == pytest.approx(float(sensor.global_variance(mu, nd)), rel=0.03)
+    eq6 = (1 + nd) / 2 * mu                     # sigma_global^2 = (1 + ND) / 2 sigma_d0^2, sigma_d0^2 = mu
+    assert var_meas == pytest.approx(eq6, rel=0.03)
     eq7 = 20 * math.log10(math.sqrt(2 / (1 + nd)) * mu / math.sqrt(mu))
     assert metrics.snr_db(v) == pytest.approx(eq7, abs=0.15)
     assert float(sensor.snr_global_db(mu, nd)) == pytest.approx(eq7)

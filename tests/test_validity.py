@@ -43,7 +43,7 @@ def test_l_min_override():
     raw = np.full((2, 3), 40, np.uint16)  # signal 30
     _, s1 = V.classify(raw, p, "threshold")
     _, s2 = V.classify(raw, p, "threshold", l_min=20)
-    assert ((s1[p.mask] & 15) == V.DARK).all() and ((s2[p.mask] & 15) == V.VALID).all()
+    assert ((s1[p.mask] & V.REASON_MASK) == V.DARK).all() and ((s2[p.mask] & V.REASON_MASK) == V.VALID).all()
 
 
 def test_best_pixel_only_discards_attenuated_next_to_valid_regular():

@@ -1,86 +1,51 @@
 """`nrhdr warmup`: compile every numba kernel of the chain once, into numba's on-disk cache (next to the
-sources, `nrhdr_core/__pycache__`), so that no pipeline compiles on its first frames (issue #7: the first
-`make demo` used to run at 1 frame/s while numba compiled inside gst-launch, silently). Run by
-scripts/setup.sh after install; elements that still compile report it (Gst INFO log + bus INFO message)."""
+sources, `nrhdr_core/__pycache__`), so that no pipeline compiles on its first frames. Every stage line is one
+call of `nrhdr_core.chain.warmup`, the one warm-up entry point, with every setting the element offers and the
+array types of its mapped buffers (`elements=True`); no element runs here, so none reports a compilation.
+Run by scripts/setup.sh after install; elements that still compile report it (Gst INFO log + bus INFO
+message)."""
 from __future__ import annotations
 
+import itertools
 import sys
 import time
 
 
 def _stages():
     """(element, what, callable) for every stage of the chain, in pipeline order."""
-    import numpy as np
+    from nrhdr_core import chain
+    S = chain.ChainSettings
 
-    from nrhdr_core import crosstalk, reconstruction, tonemap, validity
+    def warm(stages, settings, **kw):
+        return lambda: chain.warmup(settings, stages=stages, elements=True, **kw)
 
-    def fse_presets():
-        from nrhdr_core import fse
-        rng = np.random.default_rng(0)
-        v = rng.random((32, 32)).astype(np.float32)
-        k = rng.random((32, 32)) < 0.5
-        nan = np.full_like(v, np.nan)
-        for preset in fse.FSE_PRESETS:
-            fse.fse_reconstruct(v.copy(), k, lower=nan, upper=nan, preset=preset)
+    def recon(methods, presets):
+        # every noise fusion and bounds setting, with and without NOISY pixels (the two dark policies)
+        return [S(method=m, preset=p, use_bounds=b, noise_fusion=f, dark_policy=d)
+                for m, p, b, f, d in itertools.product(methods, presets, (True, False), chain.NOISE_FUSIONS,
+                                                       chain.DARK_POLICIES)]
 
-    def other_methods():
-        v = np.random.default_rng(1).random((16, 16)).astype(np.float32)
-        k = np.ones((16, 16), bool)
-        k[4:8, 4:8] = False
-        for m in ("nearest", "linear"):
-            reconstruction.reconstruct(v, k, method=m)
-
-    def pipelines():
-        """The elements on a tiny live-less stream: compiles the signatures the elements use at run time
-        (mapped, possibly strided frames), not only the warm-up calls'."""
-        import tempfile
-        from pathlib import Path
-
-        from nrhdr_core import profile
-        from gst_plugins import runtime
-        with tempfile.TemporaryDirectory(prefix="nrhdr-warmup-") as d:
-            cam = Path(d) / "cam.json"
-            profile.save(profile.default(48, 64, seed=1), cam)
-            for m in ("preview", "fse preset=preview", "fse preset=fast", "fse preset=balanced",
-                      "fse preset=best", "nearest", "linear"):
-                rc = runtime.run_pipeline(
-                    f"nrcamsrc scene=synthetic profile={cam} frames=2 is-live=false num-buffers=2 ! "
-                    f"nrvalidity profile={cam} ! nrcrosstalk ! nrreconstruct method={m} ! tee name=t "
-                    f"t. ! queue ! nrtonemap ! fakesink "
-                    f"t. ! queue ! nrtonemap ! video/x-raw,format=GRAY16_LE ! fakesink")
-                if rc >= 128:           # stopped by a signal (run_pipeline: 128 + n)
-                    raise KeyboardInterrupt
-                if rc != 0:
-                    raise RuntimeError(f"warm-up pipeline with method={m} failed")
-            # an odd width: GStreamer pads GRAY16 rows to 4 bytes, so frames arrive as strided views
-            odd = Path(d) / "odd.json"
-            profile.save(profile.default(47, 63, seed=1), odd)
-            rc = runtime.run_pipeline(f"nrcamsrc scene=synthetic profile={odd} frames=2 is-live=false "
-                                      f"num-buffers=2 ! nrvalidity profile={odd} ! nrreconstruct "
-                                      f"method=preview ! nrtonemap ! fakesink")
-            if rc >= 128:
-                raise KeyboardInterrupt
-            if rc != 0:
-                raise RuntimeError("warm-up pipeline with an odd frame width failed")
-
-    stages = [("nrvalidity", "validity.classify", validity.warmup),
-            ("nrcrosstalk", "crosstalk lut + kernel", crosstalk.warmup),
-            ("nrreconstruct", "pull-push preview", lambda: reconstruction.warmup("preview")),
-            ("nrreconstruct", "fse, every preset", fse_presets),
-            ("nrreconstruct", "nearest, linear", other_methods),
-            ("nrtonemap", "log tone map", tonemap.warmup)]
-    try:
-        import gi
-        gi.require_version("Gst", "1.0")
-        stages.append(("pipelines", "every element on a tiny stream, every method", pipelines))
-    except (ImportError, ValueError):  # no GStreamer: the core kernels are all there is
-        pass
-    return stages
+    return [
+        ("nrvalidity", "every mode and dark policy",
+         warm(("validity",), [S(mode=m, dark_policy=d) for m, d in itertools.product(chain.VALIDITY_MODES,
+                                                                                      chain.DARK_POLICIES)])),
+        ("nrcrosstalk", "every mode and LUT form",
+         warm(("crosstalk",), [S(crosstalk=x, crosstalk_lut=lut) for x, lut in itertools.product(
+             chain.CROSSTALK_MODES, chain.LUT_FORMS)])),
+        ("nrreconstruct", "pull-push preview", warm(("reconstruction",), recon(("preview",), ("fast",)))),
+        ("nrreconstruct", "fse, every preset", warm(("reconstruction",), recon(("fse",), chain.PRESETS))),
+        ("nrreconstruct", "nearest, linear", warm(("reconstruction",), recon(("nearest", "linear"), ("fast",)))),
+        ("nrtonemap", "log tone map", warm(("tonemap",), S(), transfers=("log",))),
+        ("nrtonemap", "HDR output " + ", ".join(t for t in chain.TRANSFERS if t != "log"),
+         warm(("tonemap",), S(), transfers=tuple(t for t in chain.TRANSFERS if t != "log"))),
+    ]
 
 
-def run_warmup(out=sys.stdout) -> tuple[int, float]:
-    """Compile (or load from cache) every kernel; prints a line per stage; returns (compiled, seconds)."""
+def run_warmup(out=None) -> tuple[int, float]:
+    """Compile (or load from cache) every kernel; prints a line per stage to `out` (default: stdout);
+    returns (compiled, seconds)."""
     from nrhdr_core.realtime import JitWatch
+    out = sys.stdout if out is None else out
     stages = _stages()
     total_n, t_all = 0, time.perf_counter()
     for i, (element, what, fn) in enumerate(stages, 1):
