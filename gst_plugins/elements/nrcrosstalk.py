@@ -70,8 +70,11 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
             except ValueError as e:
                 self.post_error(str(e), kind="read")
                 return False
-        from nrhdr_core import crosstalk
-        self.nr_warmup(crosstalk.warmup)
+        from nrhdr_core import chain
+        s = self.settings
+        if s.mode != "off":
+            self.nr_warmup(chain.warmup, chain.ChainSettings(crosstalk=s.mode, crosstalk_lut=s.lut),
+                           stages=("crosstalk",), elements=True)
         self._frames = 0
         return True
 

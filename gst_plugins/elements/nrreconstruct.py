@@ -85,10 +85,14 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
     # ---- state --------------------------------------------------------------------------------------
     @starting
     def do_start(self):
-        from nrhdr_core import realtime, reconstruction
-        m = self.settings.method
-        for wm in (("preview", "fse") if m == "auto" else (m,)):  # others compile on first use
-            self.nr_warmup(reconstruction.warmup, wm)
+        from nrhdr_core import chain, realtime
+        s = self.settings
+        rungs = ([(r.method, r.preset or s.preset) for r in realtime.LADDER] if s.method == "auto"
+                 else [(s.method, s.preset)])
+        self.nr_warmup(chain.warmup, [chain.ChainSettings(method=m, preset=p, use_bounds=s.use_bounds,
+                                                          noise_fusion=s.noise_fusion, dark_policy=d)
+                                      for m, p in rungs for d in chain.DARK_POLICIES],
+                       stages=("reconstruction",), elements=True)
         self._auto = realtime.AutoController()
         self.nr_live_reset()
         self._last_pts, self._skipped = None, 0

@@ -98,8 +98,8 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
     # ---- state --------------------------------------------------------------------------------------
     @starting
     def do_start(self):
-        from nrhdr_core import tonemap
-        self.nr_warmup(tonemap.warmup if self.settings.transfer == "log" else tonemap.warmup_hdr)
+        from nrhdr_core import chain
+        self.nr_warmup(chain.warmup, stages=("tonemap",), transfers=(self.settings.transfer,), elements=True)
         self._tracker = None
         self._frames = 0
         return True

@@ -85,8 +85,10 @@ class NrValidity(NrElement, LiveTiming, GstBase.BaseTransform):
         except ValueError as e:  # ProfileError is a ValueError
             self.post_error(str(e), kind="settings" if not path else "read")
             return False
-        from nrhdr_core import validity
-        self.nr_warmup(validity.warmup)
+        from nrhdr_core import chain
+        s = self.settings
+        self.nr_warmup(chain.warmup, chain.ChainSettings(mode=s.mode, dark_policy=s.dark_policy),
+                       stages=("validity",), elements=True)
         self._frames = 0
         self._file_checked = False
         return True
