@@ -85,6 +85,10 @@ def read_json(path, what: str = "JSON file", error=FileContentError, max_bytes: 
     return doc
 
 
+_TRUST_HINT = ("if you trust this file: allow_outside=True, the option --allow-outside-paths or the element "
+               "property allow-outside-paths=true")
+
+
 def resolve_named(source, field: str, name, error=FileContentError, allow_outside: bool = False) -> Path:
     """The path that `field` of file `source` (a JSON or CSV file received from someone) names, relative to
     the folder holding `source`. Unless `allow_outside`, a name that leaves that folder is refused: an
@@ -99,7 +103,7 @@ def resolve_named(source, field: str, name, error=FileContentError, allow_outsid
         return target
     if os.path.isabs(name):
         raise error(f"{source}: field '{field}': {name!r} is an absolute path; a file named here must lie in "
-                    f"{base} (pass allow_outside=True / --allow-outside-paths if you trust this file)")
+                    f"{base} ({_TRUST_HINT})")
     try:
         real_base, real = base.resolve(), target.resolve()
     except (OSError, RuntimeError) as e:        # a symlink loop
@@ -107,8 +111,7 @@ def resolve_named(source, field: str, name, error=FileContentError, allow_outsid
     if real != real_base and real_base not in real.parents:
         how = "leaves" if ".." in Path(name).parts else "is a link out of"
         raise error(f"{source}: field '{field}': {name!r} {how} the folder {base} (it resolves to {real}); a "
-                    f"file named here must lie in that folder (pass allow_outside=True / --allow-outside-paths "
-                    f"if you trust this file)")
+                    f"file named here must lie in that folder ({_TRUST_HINT})")
     return target
 
 

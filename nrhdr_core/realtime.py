@@ -186,20 +186,18 @@ class AutoController:
 # ---- frame sources of nrcamsrc ---------------------------------------------------------------------
 
 class ClipCamera:
-    """Frames of a clip folder written by `nrhdr simulate` (clip.json + clip.raw, memory-mapped)."""
+    """Frames of a clip folder written by `nrhdr simulate` (clip.json + clip.raw, memory-mapped); the files
+    clip.json names must lie in the clip folder unless `allow_outside` (simulate.load_clip)."""
 
-    def __init__(self, clip_dir, loop: bool = False):
-        from pathlib import Path
-
+    def __init__(self, clip_dir, loop: bool = False, allow_outside: bool = False):
         from . import io, simulate
-        self.info = simulate.load_clip(clip_dir)
-        d = Path(self.info["dir"])
+        self.info = simulate.load_clip(clip_dir, allow_outside=allow_outside)
         self.width, self.height = int(self.info["width"]), int(self.info["height"])
         self.fps = int(self.info["fps"])
-        self.profile_path = str(d / self.info.get("profile", "camera.json"))
-        self._frames = io.read_raw_video(d / self.info.get("raw", "clip.raw"), self.width, self.height)
+        self.profile_path = str(self.info["profile_path"])
+        self._frames = io.read_raw_video(self.info["raw_path"], self.width, self.height)
         if len(self._frames) == 0:
-            raise ValueError(f"{d / self.info.get('raw', 'clip.raw')}: the clip has no frames")
+            raise ValueError(f"{self.info['raw_path']}: the clip has no frames")
         self.loop = loop
 
     def __len__(self) -> int:

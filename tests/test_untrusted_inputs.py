@@ -358,3 +358,27 @@ def test_demo_prints_only_paths_that_exist_after_it_ends(tmp_path, capsys):
         if "%05d" in p:
             p = p % 0
         assert os.path.exists(p), f"printed {p}, which does not exist"
+
+
+@pytest.mark.gst
+@pytest.mark.parametrize("allow", [False, True])
+def test_elements_refuse_a_profile_naming_files_outside_unless_allowed(tmp_path, gst_subprocess_env, allow):
+    """nrvalidity reads a profile whose mask lies outside its folder only with allow-outside-paths=true;
+    nrcrosstalk and nrreconstruct then read the same profile from the caps as nrvalidity did."""
+    import sys
+    f = _profile(tmp_path / "recv", calibrated=True)
+    os.replace(f.parent / "cam_mask.png", tmp_path / "shared_mask.png")
+    _edit(f, mask="../shared_mask.png")
+    flag = " allow-outside-paths=true" if allow else ""
+    pipeline = (f"videotestsrc num-buffers=3 ! video/x-raw,format=GRAY16_LE,width=16,height=12 "
+                f"! nrvalidity profile={shlex.quote(str(f))}{flag} ! nrcrosstalk mode=lut "
+                f"! nrreconstruct method=nearest ! fakesink")
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.run([sys.executable, "-m", "gst_plugins.cli", "launch", *shlex.split(pipeline)], cwd=root,
+                       env=gst_subprocess_env, capture_output=True, text=True, timeout=300)
+    out = p.stdout + p.stderr
+    if allow:
+        assert p.returncode == 0, out[-3000:]
+    else:
+        assert p.returncode != 0
+        assert "nrvalidity" in out and "'mask'" in out and "../shared_mask.png" in out, out[-3000:]

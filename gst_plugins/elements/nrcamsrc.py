@@ -40,6 +40,9 @@ PROPERTIES = PropertyTable("GstNrCamSrc", [
     Prop("profile", str, "", "Camera profile",
          "Scene mode: camera profile JSON (size, mask, noise); empty = the default profile of width x height "
          "(written to a cache file, see 'profile-path'). Clip mode: ignored (the clip's camera.json)"),
+    Prop("allow-outside-paths", bool, False, "Allow paths outside",
+         "Read a clip folder or profile whose files lie outside its folder (absolute, '..' or a symlink "
+         "leaving it); refused by default, since clips may come from others (docs/RELIABILITY.md)"),
     Prop("profile-path", str, "", "Profile in use",
          "The camera profile JSON of the frames (resolved from location / scene / profile / width / height): "
          "give it to nrvalidity profile=...", readonly=True),
@@ -157,8 +160,8 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
         try:
             if s.location:
                 from nrhdr_core import simulate
-                info = simulate.load_clip(s.location)
-                return os.path.join(info["dir"], info.get("profile", "camera.json"))
+                info = simulate.load_clip(s.location, allow_outside=s.allow_outside_paths)
+                return str(info["profile_path"])
             if s.scene:
                 if s.profile:
                     return os.path.abspath(s.profile)
@@ -181,7 +184,7 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
             return False
         if s.location:
             try:
-                cam = realtime.ClipCamera(s.location, loop=s.loop)
+                cam = realtime.ClipCamera(s.location, loop=s.loop, allow_outside=s.allow_outside_paths)
             except (OSError, ValueError, KeyError) as e:
                 self.post_error(f"location={s.location}: {e}", kind="read")
                 return False
@@ -209,7 +212,7 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
         s = self.settings
         try:
             if s.profile:
-                prof = load_profile(s.profile)
+                prof = load_profile(s.profile, s.allow_outside_paths)
                 self._profile_used = str(prof.path or s.profile)
             else:
                 self._profile_used = self._cached_default_profile(s.width, s.height)

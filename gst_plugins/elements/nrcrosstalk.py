@@ -19,6 +19,9 @@ PROPERTIES = PropertyTable("GstNrCrosstalk", [
     Prop("profile", str, "", "Camera profile",
          "Camera profile JSON with the crosstalk calibration. Empty = the profile named in the caps by "
          "nrvalidity (field 'profile')"),
+    Prop("allow-outside-paths", bool, False, "Allow paths outside",
+         "Read a profile whose mask or calibration file lies outside the profile's folder (absolute, '..' or a "
+         "symlink leaving it); refused by default, since profiles may come from others (docs/RELIABILITY.md)"),
     Prop("mode", MODES, "kernel", "Correction mode",
          "'kernel' = each pixel's calibrated neighbour kernel applied to its actual neighbours (accurate, "
          "slower: docs/CROSSTALK.md); 'lut' = the paper's per-code look-up table (fast, assumes neighbours as "
@@ -66,7 +69,7 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
         self._profile = None
         if self.settings.profile:
             try:
-                self._profile = load_profile(self.settings.profile)
+                self._profile = load_profile(self.settings.profile, self.settings.allow_outside_paths)
             except ValueError as e:
                 self.post_error(str(e), kind="read")
                 return False
@@ -91,7 +94,7 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
                                 "upstream (its caps name the profile)", kind="settings")
                 return False
             try:
-                self._profile = load_profile(info.profile)
+                self._profile = load_profile(info.profile, from_caps=True)
             except ValueError as e:
                 self.post_error(str(e), kind="read")
                 return False
@@ -123,7 +126,7 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
             return True
         from nrhdr_core import profile as profile_mod
         try:
-            profile_mod.check_same_sensor(p, load_profile(info.profile))
+            profile_mod.check_same_sensor(p, load_profile(info.profile, from_caps=True))
         except ValueError as e:
             self.post_error(str(e), kind="settings")
             return False

@@ -177,7 +177,7 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
             noise = None
             if self._info.profile:
                 try:
-                    noise = load_profile(self._info.profile)
+                    noise = load_profile(self._info.profile, from_caps=True)
                 except ValueError:
                     noise = None
             self._noise = noise if noise is not None else validity.default_noise()

@@ -26,6 +26,9 @@ PROPERTIES = PropertyTable("GstNrValidity", [
     Prop("profile", str, "", "Camera profile",
          "Camera profile JSON (nrhdr_core.profile): ND mask, ND factor, clip code, black level, l_min. "
          "Required; the stream's frame size must equal the mask's"),
+    Prop("allow-outside-paths", bool, False, "Allow paths outside",
+         "Read a profile whose mask or calibration file lies outside the profile's folder (absolute, '..' or a "
+         "symlink leaving it); refused by default, since profiles may come from others (docs/RELIABILITY.md)"),
     Prop("mode", MODES, "threshold", "Selection mode",
          "Pixel selection (paper 2.3): 'all' = every pixel neither clipped nor below SNR 0 dB; 'best' = "
          "attenuated pixels dropped where a valid regular neighbour exists; 'threshold' = attenuated pixels "
@@ -81,7 +84,7 @@ class NrValidity(NrElement, LiveTiming, GstBase.BaseTransform):
     def do_start(self):
         path = self.settings.profile
         try:
-            self._profile = load_profile(path)
+            self._profile = load_profile(path, self.settings.allow_outside_paths)
         except ValueError as e:  # ProfileError is a ValueError
             self.post_error(str(e), kind="settings" if not path else "read")
             return False
@@ -110,7 +113,7 @@ class NrValidity(NrElement, LiveTiming, GstBase.BaseTransform):
         if not self.settings.profile:
             return None
         try:
-            return load_profile(self.settings.profile)
+            return load_profile(self.settings.profile, self.settings.allow_outside_paths)
         except Exception:  # noqa: BLE001
             return None
 
