@@ -124,10 +124,14 @@ def test_resume_skips_complete_frames_and_refuses_other_settings(clip6, tmp_path
     assert len(list(ref.iterdir())) == 2 * n
     manifest = json.loads((out / "batch.json").read_text())
     assert manifest["settings"]["method"] == "preview" and manifest["png"] is True
-    # an interrupted run: two frames missing (one only its PNG), a writer's temp file left behind
+    # a killed run: two frames missing (one only its PNG), its stage folder left behind; a user's file that
+    # looks like a temp name of an atomic writer is not ours to delete
     (out / "frame_00001.exr").unlink()
     (out / "frame_00004.png").unlink()
-    (out / ".frame_00002.abc123.exr").write_bytes(b"partial")
+    stage = out / ".frames.nrtmp-999999-0123abcd"
+    stage.mkdir()
+    (stage / "frame_00002.exr").write_bytes(b"partial")
+    (out / ".frame_00002.abc123.exr").write_bytes(b"the user's")
     kept = {f.name: f.stat().st_mtime_ns for f in out.glob("frame_*")}
     rc, log = nrhdr_batch(d, "-o", out, "--workers", "0", "--method", "preview", "--png")
     assert rc == 0, log
@@ -135,7 +139,9 @@ def test_resume_skips_complete_frames_and_refuses_other_settings(clip6, tmp_path
     for name, mtime in kept.items():   # complete frames are not rewritten
         if not name.startswith(("frame_00001.", "frame_00004.")):
             assert (out / name).stat().st_mtime_ns == mtime, name
-    assert not list(out.glob(".frame_*"))
+    assert not stage.exists() and not list(out.glob(".*nrtmp*"))
+    assert (out / ".frame_00002.abc123.exr").read_bytes() == b"the user's"
+    (out / ".frame_00002.abc123.exr").unlink()
     from nrhdr_core import io
     for f in ref.iterdir():            # the recomputed frames equal the first run's
         if f.suffix == ".exr":
