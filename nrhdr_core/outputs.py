@@ -176,34 +176,41 @@ def write_text(path, text: str) -> Path:
     return Path(path)
 
 
-@contextlib.contextmanager
-def stop_on_signals():
-    """SIGINT, SIGTERM and SIGHUP raise `Interrupted` in the main thread (the first one; later ones are
-    ignored until the block ends, so clean-up is not broken off). Python handlers rather than SIG_IGN: a
-    signal pending when SIG_IGN is set prints "Signal N ignored due to race condition". Does nothing outside
-    the main thread."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    fired = []
+_stop = {"depth": 0, "fired": []}
 
-    def ignore(signum, frame):
-        pass
+
+def _ignore(signum, frame):
+    """A later copy of a stop (`stop_on_signals`)."""
+
+
+@contextlib.contextmanager
+def stop_on_signals(ends_process: bool = False):
+    """SIGINT, SIGTERM and SIGHUP raise `Interrupted` in the main thread (the first one; later ones are
+    ignored until the outermost such block ends, so clean-up is not broken off; with `ends_process`, after a
+    stop they stay ignored after the block too: a command that exits then). Python handlers rather than
+    SIG_IGN: a signal pending when SIG_IGN is set prints "Signal N ignored due to race condition". Does
+    nothing outside the main thread. Yields the list of signals received."""
+    if threading.current_thread() is not threading.main_thread():
+        yield []
+        return
 
     def stop(signum, frame):
-        if fired:
+        if _stop["fired"]:
             return
-        fired.append(signum)
-        for s in STOP_SIGNALS:
-            signal.signal(s, ignore)
+        _stop["fired"].append(signum)
         raise Interrupted(signum)
 
     old = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    _stop["depth"] += 1
     try:
-        yield fired
+        yield _stop["fired"]
     finally:
+        _stop["depth"] -= 1
+        keep = ends_process and _stop["fired"]
         for s, h in old.items():
-            signal.signal(s, h)
+            signal.signal(s, _ignore if keep else h)
+        if _stop["depth"] == 0:
+            _stop["fired"] = []
 
 
 def refuse_nonempty(folder, hint: str = "--force") -> None:

@@ -83,7 +83,7 @@ def cmd_batch(a) -> int:
         profile.check_same_sensor(job.xt_profile, job.profile)
     # the stop signals raise outputs.Interrupted once (later ones are ignored, so the clean-up is not
     # broken off); the lock refuses a second run into the same folder
-    with outputs.stop_on_signals(), outputs.lock(job.out_dir):
+    with outputs.stop_on_signals(ends_process=True), outputs.lock(job.out_dir):
         return _run(a, batch, job, settings)
 
 
