@@ -345,13 +345,17 @@ class QosTally:
             self.counts[m.group(1)] = (int(m.group(2)), int(m.group(3)))
 
     def report(self) -> str | None:
+        """Frames shown: the fewest any QoS element let through (the sink's rendered ones); dropped: the sum
+        of all elements' drops. A report when more were dropped than shown."""
         if not self.counts:
             return None
-        name, (done, dropped) = max(self.counts.items(), key=lambda kv: kv[1][1])
-        if dropped <= done:
+        shown = min(done for done, _ in self.counts.values())
+        dropped = sum(d for _, d in self.counts.values())
+        if dropped <= shown:
             return None
-        return (f"nrhdr: the live display showed only {done} of {done + dropped} frames: {name} dropped {dropped} "
-                f"as late (QoS), the chain is too slow for the frame rate; use cheaper settings (nrcrosstalk "
+        who = ", ".join(f"{name} {d}" for name, (_, d) in sorted(self.counts.items()) if d)
+        return (f"nrhdr: the live display showed only {shown} of {shown + dropped} frames (dropped as late by "
+                f"QoS: {who}): the chain is too slow for the frame rate; use cheaper settings (nrcrosstalk "
                 f"mode=lut, nrreconstruct method=preview or auto, a lower FPS)")
 
 
