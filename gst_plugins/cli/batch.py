@@ -136,3 +136,20 @@ def _run(a, batch, job, settings) -> int:
             print(f"nrhdr batch: failed: {f}", file=sys.stderr)
         return 1
     return 0
+
+
+def add_recover(sub) -> None:
+    p = sub.add_parser("recover", help="finish a raw recording left by a killed recorder (SIGKILL, power loss)",
+                       description="Finish the recording that pipelines/live_record_and_preview.sh left in "
+                                   "OUT_DIR when it was killed (.clip.raw.part): cut to whole frames, renamed "
+                                   "clip.raw, clip.json written, so OUT_DIR is a clip folder again (nrhdr batch, "
+                                   "pipelines/raw_to_exr.sh). Refused while the recorder still runs.")
+    p.add_argument("folder", help="the recording's output folder (OUT_DIR)")
+    p.set_defaults(func=cmd_recover)
+
+
+def cmd_recover(a) -> int:
+    from nrhdr_core import outputs
+    text = outputs.recover(a.folder)
+    print(text or f"nrhdr recover: {a.folder}: no unfinished recording (no {outputs.RECORDING_PART})")
+    return 0
