@@ -80,7 +80,7 @@ def run_dask(client, clip, settings, workers: int, threads: int, tmp: Path, tag:
     return _record(tag, workers, threads, res)
 
 
-def _noop(index, src, profile, xt, settings, outputs, raw=None, return_files=False):
+def _noop(index, src, profile, xt, settings, files, raw=None, return_files=False, stage=None):
     return index, (0.0, 0.0), None
 
 
