@@ -120,14 +120,15 @@ def test_live_recording_killed_is_recovered(gst_subprocess_env, clip, tmp_path):
     assert assert_frames_of_clip(out / "clip.raw", raws) == n
 
 
-def test_nrhdr_launch_filesink_stopped_keeps_whole_frames(gst_subprocess_env, clip, tmp_path):
+@pytest.mark.parametrize("sig,group", [(signal.SIGINT, True), (signal.SIGTERM, False)])
+def test_nrhdr_launch_filesink_stopped_keeps_whole_frames(gst_subprocess_env, clip, tmp_path, sig, group):
     d, prof, raws = clip
     rec = tmp_path / "x.raw"
     p = _start([gst_subprocess_env["NRHDR"], "launch", "nrcamsrc", f"location={d}", "num-buffers=100000",
                 "loop=true", "!", "filesink", f"location={rec}"], gst_subprocess_env)
     _wait_size(rec, 6 * raws[0].nbytes, p)
-    log = _stop(p, signal.SIGINT, True)
-    assert p.returncode == 130, log
+    log = _stop(p, sig, group)
+    assert p.returncode == 128 + sig, log
     assert assert_frames_of_clip(rec, raws) >= 6
 
 
@@ -155,10 +156,43 @@ def test_a_pipeline_refuses_a_folder_another_command_writes(gst_subprocess_env, 
     assert not out.exists()
 
 
-def test_raw_to_hdr_recording_stopped_keeps_whole_frames(gst_subprocess_env, tmp_path):
+@pytest.fixture(scope="module")
+def long_clip(tmp_path_factory):
+    """64x48, 1500 frames: long enough to stop a file-to-file pipeline mid-way."""
+    return make_test_clip(tmp_path_factory.mktemp("long") / "clip", frames=1500, fps=30)
+
+
+@pytest.mark.parametrize("sig,group", [(signal.SIGINT, True), (signal.SIGTERM, False)])
+def test_raw_to_exr_stopped_keeps_complete_frames(gst_subprocess_env, long_clip, tmp_path, sig, group):
+    """nrexrsink through pipelines/raw_to_exr.sh stopped mid-way: frames 0..k-1 are there, each equal bit
+    for bit (values and state) to the same frame of a complete run; no temporary or lock file."""
+    from nrhdr_core import io
+    d, prof, raws = long_clip
+    env = dict(gst_subprocess_env, METHOD="linear")
+    out = tmp_path / "exr"
+    p = _start(["bash", PIPELINES / "raw_to_exr.sh", d, out], env)
+    t0 = time.monotonic()
+    while len(list(out.glob("frame_*.exr"))) < 20 if out.is_dir() else True:
+        assert p.poll() is None and time.monotonic() - t0 < 240, "the run ended before the stop"
+        time.sleep(0.05)
+    log = _stop(p, sig, group)
+    assert p.returncode == 128 + sig, log
+    kept = sorted(out.iterdir())
+    assert [f.name for f in kept] == [f"frame_{i:05d}.exr" for i in range(len(kept))]
+    assert 20 <= len(kept) < len(raws) and sorted(x.name for x in tmp_path.iterdir()) == ["exr"]
+    full = tmp_path / "full"
+    r = subprocess.run(["bash", PIPELINES / "raw_to_exr.sh", d, full], env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    for f in kept:
+        (va, sa), (vb, sb) = io.read_exr(f), io.read_exr(full / f.name)
+        assert np.array_equal(va.view(np.uint32), vb.view(np.uint32)) and np.array_equal(sa, sb), f.name
+
+
+def test_raw_to_hdr_recording_stopped_keeps_whole_frames(gst_subprocess_env, long_clip, tmp_path):
     """The reconstructed recording stopped mid-way: whole frames, equal to the first frames of a complete run
     of the same command."""
-    d, prof, raws = make_test_clip(tmp_path / "long", frames=1500, fps=30)
+    d, prof, raws = long_clip
     full = tmp_path / "full.nrhdr"
     r = subprocess.run(["bash", PIPELINES / "raw_to_hdr_recording.sh", d, full],
                        env=dict(gst_subprocess_env, METHOD="linear"), capture_output=True, text=True, timeout=300)
