@@ -1,4 +1,4 @@
-"""Soak test of the whole chain in one process (issue 9): N frames (default 10 000, 160 x 120) pushed through
+"""Soak test of the whole chain in one process: N frames (default 10 000, 160 x 120) pushed through
 `appsrc ! nrvalidity ! nrcrosstalk ! nrreconstruct ! nrtonemap ! appsink`, resident memory (RSS) sampled
 along the way, every output frame and timestamp checked. Anchor in the same run: the same frames through
 `appsrc ! identity ! videoconvert ! appsink` (GStreamer's own cost and memory behaviour).
@@ -239,7 +239,7 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="preview")
     ap.add_argument("--crosstalk", default="lut", choices=("lut", "kernel", "off"))
     ap.add_argument("--post-stats", action="store_true",
-                    help="nrreconstruct post-stats=true with a bus nobody reads (the issue's leak scenario)")
+                    help="nrreconstruct post-stats=true with a bus nobody reads (a leak would show here)")
     ap.add_argument("--stop-start", type=int, default=0, metavar="CYCLES",
                     help="run the stop/start cycle case instead (pipelines/live_record_and_preview.sh)")
     ap.add_argument("--stop-after", type=int, default=30, help="frames recorded before each SIGINT")

@@ -576,9 +576,9 @@ def run_pipeline(description: str, on_message=None) -> int:
             print(f"WARNING from {name}: {w.message}", file=sys.stderr)
         if t == Gst.MessageType.STATE_CHANGED and msg.src == pipeline:
             result["playing"] = msg.parse_state_changed()[1] == Gst.State.PLAYING
-        if t == Gst.MessageType.LATENCY:  # an element's processing time grew (issue #7): as gst-launch does
+        if t == Gst.MessageType.LATENCY:  # an element's processing time grew: as gst-launch does
             pipeline.recalculate_latency()
-        if t == Gst.MessageType.INFO:  # e.g. numba compiling inside the pipeline (issue #7): never silent
+        if t == Gst.MessageType.INFO:  # e.g. numba compiling inside the pipeline: never silent
             i, _dbg = msg.parse_info()
             print(f"INFO from {msg.src.get_name() if msg.src is not None else '?'}: {i.message}",
                   file=sys.stderr)

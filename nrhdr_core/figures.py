@@ -1,4 +1,4 @@
-"""The paper's figures regenerated (`nrhdr figures`, issue 10): Figs. 2-10 as PNG, the numbers behind them
+"""The paper's figures regenerated (`nrhdr figures`): Figs. 2-10 as PNG, the numbers behind them
 beside the paper's in figures.json and index.md. Plots with matplotlib (Agg)."""
 from __future__ import annotations
 

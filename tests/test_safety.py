@@ -1,4 +1,4 @@
-"""Issue 9: nothing lost, nothing silent. Signals reach gst-launch children as EOS, commands never overwrite
+"""Nothing lost, nothing silent. Signals reach gst-launch children as EOS, commands never overwrite
 what they did not write, calibrations are bound to their sensor, odd inputs give clear errors."""
 from __future__ import annotations
 
@@ -444,7 +444,7 @@ def test_simulate_flats_and_calibrate_refuse_existing(tmp_path, capsys):
 def test_demo_refuses_existing_and_never_deletes_foreign_files(tmp_path, capsys):
     out = tmp_path / "demo"
     (out / "exr").mkdir(parents=True)
-    (out / "exr" / "frame_notes.txt").write_text("mine")       # the issue's deleted file
+    (out / "exr" / "frame_notes.txt").write_text("mine")       # a user's file that looks like an output
     (out / "exr" / "frame_00000.exr").write_bytes(b"old")
     args = ["demo", "-o", str(out), "--frames", "2", "--width", "32", "--height", "24", "--method", "nearest"]
     assert cli.main(args) == 2
