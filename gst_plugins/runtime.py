@@ -185,12 +185,21 @@ DUPLICATE_S = 1.0       # a second signal within this time of the first is the s
 
 
 def _stop_timeout() -> float:
-    """Seconds a child gets to finish its files after SIGINT (env NRHDR_STOP_TIMEOUT, default 10)."""
-    try:
-        v = float(os.environ.get("NRHDR_STOP_TIMEOUT", STOP_TIMEOUT_S))
-        return v if v > 0 else STOP_TIMEOUT_S
-    except ValueError:
+    """Seconds a child gets to finish its files after SIGINT (env NRHDR_STOP_TIMEOUT, default 10); a value
+    that is not a positive finite number is reported and the default used."""
+    import math
+    text = os.environ.get("NRHDR_STOP_TIMEOUT")
+    if text is None:
         return STOP_TIMEOUT_S
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v > 0):
+        print(f"nrhdr: NRHDR_STOP_TIMEOUT={text!r} is not a positive number of seconds; using "
+              f"{STOP_TIMEOUT_S:g}", file=sys.stderr)
+        return STOP_TIMEOUT_S
+    return v
 
 
 class StopSignals:

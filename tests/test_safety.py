@@ -692,3 +692,13 @@ def test_nrvalidity_buffer_not_whole_rows_says_plane_strides(gst, tiny_clip):
     assert r.error is not None and r.error[0].startswith("nrvalidity")
     assert "plane-strides" in r.error[1] and "not 48 whole rows" in r.error[1]
     assert not r.samples
+
+
+@pytest.mark.parametrize("text", ["abc", "0", "-3", "nan", "inf"])
+def test_a_bad_stop_timeout_is_reported_not_used(monkeypatch, capsys, text):
+    from gst_plugins import runtime
+    monkeypatch.setenv("NRHDR_STOP_TIMEOUT", text)
+    assert runtime._stop_timeout() == runtime.STOP_TIMEOUT_S
+    assert f"NRHDR_STOP_TIMEOUT={text!r} is not a positive number" in capsys.readouterr().err
+    monkeypatch.setenv("NRHDR_STOP_TIMEOUT", "2.5")
+    assert runtime._stop_timeout() == 2.5
