@@ -187,7 +187,7 @@ def test_calibrate_stopped_writes_no_part_of_a_profile(tmp_path, monkeypatch):
     from nrhdr_core import calibration, profile
     prof = profile.default(24, 32, seed=1)
     calibration.simulate_flats(tmp_path / "flats", prof, exposures=np.geomspace(1e-4, 0.2, 12),
-                               frames_per_exposure=1, progress=False)
+                               frames_per_exposure=2, progress=False)
     out = tmp_path / "cam" / "camera.json"
 
     def stopped(*a, **k):

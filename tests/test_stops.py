@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -291,3 +292,27 @@ def test_a_foreign_python3_first_on_path_does_not_break_the_pipelines(gst_subpro
     e = subprocess.run([env["NRHDR"], "env"], env=env, capture_output=True, text=True, timeout=60)
     assert e.returncode == 0 and "export GST_PLUGIN_PATH=" in e.stdout
     assert f"{fake / 'python3'} comes first on PATH" in e.stderr and "PYTHONHOME=" in e.stderr, e.stderr
+
+
+def test_raw_to_hdr10_stopped_closes_a_playable_video(gst_subprocess_env, long_clip, tmp_path):
+    """The 10-bit video stopped mid-way: EOS closes the Matroska file, which is renamed to OUT.mkv and
+    decodes to the frames encoded so far."""
+    import shutil
+    if shutil.which("gst-inspect-1.0") is None or subprocess.run(
+            ["gst-inspect-1.0", "--exists", "vp9enc"]).returncode and subprocess.run(
+            ["gst-inspect-1.0", "--exists", "x265enc"]).returncode:
+        pytest.skip("no 10-bit encoder")
+    d, prof, raws = long_clip
+    out = tmp_path / "v"
+    p = _start(["bash", PIPELINES / "raw_to_hdr10.sh", d, out], dict(gst_subprocess_env, METHOD="linear",
+                                                                     FORMAT="mkv"))
+    _wait_size(Path(f"{out}.mkv.part"), 20000, p)
+    log = _stop(p, signal.SIGINT, True)
+    assert p.returncode == 130, log
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["v.mkv"]
+    r = subprocess.run(["gst-launch-1.0", "-v", "filesrc", f"location={out}.mkv", "!", "matroskademux", "!",
+                        "decodebin", "!", "fakesink", "silent=false"], capture_output=True, text=True,
+                       timeout=300, env=gst_subprocess_env)
+    assert r.returncode == 0, r.stderr
+    decoded = len(re.findall(r"last-message = chain .*\(fakesink0:sink\)", r.stdout))
+    assert 0 < decoded < len(raws), r.stdout[-2000:]
