@@ -131,6 +131,9 @@ def path_python_conflict(env: dict | None = None) -> str | None:
     ok = {Path(os.path.realpath(Path(home) / "bin" / n)) for n in ("python3", f"python{ver}")}
     if real in ok:
         return None
+    if not (real.parent.parent / "lib" / f"python{ver}" / "os.py").is_file() and not any(
+            (d / "pyvenv.cfg").is_file() for d in (Path(exe).parent, Path(exe).parent.parent)):
+        return None     # no library of that version there (e.g. a pyenv shim): CPython keeps its own home
     for cfg in (Path(exe).parent / "pyvenv.cfg", Path(exe).parent.parent / "pyvenv.cfg"):
         try:   # a venv made from the embedded Python is fine: CPython follows its `home`
             for line in cfg.read_text().splitlines():

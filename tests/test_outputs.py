@@ -214,3 +214,25 @@ def test_figures_stopped_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         figures.run(tmp_path / "figs", tiny=True, quick=True, progress=False, only=("fig02", "fig06"))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_flats_and_demo_stopped_leave_nothing(tmp_path, monkeypatch):
+    """A stop inside the writing of `nrhdr simulate-flats` and `nrhdr demo` (in the same process): their
+    temporary folders and lock files are gone, an existing folder's files are untouched."""
+    from gst_plugins import cli
+    from gst_plugins.cli import clip
+    from nrhdr_core import calibration, profile
+
+    def stopped(*a, **k):
+        (next(x for x in a if isinstance(x, Path)) / "half.tif").write_bytes(b"x")
+        raise outputs.Interrupted(signal.SIGTERM)
+    monkeypatch.setattr(calibration, "_write_flats", stopped)
+    (tmp_path / "flats").mkdir()
+    (tmp_path / "flats" / "notes.txt").write_text("mine")
+    with pytest.raises(KeyboardInterrupt):
+        calibration.simulate_flats(tmp_path / "flats", profile.default(8, 8), overwrite=True, progress=False)
+    assert [p.name for p in tmp_path.iterdir()] == ["flats"]
+    assert [p.name for p in (tmp_path / "flats").iterdir()] == ["notes.txt"]
+    monkeypatch.setattr(clip, "_run_demo", stopped)
+    assert cli.main(["demo", "-o", str(tmp_path / "demo")]) == 130
+    assert [p.name for p in tmp_path.iterdir()] == ["flats"]
