@@ -73,6 +73,9 @@ def open_source(path, profile=None, width=None, height=None, frames=None) -> Sou
     if p.is_dir():
         cj = p / "clip.json"
         if not cj.is_file():
+            if (p / outputs.RECORDING_PART).is_file():
+                raise BatchError(f"{p}: an unfinished recording ({outputs.RECORDING_PART}, its recorder was "
+                                 f"killed): make it a clip folder with 'nrhdr recover {p}' first")
             raise BatchError(f"{p}: not a clip folder (no clip.json); give a clip folder from 'nrhdr simulate' "
                              f"or a raw file with --profile")
         try:

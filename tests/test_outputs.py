@@ -103,14 +103,16 @@ def test_finish_recording_keeps_whole_frames(tmp_path):
     part.write_bytes(raws[[0, 1, 2, 0]].astype("<u2").tobytes() + b"\x01" * 1000)   # 4 frames + a partial
     (out / outputs.RECORDING_META).write_text(json.dumps({"source_clip_json": str(d / "clip.json"),
                                                           "profile": str(d / "camera.json")}))
+    from nrhdr_core import batch
+    with pytest.raises(batch.BatchError, match="unfinished recording.*nrhdr recover"):
+        batch.open_source(out)
     text = outputs.recover(out)
-    assert "recovered" not in text and "4 whole frames" in text and "1000 bytes" in text
+    assert "4 whole frames" in text and "1000 bytes of a partial last frame cut off" in text
     assert sorted(p.name for p in out.iterdir()) == ["clip.json", "clip.raw"]
     got = np.fromfile(out / "clip.raw", "<u2").reshape(-1, prof.height, prof.width)
     assert np.array_equal(got, raws[[0, 1, 2, 0]])
     c = json.loads((out / "clip.json").read_text())
     assert c["frames"] == 4 and c["raw"] == "clip.raw" and c["profile"] == str((d / "camera.json").resolve())
-    from nrhdr_core import batch
     assert batch.open_source(out).frames == 4        # a clip folder nrhdr batch reads
     assert outputs.recover(out) is None              # nothing left to do
 
