@@ -9,7 +9,7 @@ along the way, every output frame and timestamp checked. Anchor in the same run:
 
 `--stop-start CYCLES`: the stop/start case instead: `pipelines/live_record_and_preview.sh` is started, stopped
 with SIGINT to its process group (a terminal's Ctrl-C) once the recording holds `--stop-after` frames, and
-started again, CYCLES times; after each stop the recording must be a clip folder (clip.json + clip.raw) whose
+started again, CYCLES times; after each stop the recording must be a clip folder (clip.json, clip.raw, camera.json + mask) whose
 frames equal the clip's byte for byte, with no temporary or lock file left. Prints the start latency (start
 to the first recorded frame), the stop latency (SIGINT to exit), the frames kept and the failures.
 
@@ -193,7 +193,7 @@ def stop_start(cycles: int, stop_after: int, width: int, height: int, fps: int) 
         if p.returncode != 130:
             why.append(f"exit status {p.returncode}")
         names = sorted(f.name for f in out.iterdir()) if out.is_dir() else []
-        if names != ["clip.json", "clip.raw"]:
+        if names != ["camera.json", "camera_mask.png", "clip.json", "clip.raw"]:
             why.append(f"folder holds {names}")
         left = [f.name for f in tmp.iterdir() if f.name.startswith(".")]
         if left:

@@ -317,22 +317,28 @@ def staged_files(target, dest=None):
 
 def finish_recording(part, clip_json_src, out_dir, profile, raw_name: str = "clip.raw") -> tuple[int, int]:
     """Turn a raw GRAY16_LE recording `part` (written by a filesink) into the clip folder `out_dir`: the file
-    is cut to whole frames, renamed to `out_dir/raw_name`, and `clip.json` (the source clip's description
-    with the recorded frame count and the absolute profile path) is written last, atomically. Returns
-    (frames kept, bytes cut off the end)."""
+    is cut to whole frames and renamed to `out_dir/raw_name`, the camera profile is copied in
+    (`camera.json` + its mask and calibration), and `clip.json` (the source clip's description with the
+    recorded frame count; no ground truth) is written last, atomically. The folder is self-contained, like
+    one of `nrhdr simulate`. Returns (frames kept, bytes cut off the end)."""
     import json
+    from . import profile as profiles
     part, out_dir = Path(part), Path(out_dir)
     c = json.loads(Path(clip_json_src).read_text())
     fb = 2 * int(c["width"]) * int(c["height"])
     size = part.stat().st_size
     frames, cut = divmod(size, fb)
+    cam = profiles.load(profile)
     with held_signals():
         if cut:
             os.truncate(part, size - cut)
         os.replace(part, out_dir / raw_name)
-        # the camera's profile stays where it is (its mask and calibration beside it): absolute path
-        c.update(frames=frames, raw=raw_name, profile=os.path.abspath(profile), truth=None,
-                 recorded_from=os.path.abspath(Path(clip_json_src).parent))
+        profiles.save(cam, out_dir / "camera.json")
+        for k in ("truth", "sequence"):
+            c.pop(k, None)
+        c.update(frames=frames, raw=raw_name, profile="camera.json",
+                 recorded_from=os.path.abspath(Path(clip_json_src).parent),
+                 recorded_profile=os.path.abspath(profile))
         write_text(out_dir / "clip.json", json.dumps(c, indent=2) + "\n")
     return frames, cut
 

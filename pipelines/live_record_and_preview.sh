@@ -3,7 +3,7 @@
 #   pipelines/live_record_and_preview.sh [CLIP_DIR [OUT_DIR]]
 # nrcamsrc plays CLIP_DIR (a clip folder of `nrhdr simulate`, default demo_out/clip) live at its frame rate;
 # a tee right after the camera feeds (1) a recording branch, a plain blocking queue into a raw GRAY16_LE file
-# (OUT_DIR/clip.raw + clip.json naming the camera profile: a clip folder again, reprocessable offline at any
+# (OUT_DIR/clip.raw + clip.json + a copy of the camera profile: a clip folder again, reprocessable offline at any
 # quality), and (2) a display branch behind `queue leaky=downstream max-size-buffers=2` through the chain
 # (nrcrosstalk mode=lut, nrreconstruct method=auto) into a sync=true sink. When the display is late it drops
 # frames (leaky queue, QoS; a display that shows less than half of the frames is reported at the end); the

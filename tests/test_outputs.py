@@ -108,11 +108,13 @@ def test_finish_recording_keeps_whole_frames(tmp_path):
         batch.open_source(out)
     text = outputs.recover(out)
     assert "4 whole frames" in text and "1000 bytes of a partial last frame cut off" in text
-    assert sorted(p.name for p in out.iterdir()) == ["clip.json", "clip.raw"]
+    assert sorted(p.name for p in out.iterdir()) == ["camera.json", "camera_mask.png", "clip.json", "clip.raw"]
     got = np.fromfile(out / "clip.raw", "<u2").reshape(-1, prof.height, prof.width)
     assert np.array_equal(got, raws[[0, 1, 2, 0]])
     c = json.loads((out / "clip.json").read_text())
-    assert c["frames"] == 4 and c["raw"] == "clip.raw" and c["profile"] == str((d / "camera.json").resolve())
+    assert c["frames"] == 4 and c["raw"] == "clip.raw" and c["profile"] == "camera.json" and "truth" not in c
+    from nrhdr_core import profile
+    assert np.array_equal(profile.load(out / "camera.json").mask, prof.mask)
     assert batch.open_source(out).frames == 4        # a clip folder nrhdr batch reads
     assert outputs.recover(out) is None              # nothing left to do
 

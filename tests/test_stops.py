@@ -85,8 +85,8 @@ def test_live_recording_stopped_keeps_every_whole_frame(gst_subprocess_env, clip
     n = assert_frames_of_clip(out / "clip.raw", raws)
     assert n >= 10, log
     c = json.loads((out / "clip.json").read_text())
-    assert c["frames"] == n and c["profile"] == str((d / "camera.json").resolve())
-    assert sorted(x.name for x in out.iterdir()) == ["clip.json", "clip.raw"]
+    assert c["frames"] == n and c["profile"] == "camera.json" and "truth" not in c
+    assert sorted(x.name for x in out.iterdir()) == ["camera.json", "camera_mask.png", "clip.json", "clip.raw"]
     assert sorted(x.name for x in tmp_path.iterdir()) == ["rec"]          # no lock file left
     assert f"recorded {n} whole frames" in log
 
