@@ -1,4 +1,4 @@
-"""`nrhdr batch` scaling (issue 12): frames/s of the Dask driver with 1 and 2 local workers against the
+"""`nrhdr batch` scaling: frames/s of the Dask driver with 1 and 2 local workers against the
 same per-frame function in a plain loop in this process (the anchor, measured in the same run), the
 scheduler's overhead per frame, the data moved per frame, and the projection for N machines.
 
@@ -80,7 +80,7 @@ def run_dask(client, clip, settings, workers: int, threads: int, tmp: Path, tag:
     return _record(tag, workers, threads, res)
 
 
-def _noop(index, src, profile, xt, settings, outputs, raw=None, return_files=False):
+def _noop(index, src, profile, xt, settings, files, raw=None, return_files=False, stage=None):
     return index, (0.0, 0.0), None
 
 

@@ -1,10 +1,17 @@
-"""Soak test of the whole chain in one process (issue 9): N frames (default 10 000, 160 x 120) pushed through
+"""Soak test of the whole chain in one process: N frames (default 10 000, 160 x 120) pushed through
 `appsrc ! nrvalidity ! nrcrosstalk ! nrreconstruct ! nrtonemap ! appsink`, resident memory (RSS) sampled
 along the way, every output frame and timestamp checked. Anchor in the same run: the same frames through
 `appsrc ! identity ! videoconvert ! appsink` (GStreamer's own cost and memory behaviour).
 
     .venv/bin/python benchmarks/soak.py [--frames 10000] [--width 160 --height 120] [--method preview]
         [--post-stats] [--anchor-frames N]
+    .venv/bin/python benchmarks/soak.py --stop-start 20 [--stop-after 30] [--width 160 --height 120]
+
+`--stop-start CYCLES`: the stop/start case instead: `pipelines/live_record_and_preview.sh` is started, stopped
+with SIGINT to its process group (a terminal's Ctrl-C) once the recording holds `--stop-after` frames, and
+started again, CYCLES times; after each stop the recording must be a clip folder (clip.json, clip.raw, camera.json + mask) whose
+frames equal the clip's byte for byte, with no temporary or lock file left. Prints the start latency (start
+to the first recorded frame), the stop latency (SIGINT to exit), the frames kept and the failures.
 
 Prints fps, RSS at the start of the measured window and at the end, the RSS slope (KB per 1000 frames, least
 squares over the samples after the warm-up) and whether frames and timestamps were exact. Exit status 1 when
@@ -13,6 +20,7 @@ a frame is missing, duplicated, reordered, has a wrong timestamp, or the pipelin
 from __future__ import annotations
 
 import argparse
+import shutil
 import os
 import sys
 import tempfile
@@ -134,6 +142,92 @@ def report(name: str, r: dict, n: int, warm: int) -> bool:
     return ok
 
 
+def stop_start(cycles: int, stop_after: int, width: int, height: int, fps: int) -> int:
+    """The stop/start cycle case (see the module docstring); exit status 1 on any failed cycle."""
+    import json
+    import signal
+    import subprocess
+    from nrhdr_core import profile, scene, simulate
+    from gst_plugins import runtime
+    tmp = Path(tempfile.mkdtemp(prefix="nrhdr-soak-stop-"))
+    clip = tmp / "clip"
+    n_clip = 11
+    simulate.simulate_clip(scene.synthetic_hdr_scene(), clip, profile.default(height, width, seed=1),
+                           frames=n_clip, fps=fps, progress=False)
+    raws = np.fromfile(clip / "clip.raw", "<u2").reshape(n_clip, height, width)
+    fb = raws[0].nbytes
+    env = runtime.gst_env()
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    env.update(FRAMES="1000000000", LOOP="true")
+    env.pop("DISPLAY", None)
+    env.pop("WAYLAND_DISPLAY", None)
+    starts, stops, kept, failures = [], [], [], []
+    print(f"soak stop/start: {cycles} cycles of pipelines/live_record_and_preview.sh ({width}x{height} at {fps} "
+          f"fps), SIGINT after {stop_after} recorded frames")
+    for c in range(cycles):
+        out = tmp / f"rec{c}"
+        part = out / ".clip.raw.part"
+        t0 = time.monotonic()
+        p = subprocess.Popen(["bash", str(ROOT / "pipelines" / "live_record_and_preview.sh"), str(clip), str(out)],
+                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             start_new_session=True)
+        first = None
+        try:
+            while p.poll() is None and time.monotonic() - t0 < 300:
+                size = part.stat().st_size if part.exists() else 0
+                if first is None and size >= fb:
+                    first = time.monotonic() - t0
+                if size >= stop_after * fb:
+                    break
+                time.sleep(0.01)
+            t1 = time.monotonic()
+            os.killpg(p.pid, signal.SIGINT)
+            log = p.communicate(timeout=120)[0]
+            stops.append(time.monotonic() - t1)
+        finally:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        starts.append(first if first is not None else float("nan"))
+        why = []
+        if p.returncode != 130:
+            why.append(f"exit status {p.returncode}")
+        names = sorted(f.name for f in out.iterdir()) if out.is_dir() else []
+        if names != ["camera.json", "camera_mask.png", "clip.json", "clip.raw"]:
+            why.append(f"folder holds {names}")
+        left = [f.name for f in tmp.iterdir() if f.name.startswith(".")]
+        if left:
+            why.append(f"left beside it: {left}")
+        if (out / "clip.raw").is_file():
+            data = np.fromfile(out / "clip.raw", "<u2")
+            if data.size % (fb // 2):
+                why.append("a partial frame")
+            else:
+                got = data.reshape(-1, height, width)
+                bad = [i for i, f in enumerate(got) if not np.array_equal(f, raws[i % n_clip])]
+                if bad:
+                    why.append(f"frames {bad[:5]} differ from the clip")
+                if json.loads((out / "clip.json").read_text()).get("frames") != len(got):
+                    why.append("clip.json's frame count is wrong")
+                kept.append(len(got))
+        if why:
+            failures.append((c, why, log[-2000:]))
+        shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+    def fig(v):
+        v = np.asarray(v, float)
+        return f"median {np.nanmedian(v):.2f} s, max {np.nanmax(v):.2f} s" if v.size else "-"
+    print(f"  start -> first recorded frame: {fig(starts)}")
+    print(f"  SIGINT -> exit (recording finished): {fig(stops)}")
+    print(f"  frames kept per cycle: min {min(kept, default=0)}, max {max(kept, default=0)} "
+          f"(asked {stop_after}; frames arriving while the stop travels are kept too)")
+    print(f"  cycles ok: {cycles - len(failures)} of {cycles}")
+    for c, why, log in failures:
+        print(f"  cycle {c} FAILED: {'; '.join(why)}\n{log}")
+    return 1 if failures else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=10000)
@@ -145,8 +239,13 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="preview")
     ap.add_argument("--crosstalk", default="lut", choices=("lut", "kernel", "off"))
     ap.add_argument("--post-stats", action="store_true",
-                    help="nrreconstruct post-stats=true with a bus nobody reads (the issue's leak scenario)")
+                    help="nrreconstruct post-stats=true with a bus nobody reads (a leak would show here)")
+    ap.add_argument("--stop-start", type=int, default=0, metavar="CYCLES",
+                    help="run the stop/start cycle case instead (pipelines/live_record_and_preview.sh)")
+    ap.add_argument("--stop-after", type=int, default=30, help="frames recorded before each SIGINT")
     a = ap.parse_args(argv)
+    if a.stop_start:
+        return stop_start(a.stop_start, max(a.stop_after, 1), a.width, a.height, a.fps)
     if a.frames < 10:
         ap.error("--frames must be >= 10")
 

@@ -39,11 +39,13 @@ def _site_packages() -> list[str]:
     return out
 
 
-def _code_fingerprint() -> str:
-    """Hash of the element and loader sources (names, sizes, mtimes) and the interpreter: a new registry
-    file whenever they change, so a cached failed import never sticks (docs: gstreamer-python.md)."""
+def _code_fingerprint(extra: str = "") -> str:
+    """Hash of the element and loader sources (names, sizes, mtimes), the interpreter and `extra` (what the
+    embedded Python depends on): a new registry file whenever they change, so a cached failed import never
+    sticks (docs: gstreamer-python.md)."""
     h = hashlib.sha1()
     h.update(sys.executable.encode())
+    h.update(extra.encode())
     h.update(str(PROJECT_ROOT).encode())
     for d in (_PKG_DIR / "python", _PKG_DIR / "elements"):  # core modules are imported lazily in do_start
         try:
@@ -59,8 +61,8 @@ def _code_fingerprint() -> str:
     return h.hexdigest()[:16]
 
 
-def _registry_file() -> str:
-    name = f"registry-{_code_fingerprint()}.bin"
+def _registry_file(extra: str = "") -> str:
+    name = f"registry-{_code_fingerprint(extra)}.bin"
     for base in (Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nrhdr",
                  Path(tempfile.gettempdir()) / f"nrhdr-{os.getuid() if hasattr(os, 'getuid') else 0}"):
         try:
@@ -86,17 +88,80 @@ def _prepend(value: str | None, entries: list[str]) -> str:
     return os.pathsep.join(parts)
 
 
+_PLUGIN_DIRS = ("/usr/lib/x86_64-linux-gnu/gstreamer-1.0", "/usr/lib/aarch64-linux-gnu/gstreamer-1.0",
+                "/usr/lib64/gstreamer-1.0", "/usr/lib/gstreamer-1.0", "/usr/local/lib/gstreamer-1.0")
+
+
+def embedded_python(env: dict | None = None) -> tuple[str, str] | None:
+    """(version "3.11", home "/usr") of the Python that GStreamer's Python plugin loader (libgstpython.so,
+    gst-python) embeds: the libpython it links, at the prefix of the matching system Python. None when the
+    loader or that Python's standard library is not found."""
+    import re
+    env = os.environ if env is None else env
+    dirs = [d for d in env.get("GST_PLUGIN_SYSTEM_PATH_1_0", env.get("GST_PLUGIN_SYSTEM_PATH", "")).split(
+        os.pathsep) if d] + list(_PLUGIN_DIRS)
+    for d in dirs:
+        lib = Path(d) / "libgstpython.so"
+        try:
+            m = re.search(rb"libpython(3\.\d+)", lib.read_bytes())
+        except OSError:
+            continue
+        if m is None:
+            continue
+        ver = m.group(1).decode()
+        homes = ([sys.base_prefix] if f"{sys.version_info[0]}.{sys.version_info[1]}" == ver else []) + ["/usr"]
+        for home in homes:
+            if (Path(home) / "lib" / f"python{ver}" / "os.py").is_file():
+                return ver, home
+    return None
+
+
+def path_python_conflict(env: dict | None = None) -> str | None:
+    """The `python3` first on PATH when it is not the embedded Python (`embedded_python`): a pyenv or conda
+    python3 there makes the embedded interpreter load that installation's library (CPython finds its home
+    through `python3` on PATH), and the plugin loader then fails ("pygobject initialization failed", no
+    nrhdr elements). None when there is no conflict (or nothing to compare)."""
+    env = os.environ if env is None else env
+    emb = embedded_python(env)
+    exe = shutil.which("python3", path=env.get("PATH", ""))
+    if emb is None or exe is None:
+        return None
+    ver, home = emb
+    real = Path(os.path.realpath(exe))
+    ok = {Path(os.path.realpath(Path(home) / "bin" / n)) for n in ("python3", f"python{ver}")}
+    if real in ok:
+        return None
+    if not (real.parent.parent / "lib" / f"python{ver}" / "os.py").is_file() and not any(
+            (d / "pyvenv.cfg").is_file() for d in (Path(exe).parent, Path(exe).parent.parent)):
+        return None     # no library of that version there (e.g. a pyenv shim): CPython keeps its own home
+    for cfg in (Path(exe).parent / "pyvenv.cfg", Path(exe).parent.parent / "pyvenv.cfg"):
+        try:   # a venv made from the embedded Python is fine: CPython follows its `home`
+            for line in cfg.read_text().splitlines():
+                k, _, v = line.partition("=")
+                if k.strip() == "home" and {Path(os.path.realpath(Path(v.strip()) / n))
+                                            for n in ("python3", f"python{ver}")} & ok:
+                    return None
+        except OSError:
+            continue
+    return exe
+
+
 def gst_env(base: dict | None = None) -> dict:
     """Environment for gst-launch-1.0 / gst-inspect-1.0 subprocesses that load the nrhdr elements.
 
     GST_PLUGIN_PATH gets plugin_dir(); PYTHONPATH gets the project root (nrhdr_core, gst_plugins) and this
     interpreter's site-packages (numpy, numba, OpenImageIO of the venv) before any existing entries;
-    GST_REGISTRY is a private file (~/.cache/nrhdr/, else a temp dir) unless `base` already sets one."""
+    GST_REGISTRY is a private file (~/.cache/nrhdr/, else a temp dir) unless `base` already sets one.
+    PYTHONHOME is set to the embedded Python's home when another `python3` comes first on PATH
+    (`path_python_conflict`), unless `base` sets PYTHONHOME."""
     env = dict(os.environ if base is None else base)
+    if not env.get("PYTHONHOME") and path_python_conflict(env) is not None:
+        env["PYTHONHOME"] = embedded_python(env)[1]
     env["GST_PLUGIN_PATH"] = _prepend(env.get("GST_PLUGIN_PATH"), [str(plugin_dir())])
     env["PYTHONPATH"] = _prepend(env.get("PYTHONPATH"), [str(PROJECT_ROOT)] + _site_packages())
     if not env.get("GST_REGISTRY"):
-        env["GST_REGISTRY"] = _registry_file()
+        py = shutil.which("python3", path=env.get("PATH", "")) or ""
+        env["GST_REGISTRY"] = _registry_file(f"{env.get('PYTHONHOME', '')}|{os.path.realpath(py) if py else ''}")
     # The scan may run in gst-plugin-scanner (fork) or in-process: both see the env above. Python
     # output should not be buffered so element tracebacks interleave with gst-launch output.
     env.setdefault("PYTHONUNBUFFERED", "1")
@@ -123,12 +188,21 @@ DUPLICATE_S = 1.0       # a second signal within this time of the first is the s
 
 
 def _stop_timeout() -> float:
-    """Seconds a child gets to finish its files after SIGINT (env NRHDR_STOP_TIMEOUT, default 10)."""
-    try:
-        v = float(os.environ.get("NRHDR_STOP_TIMEOUT", STOP_TIMEOUT_S))
-        return v if v > 0 else STOP_TIMEOUT_S
-    except ValueError:
+    """Seconds a child gets to finish its files after SIGINT (env NRHDR_STOP_TIMEOUT, default 10); a value
+    that is not a positive finite number is reported and the default used."""
+    import math
+    text = os.environ.get("NRHDR_STOP_TIMEOUT")
+    if text is None:
         return STOP_TIMEOUT_S
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v > 0):
+        print(f"nrhdr: NRHDR_STOP_TIMEOUT={text!r} is not a positive number of seconds; using "
+              f"{STOP_TIMEOUT_S:g}", file=sys.stderr)
+        return STOP_TIMEOUT_S
+    return v
 
 
 class StopSignals:
@@ -232,8 +306,76 @@ def _exit_status(rc: int) -> int:
     return 128 - rc if rc < 0 else rc
 
 
-def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False, until_exit: bool = False) -> int:
-    """Run `cmd`, passing its stderr through except the harmless FLOATING_NOISE lines.
+class StderrFilter:
+    """gst-launch's stderr as nrhdr passes it on (`feed(line)` -> the line to print, or None): drops the
+    harmless FLOATING_NOISE criticals, an exact repeat of an `ERROR:` line already printed (gst-launch prints
+    "ERROR: pipeline doesn't want to preroll." once per error message) and, after a first element error, the
+    "Internal data stream error." block that upstream elements post as its consequence (a source or parser
+    stopping because of that error: "streaming stopped, reason error / not-negotiated")."""
+
+    def __init__(self):
+        self.seen_error = False
+        self.printed: set[str] = set()
+        self.skipping = False
+
+    def feed(self, line: str) -> str | None:
+        s = line.rstrip("\r\n")
+        if FLOATING_NOISE in s:
+            return None
+        if self.skipping:
+            if s.startswith("streaming stopped, reason"):
+                self.skipping = False
+                return None
+            if not (s.startswith(("ERROR:", "WARNING:", "INFO:", "nrhdr:")) or s == ""):
+                return None
+            self.skipping = False
+        if s.startswith("ERROR: from element") and s.endswith("Internal data stream error.") and self.seen_error:
+            self.skipping = True
+            return None
+        if s.startswith("ERROR:"):
+            if s in self.printed:
+                return None
+            self.printed.add(s)
+            self.seen_error = self.seen_error or s.startswith("ERROR: from element")
+        return line
+
+
+class QosTally:
+    """QoS messages in gst-launch -m output ('Got message #N from element "E" (qos): ..., processed=(guint64)P,
+    dropped=(guint64)D'): the last counts per element, and the report when a live pipeline dropped more
+    frames than it showed."""
+    import re as _re
+    _RX = _re.compile(r'Got message #\d+ from element "([^"]+)" \(qos\):.*processed=\(guint64\)(\d+), '
+                      r'dropped=\(guint64\)(\d+)')
+
+    def __init__(self):
+        self.counts: dict[str, tuple[int, int]] = {}
+
+    def feed(self, line: str) -> None:
+        m = self._RX.search(line)
+        if m:
+            self.counts[m.group(1)] = (int(m.group(2)), int(m.group(3)))
+
+    def report(self) -> str | None:
+        """Frames shown: the fewest any QoS element let through (the sink's rendered ones); dropped: the sum
+        of all elements' drops. A report when more were dropped than shown."""
+        if not self.counts:
+            return None
+        shown = min(done for done, _ in self.counts.values())
+        dropped = sum(d for _, d in self.counts.values())
+        if dropped <= shown:
+            return None
+        who = ", ".join(f"{name} {d}" for name, (_, d) in sorted(self.counts.items()) if d)
+        return (f"nrhdr: the live display showed only {shown} of {shown + dropped} frames (dropped as late by "
+                f"QoS: {who}): the chain is too slow for the frame rate; use cheaper settings (nrcrosstalk "
+                f"mode=lut, nrreconstruct method=preview or auto, a lower FPS)")
+
+
+def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False, until_exit: bool = False,
+                   qos: QosTally | None = None, show_messages: bool = True) -> int:
+    """Run `cmd`, passing its stderr through `StderrFilter`. With `qos`, stdout is read too: QoS messages
+    are tallied and the report printed at the end; `show_messages=False` hides gst-launch's "Got message"
+    lines (the -m that nrhdr added itself).
 
     With `forward_signals` (gst-launch children) SIGINT, SIGTERM and SIGHUP to this process become one
     SIGINT to the child (EOS: it finishes its files), escalated to SIGTERM after NRHDR_STOP_TIMEOUT s
@@ -246,13 +388,23 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False, unt
     import threading
     import time
     preexec = _child_preexec_factory() if forward_signals and os.name == "posix" else None
-    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, bufsize=0, preexec_fn=preexec)
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, bufsize=0, preexec_fn=preexec,
+                            stdout=subprocess.PIPE if qos is not None else None)
+    filt = StderrFilter()
+
+    def pump_out():
+        for raw in iter(proc.stdout.readline, b""):
+            line = raw.decode(errors="replace")
+            qos.feed(line)
+            if show_messages or not line.startswith("Got message #"):
+                sys.stdout.write(line)
+                sys.stdout.flush()
 
     def pump():
         pending_blank = False
         for raw in iter(proc.stderr.readline, b""):
-            line = raw.decode(errors="replace")
-            if FLOATING_NOISE in line:
+            line = filt.feed(raw.decode(errors="replace"))
+            if line is None:
                 pending_blank = False
                 continue
             if line.strip() == "":
@@ -268,6 +420,10 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False, unt
 
     t = threading.Thread(target=pump, daemon=True)
     t.start()
+    t_out = None
+    if qos is not None:
+        t_out = threading.Thread(target=pump_out, daemon=True)
+        t_out.start()
     # n: 0 running, 1 SIGINT sent, 2 SIGTERM sent, 3 SIGKILL sent; late: what passing the deadline means
     stage = {"n": 0, "deadline": None, "late": ""}
 
@@ -325,6 +481,10 @@ def _call_filtered(cmd: list[str], env: dict, forward_signals: bool = False, unt
             raise
         finally:
             t.join(timeout=5)
+            if t_out is not None:
+                t_out.join(timeout=5)
+    if qos is not None and qos.report():
+        print(qos.report(), file=sys.stderr)
     if stops.got:
         return 128 + stops.got[0]
     return _exit_status(rc)
@@ -335,7 +495,9 @@ def launch(args: list[str], until_exit: bool = False) -> int:
 
     SIGINT/SIGTERM/SIGHUP stop the pipeline with EOS (see `_call_filtered`): the exit status is then 130 /
     143 / 129; the child never outlives this process. `until_exit` (`nrhdr launch`, whose process ends with
-    the run): the stop-signal handler stays installed after the run (`StopSignals(restore=False)`)."""
+    the run): the stop-signal handler stays installed after the run (`StopSignals(restore=False)`).
+    With NRHDR_REPORT_DROPS=1 in the environment (the live pipelines set it) gst-launch runs with -m and a
+    pipeline that dropped more frames than it showed says so at the end (`QosTally`)."""
     try:
         exe = _tool("gst-launch-1.0")
     except FileNotFoundError as e:
@@ -344,7 +506,14 @@ def launch(args: list[str], until_exit: bool = False) -> int:
     args = list(args)
     if "-e" not in args and "--eos-on-shutdown" not in args:
         args = ["-e"] + args
-    return _call_filtered([exe] + args, gst_env(), forward_signals=True, until_exit=until_exit)
+    qos, shown = None, True
+    if os.environ.get("NRHDR_REPORT_DROPS") == "1":
+        qos = QosTally()
+        shown = "-m" in args or "--messages" in args
+        if not shown:
+            args = ["-m"] + args
+    return _call_filtered([exe] + args, gst_env(), forward_signals=True, until_exit=until_exit, qos=qos,
+                          show_messages=shown)
 
 
 def inspect(args: list[str]) -> int:
@@ -419,9 +588,9 @@ def run_pipeline(description: str, on_message=None) -> int:
             print(f"WARNING from {name}: {w.message}", file=sys.stderr)
         if t == Gst.MessageType.STATE_CHANGED and msg.src == pipeline:
             result["playing"] = msg.parse_state_changed()[1] == Gst.State.PLAYING
-        if t == Gst.MessageType.LATENCY:  # an element's processing time grew (issue #7): as gst-launch does
+        if t == Gst.MessageType.LATENCY:  # an element's processing time grew: as gst-launch does
             pipeline.recalculate_latency()
-        if t == Gst.MessageType.INFO:  # e.g. numba compiling inside the pipeline (issue #7): never silent
+        if t == Gst.MessageType.INFO:  # e.g. numba compiling inside the pipeline: never silent
             i, _dbg = msg.parse_info()
             print(f"INFO from {msg.src.get_name() if msg.src is not None else '?'}: {i.message}",
                   file=sys.stderr)

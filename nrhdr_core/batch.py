@@ -1,12 +1,14 @@
 """Batch reprocessing of recorded raw clips, frame-parallel on Dask (dask.distributed); docs/BATCH.md.
 
 Every frame goes through `chain.process_frame` (the elements' own core calls, so the output equals the
-GStreamer chain's bit for bit) and is written with `io.write_exr(path, values, state)` (nrexrsink's writer:
-atomic, temp + rename). The output folder gets a manifest (`batch.json`) with the input's identity and the
-settings: a rerun with the same settings skips the frames whose files exist (they are complete, since every
-write is atomic), a rerun with other settings or into a folder written by something else refuses unless
-forced. A frame that fails (e.g. the truncated last frame of a raw file) is reported by number and file;
-the others are still written.
+GStreamer chain's bit for bit) and is written with `io.write_exr(path, values, state)` (nrexrsink's writer)
+into the run's stage folder `OUT/.frames.nrtmp-<run id>` and renamed into OUT, so a file with its final name
+is complete. The output folder is locked for the run (`outputs.lock`: a second run into it is refused) and
+gets a manifest (`batch.json`) with the input's identity and the settings: a rerun with the same settings
+skips the frames whose files exist and removes the stage folders of killed runs (only `.nrtmp-` names), a
+rerun with other settings or into a folder written by something else refuses unless forced. A frame that
+fails (e.g. the truncated last frame of a raw file) is reported by number and file; the others are still
+written.
 
 Oversubscription rule: workers x numba threads per worker = cores (default: one single-threaded worker
 process per core, numba pinned to 1 thread through NUMBA_NUM_THREADS before the worker starts).
@@ -25,13 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from . import chain
+from . import chain, outputs
 
 MANIFEST = "batch.json"
 MANIFEST_FORMAT = "nrhdr-batch"
 EXR_NAME = "frame_{:05d}.exr"       # nrexrsink location=OUT/frame_%05d.exr
 PNG_NAME = "frame_{:05d}.png"       # pipelines/raw_to_png.sh names
-TEMP_PREFIX = ".frame_"             # io's atomic writers: "." + stem + "." + random + suffix
 
 
 class BatchError(ValueError):
@@ -72,6 +73,9 @@ def open_source(path, profile=None, width=None, height=None, frames=None) -> Sou
     if p.is_dir():
         cj = p / "clip.json"
         if not cj.is_file():
+            if (p / outputs.RECORDING_PART).is_file():
+                raise BatchError(f"{p}: an unfinished recording ({outputs.RECORDING_PART}, its recorder was "
+                                 f"killed): make it a clip folder with 'nrhdr recover {p}' first")
             raise BatchError(f"{p}: not a clip folder (no clip.json); give a clip folder from 'nrhdr simulate' "
                              f"or a raw file with --profile")
         try:
@@ -175,6 +179,11 @@ class Job:
         names = [EXR_NAME.format(index)] + ([PNG_NAME.format(index)] if self.png else [])
         return [self.out_dir / n for n in names]
 
+    @property
+    def stage(self) -> Path:
+        """This run's stage folder in the output folder: files are written here, then renamed into it."""
+        return outputs.temp_path(self.out_dir / "frames")
+
     def manifest(self) -> dict:
         """Everything the output depends on: a rerun resumes only when this is equal."""
         s = self.source
@@ -202,41 +211,19 @@ def _diff(a, b, prefix=""):
     return out
 
 
-def _default_mode(path) -> None:
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)   # mkstemp makes 0600; give the final file the usual mode
-
-
-def _write_json_atomic(path: Path, doc: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".batch.", suffix=".json", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(doc, indent=2) + "\n")
-        _default_mode(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
-def remove_temp_files(out_dir: Path) -> int:
-    """Remove the partial files an interrupted writer left (io's atomic temp names, '.frame_*')."""
-    n = 0
-    if out_dir.is_dir():
-        for f in out_dir.iterdir():
-            if f.name.startswith(TEMP_PREFIX) and f.is_file():
-                f.unlink(missing_ok=True)
-                n += 1
-    return n
+def remove_stage(job: Job) -> None:
+    """Remove this run's stage folder (after the run, or when it is stopped)."""
+    shutil.rmtree(job.stage, ignore_errors=True)
 
 
 def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
-    """Check the output folder, write the manifest; returns (frames to compute, frames skipped).
+    """Check the output folder, write the manifest; returns (frames to compute, frames skipped). Call it
+    holding `outputs.lock(job.out_dir)`.
 
     Empty/new folder: all frames. Our manifest with equal settings: the frames whose files are missing.
     Other settings, or a non-empty folder without our manifest: BatchError unless `force` (then this job's
-    frame files there are deleted first, so an interrupted forced run resumes correctly)."""
+    frame files there are deleted first, so an interrupted forced run resumes correctly). Killed runs'
+    stage folders are removed (`outputs.remove_leftovers`); other files are never touched."""
     out = job.out_dir
     if out.exists() and not out.is_dir():
         raise BatchError(f"output {out} exists and is not a folder")
@@ -257,17 +244,18 @@ def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
                 raise BatchError(f"{out} holds a batch run with other input or settings ({diff}): use --force "
                                  f"to recompute it, or another output folder")
             raise BatchError(f"{mpath} is not an nrhdr batch manifest: use --force to overwrite {out}")
-    elif out.is_dir() and any(out.iterdir()) and not force:
+    elif out.is_dir() and any(not outputs.is_temp(f.name) for f in out.iterdir()) and not force:
         raise BatchError(f"{out} is not empty and was not written by nrhdr batch (no {MANIFEST}): use --force "
                          f"to write into it anyway, or another output folder")
     out.mkdir(parents=True, exist_ok=True)
-    remove_temp_files(out)
+    outputs.remove_leftovers(out)
+    job.stage.mkdir(exist_ok=True)
     frames = range(job.source.frames)
     if not resume:
         for i in frames:   # forced: this job's old frame files go before the new manifest is written
             for f in job.outputs(i):
                 f.unlink(missing_ok=True)
-        _write_json_atomic(mpath, want)
+        outputs.write_text(mpath, json.dumps(want, indent=2) + "\n")
         return list(frames), 0
     todo = [i for i in frames if not all(f.is_file() for f in job.outputs(i))]
     return todo, job.source.frames - len(todo)
@@ -275,47 +263,41 @@ def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
 
 # ---- the per-frame task (runs on the workers) ----------------------------------------------------------
 
-def write_frame_files(outputs, values, state, tone) -> None:
-    """nrexrsink's write (EXR: Y + state) and, with `tone`, the GRAY8 PNG (atomic writers)."""
+def write_frame_files(files, values, state, tone, stage=None) -> None:
+    """nrexrsink's write (EXR: Y + state) and, with `tone`, the GRAY8 PNG; with `stage`, written there and
+    then renamed to `files` (the PNG first: a frame counts as done when its EXR exists)."""
     from . import io
-    io.write_exr(outputs[0], values, state)
+    files = [Path(f) for f in files]
+    tmp = [Path(stage) / f.name for f in files] if stage is not None else files
+    io.write_exr(tmp[0], values, state)
     if tone is not None:
-        io.write_image(outputs[1], tone, np.uint8)
+        io.write_image(tmp[1], tone, np.uint8)
+    if stage is not None:
+        for t, f in reversed(list(zip(tmp, files))):
+            os.replace(t, f)
 
 
-def frame_task(index: int, src: Source, profile, xt_profile, settings: chain.ChainSettings, outputs,
-               raw: np.ndarray | None = None, return_files: bool = False):
-    """Compute frame `index` and write its files (a shared file system), or, with `return_files`, write
-    them in a private temp folder and return their bytes for the client to write. Returns (index,
-    (wall seconds, CPU seconds of this process), {name: bytes} or None)."""
+def frame_task(index: int, src: Source, profile, xt_profile, settings: chain.ChainSettings, files,
+               raw: np.ndarray | None = None, return_files: bool = False, stage=None):
+    """Compute frame `index` and write its files through the stage folder `stage` (a shared file system),
+    or, with `return_files`, write them in a private temp folder and return their bytes for the client to
+    write. Returns (index, (wall seconds, CPU seconds of this process), {name: bytes} or None)."""
     t0, c0 = time.perf_counter(), time.process_time()
     if raw is None:
         raw = read_frame(src.raw, src.width, src.height, index)
     values, state = chain.process_frame(raw, profile, settings, xt_profile)
-    tone = chain.tonemap_frame(values, profile, settings) if len(outputs) > 1 else None
+    tone = chain.tonemap_frame(values, profile, settings) if len(files) > 1 else None
     if not return_files:
-        write_frame_files([Path(o) for o in outputs], values, state, tone)
+        write_frame_files(files, values, state, tone, stage)
         return index, (time.perf_counter() - t0, time.process_time() - c0), None
     tmp = Path(tempfile.mkdtemp(prefix="nrhdr-batch-"))
     try:
-        local = [tmp / Path(o).name for o in outputs]
+        local = [tmp / Path(o).name for o in files]
         write_frame_files(local, values, state, tone)
-        files = {Path(o).name: f.read_bytes() for o, f in zip(outputs, local)}
+        data = {Path(o).name: f.read_bytes() for o, f in zip(files, local)}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return index, (time.perf_counter() - t0, time.process_time() - c0), files
-
-
-def _write_bytes_atomic(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix="." + path.stem + ".", suffix=path.suffix, dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        _default_mode(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    return index, (time.perf_counter() - t0, time.process_time() - c0), data
 
 
 # ---- drivers -----------------------------------------------------------------------------------------
@@ -366,7 +348,7 @@ def run_loop(job: Job, todo, progress: bool = False, on_failure=None) -> Result:
         for i in todo:
             try:
                 _, (dt, cpu), _ = frame_task(i, job.source, job.profile, job.xt_profile, job.settings,
-                                             [str(p) for p in job.outputs(i)])
+                                             [str(p) for p in job.outputs(i)], stage=str(job.stage))
                 res.done.append(i)
                 res.frame_seconds += dt
                 res.frame_cpu_seconds += cpu
@@ -479,7 +461,7 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
                     continue
             outs = [str(p) for p in job.outputs(i)]
             fut = client.submit(frame_task, i, src, prof_f, xt_f, job.settings, outs, raw, return_files,
-                                key=f"nrhdr-frame-{i}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
+                                str(job.stage), key=f"nrhdr-frame-{i}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
                                 retries=0)
             inflight[fut] = i
             ac.add(fut)
@@ -498,8 +480,8 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
                     try:
                         _, (dt, cpu), files = fut.result()
                         if files:
-                            for name, data in files.items():
-                                _write_bytes_atomic(job.out_dir / name, data)
+                            for name, data in sorted(files.items(), key=lambda kv: kv[0].endswith(".exr")):
+                                outputs.write_bytes(job.out_dir / name, data)
                         res.done.append(i)
                         res.frame_seconds += dt
                         res.frame_cpu_seconds += cpu

@@ -200,7 +200,7 @@ def default_exposures(n: int = 40, t_sat: float = 0.01, nd: float = 6.35, over: 
     return np.concatenate([[0.0], lo, hi])
 
 
-# What simulate_flats writes (io.staged_folder: with overwrite, only these are replaced).
+# What simulate_flats writes (outputs.staged_folder: with overwrite, only these are replaced).
 FLATS_OUTPUTS = io.owned_by_patterns(r"flat_\d+_\d+\.(tif|png)", r"exposures\.csv", r"mask\.png",
                                      r"truth\.json")
 
@@ -210,14 +210,16 @@ def simulate_flats(out_dir, prof, sensor_model=None, exposures=None, frames_per_
                    overwrite: bool = False) -> dict:
     """Write a flat-field sweep captured by `prof` (+ `sensor_model`) into `out_dir`: frames, exposures.csv,
     mask.png and truth.json. Flux per second is chosen so that a regular pixel reaches clipping at `t_sat`.
-    Returns the truth (ND, kernel, ...). The folder is written as a whole (io.staged_folder): a non-empty
-    `out_dir` is refused unless `overwrite`, which replaces only FLATS_OUTPUTS."""
+    Returns the truth (ND, kernel, ...). The folder is written as a whole (outputs.staged_folder: locked,
+    nothing left by a stop, a killed run's temporaries removed by the next run): a non-empty `out_dir` is
+    refused unless `overwrite`, which replaces only FLATS_OUTPUTS."""
     if frames_per_exposure < 1:
         raise ValueError("frames_per_exposure must be >= 1")
     ext = {"tiff": ".tif", "tif": ".tif", "png": ".png"}.get(fmt)
     if ext is None:
         raise ValueError(f"format must be tiff or png, got {fmt!r}")
-    with io.staged_folder(out_dir, force=overwrite, owned=FLATS_OUTPUTS) as tmp:
+    from . import outputs
+    with outputs.staged_folder(out_dir, force=overwrite, owned=FLATS_OUTPUTS) as tmp:
         return _write_flats(tmp, prof, sensor_model, exposures, frames_per_exposure, seed, ext, t_sat,
                             progress)
 
@@ -1186,9 +1188,20 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
                   plots=True, progress=True, overwrite=False, allow_outside=False):
     """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary. Existing
     outputs (the profile's files, the plots) are refused before any work unless `overwrite`; frames named
-    outside the flats folder only with `allow_outside` (read_index)."""
+    outside the flats folder only with `allow_outside` (read_index). The files are made in a temporary
+    folder and moved in together at the end (outputs.staged_files): a stopped or failed run leaves none of
+    them (never a mask without its profile), a killed run's temporaries are removed by the next run, and a
+    second calibration writing the same profile is refused while this one runs."""
+    from . import outputs
     check_options(nd_nominal, l_min, clip_code, bit_depth)
     out = Path(output)
+    with outputs.staged_files(out, out.parent) as tmp:
+        return _calibrate_into(tmp, out, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
+                               progress, overwrite, allow_outside)
+
+
+def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
+                    progress, overwrite, allow_outside) -> dict:
     if not overwrite:
         io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
                                                           ("curves", "nd_eff", "valid_ratio")])
@@ -1199,8 +1212,8 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
     sweep = read_flats(flats, progress=progress, allow_outside=allow_outside)
     res = calibrate(sweep, mask, nd_nominal=nd_nominal, l_min=l_min, clip_code=clip_code,
                     bit_depth=bit_depth, name=out.stem, mask_name=str(mask_path), progress=progress)
-    profiles.save(res.profile, out)
+    profiles.save(res.profile, tmp / out.name)
     res.summary["profile"] = str(out)
     if plots:
-        res.summary["plots"] = [str(p) for p in write_plots(res, out.parent / f"{out.stem}_calib")]
+        res.summary["plots"] = [str(out.parent / p.name) for p in write_plots(res, tmp / f"{out.stem}_calib")]
     return res.summary

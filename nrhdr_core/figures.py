@@ -1,4 +1,4 @@
-"""The paper's figures regenerated (`nrhdr figures`, issue 10): Figs. 2-10 as PNG, the numbers behind them
+"""The paper's figures regenerated (`nrhdr figures`): Figs. 2-10 as PNG, the numbers behind them
 beside the paper's in figures.json and index.md. Plots with matplotlib (Agg)."""
 from __future__ import annotations
 
@@ -147,49 +147,48 @@ def run(out_dir, quick: bool = False, force: bool = False, seed: int = 0, data_d
         tiny: bool = False, only=None) -> dict:
     """Write fig02.png ... fig10.png, figures.json and index.md into `out_dir` (refused when it exists and
     is not empty, unless `force`: then only the files named here are replaced). All files are made in a
-    temporary folder beside it and moved in at the end: nothing partial is left behind."""
+    temporary folder beside it and moved in together at the end (outputs.staged_files): a stopped run
+    leaves nothing, a killed run's temporary folder is removed by the next run, a second run into the same
+    folder is refused while this one runs."""
+    from . import outputs
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise ValueError(f"{out}: folder exists and is not empty; choose a new one or pass --force "
-                         f"(replaces only the files this command writes)")
     cfg = Config.make(quick, seed, data_dir, tiny)
+    with outputs.staged_files(out) as tmp:
+        if out.exists() and not out.is_dir():
+            raise ValueError(f"{out}: exists and is not a folder")
+        if out.is_dir() and any(not outputs.is_temp(p.name) for p in out.iterdir()) and not force:
+            raise ValueError(f"{out}: folder exists and is not empty; choose a new one or pass --force "
+                             f"(replaces only the files this command writes)")
+        return _run_into(tmp, out, cfg, progress, only)
+
+
+def _run_into(tmp: Path, out: Path, cfg, progress, only) -> dict:
     t0 = time.time()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        nums = Numbers()
-        files, timing = {}, {}
-        ctx = {}
-        steps = [("fig02", fig02), ("fig03", fig03_05), ("fig06", fig06), ("fig07", fig07_08),
-                 ("fig09", fig09), ("fig10", fig10)]
-        for name, fn in steps:
-            if only and name not in only:
-                continue
-            ts = time.time()
-            _log(f"{name} ...", progress)
-            for k, v in fn(tmp, cfg, nums, ctx).items():
-                files[k] = v
-            timing[name] = round(time.time() - ts, 2)
-        doc = {"format": "nrhdr-figures", "version": 1, "quick": cfg.quick, "seed": cfg.seed,
-               "config": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
-                          for k, v in dataclasses.asdict(cfg).items()},
-               "paper": "Schoeberl et al., Evaluation of a High Dynamic Range Video Camera with Non-Regular "
-                        "Sensor (/work/shared/paper/nonregular-hdr-camera-evaluation.md)",
-               "files": {k: Path(v).name for k, v in files.items()},
-               "titles": {k: TITLES[k] for k in files if k in TITLES},
-               "numbers": nums.rows, "seconds": timing, "total_seconds": round(time.time() - t0, 1)}
-        (tmp / "figures.json").write_text(json.dumps(doc, indent=1) + "\n")
-        (tmp / "index.md").write_text(_index_md(doc))
-        out.mkdir(parents=True, exist_ok=True)
-        for p in sorted(tmp.iterdir()):
-            if p.is_file() and not p.name.startswith("."):
-                os.replace(p, out / p.name)
-        _log(f"wrote {len(files)} figures to {out}/ in {doc['total_seconds']} s", progress)
-        return doc
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    nums = Numbers()
+    files, timing = {}, {}
+    ctx = {"work": tmp}
+    steps = [("fig02", fig02), ("fig03", fig03_05), ("fig06", fig06), ("fig07", fig07_08),
+             ("fig09", fig09), ("fig10", fig10)]
+    for name, fn in steps:
+        if only and name not in only:
+            continue
+        ts = time.time()
+        _log(f"{name} ...", progress)
+        for k, v in fn(tmp, cfg, nums, ctx).items():
+            files[k] = v
+        timing[name] = round(time.time() - ts, 2)
+    doc = {"format": "nrhdr-figures", "version": 1, "quick": cfg.quick, "seed": cfg.seed,
+           "config": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
+                      for k, v in dataclasses.asdict(cfg).items()},
+           "paper": "Schoeberl et al., Evaluation of a High Dynamic Range Video Camera with Non-Regular "
+                    "Sensor (/work/shared/paper/nonregular-hdr-camera-evaluation.md)",
+           "files": {k: Path(v).name for k, v in files.items()},
+           "titles": {k: TITLES[k] for k in files if k in TITLES},
+           "numbers": nums.rows, "seconds": timing, "total_seconds": round(time.time() - t0, 1)}
+    (tmp / "figures.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (tmp / "index.md").write_text(_index_md(doc))
+    _log(f"wrote {len(files)} figures to {out}/ in {doc['total_seconds']} s", progress)
+    return doc
 
 
 def _fmt(v):
@@ -448,7 +447,7 @@ def _sensor(cfg, ctx):
     h, w = cfg.sensor_hw
     prof = profile.default(h, w, seed=1)
     model = crosstalk.sensor_model_preset("prototype", h, w, seed=2)
-    work = Path(tempfile.mkdtemp(prefix="nrhdr_fig_flats_"))
+    work = Path(tempfile.mkdtemp(prefix="flats_", dir=ctx.get("work")))   # inside the staging folder
     try:
         calibration.simulate_flats(work, prof, model, frames_per_exposure=cfg.flat_frames, seed=cfg.seed,
                                    progress=False)

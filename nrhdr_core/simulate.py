@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from . import io, profile as profiles, sensor
+from . import io, outputs, profile as profiles, sensor
 
 CLIP_FORMAT = "nrhdr-clip"
 
@@ -66,7 +65,7 @@ def check_args(frames: int, fps: int, exposure_stops: float, motion: Motion, seq
     motion.validate()
 
 
-# What simulate_clip writes into a clip folder (io.staged_folder: with overwrite, only these are replaced).
+# What simulate_clip writes into a clip folder (outputs.staged_folder: with overwrite, only these are replaced).
 CLIP_OUTPUTS = io.owned_by_patterns(r"clip\.json", r"clip\.raw", r"camera\.json", r"camera_mask\.png",
                                     r"camera_crosstalk\.npz", r"truth/frame_\d+\.exr",
                                     r"raw_png/frame_\d+\.png", r"raw_tiff/frame_\d+\.tif")
@@ -131,14 +130,16 @@ def simulate_clip(scene: np.ndarray, out_dir, profile=None, frames: int = 60, fp
     """Simulate `frames` raw frames of `scene` (linear luminance) and write the clip folder; returns the
     clip description also written to clip.json. `sequence`: None, "png" or "tiff" (16-bit raw frames).
 
-    The folder is written as a whole (io.staged_folder): an interrupted run leaves an existing clip
-    untouched; a non-empty `out_dir` is refused (io.OutputExistsError) unless `overwrite`, which replaces
-    only the files a clip consists of (CLIP_OUTPUTS) and keeps any other file there."""
+    The folder is written as a whole (outputs.staged_folder): a stopped run (SIGINT, SIGTERM, SIGHUP)
+    removes its temporary folder and leaves an existing clip untouched, a killed run's is removed by the
+    next run, a second writer of the folder is refused (outputs.OutputLockedError); a non-empty `out_dir`
+    is refused (io.OutputExistsError) unless `overwrite`, which replaces only the files a clip consists of
+    (CLIP_OUTPUTS) and keeps any other file there."""
     check_args(frames, fps, exposure_stops, motion, sequence)
     prof = profile if profile is not None else profiles.default()
     scene = np.asarray(scene, np.float32)
     check_scene(scene, prof, exposure_stops, scene_name)
-    with io.staged_folder(out_dir, force=overwrite, owned=CLIP_OUTPUTS) as tmp:
+    with outputs.staged_folder(out_dir, force=overwrite, owned=CLIP_OUTPUTS) as tmp:
         info = _write_clip(scene, tmp, prof, frames, fps, exposure_stops, motion, seed, sensor_model,
                            sequence, scene_name, progress)
     return info
@@ -180,9 +181,7 @@ def _write_clip(scene, out: Path, prof, frames, fps, exposure_stops, motion, see
             "motion": {"pan": motion.pan, "tilt": motion.tilt, "zoom": motion.zoom, "fov": motion.fov},
             "sensor_model": getattr(sensor_model, "name", None) if sensor_model is not None else None,
             "sequence": sequence}
-    tmp = out / ".clip.json.tmp"
-    tmp.write_text(json.dumps(info, indent=2) + "\n")
-    os.replace(tmp, out / "clip.json")
+    outputs.write_text(out / "clip.json", json.dumps(info, indent=2) + "\n")
     return info
 
 

@@ -16,6 +16,6 @@ CAPS="$(cat "$REC.caps")"
 W="$(sed -n 's/.*width=(int)\([0-9]*\).*/\1/p' <<<"$CAPS")"
 H="$(sed -n 's/.*height=(int)\([0-9]*\).*/\1/p' <<<"$CAPS")"
 nr_out "$OUT" png
-exec "$NRHDR" launch filesrc "location=$REC" "blocksize=$((5 * W * H))" ! "$CAPS" \
+nr_launch filesrc "location=$REC" "blocksize=$((5 * W * H))" ! "$CAPS" \
   ! nrtonemap "exposure=${EXPOSURE:-0}" ! video/x-raw,format=GRAY8 \
   ! pngenc ! multifilesink "location=$OUT/frame_%05d.png"

@@ -2,11 +2,12 @@
 # Raw clip -> live preview on the screen (autovideosink), played at the clip's frame rate.
 #   pipelines/raw_to_display.sh [CLIP_DIR [PROFILE]]
 # Defaults: CLIP_DIR=demo_out/clip, PROFILE=CLIP_DIR/camera.json.
-# Environment: METHOD (default preview: fast enough for live video), PRESET, MODE, EXPOSURE, NRHDR.
+# Environment: CROSSTALK (nrcrosstalk mode, default lut), METHOD (default preview: fast enough for live video), PRESET, MODE, EXPOSURE, NRHDR.
 # Without a display use pipelines/raw_to_display_headless.sh.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in -h|--help) sed -n '2,6p' "$0"; exit 0;; esac
 CLIP="${1:-demo_out/clip}"
+CROSSTALK="${CROSSTALK:-lut}"   # live: the per-pixel LUT (the kernel takes ~10x longer)
 nr_clip "$CLIP" "${2:-}"
 exec "$NRHDR" launch "${SRC[@]}" \
   ! nrreconstruct "method=${METHOD:-preview}" "preset=${PRESET:-preview}" \

@@ -10,6 +10,6 @@ CLIP="${1:-demo_out/clip}"
 nr_clip "$CLIP" "${3:-}"
 OUT="${2:-${CLIP%/}_exr}"
 nr_out "$OUT" exr
-exec "$NRHDR" launch "${SRC[@]}" \
+nr_launch "${SRC[@]}" \
   ! nrreconstruct "method=${METHOD:-fse}" "preset=${PRESET:-fast}" \
   ! nrexrsink "location=$OUT/frame_%05d.exr" write-state=true

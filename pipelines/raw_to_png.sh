@@ -11,7 +11,7 @@ CLIP="${1:-demo_out/clip}"
 nr_clip "$CLIP" "${3:-}"
 OUT="${2:-${CLIP%/}_png}"
 nr_out "$OUT" png
-exec "$NRHDR" launch "${SRC[@]}" \
+nr_launch "${SRC[@]}" \
   ! nrreconstruct "method=${METHOD:-fse}" "preset=${PRESET:-fast}" \
   ! nrtonemap "exposure=${EXPOSURE:-0}" ! video/x-raw,format=GRAY8 \
   ! pngenc ! multifilesink "location=$OUT/frame_%05d.png"

@@ -124,10 +124,14 @@ def test_resume_skips_complete_frames_and_refuses_other_settings(clip6, tmp_path
     assert len(list(ref.iterdir())) == 2 * n
     manifest = json.loads((out / "batch.json").read_text())
     assert manifest["settings"]["method"] == "preview" and manifest["png"] is True
-    # an interrupted run: two frames missing (one only its PNG), a writer's temp file left behind
+    # a killed run: two frames missing (one only its PNG), its stage folder left behind; a user's file that
+    # looks like a temp name of an atomic writer is not ours to delete
     (out / "frame_00001.exr").unlink()
     (out / "frame_00004.png").unlink()
-    (out / ".frame_00002.abc123.exr").write_bytes(b"partial")
+    stage = out / ".frames.nrtmp-999999-0123abcd"
+    stage.mkdir()
+    (stage / "frame_00002.exr").write_bytes(b"partial")
+    (out / ".frame_00002.abc123.exr").write_bytes(b"the user's")
     kept = {f.name: f.stat().st_mtime_ns for f in out.glob("frame_*")}
     rc, log = nrhdr_batch(d, "-o", out, "--workers", "0", "--method", "preview", "--png")
     assert rc == 0, log
@@ -135,7 +139,9 @@ def test_resume_skips_complete_frames_and_refuses_other_settings(clip6, tmp_path
     for name, mtime in kept.items():   # complete frames are not rewritten
         if not name.startswith(("frame_00001.", "frame_00004.")):
             assert (out / name).stat().st_mtime_ns == mtime, name
-    assert not list(out.glob(".frame_*"))
+    assert not stage.exists() and not list(out.glob(".*nrtmp*"))
+    assert (out / ".frame_00002.abc123.exr").read_bytes() == b"the user's"
+    (out / ".frame_00002.abc123.exr").unlink()
     from nrhdr_core import io
     for f in ref.iterdir():            # the recomputed frames equal the first run's
         if f.suffix == ".exr":
@@ -162,6 +168,40 @@ def test_refuses_a_folder_written_by_something_else(clip6, tmp_path):
     assert rc == 2, log
     assert "not written by nrhdr batch" in log and "--force" in log
     assert (out / "frame_00000.exr").read_bytes() == b"not ours"
+
+
+def test_a_second_run_into_the_same_folder_is_refused(clip6, tmp_path):
+    """The lock of the output folder (held here as by a running `nrhdr batch` or pipelines/raw_to_exr.sh):
+    refused with exit 2 naming the holder; the folder is not touched (the running one's temporary files
+    stay). After the holder ends, the run goes ahead."""
+    from nrhdr_core import outputs
+    d, _, raws = clip6
+    out = tmp_path / "out"
+    out.mkdir()
+    theirs = out / ".frames.nrtmp-1-0123abcd"
+    with outputs.lock(out):
+        theirs.mkdir()
+        rc, log = nrhdr_batch(d, "-o", out, "--workers", "0", "--method", "preview")
+        assert rc == 2, log
+        assert f"{out.resolve()} is being written by another command (pid {os.getpid()}: " in log, log
+        assert theirs.is_dir() and not (out / "batch.json").exists()
+    rc, log = nrhdr_batch(d, "-o", out, "--workers", "0", "--method", "preview")
+    assert rc == 0, log
+    assert len(exr_frames(out)) == len(raws) and not theirs.exists()
+
+
+def test_bad_numbers_and_another_sensors_calibration_are_refused(clip6, tmp_path):
+    from nrhdr_core import profile
+    d, prof, _ = clip6
+    for opt, val in (("--exposure", "nan"), ("--frames", "0"), ("--workers", "-1"), ("--white", "inf"),
+                     ("--threads-per-worker", "1.5")):
+        rc, log = nrhdr_batch(d, "-o", tmp_path / "o", opt, val)
+        assert rc == 2 and opt in log, (opt, log)
+    other = profile.default(prof.height, prof.width, seed=99)      # same size, another mask
+    profile.save(other, tmp_path / "other.json")
+    rc, log = nrhdr_batch(d, "-o", tmp_path / "o", "--workers", "0", "--crosstalk-profile", tmp_path / "other.json")
+    assert rc == 2 and "another sensor" in log and "other.json" in log, log
+    assert not (tmp_path / "o").exists()
 
 
 def test_truncated_raw_file_fails_that_frame_only(clip6, tmp_path):
@@ -204,12 +244,13 @@ def _default_sigint():
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="process-group signals and pgrep -s")
-@pytest.mark.parametrize("storm", [False, True])
-def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, storm):
-    """SIGINT to the whole process group (a terminal's Ctrl-C) during a 2-worker run: exit 130, no
-    process of the run is left, only complete files (no temp files); the same command then finishes the
-    rest, and every frame equals the chain's output. `storm`: SIGINT again and again for 50 ms (Ctrl-C
-    pressed repeatedly): the later ones must not break off the clean-up."""
+@pytest.mark.parametrize("storm,sig", [(False, signal.SIGINT), (True, signal.SIGINT), (False, signal.SIGTERM)])
+def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, storm, sig):
+    """SIGINT to the whole process group (a terminal's Ctrl-C), or SIGTERM to the command only (a service
+    manager), during a 2-worker run: exit 130 / 143, no process of the run is left, only complete files (no
+    temp files, no lock file); the same command then finishes the rest, and every frame equals the chain's
+    output. `storm`: SIGINT again and again for 50 ms (Ctrl-C pressed repeatedly): the later ones must not
+    break off the clean-up."""
     d, prof, raws = make_test_clip(tmp_path / "clip", width=96, height=72, frames=60)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "gst_plugins.cli", "batch", str(d), "-o", str(out), "--workers", "2",
@@ -222,14 +263,17 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, storm):
             time.sleep(0.05)
         assert p.poll() is None, "the run ended before it could be interrupted"
         t1 = time.monotonic()
-        os.killpg(p.pid, signal.SIGINT)
+        if sig == signal.SIGINT:
+            os.killpg(p.pid, signal.SIGINT)
+        else:
+            p.send_signal(sig)
         while storm and time.monotonic() < t1 + 0.05:
             os.killpg(p.pid, signal.SIGINT)
         log = p.communicate(timeout=60)[0]
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
-    assert p.returncode == 130, log
+    assert p.returncode == 128 + sig, log
     assert "interrupted" in log and "Traceback" not in log, log
     t0 = time.monotonic()
     while _session_pids(p.pid) and time.monotonic() - t0 < 20:   # the resource tracker exits last
@@ -238,6 +282,7 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, storm):
     done = exr_frames(out)
     assert 3 <= len(done) < len(raws)
     assert not [f for f in out.iterdir() if f.name.startswith(".")]
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["clip", "out"]     # no lock file
     from nrhdr_core import io
     for f in done:   # complete files
         v, st = io.read_exr(f)

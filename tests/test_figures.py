@@ -1,4 +1,4 @@
-"""`nrhdr figures` (issue 10): every figure and number, the refusal to overwrite, and the CLI."""
+"""`nrhdr figures`: every figure and number, the refusal to overwrite, and the CLI."""
 import json
 
 import numpy as np

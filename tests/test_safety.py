@@ -1,4 +1,4 @@
-"""Issue 9: nothing lost, nothing silent. Signals reach gst-launch children as EOS, commands never overwrite
+"""Nothing lost, nothing silent. Signals reach gst-launch children as EOS, commands never overwrite
 what they did not write, calibrations are bound to their sensor, odd inputs give clear errors."""
 from __future__ import annotations
 
@@ -444,7 +444,7 @@ def test_simulate_flats_and_calibrate_refuse_existing(tmp_path, capsys):
 def test_demo_refuses_existing_and_never_deletes_foreign_files(tmp_path, capsys):
     out = tmp_path / "demo"
     (out / "exr").mkdir(parents=True)
-    (out / "exr" / "frame_notes.txt").write_text("mine")       # the issue's deleted file
+    (out / "exr" / "frame_notes.txt").write_text("mine")       # a user's file that looks like an output
     (out / "exr" / "frame_00000.exr").write_bytes(b"old")
     args = ["demo", "-o", str(out), "--frames", "2", "--width", "32", "--height", "24", "--method", "nearest"]
     assert cli.main(args) == 2
@@ -692,3 +692,13 @@ def test_nrvalidity_buffer_not_whole_rows_says_plane_strides(gst, tiny_clip):
     assert r.error is not None and r.error[0].startswith("nrvalidity")
     assert "plane-strides" in r.error[1] and "not 48 whole rows" in r.error[1]
     assert not r.samples
+
+
+@pytest.mark.parametrize("text", ["abc", "0", "-3", "nan", "inf"])
+def test_a_bad_stop_timeout_is_reported_not_used(monkeypatch, capsys, text):
+    from gst_plugins import runtime
+    monkeypatch.setenv("NRHDR_STOP_TIMEOUT", text)
+    assert runtime._stop_timeout() == runtime.STOP_TIMEOUT_S
+    assert f"NRHDR_STOP_TIMEOUT={text!r} is not a positive number" in capsys.readouterr().err
+    monkeypatch.setenv("NRHDR_STOP_TIMEOUT", "2.5")
+    assert runtime._stop_timeout() == 2.5

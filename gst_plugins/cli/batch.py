@@ -4,8 +4,9 @@ by number and file), 2 bad input or a refused output folder, 130 interrupted."""
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
+
+from .args import number
 
 EPILOG = """\
 examples:
@@ -26,15 +27,15 @@ def add_batch(sub) -> None:
     g = p.add_argument_group("input")
     g.add_argument("--profile", help="camera profile JSON (default: the clip's camera.json; required for a "
                                      "raw file)")
-    g.add_argument("--width", type=int, help="frame width of a raw file (default: the profile's mask)")
-    g.add_argument("--height", type=int, help="frame height of a raw file (default: the profile's mask)")
-    g.add_argument("--frames", type=int, help="number of frames (default: all the file holds)")
+    g.add_argument("--width", type=number(1, 1 << 16, integer=True), help="frame width of a raw file (default: the profile's mask)")
+    g.add_argument("--height", type=number(1, 1 << 16, integer=True), help="frame height of a raw file (default: the profile's mask)")
+    g.add_argument("--frames", type=number(1, 10_000_000, integer=True), help="number of frames (default: all the file holds)")
     g = p.add_argument_group("chain (the elements' properties)")
     g.add_argument("--mode", choices=chain.VALIDITY_MODES, default="threshold", help="nrvalidity mode")
     g.add_argument("--dark-policy", choices=chain.DARK_POLICIES, default="weighted",
                    help="nrvalidity dark-policy (weighted: noisy dark attenuated pixels kept and fused; threshold: "
                         "the paper's hard l_min)")
-    g.add_argument("--l-min", type=float, default=None, help="nrvalidity l-min (default: the profile's)")
+    g.add_argument("--l-min", type=number(0, 1e9), default=None, help="nrvalidity l-min (default: the profile's)")
     g.add_argument("--crosstalk", choices=chain.CROSSTALK_MODES, default="kernel", help="nrcrosstalk mode")
     g.add_argument("--crosstalk-lut", choices=("compact", "full"), default="compact",
                    help="nrcrosstalk lut (mode=lut): compact = fast, full = the calibration's table (accurate)")
@@ -48,13 +49,13 @@ def add_batch(sub) -> None:
                         "others; or accurate, fast)")
     g.add_argument("--no-bounds", action="store_true", help="nrreconstruct use-bounds=false")
     g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
-    g.add_argument("--exposure", type=float, default=0.0, help="nrtonemap exposure in stops")
-    g.add_argument("--contrast", type=float, default=1000.0, help="nrtonemap contrast")
-    g.add_argument("--white", type=float, default=None, help="nrtonemap white (default: the profile's)")
+    g.add_argument("--exposure", type=number(-30, 30), default=0.0, help="nrtonemap exposure in stops")
+    g.add_argument("--contrast", type=number(1, 1e12, lo_open=True), default=1000.0, help="nrtonemap contrast")
+    g.add_argument("--white", type=number(0, 1e12, lo_open=True), default=None, help="nrtonemap white (default: the profile's)")
     g = p.add_argument_group("execution")
-    g.add_argument("--workers", type=int, default=None,
+    g.add_argument("--workers", type=number(0, 4096, integer=True), default=None,
                    help="local worker processes (default: one per core); 0 = plain loop in this process")
-    g.add_argument("--threads-per-worker", type=int, default=1,
+    g.add_argument("--threads-per-worker", type=number(1, 4096, integer=True), default=1,
                    help="numba threads per local worker (default 1; keep workers x threads = cores)")
     g.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://host:8786) instead of "
                                        "a local cluster")
@@ -67,39 +68,28 @@ def add_batch(sub) -> None:
     p.set_defaults(func=cmd_batch)
 
 
-STOPS = (signal.SIGINT, signal.SIGTERM)
-
-
-def _stop(signum, frame):
-    """The first SIGINT or SIGTERM interrupts the run (KeyboardInterrupt: the frames in flight are cancelled,
-    the cluster closed, temporary files removed); later ones are ignored until the process ends, so that
-    clean-up runs to its end: a Ctrl-C pressed again would otherwise break off the cluster's close and
-    leave tracebacks and temporary files (seen with a 50 ms storm of SIGINT). Ignored by a Python handler,
-    not SIG_IGN: a signal already pending when SIG_IGN is set prints "OSError: Signal 2 ignored due to race
-    condition"."""
-    for sig in STOPS:
-        signal.signal(sig, _ignore)
-    raise KeyboardInterrupt
-
-
-def _ignore(signum, frame):
-    """A later copy of the stop (`_stop`)."""
-
-
 def cmd_batch(a) -> int:
-    from nrhdr_core import batch, chain
-    if a.workers is not None and a.workers < 0:
-        raise ValueError(f"--workers must be >= 0, got {a.workers}")
-    if a.threads_per_worker < 1:
-        raise ValueError(f"--threads-per-worker must be >= 1, got {a.threads_per_worker}")
+    from nrhdr_core import batch, outputs
     if a.scheduler and a.workers is not None:
         raise ValueError("--workers starts a local cluster; it cannot go with --scheduler")
+    from nrhdr_core import chain, profile
     settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk,
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion, white=a.white,
                                    exposure=a.exposure, contrast=a.contrast)
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames)
     job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile)
+    if job.xt_profile is not None:   # another sensor's calibration would correct the wrong pixels
+        profile.check_same_sensor(job.xt_profile, job.profile)
+    # the stop signals raise outputs.Interrupted once (later ones are ignored, so the clean-up is not
+    # broken off); the lock refuses a second run into the same folder
+    with outputs.stop_on_signals(ends_process=True), outputs.lock(job.out_dir):
+        return _run(a, batch, job, settings)
+
+
+def _run(a, batch, job, settings) -> int:
+    from nrhdr_core import outputs
+    src = job.source
     todo, skipped = batch.prepare_output(job, force=a.force)
     progress = not a.no_progress
     print(f"nrhdr batch: {src.frames} frames {src.width}x{src.height} from {src.raw}, {skipped} already done, "
@@ -109,7 +99,6 @@ def cmd_batch(a) -> int:
     def on_failure(f, bar):
         bar.write(f"nrhdr batch: error: {f}", file=sys.stderr)
 
-    old = {sig: signal.signal(sig, _stop) for sig in STOPS}
     res = None
     try:
         if not todo:
@@ -131,16 +120,13 @@ def cmd_batch(a) -> int:
             with batch.local_client(a.workers, a.threads_per_worker) as client:
                 res = batch.run_dask(job, todo, client, progress=progress, return_files=a.transfer == "data",
                                      on_failure=on_failure)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         if not a.scheduler:   # remote workers may still finish a frame; the next run cleans up
-            batch.remove_temp_files(job.out_dir)
+            batch.remove_stage(job)
         print(f"nrhdr batch: interrupted; the complete frames in {job.out_dir} are kept, rerun the same "
               f"command to resume", file=sys.stderr)
-        old = {}            # the stop signals stay ignored (`_stop`): the process ends here
-        return 130
-    finally:
-        for sig, h in old.items():
-            signal.signal(sig, h)
+        return 128 + e.signum if isinstance(e, outputs.Interrupted) else 130
+    batch.remove_stage(job)       # every task has ended
     res.skipped = skipped
     fps = f", {res.fps:.2f} frames/s" if res.done else ""
     print(f"nrhdr batch: wrote {len(res.done)} frames, skipped {skipped} done, {len(res.failures)} failed "
@@ -149,4 +135,21 @@ def cmd_batch(a) -> int:
         for f in sorted(res.failures, key=lambda f: f.index):
             print(f"nrhdr batch: failed: {f}", file=sys.stderr)
         return 1
+    return 0
+
+
+def add_recover(sub) -> None:
+    p = sub.add_parser("recover", help="finish a raw recording left by a killed recorder (SIGKILL, power loss)",
+                       description="Finish the recording that pipelines/live_record_and_preview.sh left in "
+                                   "OUT_DIR when it was killed (.clip.raw.part): cut to whole frames, renamed "
+                                   "clip.raw, clip.json written, so OUT_DIR is a clip folder again (nrhdr batch, "
+                                   "pipelines/raw_to_exr.sh). Refused while the recorder still runs.")
+    p.add_argument("folder", help="the recording's output folder (OUT_DIR)")
+    p.set_defaults(func=cmd_recover)
+
+
+def cmd_recover(a) -> int:
+    from nrhdr_core import outputs
+    text = outputs.recover(a.folder)
+    print(text or f"nrhdr recover: {a.folder}: no unfinished recording (no {outputs.RECORDING_PART})")
     return 0

@@ -88,7 +88,7 @@ def demo_pipeline(clip: dict, out: Path, method: str, preset: str) -> str:
             f"t. ! queue ! nrtonemap ! pngenc ! multifilesink location={out / 'png' / 'frame_%05d.png'}")
 
 
-# What `nrhdr demo` writes into its output folder (io.staged_folder: --force replaces only these).
+# What `nrhdr demo` writes into its output folder (outputs.staged_folder: --force replaces only these).
 DEMO_OUTPUTS = (r"clip/.*", r"exr/frame_\d+\.exr", r"png/frame_\d+\.png")
 
 
@@ -97,10 +97,10 @@ class _DemoFailed(Exception):
 
 
 def cmd_demo(a) -> int:
-    from nrhdr_core import io
+    from nrhdr_core import io, outputs
     final = Path(a.output).resolve()
-    try:
-        with io.staged_folder(final, force=a.force, owned=io.owned_by_patterns(*DEMO_OUTPUTS)) as tmp:
+    try:   # locked, written aside and renamed in; a stop or failure leaves nothing
+        with outputs.staged_folder(final, force=a.force, owned=io.owned_by_patterns(*DEMO_OUTPUTS)) as tmp:
             rc, lines = _run_demo(a, Path(tmp))
             if rc != 0:
                 raise _DemoFailed

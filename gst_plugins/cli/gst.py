@@ -17,8 +17,28 @@ def exports(base: dict | None = None) -> str:
     return "\n".join(f"export {k}={shlex.quote(env[k])}" for k in ENV_VARS) + "\n"
 
 
+def python_note(base: dict | None = None) -> str | None:
+    """What to do when a `python3` other than the one GStreamer's Python plugin loader embeds comes first on
+    PATH (pyenv, conda): plain gst-launch-1.0 would then load no nrhdr element. None when there is no such
+    conflict. (`nrhdr launch` and pipelines/*.sh set PYTHONHOME themselves.)"""
+    from .. import runtime
+    exe = runtime.path_python_conflict(base)
+    if exe is None:
+        return None
+    ver, home = runtime.embedded_python(base)
+    return (f"nrhdr env: warning: {exe} comes first on PATH, but GStreamer's Python plugin loader embeds Python "
+            f"{ver} of {home}, which would then load that python3's library and fail (\"pygobject initialization "
+            f"failed\", no nrhdr elements). Run plain gst-launch-1.0 as 'PYTHONHOME={home} gst-launch-1.0 ...' "
+            f"(PYTHONHOME is not exported here: it would break that python3), or use 'nrhdr launch', which "
+            f"sets it.")
+
+
 def cmd_env(a) -> int:
+    import sys
     print(exports(), end="")
+    note = python_note()
+    if note:
+        print(note, file=sys.stderr)
     return 0
 
 
