@@ -102,15 +102,27 @@ def ideal_profile(size: int = 96, seed: int = 0, nd: float = 6.35, l_min: float 
                          read_noise=0.0, gain=1.0, full_well=4094.0)
 
 
+SNR_OUTPUTS = ("snr.png", "known_ratio.png", "snr_analysis.json")
+
+
 def run_snr_analysis(out_dir, nd: float = 6.35, l_min: float = 100.0, seed: int = 0, size: int = 96,
-                     points: int = 36, method: str = "fse") -> list[Path]:
+                     points: int = 36, method: str = "fse", overwrite: bool = False) -> list[Path]:
     """Write snr.png (Fig. 3/5), known_ratio.png (Fig. 4) and snr_analysis.json for an ideal sensor
-    (no read noise, 12 bit) with the given ND; returns the paths."""
+    (no read noise, 12 bit) with the given ND; returns the paths. Existing outputs are refused before any
+    work unless `overwrite`; the three files appear together or not at all (outputs.staged_files)."""
+    from . import io, outputs
+    final = Path(out_dir)
+    if not overwrite:
+        io.refuse_existing([final / n for n in SNR_OUTPUTS])
+    with outputs.staged_files(final / "snr_analysis", final) as tmp:
+        _snr_files(tmp, nd, l_min, seed, size, points, method)
+    return [final / n for n in SNR_OUTPUTS]
+
+
+def _snr_files(out: Path, nd, l_min, seed, size, points, method) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     prof = ideal_profile(size, seed=seed, nd=nd, l_min=l_min)
     rng = np.random.default_rng(seed)
     flux = np.logspace(-4, np.log10(2 * nd), points)
@@ -136,7 +148,7 @@ def run_snr_analysis(out_dir, nd: float = 6.35, l_min: float = 100.0, seed: int 
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    p1 = out / "snr.png"
+    p1 = out / SNR_OUTPUTS[0]
     fig.savefig(p1, dpi=110)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(7, 3.5))
@@ -149,9 +161,7 @@ def run_snr_analysis(out_dir, nd: float = 6.35, l_min: float = 100.0, seed: int 
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    p2 = out / "known_ratio.png"
+    p2 = out / SNR_OUTPUTS[1]
     fig.savefig(p2, dpi=110)
     plt.close(fig)
-    p3 = out / "snr_analysis.json"
-    p3.write_text(json.dumps({"nd": nd, "l_min": l_min, **r}, indent=1))
-    return [p1, p2, p3]
+    (out / SNR_OUTPUTS[2]).write_text(json.dumps({"nd": nd, "l_min": l_min, **r}, indent=1))

@@ -5,11 +5,9 @@ written completely or not at all.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
-import shutil
 import tempfile
 from pathlib import Path
 
@@ -399,75 +397,7 @@ def refuse_existing(paths, hint: str = "--force") -> None:
 
 
 def owned_by_patterns(*patterns: str):
-    """`owned(rel_path) -> bool` for `staged_folder`: True when the path relative to the output folder (posix
+    """`owned(rel_path) -> bool` for `outputs.staged_folder`: True when the path relative to the output folder (posix
     form) fully matches one of the regular expressions."""
     rx = [re.compile(p) for p in patterns]
     return lambda rel: any(r.fullmatch(rel) for r in rx)
-
-
-def _files_under(d: Path) -> list[str]:
-    return sorted(p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file() or p.is_symlink())
-
-
-@contextlib.contextmanager
-def staged_folder(final, force: bool = False, owned=None, hint: str = "--force"):
-    """Write a whole output folder: yields a temporary sibling folder to write into; on success it becomes
-    `final` (rename), on any exception it is removed and `final` is left untouched.
-
-    An existing non-empty `final` is refused (OutputExistsError) unless `force`. With `force`, the files of
-    `final` that the command writes (`owned(rel_path)`, default: every file) are replaced as a whole: the old
-    folder is renamed aside, the new one renamed in, and every file the command does not own (e.g. the
-    user's notes) is moved back into it; nothing but old outputs of the same command is deleted."""
-    final = Path(final)
-    owned = owned or (lambda rel: True)
-    if os.path.lexists(final) and not final.is_dir():
-        raise OutputExistsError(f"{final} exists and is not a folder; nothing was written")
-    if final.is_dir() and any(final.iterdir()) and not force:
-        raise OutputExistsError(f"{final} already exists and is not empty; nothing was written: use {hint} "
-                                f"to replace what this command writes there, or choose another folder")
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    try:
-        os.chmod(tmp, 0o777 & ~_umask())
-        if not final.exists():
-            os.rename(tmp, final)
-            return
-        if not any(final.iterdir()):
-            final.rmdir()
-            os.rename(tmp, final)
-            return
-        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
-        old.rmdir()
-        os.rename(final, old)           # the old folder, whole, aside
-        try:
-            os.rename(tmp, final)       # the new folder, whole, in
-        except OSError:
-            os.rename(old, final)       # put the old one back: nothing changed
-            raise
-        for rel in _files_under(old):   # give back what this command did not write
-            if owned(rel):
-                continue
-            dst = final / rel
-            if os.path.lexists(dst):    # cannot happen for a correct `owned`; keep the user's file
-                dst = dst.with_name(dst.name + ".kept")
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(old / rel, dst)
-        for d in sorted((p for p in old.rglob("*") if p.is_dir() and not p.is_symlink()), reverse=True):
-            rel = d.relative_to(old).as_posix()
-            if not (final / rel).exists():
-                (final / rel).mkdir(parents=True, exist_ok=True)   # keep the user's (empty) folders
-        shutil.rmtree(old)              # holds only this command's old outputs now
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _umask() -> int:
-    m = os.umask(0)
-    os.umask(m)
-    return m

@@ -347,15 +347,19 @@ RECORDING_PART = ".clip.raw.part"        # pipelines/live_record_and_preview.sh:
 RECORDING_META = ".clip.json.part"       # {source_clip_json, profile}: written before the first frame
 
 
-def _finish(out_dir: Path) -> str | None:
-    import json
+def complete_recording(out_dir) -> str | None:
+    """The recorder's own finish (it holds the lock of `out_dir/clip.raw`): `.clip.raw.part` cut to whole
+    frames and renamed `clip.raw`, `clip.json` written from `.clip.json.part`. Returns what was done, or None
+    when there is no unfinished recording."""
+    from . import io
+    out_dir = Path(out_dir)
     part, meta = out_dir / RECORDING_PART, out_dir / RECORDING_META
     if not part.is_file():
         return None
     if not meta.is_file():
         raise FileNotFoundError(f"{meta} not found: cannot tell the frame size of {part}")
-    m = json.loads(meta.read_text())
-    c = json.loads(Path(m["source_clip_json"]).read_text())
+    m = io.read_json(meta, "recording description")
+    c = io.read_json(Path(m["source_clip_json"]), "clip description (clip.json)")
     if part.stat().st_size < 2 * int(c["width"]) * int(c["height"]):
         part.unlink()
         meta.unlink(missing_ok=True)
@@ -373,23 +377,4 @@ def recover(out_dir) -> str | None:
     (OutputLockedError) while the recorder still runs (it holds the lock of `out_dir/clip.raw`)."""
     out_dir = Path(out_dir)
     with lock(out_dir / "clip.raw", hint="the recording is still running; it finishes the file itself"):
-        return _finish(out_dir)
-
-
-def main(argv=None) -> int:
-    """`python -m nrhdr_core.outputs finish|recover OUT_DIR` (finish: for the recorder, which holds the lock)."""
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 2 or args[0] not in ("finish", "recover"):
-        print("usage: python -m nrhdr_core.outputs finish|recover OUT_DIR", file=sys.stderr)
-        return 2
-    try:
-        text = _finish(Path(args[1])) if args[0] == "finish" else recover(args[1])
-    except (OSError, ValueError, KeyError) as e:
-        print(f"error: {args[1]}: cannot finish the recording: {e}", file=sys.stderr)
-        return 2
-    print(text or f"{args[1]}: no unfinished recording", file=sys.stderr if text is None else sys.stdout)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        return complete_recording(out_dir)

@@ -23,7 +23,7 @@ nr_lock "$OUT/clip.raw"
 PART="$OUT/.clip.raw.part"
 META="$OUT/.clip.json.part"
 if [ -e "$PART" ]; then   # a recorder killed before it could finish: keep its frames
-  nr_py -m nrhdr_core.outputs finish "$OUT"
+  nr_py -m gst_plugins.cli recover --lock-held "$OUT"
 fi
 if [ -e "$OUT/clip.raw" ] && [ "${FORCE:-0}" != 1 ]; then
   echo "error: $OUT/clip.raw exists (FORCE=1 replaces it)" >&2; exit 2
@@ -54,5 +54,5 @@ NRHDR_REPORT_DROPS=1 nr_launch "${ARGS[@]}" nrcamsrc "location=$CLIP" "num-buffe
     ! nrcrosstalk "mode=${CROSSTALK:-lut}" ! nrreconstruct "method=${METHOD:-auto}" "preset=${PRESET:-fast}" \
     "post-stats=${STATS:-false}" ! nrtonemap ! videoconvert ! "${SINKV[@]}" || rc=$?
 # stopped, finished or failed: the frames recorded so far become a clip folder (whole frames, clip.json last)
-nr_py -m nrhdr_core.outputs finish "$OUT"
+nr_py -m gst_plugins.cli recover --lock-held "$OUT"
 exit "$rc"

@@ -40,6 +40,12 @@ def test_run_writes_plots(tmp_path):
     paths = analysis.run_snr_analysis(tmp_path, size=24, points=5, method="nearest")
     assert [p.name for p in paths] == ["snr.png", "known_ratio.png", "snr_analysis.json"]
     assert all(p.stat().st_size > 1000 for p in paths)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in paths)   # no temp, no lock
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError):                        # an earlier run is kept unless overwrite
+        analysis.run_snr_analysis(tmp_path, size=24, points=5, method="nearest")
+    analysis.run_snr_analysis(tmp_path, size=24, points=5, method="nearest", overwrite=True)
+    assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
 def test_low_end_matches_eq4_eq5_and_expected_snr_rule():

@@ -92,8 +92,8 @@ def test_live_recording_stopped_keeps_every_whole_frame(gst_subprocess_env, clip
 
 
 def test_live_recording_killed_is_recovered(gst_subprocess_env, clip, tmp_path):
-    """SIGKILL to every process of the recording (a crash): the .part file stays; `python -m
-    nrhdr_core.outputs recover` (= `nrhdr recover`) cuts it to whole frames and writes clip.json; the next
+    """SIGKILL to every process of the recording (a crash): the .part file stays; `nrhdr recover`
+    cuts it to whole frames and writes clip.json; the next
     run of the script does the same itself before it refuses to overwrite."""
     d, prof, raws = clip
     out = tmp_path / "rec"
@@ -104,7 +104,7 @@ def test_live_recording_killed_is_recovered(gst_subprocess_env, clip, tmp_path):
     part = out / ".clip.raw.part"
     with open(part, "ab") as f:            # power loss in the middle of a frame
         f.write(b"\x07" * 333)
-    rc = subprocess.run([sys.executable, "-m", "nrhdr_core.outputs", "recover", out], env=gst_subprocess_env,
+    rc = subprocess.run([sys.executable, "-m", "gst_plugins.cli", "recover", out], env=gst_subprocess_env,
                         capture_output=True, text=True)
     assert rc.returncode == 0, rc.stderr
     assert "333 bytes of a partial last frame cut off" in rc.stdout

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 # Every `nrhdr` subcommand, in `nrhdr --help` order, and the module of this package that implements it:
@@ -19,6 +20,7 @@ COMMANDS = (
     ("warmup", "warmup"),             # compile the numba kernels into the cache
     ("figures", "paper"),             # the paper's Figs. 2-10 (nrhdr_core.figures)
     ("batch", "batch"),               # raw clip -> OpenEXR frames on Dask (nrhdr_core.batch)
+    ("recover", "batch"),             # a recording cut off by a crash -> a clip folder (nrhdr_core.outputs)
     ("calibrate", "calibrate"),       # crosstalk / ND calibration from flats (nrhdr_core.calibration)
     ("simulate-flats", "calibrate"),  # a simulated flat-field sweep for calibrate
     ("compare", "compare"),           # EXR frames against the simulator's truth, per region (nrhdr_core.metrics)
@@ -48,8 +50,10 @@ def main(argv=None) -> int:
         return e.code if isinstance(e.code, int) else 2
     try:
         return int(a.func(a) or 0)
-    except KeyboardInterrupt:
-        return 130
+    except KeyboardInterrupt as e:           # Ctrl-C, or outputs.Interrupted (SIGTERM, SIGHUP) with its signum
+        signum = int(getattr(e, "signum", signal.SIGINT))
+        print(f"nrhdr {a.command}: stopped by {signal.Signals(signum).name}", file=sys.stderr)
+        return 128 + signum
     except (ValueError, OSError) as e:
         print(f"nrhdr {a.command}: error: {e}", file=sys.stderr)
         return 2

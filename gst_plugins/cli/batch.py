@@ -145,11 +145,12 @@ def add_recover(sub) -> None:
                                    "clip.raw, clip.json written, so OUT_DIR is a clip folder again (nrhdr batch, "
                                    "pipelines/raw_to_exr.sh). Refused while the recorder still runs.")
     p.add_argument("folder", help="the recording's output folder (OUT_DIR)")
+    p.add_argument("--lock-held", action="store_true", help=argparse.SUPPRESS)   # the recorder, holding the lock
     p.set_defaults(func=cmd_recover)
 
 
 def cmd_recover(a) -> int:
     from nrhdr_core import outputs
-    text = outputs.recover(a.folder)
+    text = outputs.complete_recording(a.folder) if a.lock_held else outputs.recover(a.folder)
     print(text or f"nrhdr recover: {a.folder}: no unfinished recording (no {outputs.RECORDING_PART})")
     return 0

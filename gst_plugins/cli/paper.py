@@ -9,7 +9,7 @@ from .args import CODE_LEVEL, ND, SEED
 
 def cmd_snr(a) -> int:
     from nrhdr_core import analysis
-    paths = analysis.run_snr_analysis(a.output, nd=a.nd, l_min=a.l_min, seed=a.seed)
+    paths = analysis.run_snr_analysis(a.output, nd=a.nd, l_min=a.l_min, seed=a.seed, overwrite=a.force)
     for p in paths:
         print(f"wrote {p}")
     return 0
@@ -21,6 +21,7 @@ def add_snr(sub) -> None:
     p.add_argument("--nd", type=ND, default=6.35)
     p.add_argument("--l-min", type=CODE_LEVEL, default=100.0)
     p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--force", action="store_true", help="replace the three files of an earlier run")
     p.set_defaults(func=cmd_snr)
 
 
