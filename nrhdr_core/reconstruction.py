@@ -705,8 +705,9 @@ def _linear_1d(out, k):
 # level-1 value (`_fill_row`). Every level's capped weight is 0 or 1, so a push only fills empty cells with
 # their parent's value. `_preview` (method "preview" of `reconstruct`) and the fused frame path
 # (`_preview_frame`) share these kernels; level 0 is never copied, and the pyramid's levels 1..L live in one
-# flat per-thread plane. Branch-free pixel loops read a value only through a select on its known flag, so
-# values under missing pixels (possibly NaN, or being written in place) are never used.
+# flat per-thread plane. The branch-free pixel loops multiply values by their 0/1 weights, so the level-0
+# values they read must be finite: `_preview` reads them from zero-filled planes (any value, NaN too, may
+# sit under a missing pixel of `reconstruct`'s input), the frame path from a frame it checked to be finite.
 
 
 def _pyramid(h: int, w: int):
@@ -730,8 +731,8 @@ def _pyramid(h: int, w: int):
 
 @njit(cache=True, nogil=True, inline="always")
 def _pull_row(values, known, pv, pw, o1, w1, y1):
-    """Row y1 of level 1: per cell the sum of the known values of its 2 x 2 pixels (children summed row by
-    row) and their count, normalised to weight 1 when above 1."""
+    """Row y1 of level 1: per cell the sum of its 2 x 2 pixels' values times their 0/1 weights (`known`,
+    bool or float; children summed row by row) and of the weights, normalised to weight 1 when above 1."""
     h, w = values.shape
     one = np.float32(1.0)
     zero = np.float32(0.0)
@@ -740,27 +741,27 @@ def _pull_row(values, known, pv, pw, o1, w1, y1):
     if y + 1 < h:
         for x1 in range(w // 2):
             x = 2 * x1
-            k00 = known[y, x]
-            k01 = known[y, x + 1]
-            k10 = known[y + 1, x]
-            k11 = known[y + 1, x + 1]
-            s = zero + (values[y, x] if k00 else zero)
-            s = s + (values[y, x + 1] if k01 else zero)
-            s = s + (values[y + 1, x] if k10 else zero)
-            s = s + (values[y + 1, x + 1] if k11 else zero)
-            c = zero + (one if k00 else zero)
-            c = c + (one if k01 else zero)
-            c = c + (one if k10 else zero)
-            c = c + (one if k11 else zero)
+            k00 = np.float32(known[y, x])
+            k01 = np.float32(known[y, x + 1])
+            k10 = np.float32(known[y + 1, x])
+            k11 = np.float32(known[y + 1, x + 1])
+            s = zero + values[y, x] * k00
+            s = s + values[y, x + 1] * k01
+            s = s + values[y + 1, x] * k10
+            s = s + values[y + 1, x + 1] * k11
+            c = zero + k00
+            c = c + k01
+            c = c + k10
+            c = c + k11
             d = c if c > one else one
             pv[base + x1] = s / d
             pw[base + x1] = c if c < one else one
         if w % 2:
             x = w - 1
-            k00 = known[y, x]
-            k10 = known[y + 1, x]
-            s = zero + (values[y, x] if k00 else zero) + (values[y + 1, x] if k10 else zero)
-            c = zero + (one if k00 else zero) + (one if k10 else zero)
+            k00 = np.float32(known[y, x])
+            k10 = np.float32(known[y + 1, x])
+            s = zero + values[y, x] * k00 + values[y + 1, x] * k10
+            c = zero + k00 + k10
             pv[base + w // 2] = s / c if c > one else s
             pw[base + w // 2] = c if c < one else one
     else:
@@ -768,9 +769,9 @@ def _pull_row(values, known, pv, pw, o1, w1, y1):
             s = zero
             c = zero
             for x in range(2 * x1, min(2 * x1 + 2, w)):
-                kk = known[y, x]
-                s += values[y, x] if kk else zero
-                c += one if kk else zero
+                kk = np.float32(known[y, x])
+                s += values[y, x] * kk
+                c += kk
             if c > one:
                 s = s / c
                 c = one
@@ -779,10 +780,19 @@ def _pull_row(values, known, pv, pw, o1, w1, y1):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _pull_level1(values, known, pv, pw, o1, h1, w1):
-    """Level 1 of the pyramid from the frame (`_pull_row`), rows in parallel."""
+def _pull_level1(values, known, zv, kf, pv, pw, o1, h1, w1):
+    """Level 0 as zero-filled values `zv` and 0/1 weights `kf` (whatever `values` holds under missing
+    pixels), and level 1 of the pyramid from them (`_pull_row`), per pair of rows in parallel."""
+    h, w = values.shape
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
     for y1 in prange(h1):
-        _pull_row(values, known, pv, pw, o1, w1, y1)
+        for yy in range(2 * y1, min(2 * y1 + 2, h)):
+            for x in range(w):
+                kk = known[yy, x]
+                zv[yy, x] = values[yy, x] if kk else zero
+                kf[yy, x] = one if kk else zero
+        _pull_row(zv, kf, pv, pw, o1, w1, y1)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -884,43 +894,46 @@ def _fill_px(values, known, pv, o1, w1, y, x):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _fill_row(values, known, pv, o1, w1, y, g):
-    """g[x] = `_fill_px` of every pixel of row y (known ones too). The interior is branch-free (it
-    vectorises): no known neighbour gives 0/0 = NaN there, redone by `_fill_px`."""
+def _fill_row(values, known, pv, o1, w1, y, g, keep):
+    """g[x] = `_fill_px` of every pixel of row y, or with `keep` its own value where it is known;
+    `known`: bool or 0/1 float weights, `values` finite (or zero) where the weight is 0. The interior is
+    branch-free (it vectorises): no known neighbour gives 0/0 = NaN there, redone by `_fill_px`."""
     h, w = values.shape
+    zero = np.float32(0.0)
     if y == 0 or y == h - 1 or w < 3:
         for x in range(w):
-            g[x] = _fill_px(values, known, pv, o1, w1, y, x)
+            own = keep and np.float32(known[y, x]) > zero
+            g[x] = values[y, x] if own else _fill_px(values, known, pv, o1, w1, y, x)
         return
     two = np.float32(2.0)
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
     for x in range(1, w - 1):
-        k00 = known[y - 1, x - 1]
-        k01 = known[y - 1, x]
-        k02 = known[y - 1, x + 1]
-        k10 = known[y, x - 1]
-        k12 = known[y, x + 1]
-        k20 = known[y + 1, x - 1]
-        k21 = known[y + 1, x]
-        k22 = known[y + 1, x + 1]
-        acc = zero + (values[y - 1, x - 1] if k00 else zero)
-        acc = acc + two * (values[y - 1, x] if k01 else zero)
-        acc = acc + (values[y - 1, x + 1] if k02 else zero)
-        acc = acc + two * (values[y, x - 1] if k10 else zero)
-        acc = acc + two * (values[y, x + 1] if k12 else zero)
-        acc = acc + (values[y + 1, x - 1] if k20 else zero)
-        acc = acc + two * (values[y + 1, x] if k21 else zero)
-        acc = acc + (values[y + 1, x + 1] if k22 else zero)
-        ws = zero + (one if k00 else zero)
-        ws = ws + two * (one if k01 else zero)
-        ws = ws + (one if k02 else zero)
-        ws = ws + two * (one if k10 else zero)
-        ws = ws + two * (one if k12 else zero)
-        ws = ws + (one if k20 else zero)
-        ws = ws + two * (one if k21 else zero)
-        ws = ws + (one if k22 else zero)
-        g[x] = acc / ws
+        k00 = np.float32(known[y - 1, x - 1])
+        k01 = np.float32(known[y - 1, x])
+        k02 = np.float32(known[y - 1, x + 1])
+        k10 = np.float32(known[y, x - 1])
+        k12 = np.float32(known[y, x + 1])
+        k20 = np.float32(known[y + 1, x - 1])
+        k21 = np.float32(known[y + 1, x])
+        k22 = np.float32(known[y + 1, x + 1])
+        acc = zero + values[y - 1, x - 1] * k00
+        acc = acc + two * (values[y - 1, x] * k01)
+        acc = acc + values[y - 1, x + 1] * k02
+        acc = acc + two * (values[y, x - 1] * k10)
+        acc = acc + two * (values[y, x + 1] * k12)
+        acc = acc + values[y + 1, x - 1] * k20
+        acc = acc + two * (values[y + 1, x] * k21)
+        acc = acc + values[y + 1, x + 1] * k22
+        ws = zero + k00
+        ws = ws + two * k01
+        ws = ws + k02
+        ws = ws + two * k10
+        ws = ws + two * k12
+        ws = ws + k20
+        ws = ws + two * k21
+        ws = ws + k22
+        r = acc / ws
+        a = values[y, x]
+        g[x] = a if keep & (np.float32(known[y, x]) > zero) else r
     nan = 0
     for x in range(1, w - 1):
         nan += 1 if g[x] != g[x] else 0
@@ -928,22 +941,17 @@ def _fill_row(values, known, pv, o1, w1, y, g):
         for x in range(1, w - 1):
             if g[x] != g[x]:
                 g[x] = _fill_px(values, known, pv, o1, w1, y, x)
-    g[0] = _fill_px(values, known, pv, o1, w1, y, 0)
-    g[w - 1] = _fill_px(values, known, pv, o1, w1, y, w - 1)
+    for x in (0, w - 1):
+        own = keep and np.float32(known[y, x]) > zero
+        g[x] = values[y, x] if own else _fill_px(values, known, pv, o1, w1, y, x)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _fill(values, known, pv, o1, w1, out):
-    """out = values at known pixels, `_fill_row` at the others; `out` may be `values` (in place: the fill
-    reads only known pixels' values). Rows in parallel chunks, one row buffer per chunk."""
-    h, w = values.shape
-    nch = min(h, 64)
-    for c in prange(nch):
-        g = np.empty(w, np.float32)
-        for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            _fill_row(values, known, pv, o1, w1, y, g)
-            for x in range(w):
-                out[y, x] = values[y, x] if known[y, x] else g[x]
+def _fill(zv, kf, pv, o1, w1, out):
+    """out = the level-0 values `zv` where the weight `kf` is 1, the fill (`_fill_row`) elsewhere; rows in
+    parallel (`out` may be the input values: the fill reads the level-0 planes only)."""
+    for y in prange(zv.shape[0]):
+        _fill_row(zv, kf, pv, o1, w1, y, out[y], True)
 
 
 def _preview(vals, k, out=None):
@@ -955,9 +963,11 @@ def _preview(vals, k, out=None):
         out = np.empty_like(vals)
     h, w = vals.shape
     pv, pw, hs, ws, off = _pyramid(h, w)
-    _pull_level1(vals, k, pv, pw, off[1], hs[1], ws[1])
+    zv, kf = planes("reconstruction.level0", (h, w), lambda: (np.empty((h, w), np.float32),
+                                                              np.empty((h, w), np.float32)))
+    _pull_level1(vals, k, zv, kf, pv, pw, off[1], hs[1], ws[1])
     _pull_push_levels(pv, pw, hs, ws, off)
-    _fill(vals, k, pv, off[1], ws[1], out)
+    _fill(zv, kf, pv, off[1], ws[1], out)
     return out
 
 
@@ -1156,7 +1166,7 @@ def _frame_fill(values, state, known, noisy, lower, pv, o1, w1, flo, top0, use_b
     for y in prange(h):
         if cnt[y // 2, 0] == 0:
             continue
-        _fill_row(values, known, pv, o1, w1, y, g[y])
+        _fill_row(values, known, pv, o1, w1, y, g[y], False)
         nb = 0
         for x in range(w):
             st = state[y, x]
