@@ -2,9 +2,9 @@
 working tree's, in one run: `_fuse_kernel` on the same 1920 x 1080 inputs (random masks: 50 % known, 0 %
 and 30 % NOISY), interleaved call by call; both must give the same bits.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/fuse_kernels.py --base 7436889
+    PYTHONPATH=. .venv/bin/python benchmarks/fuse_kernels.py --before 7436889
 
-The base kernel is the source of `_fuse_add_row`, `_fuse_slide` and `_fuse_kernel` in
+The revision's kernel is the source of `_fuse_add_row`, `_fuse_slide` and `_fuse_kernel` in
 ``git show REV:nrhdr_core/reconstruction.py``, compiled here (numba, not cached). Median of ``--repeat``
 calls each after two untimed ones; anchor: one float32 frame copy, same run."""
 from __future__ import annotations
@@ -38,10 +38,10 @@ def load_base(rev):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--base", default="HEAD~1", help="git revision of the base kernel")
+    ap.add_argument("--before", default="HEAD~1", help="git revision to compare the working tree's kernel with")
     ap.add_argument("--repeat", type=int, default=12)
     a = ap.parse_args(argv)
-    base = load_base(a.base)
+    base = load_base(a.before)
     rng = np.random.default_rng(1)
     h, w = 1080, 1920
     v = (rng.random((h, w)) * 3000).astype(np.float32)
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         v.copy()
         ta.append(time.perf_counter() - t)
-    print(f"# fuse_noisy kernel, {w}x{h}, base = {a.base}, tree = working tree; numba threads {nt}")
+    print(f"# fuse_noisy kernel, {w}x{h}, base = {a.before}, tree = working tree; numba threads {nt}")
     print(f"anchor: float32 frame copy {statistics.median(ta[2:]) * 1e3:.2f} ms\n")
     print("| NOISY share | setting | base ms | tree ms | tree / base | same bits |")
     print("|---|---|---|---|---|---|")

@@ -698,14 +698,14 @@ def _linear_1d(out, k):
     return np.interp(x, x[kf], flat[kf]).astype(np.float32).reshape(out.shape)
 
 
-# ---- pull-push (paper 2.4, the live preview) ---------------------------------------------------------------
+# ---- pull-push: the live preview -----------------------------------------------------------------------------
+# A fast stand-in for the paper's FSE reconstruction (sections 2.2, 2.4) where the frame budget is tight.
 # Pull-push with 0/1 weights (Gortler et al. 1996, "The Lumigraph"): level 1 of the pyramid is pulled from
 # the frame (`_pull_row`), the coarser levels are pulled to 1 x 1 and pushed back down to level 1
 # (`_pull_push_levels`); a missing pixel then takes the weighted mean of its known 8-neighbours, else its
 # level-1 value (`_fill_row`). Every level's capped weight is 0 or 1, so a push only fills empty cells with
 # their parent's value. `_preview` (method "preview" of `reconstruct`) and the fused frame path
-# (`_preview_frame`) share these kernels; level 0 is never copied, and the pyramid's levels 1..L live in one
-# flat per-thread plane. The branch-free pixel loops multiply values by their 0/1 weights, so the level-0
+# (`_preview_frame`) share these kernels; the pyramid's levels 1..L live in one flat per-thread plane. The branch-free pixel loops multiply values by their 0/1 weights, so the level-0
 # values they read must be finite: `_preview` reads them from zero-filled planes (any value, NaN too, may
 # sit under a missing pixel of `reconstruct`'s input), the frame path from a frame it checked to be finite.
 
@@ -741,10 +741,10 @@ def _pull_row(values, known, pv, pw, o1, w1, y1):
     if y + 1 < h:
         for x1 in range(w // 2):
             x = 2 * x1
-            k00 = np.float32(known[y, x])
-            k01 = np.float32(known[y, x + 1])
-            k10 = np.float32(known[y + 1, x])
-            k11 = np.float32(known[y + 1, x + 1])
+            k00 = one if known[y, x] else zero
+            k01 = one if known[y, x + 1] else zero
+            k10 = one if known[y + 1, x] else zero
+            k11 = one if known[y + 1, x + 1] else zero
             s = zero + values[y, x] * k00
             s = s + values[y, x + 1] * k01
             s = s + values[y + 1, x] * k10
@@ -758,8 +758,8 @@ def _pull_row(values, known, pv, pw, o1, w1, y1):
             pw[base + x1] = c if c < one else one
         if w % 2:
             x = w - 1
-            k00 = np.float32(known[y, x])
-            k10 = np.float32(known[y + 1, x])
+            k00 = one if known[y, x] else zero
+            k10 = one if known[y + 1, x] else zero
             s = zero + values[y, x] * k00 + values[y + 1, x] * k10
             c = zero + k00 + k10
             pv[base + w // 2] = s / c if c > one else s
@@ -769,7 +769,7 @@ def _pull_row(values, known, pv, pw, o1, w1, y1):
             s = zero
             c = zero
             for x in range(2 * x1, min(2 * x1 + 2, w)):
-                kk = np.float32(known[y, x])
+                kk = one if known[y, x] else zero
                 s += values[y, x] * kk
                 c += kk
             if c > one:
@@ -897,24 +897,27 @@ def _fill_px(values, known, pv, o1, w1, y, x):
 def _fill_row(values, known, pv, o1, w1, y, g, keep):
     """g[x] = `_fill_px` of every pixel of row y, or with `keep` its own value where it is known;
     `known`: bool or 0/1 float weights, `values` finite (or zero) where the weight is 0. The interior is
-    branch-free (it vectorises): no known neighbour gives 0/0 = NaN there, redone by `_fill_px`."""
+    branch-free (it vectorises): no known neighbour gives 0/0 = NaN there, then replaced by the level-1
+    value (so is the NaN of a sum of +inf and -inf, values beyond float32's range)."""
     h, w = values.shape
     zero = np.float32(0.0)
     if y == 0 or y == h - 1 or w < 3:
         for x in range(w):
-            own = keep and np.float32(known[y, x]) > zero
+            own = keep and known[y, x] > 0
             g[x] = values[y, x] if own else _fill_px(values, known, pv, o1, w1, y, x)
         return
     two = np.float32(2.0)
+    one = np.float32(1.0)
+    base = o1 + (y // 2) * w1
     for x in range(1, w - 1):
-        k00 = np.float32(known[y - 1, x - 1])
-        k01 = np.float32(known[y - 1, x])
-        k02 = np.float32(known[y - 1, x + 1])
-        k10 = np.float32(known[y, x - 1])
-        k12 = np.float32(known[y, x + 1])
-        k20 = np.float32(known[y + 1, x - 1])
-        k21 = np.float32(known[y + 1, x])
-        k22 = np.float32(known[y + 1, x + 1])
+        k00 = one if known[y - 1, x - 1] else zero
+        k01 = one if known[y - 1, x] else zero
+        k02 = one if known[y - 1, x + 1] else zero
+        k10 = one if known[y, x - 1] else zero
+        k12 = one if known[y, x + 1] else zero
+        k20 = one if known[y + 1, x - 1] else zero
+        k21 = one if known[y + 1, x] else zero
+        k22 = one if known[y + 1, x + 1] else zero
         acc = zero + values[y - 1, x - 1] * k00
         acc = acc + two * (values[y - 1, x] * k01)
         acc = acc + values[y - 1, x + 1] * k02
@@ -933,16 +936,13 @@ def _fill_row(values, known, pv, o1, w1, y, g, keep):
         ws = ws + k22
         r = acc / ws
         a = values[y, x]
-        g[x] = a if keep & (np.float32(known[y, x]) > zero) else r
-    nan = 0
+        kc = one if known[y, x] else zero
+        g[x] = a if keep & (kc > zero) else r
     for x in range(1, w - 1):
-        nan += 1 if g[x] != g[x] else 0
-    if nan:
-        for x in range(1, w - 1):
-            if g[x] != g[x]:
-                g[x] = _fill_px(values, known, pv, o1, w1, y, x)
+        if g[x] != g[x]:
+            g[x] = pv[base + x // 2]
     for x in (0, w - 1):
-        own = keep and np.float32(known[y, x]) > zero
+        own = keep and known[y, x] > 0
         g[x] = values[y, x] if own else _fill_px(values, known, pv, o1, w1, y, x)
 
 
@@ -955,7 +955,7 @@ def _fill(zv, kf, pv, o1, w1, out):
 
 
 def _preview(vals, k, out=None):
-    """Pull-push fill of float32 `vals` (H, W) with bool `known` (paper 2.4's preview), written into `out`
+    """Pull-push fill of float32 `vals` (H, W) with bool `known` (the preview method), written into `out`
     (a new array when None; may be `vals` itself)."""
     vals = np.ascontiguousarray(vals, dtype=np.float32)
     k = np.ascontiguousarray(k)
