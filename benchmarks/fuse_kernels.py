@@ -1,10 +1,10 @@
-"""`fuse_noisy`'s kernel before / after in one run (issue 7: the NOISY-pixel fusion of the preview frame):
-`_fuse_kernel` of a git revision against the working tree's, on the same 1920 x 1080 inputs (random
-masks: 50 % known, 0 % and 30 % NOISY), interleaved call by call; both must give the same bits.
+"""`fuse_noisy`'s kernel (the NOISY-pixel fusion of the reconstruction) at a git revision against the
+working tree's, in one run: `_fuse_kernel` on the same 1920 x 1080 inputs (random masks: 50 % known, 0 %
+and 30 % NOISY), interleaved call by call; both must give the same bits.
 
     PYTHONPATH=. .venv/bin/python benchmarks/fuse_kernels.py --before 7436889
 
-The "before" kernel is the source of `_fuse_add_row`, `_fuse_slide` and `_fuse_kernel` in
+The revision's kernel is the source of `_fuse_add_row`, `_fuse_slide` and `_fuse_kernel` in
 ``git show REV:nrhdr_core/reconstruction.py``, compiled here (numba, not cached). Median of ``--repeat``
 calls each after two untimed ones; anchor: one float32 frame copy, same run."""
 from __future__ import annotations
@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 from nrhdr_core import reconstruction as R  # noqa: E402
 
 
-def load_before(rev):
+def load_base(rev):
     src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:nrhdr_core/reconstruction.py"],
                          capture_output=True, text=True, check=True).stdout
     a = src.index('@njit(cache=True, nogil=True, inline="always")\ndef _fuse_add_row(')
@@ -38,10 +38,10 @@ def load_before(rev):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--before", default="HEAD~1", help="git revision of the 'before' kernel")
+    ap.add_argument("--before", default="HEAD~1", help="git revision to compare the working tree's kernel with")
     ap.add_argument("--repeat", type=int, default=12)
     a = ap.parse_args(argv)
-    old = load_before(a.before)
+    base = load_base(a.before)
     rng = np.random.default_rng(1)
     h, w = 1080, 1920
     v = (rng.random((h, w)) * 3000).astype(np.float32)
@@ -53,9 +53,9 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         v.copy()
         ta.append(time.perf_counter() - t)
-    print(f"# fuse_noisy kernel, {w}x{h}, before = {a.before}, after = working tree; numba threads {nt}")
+    print(f"# fuse_noisy kernel, {w}x{h}, base = {a.before}, tree = working tree; numba threads {nt}")
     print(f"anchor: float32 frame copy {statistics.median(ta[2:]) * 1e3:.2f} ms\n")
-    print("| NOISY share | setting | before ms | after ms | after / before | same bits |")
+    print("| NOISY share | setting | base ms | tree ms | tree / base | same bits |")
     print("|---|---|---|---|---|---|")
     for frac in (0.0, 0.3):
         noisy = ~known & (rng.random((h, w)) < frac * 2)
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
             for _ in range(a.repeat + 2):
                 g = v.copy()
                 t = time.perf_counter()
-                old(g, v, known, noisy, *args, joint, 64, nt)
+                base(g, v, known, noisy, *args, joint, 64, nt)
                 tb.append(time.perf_counter() - t)
                 g2 = v.copy()
                 t = time.perf_counter()

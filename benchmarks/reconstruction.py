@@ -1,4 +1,4 @@
-"""Reconstruction benchmark (issue 3): every method and FSE preset against OpenCV contrib's FSR
+"""Reconstruction benchmark: every method and FSE preset against OpenCV contrib's FSR
 (INPAINT_FSR_FAST, INPAINT_FSR_BEST) and scipy's Delaunay-linear griddata, in one run on the same inputs.
 
     .venv/bin/python benchmarks/reconstruction.py            # full run, ~25 min on 2 cores

@@ -2,10 +2,10 @@
 
 Methods, from fastest to most accurate:
 - ``preview``: pull-push normalised averaging on an image pyramid (numba); live preview.
-- ``nearest``: nearest known pixel (scipy's exact Euclidean distance transform).
+- ``nearest``: nearest known pixel (exact Euclidean distance transform, Felzenszwalb & Huttenlocher 2012).
 - ``linear``: Delaunay triangulation of the known pixels and linear interpolation on it (scipy), the
   paper's "triangular interpolation" of Fig. 10g.
-- ``fse``: Frequency Selective Extrapolation (ref. 9; `fse.py`), the paper's method of Fig. 10h.
+- ``fse``: Frequency Selective Extrapolation (ref. 9; `nrhdr_core.fse`), the paper's method of Fig. 10h.
 
 All methods leave known pixels bit-exact, honour optional bounds (a clipped pixel is at least `lower`, a
 too-dark pixel at most `upper`), and cost nothing when no pixel is missing.
@@ -20,10 +20,13 @@ from numba import get_num_threads, njit, prange
 
 from .fse import _key as _f32_key  # order-preserving int32 keys of float32 bits (min/max that vectorise)
 from .fse import _unkey
-from .scratch import ThreadScratch  # scratch per OS thread (issue 7)
+from .scratch import planes
+from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
 
-METHODS = ("fse", "linear", "nearest", "preview")
+METHODS = ("fse", "linear", "nearest", "preview")   # `reconstruct(method=)`
+FUSION_SETTINGS = ("fast", "accurate")             # `fuse_noisy(setting=)`
+FUSIONS = ("auto",) + FUSION_SETTINGS              # `reconstruct(fusion=)`: "auto" = `fusion_for`
 
 
 class ReconstructionWarning(UserWarning):
@@ -68,23 +71,24 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     noisy/noise: optional bool (H, W) of missing pixels whose value is a noisy measurement (state NOISY,
     dark policy "weighted") and the noise model (anything with gain, read_noise, nd: a CameraProfile);
     they are reconstructed like the other missing pixels, then fused with their measurement by inverse
-    variance (`fuse_noisy`, issue 8; `fusion`: its setting, "accurate", "fast" or "auto" = `fusion_for`). noisy_joint > 0 (method fse, opt-in): FSE fits its model to the
-    NOISY measurements too, weighted `noisy_weights(..., noisy_joint)`, before the fusion (joint
-    estimation; measured no better than the default, docs/BENCHMARKS.md "Joint FSE with noisy samples").
-    noisy_skip (method fse, fusion "accurate", no noisy_joint): FSE leaves the NOISY pixels alone (issue 7:
-    the accurate fusion re-estimates them from their measured 3 x 3 neighbours; FSE's value there only
+    variance (`fuse_noisy`; `fusion`: one of FUSIONS, "auto" = `fusion_for`). noisy_joint > 0 (method
+    fse, opt-in): FSE fits its model to the NOISY measurements too, weighted
+    `noisy_weights(..., noisy_joint)`, ahead of the fusion (joint estimation; measured no better than the
+    default, docs/BENCHMARKS.md "Joint FSE with noisy samples").
+    noisy_skip (method fse, fusion "accurate", no noisy_joint): FSE leaves the NOISY pixels alone (the
+    accurate fusion re-estimates them from their measured 3 x 3 neighbours; FSE's value there would only
     set the noise level) and they get the mean of their non-NOISY 3 x 3 neighbours as that level
     (`_noisy_level`); None: `NOISY_SKIP` (docs/FSE.md "Skipping NOISY pixels").
     out: optional float32 C-contiguous (H, W) array to write the result into (may be `values` itself:
     in place, e.g. mapped frame memory), returned.
     Missing pixels are returned finite, within [min(known min, 0), max(known max, lower bound)] (no
-    blow-up, no negative value from non-negative data; issue 8) and within their bounds.
+    blow-up, no negative value from non-negative data) and within their bounds.
     With no known pixel the result is the bounds (lower where there is one, else upper, else 0) and a
     ReconstructionWarning saying so is issued."""
     if method not in METHODS:
         raise ValueError(f"reconstruction method must be one of {METHODS}, got {method!r}")
-    if fusion not in FUSION_CHOICES:
-        raise ValueError(f"noise fusion setting must be one of {FUSION_CHOICES}, got {fusion!r}")
+    if fusion not in FUSIONS:
+        raise ValueError(f"noise fusion setting must be one of {FUSIONS}, got {fusion!r}")
     fusion = fusion_for(fusion, method)
     v, k, lower, upper = _validate(values, known, lower, upper)
     if noisy is not None:
@@ -111,7 +115,7 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
         return _fill_from_bounds(out, lower, upper)
     if method == "fse":
         from .fse import _fse
-        # in place: FSE writes only the missing pixels of `out` (issue 7 item 3: no copy back)
+        # in place: FSE writes only the missing pixels of `out` (no copy back)
         wts = skip = None
         if noisy is not None and noisy_joint > 0:
             wts = noisy_weights(v_meas, noisy & ~k, noise, noisy_joint)
@@ -141,21 +145,15 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
     return _apply_bounds(out, miss, lower, upper)
 
 
-_MEAS = ThreadScratch()
-
-
 def _meas_copy(v):
-    """float32 copy of `v` into a per-thread plane kept between calls (no 8 MB allocation and its page
-    faults per 1080p frame; issue 7)."""
-    buf = getattr(_MEAS, "buf", None)
-    if buf is None or buf.shape != v.shape:
-        buf = _MEAS.buf = np.empty(v.shape, np.float32)
+    """float32 copy of `v` into the calling thread's plane (no frame-sized allocation per call)."""
+    buf = planes("reconstruction.measurements", v.shape, lambda: np.empty(v.shape, np.float32))
     np.copyto(buf, v, casting="same_kind")
     return buf
 
 
-# issue 7 (helper fsenoisy): FSE skips the NOISY pixels when the accurate fusion follows (the default);
-# NRHDR_FSE_NOISY_SKIP=0 restores the FSE estimate there (the before/after switch of the benchmarks)
+# FSE skips the NOISY pixels when the accurate fusion follows (the default); NRHDR_FSE_NOISY_SKIP=0 makes
+# FSE estimate them too (benchmarks/stages.py times both)
 NOISY_SKIP = os.environ.get("NRHDR_FSE_NOISY_SKIP", "1") != "0"
 
 
@@ -202,23 +200,21 @@ def noisy_weights(values, noisy, noise, factor: float = 2.0) -> np.ndarray:
     return np.where(np.asarray(noisy, bool), np.minimum(r, 1.0), 0.0).astype(np.float32)
 
 
-FUSION_SETTINGS = ("fast", "accurate")
-FUSION_CHOICES = ("auto",) + FUSION_SETTINGS   # "auto": fast for the preview method, accurate otherwise
-
-
 def fusion_for(fusion: str, method: str) -> str:
     """The noise-fusion setting a method runs with: "auto" is "fast" for the live preview (pull-push; its
-    frame budget, issue 7) and "accurate" for the others; an explicit setting is kept."""
+    frame budget) and "accurate" for the others; an explicit setting is kept."""
     if fusion == "auto":
         return "fast" if method == "preview" else "accurate"
     return fusion
+
+
 _FUSE_ROWS = 64            # rows per parallel chunk of `_fuse_kernel` (its window sums slide down a chunk)
 
 
 def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int = 5,
                setting: str = "accurate"):
-    """Inverse-variance fusion of an estimate e with the noisy measurement m at `noisy` pixels (issue 8,
-    beyond the paper): e + w (m - e), w = var_e / (var_e + var_m), var_m the sensor's noise at level g
+    """Inverse-variance fusion of an estimate e with the noisy measurement m at `noisy` pixels (beyond
+    the paper): e + w (m - e), w = var_e / (var_e + var_m), var_m the sensor's noise at level g
     (the reconstruction) for an attenuated pixel (`validity.measurement_variance`, Eq. 4-7). Both
     settings add to var_e `texture` x the variance of the known pixels of the size x size window in
     excess of their noise: in flat areas the estimate wins, at edges and fine detail the measurement.
@@ -227,7 +223,7 @@ def fuse_noisy(out, values, known, noisy, noise, texture: float = 1.0, size: int
     known pixels weighted 1 / (regular noise at g), the other NOISY pixels 1 / var_m (the noisy
     ND samples are measurements for their neighbours too, not only for their own pixel); var_e =
     1 / (sum of the weights); it reaches the inverse-variance bound of those samples on flat fields
-    (docs/BENCHMARKS.md "Dark regions (issue 8, helper dark)": +0.38 dB at the dark ND pixels of the
+    (docs/BENCHMARKS.md "Dark regions": +0.38 dB at the dark ND pixels of the
     shared scenes for about +19 % of the fast setting's time). `size`: the texture window. In place on
     `out`; numba, window sums slide down chunks of rows."""
     if setting not in FUSION_SETTINGS:
@@ -351,7 +347,7 @@ def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, 
 
 
 def _fill_from_bounds(out, lower, upper):
-    """No known pixel: each pixel at its lower bound, else its upper bound, else 0 (issue 9 item 5: a
+    """No known pixel: each pixel at its lower bound, else its upper bound, else 0 (a
     saturated frame is a uniform area at the clip bound, not the mask pattern)."""
     out[:] = 0.0
     if upper is not None:
@@ -365,7 +361,7 @@ def _fill_from_bounds(out, lower, upper):
 
 def _clamp_to_data(out, v, k, miss, lower):
     """Missing pixels finite and within [min(known min, 0), max(known max, their lower bound)]: no
-    reconstruction exceeds what the data and its bounds imply (issue 8); NaN/Inf (never expected) are
+    reconstruction exceeds what the data and its bounds imply; NaN/Inf (never expected) are
     replaced by the nearest known value."""
     v32 = np.ascontiguousarray(v, np.float32)
     kk = np.ascontiguousarray(k)
@@ -380,7 +376,7 @@ def _clamp_to_data(out, v, k, miss, lower):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _clamp_kernel(out, v, k, lower, use_lower):
-    """`_clamp_kernel_reference` in two parallel row passes (min/max per row, reduced in row order:
+    """The clamp of `_clamp_to_data` in two parallel row passes (min/max per row, reduced in row order:
     exact, independent of the thread count); the number of non-finite missing pixels (left as they are).
     Branch-free (a random mask defeats branch prediction): the known range as order-preserving integer
     keys (`_f32_key`: integer min/max vectorise), the clamp as selects written back to every pixel."""
@@ -405,7 +401,7 @@ def _clamp_kernel(out, v, k, lower, use_lower):
     for y in range(h):
         lo = min(lo, r_lo[y])
         hi = max(hi, r_hi[y])
-    # back to float32 (`_f32_key` is an involution); no known pixel: +inf / -inf as the reference
+    # back to float32 (`_f32_key` is an involution); no known pixel: +inf / -inf
     flo = np.float32(np.inf) if lo == kmax else np.float32(_unkey(lo))
     fhi = np.float32(-np.inf) if hi == kmin else np.float32(_unkey(hi))
     flo = min(flo, np.float32(0.0))
@@ -425,42 +421,6 @@ def _clamp_kernel(out, v, k, lower, use_lower):
             out[y, x] = c if miss & fin else a
             nb += np.int64(miss & (not fin))
         nbad += nb
-    return nbad
-
-
-@njit(cache=True, nogil=True)
-def _clamp_kernel_reference(out, v, k, lower, use_lower):
-    """The serial clamp (before issue 7 item 3); tests compare."""
-    h, w = out.shape
-    lo = np.inf
-    hi = -np.inf
-    for y in range(h):
-        for x in range(w):
-            if k[y, x]:
-                a = v[y, x]
-                lo = min(lo, a)
-                hi = max(hi, a)
-    lo = min(lo, 0.0)
-    flo = np.float32(lo)
-    nbad = 0
-    for y in range(h):
-        for x in range(w):
-            if k[y, x]:
-                continue
-            a = out[y, x]
-            if not np.isfinite(a):
-                nbad += 1
-                continue
-            top = np.float32(hi)
-            if use_lower:
-                b = lower[y, x]
-                if b == b and b > top:
-                    top = b
-            if a < flo:
-                a = flo
-            if a > top:
-                a = top
-            out[y, x] = a
     return nbad
 
 
@@ -596,20 +556,10 @@ def _nearest(out, k, dst=None):
     if dst is None:
         dst = vals.copy()
     h, w = vals.shape
-    row = _nn_scratch(h, w)
+    row = planes("reconstruction.nearest_rows", (h, w), lambda: np.empty((h, w), np.int32))
     _nn_columns(k, row)
     _nn_rows(vals, k, row, dst)
     return dst
-
-
-_NN = ThreadScratch()
-
-
-def _nn_scratch(h, w):
-    cache = getattr(_NN, "cache", None)
-    if cache is None or cache.shape != (h, w):
-        cache = _NN.cache = np.empty((h, w), np.int32)
-    return cache
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -748,128 +698,22 @@ def _linear_1d(out, k):
     return np.interp(x, x[kf], flat[kf]).astype(np.float32).reshape(out.shape)
 
 
-@njit(cache=True, nogil=True)
-def _pull_push(vals, wts, levels):
-    """Pull-push (Gortler et al. 1996): sum values and weights down a 2x pyramid, then fill each
-    level's empty pixels from the coarser level (bilinear-ish 2x2 box). In place on level 0."""
-    h, w = vals.shape
-    # pyramid storage: concatenated levels, offsets computed on the fly
-    hs = np.empty(levels + 1, np.int64)
-    ws = np.empty(levels + 1, np.int64)
-    off = np.empty(levels + 2, np.int64)
-    hs[0], ws[0], off[0] = h, w, 0
-    for l in range(levels):
-        hs[l + 1] = (hs[l] + 1) // 2
-        ws[l + 1] = (ws[l] + 1) // 2
-    for l in range(levels + 1):
-        off[l + 1] = off[l] + hs[l] * ws[l]
-    pv = np.zeros(off[levels + 1], np.float32)
-    pw = np.zeros(off[levels + 1], np.float32)
-    for y in range(h):
-        for x in range(w):
-            pw[y * w + x] = wts[y, x]
-            pv[y * w + x] = vals[y, x] * wts[y, x]
-    for l in range(levels):  # pull
-        h0, w0, o0 = hs[l], ws[l], off[l]
-        h1, w1, o1 = hs[l + 1], ws[l + 1], off[l + 1]
-        for y in range(h0):
-            for x in range(w0):
-                i1 = o1 + (y // 2) * w1 + x // 2
-                pv[i1] += pv[o0 + y * w0 + x]
-                pw[i1] += pw[o0 + y * w0 + x]
-        for i in range(h1 * w1):  # cap weights at 1 (normalise full cells)
-            if pw[o1 + i] > 1.0:
-                pv[o1 + i] /= pw[o1 + i]
-                pw[o1 + i] = 1.0
-    for l in range(levels - 1, -1, -1):  # push
-        h0, w0, o0 = hs[l], ws[l], off[l]
-        w1, o1 = ws[l + 1], off[l + 1]
-        for y in range(h0):
-            for x in range(w0):
-                i0 = o0 + y * w0 + x
-                wt = pw[i0]
-                if wt < 1.0:
-                    i1 = o1 + (y // 2) * w1 + x // 2
-                    c = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
-                    # blend: own normalised average weighted by its weight, coarse fills the rest
-                    own = pv[i0] / wt if wt > 0 else np.float32(0.0)
-                    v = wt * own + (np.float32(1.0) - wt) * c
-                    pv[i0] = v
-                    pw[i0] = 1.0
-                else:
-                    pv[i0] = pv[i0] / wt
-                    pw[i0] = 1.0
-    for y in range(h):
-        for x in range(w):
-            vals[y, x] = pv[y * w + x]
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _mean3x3(vals, mask, y, x):
-    """(weighted sum, weight) of the 8-neighbours of (y, x) where `mask` is non-zero: edges weigh 2,
-    corners 1 (the pull-push level-0 fill; one source for `_fill_3x3`, `_pp_fill_px`, `_pvf_fill_px`)."""
-    h, w = vals.shape
-    acc = np.float32(0.0)
-    wsum = np.float32(0.0)
-    for dy in range(-1, 2):
-        yy = y + dy
-        if yy < 0 or yy >= h:
-            continue
-        for dx in range(-1, 2):
-            xx = x + dx
-            if xx < 0 or xx >= w or mask[yy, xx] == 0:
-                continue
-            wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
-            acc += wt * vals[yy, xx]
-            wsum += wt
-    return acc, wsum
-
-
-@njit(cache=True, nogil=True)
-def _fill_3x3(vals, known, coarse, out):
-    """Missing pixels with known 8-neighbours get their weighted mean (edges 2, corners 1); the rest
-    take the pull-push value `coarse`."""
-    h, w = vals.shape
-    for y in range(h):
-        for x in range(w):
-            if known[y, x]:
-                out[y, x] = vals[y, x]
-                continue
-            acc, wsum = _mean3x3(vals, known, y, x)
-            out[y, x] = acc / wsum if wsum > 0 else coarse[y, x]
-
-
-def _preview_reference(out, k):
-    """The serial pull-push of the previous release (reference for the tests of `_preview`)."""
-    h, w = out.shape
-    levels = int(np.ceil(np.log2(max(h, w, 2))))
-    coarse = np.where(k, out, np.float32(0.0)).astype(np.float32)   # NaN/Inf at missing pixels: weight 0 * NaN
-    _pull_push(coarse, k.astype(np.float32), levels)
-    res = np.empty_like(coarse)
-    _fill_3x3(out.astype(np.float32), k, coarse, res)
-    return res
-
-
-# ---- pull-push at memory speed (issue 7 item 3) ---------------------------------------------------------
-# Same arithmetic as `_pull_push` + `_fill_3x3` (kept as the reference; tests compare bit for bit), but
-# parallel over rows, float32, level 0 never copied (pulled straight from the values and the known mask,
-# filled straight into the output, in place when out is values), and the coarse levels in a pyramid
-# allocated once per frame shape and thread. With 0/1 input weights every level's capped weight is 0 or 1,
-# so a push only fills empty cells with their parent's value.
-
-_PYR = ThreadScratch()
+# ---- pull-push: the live preview -----------------------------------------------------------------------------
+# A fast stand-in for the paper's FSE reconstruction (sections 2.2, 2.4) where the frame budget is tight.
+# Pull-push with 0/1 weights (Gortler et al. 1996, "The Lumigraph"): level 1 of the pyramid is pulled from
+# the frame (`_pull_row`), the coarser levels are pulled to 1 x 1 and pushed back down to level 1
+# (`_pull_push_levels`); a missing pixel then takes the weighted mean of its known 8-neighbours, else its
+# level-1 value (`_fill_row`). Every level's capped weight is 0 or 1, so a push only fills empty cells with
+# their parent's value. `_preview` (method "preview" of `reconstruct`) and the fused frame path
+# (`_preview_frame`) share these kernels; the pyramid's levels 1..L live in one flat per-thread plane. The branch-free pixel loops multiply values by their 0/1 weights, so the level-0
+# values they read must be finite: `_preview` reads them from zero-filled planes (any value, NaN too, may
+# sit under a missing pixel of `reconstruct`'s input), the frame path from a frame it checked to be finite.
 
 
 def _pyramid(h: int, w: int):
-    """(pv, pw, hs, ws, off, zv, kf): flat float32 value/weight storage of levels 1..L (level l at
-    off[l]) and level 0 as zero-filled values and 0/1 weights (H, W), cached per shape in thread-local
-    storage (reused frame after frame, never shared between threads)."""
-    key = (h, w)
-    cache = getattr(_PYR, "cache", None)
-    if cache is None:
-        cache = _PYR.cache = {}
-    p = cache.get(key)
-    if p is None:
+    """(pv, pw, hs, ws, off): flat float32 values and weights of levels 1..L (level l at off[l], hs[l] x
+    ws[l]; level 0 is the frame), the calling thread's planes for this frame shape."""
+    def make():
         levels = int(np.ceil(np.log2(max(h, w, 2))))
         hs = np.empty(levels + 1, np.int64)
         ws = np.empty(levels + 1, np.int64)
@@ -881,65 +725,78 @@ def _pyramid(h: int, w: int):
         for lv in range(1, levels + 1):
             off[lv + 1] = off[lv] + hs[lv] * ws[lv]
         n = max(int(off[levels + 1]), 1)
-        p = (np.zeros(n, np.float32), np.zeros(n, np.float32), hs, ws, off,
-             np.zeros((h, w), np.float32), np.zeros((h, w), np.float32))
-        if len(cache) > 4:
-            cache.clear()
-        cache[key] = p
-    return p
-
-
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _pp_pull0(vals, known, zv, kf, pv, pw, o1, h1, w1):
-    """Level 0 as zero-filled values zv and 0/1 weights kf; level 1 = capped 2 x 2 sums of them
-    (summation order of `_pull_push`)."""
-    h, w = vals.shape
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    for y1 in prange(h1):
-        y = 2 * y1
-        for yy in range(y, min(y + 2, h)):
-            for x in range(w):
-                kk = known[yy, x]
-                zv[yy, x] = vals[yy, x] if kk else zero
-                kf[yy, x] = one if kk else zero
-        base = o1 + y1 * w1
-        if y + 1 < h:
-            for x1 in range(w // 2):
-                x = 2 * x1
-                s = zero + zv[y, x]
-                s = s + zv[y, x + 1]
-                s = s + zv[y + 1, x]
-                s = s + zv[y + 1, x + 1]
-                c = zero + kf[y, x]
-                c = c + kf[y, x + 1]
-                c = c + kf[y + 1, x]
-                c = c + kf[y + 1, x + 1]
-                d = c if c > one else one
-                pv[base + x1] = s / d
-                pw[base + x1] = c if c < one else one
-            if w % 2:
-                x = w - 1
-                s = zero + zv[y, x] + zv[y + 1, x]
-                c = zero + kf[y, x] + kf[y + 1, x]
-                pv[base + w // 2] = s / c if c > one else s
-                pw[base + w // 2] = c if c < one else one
-        else:
-            for x1 in range(w1):
-                s = zero
-                c = zero
-                for x in range(2 * x1, min(2 * x1 + 2, w)):
-                    s += zv[y, x]
-                    c += kf[y, x]
-                if c > one:
-                    s = s / c
-                    c = one
-                pv[base + x1] = s
-                pw[base + x1] = c
+        return np.zeros(n, np.float32), np.zeros(n, np.float32), hs, ws, off
+    return planes("reconstruction.pyramid", (h, w), make)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _pp_pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1):
+def _pull_row(values, known, pv, pw, o1, w1, y1):
+    """Row y1 of level 1: per cell the sum of its 2 x 2 pixels' values times their 0/1 weights (`known`,
+    bool or float; children summed row by row) and of the weights, normalised to weight 1 when above 1."""
+    h, w = values.shape
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    y = 2 * y1
+    base = o1 + y1 * w1
+    if y + 1 < h:
+        for x1 in range(w // 2):
+            x = 2 * x1
+            k00 = one if known[y, x] else zero
+            k01 = one if known[y, x + 1] else zero
+            k10 = one if known[y + 1, x] else zero
+            k11 = one if known[y + 1, x + 1] else zero
+            s = zero + values[y, x] * k00
+            s = s + values[y, x + 1] * k01
+            s = s + values[y + 1, x] * k10
+            s = s + values[y + 1, x + 1] * k11
+            c = zero + k00
+            c = c + k01
+            c = c + k10
+            c = c + k11
+            d = c if c > one else one
+            pv[base + x1] = s / d
+            pw[base + x1] = c if c < one else one
+        if w % 2:
+            x = w - 1
+            k00 = one if known[y, x] else zero
+            k10 = one if known[y + 1, x] else zero
+            s = zero + values[y, x] * k00 + values[y + 1, x] * k10
+            c = zero + k00 + k10
+            pv[base + w // 2] = s / c if c > one else s
+            pw[base + w // 2] = c if c < one else one
+    else:
+        for x1 in range(w1):
+            s = zero
+            c = zero
+            for x in range(2 * x1, min(2 * x1 + 2, w)):
+                kk = one if known[y, x] else zero
+                s += values[y, x] * kk
+                c += kk
+            if c > one:
+                s = s / c
+                c = one
+            pv[base + x1] = s
+            pw[base + x1] = c
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _pull_level1(values, known, zv, kf, pv, pw, o1, h1, w1):
+    """Level 0 as zero-filled values `zv` and 0/1 weights `kf` (whatever `values` holds under missing
+    pixels), and level 1 of the pyramid from them (`_pull_row`), per pair of rows in parallel."""
+    h, w = values.shape
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for y1 in prange(h1):
+        for yy in range(2 * y1, min(2 * y1 + 2, h)):
+            for x in range(w):
+                kk = known[yy, x]
+                zv[yy, x] = values[yy, x] if kk else zero
+                kf[yy, x] = one if kk else zero
+        _pull_row(zv, kf, pv, pw, o1, w1, y1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1):
     """One coarse pixel of the pull: sum of the 2 x 2 children, normalised once its weight exceeds 1."""
     one = np.float32(1.0)
     s = np.float32(0.0)
@@ -956,7 +813,7 @@ def _pp_pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _pp_push_at(pv, pw, o0, w0, o1, w1, y, x):
+def _push_at(pv, pw, o0, w0, o1, w1, y, x):
     """One fine pixel of the push: an under-weighted pixel takes its parent's normalised value."""
     one = np.float32(1.0)
     i0 = o0 + y * w0 + x
@@ -967,122 +824,151 @@ def _pp_push_at(pv, pw, o0, w0, o1, w1, y, x):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _pp_pull(pv, pw, o0, h0, w0, o1, h1, w1):
+def _pull(pv, pw, o0, h0, w0, o1, h1, w1):
     for y1 in prange(h1):
         for x1 in range(w1):
-            _pp_pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
+            _pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _pp_push(pv, pw, o0, h0, w0, o1, w1):
+def _push(pv, pw, o0, h0, w0, o1, w1):
     for y in prange(h0):
         for x in range(w0):
-            _pp_push_at(pv, pw, o0, w0, o1, w1, y, x)
+            _push_at(pv, pw, o0, w0, o1, w1, y, x)
 
 
-@njit(cache=True, nogil=True)
-def _pp_fill_px(zv, kf, pv, o1, w1, y, x, out):
-    """One pixel of `_pp_fill` with bounds checks (image border, no known neighbour)."""
-    if kf[y, x] > 0:
-        out[y, x] = zv[y, x]
-        return
-    acc, wsum = _mean3x3(zv, kf, y, x)
-    out[y, x] = acc / wsum if wsum > 0 else pv[o1 + (y // 2) * w1 + x // 2]
+_SERIAL_LEVEL = 1 << 16    # levels smaller than this many pixels are pulled and pushed in one serial call
 
 
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _pp_fill(zv, kf, pv, o1, w1, out):
-    """Missing pixels: weighted mean of the known 8-neighbours (edges 2, corners 1; order of
-    `_fill_3x3`), else the level-1 value; known pixels copied. Reads only zv/kf, so `out` may be the
-    input values. The interior loop is branch-free (vectorises); pixels without a known neighbour
-    come out NaN (0/0) there and are redone by `_pp_fill_px`."""
-    h, w = zv.shape
-    two = np.float32(2.0)
-    zero = np.float32(0.0)
-    for y in prange(h):
-        if y == 0 or y == h - 1 or w < 3:
-            for x in range(w):
-                _pp_fill_px(zv, kf, pv, o1, w1, y, x, out)
-            continue
-        for x in range(1, w - 1):
-            acc = zero + zv[y - 1, x - 1]
-            acc = acc + two * zv[y - 1, x]
-            acc = acc + zv[y - 1, x + 1]
-            acc = acc + two * zv[y, x - 1]
-            acc = acc + two * zv[y, x + 1]
-            acc = acc + zv[y + 1, x - 1]
-            acc = acc + two * zv[y + 1, x]
-            acc = acc + zv[y + 1, x + 1]
-            ws = zero + kf[y - 1, x - 1]
-            ws = ws + two * kf[y - 1, x]
-            ws = ws + kf[y - 1, x + 1]
-            ws = ws + two * kf[y, x - 1]
-            ws = ws + two * kf[y, x + 1]
-            ws = ws + kf[y + 1, x - 1]
-            ws = ws + two * kf[y + 1, x]
-            ws = ws + kf[y + 1, x + 1]
-            r = acc / ws
-            out[y, x] = zv[y, x] if kf[y, x] > zero else r
-        nan = 0
-        for x in range(1, w - 1):
-            nan += 1 if out[y, x] != out[y, x] else 0
-        if nan:
-            for x in range(1, w - 1):
-                if out[y, x] != out[y, x]:
-                    _pp_fill_px(zv, kf, pv, o1, w1, y, x, out)
-        _pp_fill_px(zv, kf, pv, o1, w1, y, 0, out)
-        _pp_fill_px(zv, kf, pv, o1, w1, y, w - 1, out)
-
-
-def _preview(vals, k, out=None):
-    """Pull-push preview of float32 `vals` (H, W) with bool `known`, written into `out` (new array when
-    None; may be `vals` itself); same result as `_preview_reference`, bit for bit."""
-    vals = np.ascontiguousarray(vals, dtype=np.float32)
-    k = np.ascontiguousarray(k)
-    if out is None:
-        out = np.empty_like(vals)
-    h, w = vals.shape
-    pv, pw, hs, ws, off, zv, kf = _pyramid(h, w)
+def _pull_push_levels(pv, pw, hs, ws, off):
+    """Pull levels 1 -> L, then push back to level 1 (level 1 already pulled from the frame): big levels
+    in parallel regions, the small ones in one serial call (a parallel region per tiny level costs more
+    than its work, and much more when the cores are busy)."""
     levels = hs.shape[0] - 1
-    _pp_pull0(vals, k, zv, kf, pv, pw, off[1], hs[1], ws[1])
-    _pp_levels(pv, pw, hs, ws, off, levels)
-    _pp_fill(zv, kf, pv, off[1], ws[1], out)
-    return out
-
-
-def _pp_levels(pv, pw, hs, ws, off, levels):
-    """Pull levels 1 -> `levels`, then push back to level 1 (level 1 already pulled from the frame): big
-    levels in parallel regions, the small ones (< _PP_SERIAL pixels) in one serial call (a parallel
-    region per tiny level costs more than its work, and much more when the cores are busy)."""
     small = 1
-    while small < levels and hs[small] * ws[small] >= _PP_SERIAL:
+    while small < levels and hs[small] * ws[small] >= _SERIAL_LEVEL:
         small += 1
     for lv in range(1, small):
-        _pp_pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
-    _pp_small_levels(pv, pw, hs, ws, off, small, levels)
+        _pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+    _small_levels(pv, pw, hs, ws, off, small, levels)
     for lv in range(small - 1, 0, -1):
-        _pp_push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
-
-
-_PP_SERIAL = 1 << 16
+        _push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
 
 
 @njit(cache=True, nogil=True)
-def _pp_small_levels(pv, pw, hs, ws, off, first, levels):
-    """Pull from level `first` to the top and push back down to `first`, serially (same arithmetic as
-    `_pp_pull` / `_pp_push`)."""
+def _small_levels(pv, pw, hs, ws, off, first, levels):
+    """Pull from level `first` to the top and push back down to `first`, serially (`_pull_at`, `_push_at`)."""
     for lv in range(first, levels):
         o0, h0, w0 = off[lv], hs[lv], ws[lv]
         o1, h1, w1 = off[lv + 1], hs[lv + 1], ws[lv + 1]
         for y1 in range(h1):
             for x1 in range(w1):
-                _pp_pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
+                _pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
     for lv in range(levels - 1, first - 1, -1):
         o0, h0, w0 = off[lv], hs[lv], ws[lv]
         o1, w1 = off[lv + 1], ws[lv + 1]
         for y in range(h0):
             for x in range(w0):
-                _pp_push_at(pv, pw, o0, w0, o1, w1, y, x)
+                _push_at(pv, pw, o0, w0, o1, w1, y, x)
+
+
+@njit(cache=True, nogil=True)
+def _fill_px(values, known, pv, o1, w1, y, x):
+    """The fill of pixel (y, x), with bounds checks: the weighted mean of its known 8-neighbours (edges
+    weigh 2, corners 1, summed in row-major neighbour order), else its level-1 value."""
+    h, w = values.shape
+    acc = np.float32(0.0)
+    wsum = np.float32(0.0)
+    for dy in range(-1, 2):
+        yy = y + dy
+        if yy < 0 or yy >= h:
+            continue
+        for dx in range(-1, 2):
+            xx = x + dx
+            if xx < 0 or xx >= w or (dy == 0 and dx == 0) or not known[yy, xx]:
+                continue
+            wt = np.float32(1.0) if (dy != 0 and dx != 0) else np.float32(2.0)
+            acc += wt * values[yy, xx]
+            wsum += wt
+    return acc / wsum if wsum > 0 else pv[o1 + (y // 2) * w1 + x // 2]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fill_row(values, known, pv, o1, w1, y, g, keep):
+    """g[x] = `_fill_px` of every pixel of row y, or with `keep` its own value where it is known;
+    `known`: bool or 0/1 float weights, `values` finite (or zero) where the weight is 0. The interior is
+    branch-free (it vectorises): no known neighbour gives 0/0 = NaN there, then replaced by the level-1
+    value (so is the NaN of a sum of +inf and -inf, values beyond float32's range)."""
+    h, w = values.shape
+    zero = np.float32(0.0)
+    if y == 0 or y == h - 1 or w < 3:
+        for x in range(w):
+            own = keep and known[y, x] > 0
+            g[x] = values[y, x] if own else _fill_px(values, known, pv, o1, w1, y, x)
+        return
+    two = np.float32(2.0)
+    one = np.float32(1.0)
+    base = o1 + (y // 2) * w1
+    for x in range(1, w - 1):
+        k00 = one if known[y - 1, x - 1] else zero
+        k01 = one if known[y - 1, x] else zero
+        k02 = one if known[y - 1, x + 1] else zero
+        k10 = one if known[y, x - 1] else zero
+        k12 = one if known[y, x + 1] else zero
+        k20 = one if known[y + 1, x - 1] else zero
+        k21 = one if known[y + 1, x] else zero
+        k22 = one if known[y + 1, x + 1] else zero
+        acc = zero + values[y - 1, x - 1] * k00
+        acc = acc + two * (values[y - 1, x] * k01)
+        acc = acc + values[y - 1, x + 1] * k02
+        acc = acc + two * (values[y, x - 1] * k10)
+        acc = acc + two * (values[y, x + 1] * k12)
+        acc = acc + values[y + 1, x - 1] * k20
+        acc = acc + two * (values[y + 1, x] * k21)
+        acc = acc + values[y + 1, x + 1] * k22
+        ws = zero + k00
+        ws = ws + two * k01
+        ws = ws + k02
+        ws = ws + two * k10
+        ws = ws + two * k12
+        ws = ws + k20
+        ws = ws + two * k21
+        ws = ws + k22
+        r = acc / ws
+        a = values[y, x]
+        kc = one if known[y, x] else zero
+        g[x] = a if keep & (kc > zero) else r
+    for x in range(1, w - 1):
+        if g[x] != g[x]:
+            g[x] = pv[base + x // 2]
+    for x in (0, w - 1):
+        own = keep and known[y, x] > 0
+        g[x] = values[y, x] if own else _fill_px(values, known, pv, o1, w1, y, x)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _fill(zv, kf, pv, o1, w1, out):
+    """out = the level-0 values `zv` where the weight `kf` is 1, the fill (`_fill_row`) elsewhere; rows in
+    parallel (`out` may be the input values: the fill reads the level-0 planes only)."""
+    for y in prange(zv.shape[0]):
+        _fill_row(zv, kf, pv, o1, w1, y, out[y], True)
+
+
+def _preview(vals, k, out=None):
+    """Pull-push fill of float32 `vals` (H, W) with bool `known` (the preview method), written into `out`
+    (a new array when None; may be `vals` itself)."""
+    vals = np.ascontiguousarray(vals, dtype=np.float32)
+    k = np.ascontiguousarray(k)
+    if out is None:
+        out = np.empty_like(vals)
+    h, w = vals.shape
+    pv, pw, hs, ws, off = _pyramid(h, w)
+    zv, kf = planes("reconstruction.level0", (h, w), lambda: (np.empty((h, w), np.float32),
+                                                              np.empty((h, w), np.float32)))
+    _pull_level1(vals, k, zv, kf, pv, pw, off[1], hs[1], ws[1])
+    _pull_push_levels(pv, pw, hs, ws, off)
+    _fill(zv, kf, pv, off[1], ws[1], out)
+    return out
 
 
 def warmup(method: str | None = None) -> None:
@@ -1093,13 +979,13 @@ def warmup(method: str | None = None) -> None:
     k[1, 1] = False
     if method in (None, "preview"):
         reconstruct(v, k, method="preview")
-        # the parallel pyramid levels (used from 512 x 512 on) and the element's frame path with bounds
+        # the parallel pyramid levels (used from 512 x 512 on)
         pv = np.zeros(8, np.float32)
-        _pp_pull(pv, pv.copy(), 0, 2, 2, 4, 1, 1)
-        _pp_push(pv, pv.copy(), 0, 2, 2, 4, 1)
+        _pull(pv, pv.copy(), 0, 2, 2, 4, 1, 1)
+        _push(pv, pv.copy(), 0, 2, 2, 4, 1)
     if method in (None, "nearest"):
         reconstruct(v, k, method="nearest")
-    # the dispatcher's own kernels (every method): data-range clamp, noise fusion (issue 8)
+    # the dispatcher's own kernels (every method): data-range clamp, noise fusion
     from types import SimpleNamespace
     _clamp_to_data(v.copy(), v, k, ~k, np.full(v.shape, np.nan, np.float32))
     fuse_noisy(v.copy(), v, k, ~k, SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
@@ -1108,32 +994,27 @@ def warmup(method: str | None = None) -> None:
         from . import fse
         fse.warmup()
     if method is not None:
-        from . import validity
         state = np.zeros((4, 4), np.uint8)
-        state[1, 1] = validity.CLIPPED
-        state[2, 2] = validity.DARK
+        state[1, 1] = CLIPPED
+        state[2, 2] = DARK
         reconstruct_frame(v.copy(), state, method=method, preset="preview", use_bounds=True)
         reconstruct_frame(v.copy(), state.copy(), method=method, preset="preview", use_bounds=False)
-        # the element's frame with NOISY pixels fused (nrvalidity dark-policy=weighted, issue 8)
-        state = np.full((4, 4), validity.ATTENUATED | validity.CLIPPED, np.uint8)
-        state[0, :] = validity.VALID
-        state[1, 1] = validity.CLIPPED
-        state[2, 2] = validity.ATTENUATED | validity.NOISY
+        # the element's frame with NOISY pixels fused (nrvalidity dark-policy=weighted)
+        state = np.full((4, 4), ATTENUATED | CLIPPED, np.uint8)
+        state[0, :] = VALID
+        state[1, 1] = CLIPPED
+        state[2, 2] = ATTENUATED | NOISY
         reconstruct_frame(v.copy() + 1, state, method=method, preset="preview", use_bounds=True,
                           noise=SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
 
 
-# ---- whole-frame entry point for elements (issue 7 item 3): no per-frame allocation --------------------
+# ---- whole-frame entry point for elements: no per-frame allocation -----------------------------------------
 
-_FRAME = ThreadScratch()
-
-
-def _frame_scratch(h, w, with_bounds):
-    s = getattr(_FRAME, "s", None)
-    if s is None or s[0].shape != (h, w):
-        s = _FRAME.s = (np.empty((h, w), np.bool_), np.empty((h, w), np.float32),
-                        np.empty((h, w), np.float32), np.empty((h, w), np.float32))
-    return s
+def _frame_scratch(h, w):
+    """The general frame path's planes (known, lower, upper, result), the calling thread's."""
+    return planes("reconstruction.frame", (h, w), lambda: (
+        np.empty((h, w), np.bool_), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+        np.empty((h, w), np.float32)))
 
 
 def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", preset: str = "balanced",
@@ -1143,19 +1024,20 @@ def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", prese
     RECONSTRUCTED bit in `state`; measured pixels are untouched. Known mask and bounds come from one
     fused pass into per-thread scratch reused frame after frame; `preview` and `nearest` write straight
     into `values`. `noise`: the noise model (a CameraProfile) with which NOISY pixels (dark policy
-    "weighted", issue 8) are fused (`fusion`: `fuse_noisy`'s setting, "accurate" or "fast"); without it
-    they are reconstructed like other missing pixels. `method` may be a callable `f(missing_share) -> (method, preset)`, called once the frame's missing
-    share is known (only when something is missing): how `nrreconstruct method=auto` picks per frame.
+    "weighted") are fused (`fusion`: one of FUSIONS, `fuse_noisy`'s setting); without it they are
+    reconstructed like other missing pixels. `method` may be a callable
+    `f(missing_share) -> (method, preset)`, called once the frame's missing share is known (only when
+    something is missing): how `nrreconstruct method=auto` picks per frame.
     This is the one per-frame path of nrreconstruct and of `chain.process_frame` (batch), so both give
     the same bits. Returns the number of pixels filled (0: nothing to do, nothing touched).
     The preview (fixed, or chosen by a callable `method`) runs in three fused passes over the frame
-    (`_preview_frame`, same bits as the general path)."""
+    (`_preview_frame`, the same bits as `reconstruct`)."""
     if (method == "preview" or callable(method)) and not params and values.ndim == 2 \
             and values.dtype == np.float32 and values.flags.c_contiguous and values.flags.writeable \
             and isinstance(state, np.ndarray) and state.dtype == np.uint8 and state.shape == values.shape \
             and state.flags.c_contiguous and state.flags.writeable:
-        if fusion not in FUSION_CHOICES:
-            raise ValueError(f"noise fusion setting must be one of {FUSION_CHOICES}, got {fusion!r}")
+        if fusion not in FUSIONS:
+            raise ValueError(f"noise fusion setting must be one of {FUSIONS}, got {fusion!r}")
         r = _preview_frame(values, state, method, use_bounds, noise, fusion)
         if isinstance(r, int):
             return r
@@ -1166,11 +1048,10 @@ def reconstruct_frame(values: np.ndarray, state: np.ndarray, method="fse", prese
 
 def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise, fusion="auto",
                                **params) -> int:
-    """`reconstruct_frame` for every method: prepare, `reconstruct`, write-back (the reference of the
-    fused preview path)."""
+    """`reconstruct_frame` for every method: prepare, `reconstruct`, write-back."""
     from . import validity
     h, w = values.shape
-    known, lower, upper, res = _frame_scratch(h, w, use_bounds)
+    known, lower, upper, res = _frame_scratch(h, w)
     n_miss, n_unknown, known, lower, upper = validity._prepare(
         values, state, known, lower if use_bounds else None, upper if use_bounds else None, use_bounds)
     if n_miss == 0:
@@ -1190,39 +1071,35 @@ def _reconstruct_frame_general(values, state, method, preset, use_bounds, noise,
     return validity.write_back(values, state, out)
 
 
-# ---- the element's preview frame path in three fused passes (issue 7 item 3) ----------------------------
+# ---- the preview frame path in three fused passes -------------------------------------------------------
 # `reconstruct_frame(method="preview")` gives exactly the bits of the general path (prepare, `reconstruct`
 # with its data-range clamp, noise fusion and bounds, write-back), in three passes over the frame instead
 # of about ten and without a frame-sized temporary:
-#   1. `_pvf_pull0`: known / NOISY masks, the clip bounds (neighbour rule only in rows with a clipped
-#      regular pixel), counts, range of the known values, and the pyramid's level 1, straight from the
-#      values and states (no level-0 copy);
-#   2. the pyramid levels (`_pp_pull`, `_pp_small_levels`, `_pp_push`, as `_preview`);
-#   3. `_pvf_fill`: per missing pixel the 3 x 3 fill (else the level-1 value), clamp to the data range,
-#      bounds, written into the frame with the RECONSTRUCTED bit; rows with nothing missing are skipped.
-# NOISY pixels go through `fuse_noisy` (issue 8) from a scratch plane, then `_pvf_put_noisy`. A frame with
-# a non-finite value or no known pixel takes the general path (its errors and warnings).
+#   1. `_frame_pull`: known / NOISY masks, the clip bounds (neighbour rule only in rows with a clipped
+#      regular pixel), counts, range of the known values, and the pyramid's level 1 (`_pull_row`), straight
+#      from the values and states;
+#   2. the pyramid levels (`_pull_push_levels`, as `_preview`);
+#   3. `_frame_fill`: per row with a missing pixel the fill (`_fill_row`), clamp to the data range,
+#      bounds, written into the frame with the RECONSTRUCTED bit.
+# NOISY pixels go through `fuse_noisy` from a scratch plane, then `_frame_put_noisy`. A frame with a
+# non-finite value or no known pixel takes the general path (its errors and warnings).
 
-def _pvf_scratch(h, w):
-    """Per-thread planes reused frame after frame: known, noisy, lower bound, fusion scratch, row stats."""
-    s = getattr(_FRAME, "pv", None)
-    if s is None or s[0].shape != (h, w):
-        h1 = (h + 1) // 2
-        s = _FRAME.pv = (np.empty((h, w), np.bool_), np.empty((h, w), np.bool_), np.empty((h, w), np.float32),
-                         np.empty((h, w), np.float32), np.empty((h1, 4), np.int64), np.empty((h1, 2), np.int32))
-    return s
+def _preview_scratch(h, w):
+    """The fused path's planes (known, noisy, lower bound, fill, per row pair stats), the calling thread's."""
+    h1 = (h + 1) // 2
+    return planes("reconstruction.preview_frame", (h, w), lambda: (
+        np.empty((h, w), np.bool_), np.empty((h, w), np.bool_), np.empty((h, w), np.float32),
+        np.empty((h, w), np.float32), np.empty((h1, 4), np.int64), np.empty((h1, 2), np.int32)))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng, use_bounds):
+def _frame_pull(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng, use_bounds):
     """Pass 1 (per pair of rows): known = reason VALID; noisy = NOISY and not RECONSTRUCTED; lower =
-    the CLIPPED pixels' lower bound (`validity.bounds`, with `use_bounds`; other entries are scratch); cnt[y1] = (missing,
-    not VALID, noisy, non-finite values); rng[y1] = keys (`_f32_key`) of the min and max known value;
-    level 1 of the pull-push pyramid = `_pp_pull0`'s capped 2 x 2 sums (same summation order). The
-    per-pixel loops are branch-free (they vectorise)."""
+    the CLIPPED pixels' lower bound (`validity.bounds`, with `use_bounds`; other entries are scratch);
+    cnt[y1] = (missing, not VALID, noisy, non-finite values); rng[y1] = keys (`_f32_key`) of the min and
+    max known value; the pyramid's level 1 (`_pull_row`). The per-pixel loops are branch-free (they
+    vectorise)."""
     h, w = values.shape
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
     vi = values.view(np.int32)
     kmax = np.int32(0x7FFFFFFF)
     kmin = np.int32(-0x7FFFFFFF - 1)
@@ -1239,16 +1116,16 @@ def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng,
             ccr = 0
             for x in range(w):
                 st = state[yy, x]
-                r = st & 0x0F
-                k = r == 0
+                r = st & REASON_MASK
+                k = r == VALID
                 known[yy, x] = k
-                nz = (st & 0x4F) == 5
+                nz = (st & (REASON_MASK | RECONSTRUCTED)) == NOISY
                 noisy[yy, x] = nz
                 cu += np.int64(~k)
-                cm += np.int64(~k & ((st & 0x40) == 0))
+                cm += np.int64(~k & ((st & RECONSTRUCTED) == 0))
                 cn += np.int64(nz)
-                ccl += np.int64(r == 1)
-                ccr += np.int64((st & 0x8F) == 1)
+                ccl += np.int64(r == CLIPPED)
+                ccr += np.int64((st & (ATTENUATED | REASON_MASK)) == CLIPPED)
                 i = vi[yy, x]
                 cb += np.int64((i & 0x7F800000) == 0x7F800000)
                 key = _f32_key(i)
@@ -1261,134 +1138,52 @@ def _pvf_pull0(values, state, known, noisy, lower, pv, pw, o1, h1, w1, cnt, rng,
                     st = state[yy, x]
                     v = values[yy, x]
                     m = lower[yy, x]
-                    b = m if (((st & 0x80) == 0) & (m == m) & (m > v) & (ccr > 0)) else v
-                    lower[yy, x] = b if (st & 0x0F) == 1 else m
+                    b = m if (((st & ATTENUATED) == 0) & (m == m) & (m > v) & (ccr > 0)) else v
+                    lower[yy, x] = b if (st & REASON_MASK) == CLIPPED else m
         cnt[y1, 0] = cm
         cnt[y1, 1] = cu
         cnt[y1, 2] = cn
         cnt[y1, 3] = cb
         rng[y1, 0] = lo
         rng[y1, 1] = hi
-        base = o1 + y1 * w1
-        if y + 1 < h:
-            for x1 in range(w // 2):
-                x = 2 * x1
-                k00 = one if known[y, x] else zero
-                k01 = one if known[y, x + 1] else zero
-                k10 = one if known[y + 1, x] else zero
-                k11 = one if known[y + 1, x + 1] else zero
-                s = zero + values[y, x] * k00
-                s = s + values[y, x + 1] * k01
-                s = s + values[y + 1, x] * k10
-                s = s + values[y + 1, x + 1] * k11
-                c = zero + k00
-                c = c + k01
-                c = c + k10
-                c = c + k11
-                d = c if c > one else one
-                pv[base + x1] = s / d
-                pw[base + x1] = c if c < one else one
-            if w % 2:
-                x = w - 1
-                k00 = one if known[y, x] else zero
-                k10 = one if known[y + 1, x] else zero
-                s = zero + values[y, x] * k00 + values[y + 1, x] * k10
-                c = zero + k00 + k10
-                pv[base + w // 2] = s / c if c > one else s
-                pw[base + w // 2] = c if c < one else one
-        else:
-            for x1 in range(w1):
-                s = zero
-                c = zero
-                for x in range(2 * x1, min(2 * x1 + 2, w)):
-                    kk = one if known[y, x] else zero
-                    s += values[y, x] * kk
-                    c += kk
-                if c > one:
-                    s = s / c
-                    c = one
-                pv[base + x1] = s
-                pw[base + x1] = c
-
-
-@njit(cache=True, nogil=True)
-def _pvf_fill_px(values, known, pv, o1, w1, y, x):
-    """`_pp_fill_px` for a missing pixel: weighted mean of its known 8-neighbours, else level 1."""
-    acc, wsum = _mean3x3(values, known, y, x)
-    return acc / wsum if wsum > 0 else pv[o1 + (y // 2) * w1 + x // 2]
+        _pull_row(values, known, pv, pw, o1, w1, y1)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _pvf_fill(values, state, known, noisy, lower, pv, o1, w1, flo, top0, use_bounds, fuse, g, cnt, flag):
-    """Pass 3, per row with a missing pixel: g = `_pp_fill`'s value (3 x 3 weighted mean of the known
-    neighbours, else level 1; the interior branch-free as `_pp_fill`, known values times 0/1 weights),
-    then for the missing pixels `_clamp_kernel`'s data range [flo, top0 or the lower bound] and
-    `_clamp_missing2`'s bounds, written into the frame with `flag`; with `fuse`, NOISY pixels keep their
-    measurement and their estimate stays in g for the fusion. A non-finite estimate is not written
-    (noisy cleared too) and counted (the general path then finishes the frame). Reads the values only
-    at known pixels and at the pixel itself (the others times weight 0), so it works in place."""
+def _frame_fill(values, state, known, noisy, lower, pv, o1, w1, flo, top0, use_bounds, fuse, g, cnt):
+    """Pass 3, per row with a missing pixel: g = the fill (`_fill_row`), then for the missing pixels the
+    data range [flo, top0 or the lower bound] (`_clamp_kernel`) and the bounds (`_clamp_missing2`),
+    written into the frame with RECONSTRUCTED; with `fuse`, NOISY pixels keep their measurement and their
+    estimate stays in g for the fusion. A non-finite estimate is not written (noisy cleared too) and
+    counted (the general path then finishes the frame). The fill reads values only at known pixels, so
+    it works in place."""
     h, w = values.shape
-    two = np.float32(2.0)
-    one = np.float32(1.0)
     zero = np.float32(0.0)
     ninf = np.float32(-np.inf)
     pinf = np.float32(np.inf)
+    flag = np.uint8(RECONSTRUCTED)
     nbad = 0
     for y in prange(h):
         if cnt[y // 2, 0] == 0:
             continue
-        if y == 0 or y == h - 1 or w < 3:
-            for x in range(w):
-                g[y, x] = _pvf_fill_px(values, known, pv, o1, w1, y, x)
-        else:
-            for x in range(1, w - 1):
-                k00 = one if known[y - 1, x - 1] else zero
-                k01 = one if known[y - 1, x] else zero
-                k02 = one if known[y - 1, x + 1] else zero
-                k10 = one if known[y, x - 1] else zero
-                k12 = one if known[y, x + 1] else zero
-                k20 = one if known[y + 1, x - 1] else zero
-                k21 = one if known[y + 1, x] else zero
-                k22 = one if known[y + 1, x + 1] else zero
-                acc = zero + values[y - 1, x - 1] * k00
-                acc = acc + two * (values[y - 1, x] * k01)
-                acc = acc + values[y - 1, x + 1] * k02
-                acc = acc + two * (values[y, x - 1] * k10)
-                acc = acc + two * (values[y, x + 1] * k12)
-                acc = acc + values[y + 1, x - 1] * k20
-                acc = acc + two * (values[y + 1, x] * k21)
-                acc = acc + values[y + 1, x + 1] * k22
-                ws = zero + k00
-                ws = ws + two * k01
-                ws = ws + k02
-                ws = ws + two * k10
-                ws = ws + two * k12
-                ws = ws + k20
-                ws = ws + two * k21
-                ws = ws + k22
-                g[y, x] = acc / ws
-            for x in range(1, w - 1):
-                if ws_zero(g[y, x]):
-                    g[y, x] = pv[o1 + (y // 2) * w1 + x // 2]
-            g[y, 0] = _pvf_fill_px(values, known, pv, o1, w1, y, 0)
-            g[y, w - 1] = _pvf_fill_px(values, known, pv, o1, w1, y, w - 1)
+        _fill_row(values, known, pv, o1, w1, y, g[y], False)
         nb = 0
         for x in range(w):
             st = state[y, x]
-            r = st & 0x0F
-            m = (r != 0) & ((st & 0x40) == 0)
+            r = st & REASON_MASK
+            m = (r != VALID) & ((st & RECONSTRUCTED) == 0)
             a = g[y, x]
             fin = a - a == zero
             lb = lower[y, x]
             v = values[y, x]
-            bb = lb if (use_bounds & (r == 1)) else ninf
+            bb = lb if (use_bounds & (r == CLIPPED)) else ninf
             top = bb if bb > top0 else top0
             a = flo if a < flo else a
             a = top if a > top else a
-            isn = fuse & (r == 5)
+            isn = fuse & (r == NOISY)
             if use_bounds:
                 a = bb if bb > a else a
-                u = v if r == 2 else pinf
+                u = v if r == DARK else pinf
                 a = u if u < a else a
             wr = m & fin & ~isn
             g[y, x] = a
@@ -1400,16 +1195,11 @@ def _pvf_fill(values, state, known, noisy, lower, pv, o1, w1, flo, top0, use_bou
     return nbad
 
 
-@njit(cache=True, nogil=True, inline="always")
-def ws_zero(a):
-    """The interior fill's 0/0 (no known neighbour): NaN."""
-    return a != a
-
-
 @njit(cache=True, nogil=True, parallel=True)
-def _pvf_put_noisy(values, state, noisy, g, cnt, flag):
-    """The fused NOISY pixels into the frame with `flag` (rows without one skipped)."""
+def _frame_put_noisy(values, state, noisy, g, cnt):
+    """The fused NOISY pixels into the frame with RECONSTRUCTED (rows without one skipped)."""
     h, w = values.shape
+    flag = np.uint8(RECONSTRUCTED)
     for y in prange(h):
         if cnt[y // 2, 2] == 0:
             continue
@@ -1423,12 +1213,10 @@ def _preview_frame(values, state, method, use_bounds, noise, fusion="auto"):
     """`reconstruct_frame` for the preview (fused passes above). Returns the pixels filled, or
     (method, preset) when a callable `method` chose something else, or None when the general path must
     do the frame (non-finite values, no known pixel); nothing is written then."""
-    from . import validity
     h, w = values.shape
-    known, noisy, lower, g, cnt, rng = _pvf_scratch(h, w)
-    pv, pw, hs, ws, off, _, _ = _pyramid(h, w)
-    levels = hs.shape[0] - 1
-    _pvf_pull0(values, state, known, noisy, lower, pv, pw, off[1], hs[1], ws[1], cnt, rng, bool(use_bounds))
+    known, noisy, lower, g, cnt, rng = _preview_scratch(h, w)
+    pv, pw, hs, ws, off = _pyramid(h, w)
+    _frame_pull(values, state, known, noisy, lower, pv, pw, off[1], hs[1], ws[1], cnt, rng, bool(use_bounds))
     tot = cnt.sum(axis=0)
     n_miss, n_unknown, n_noisy, n_bad = (int(t) for t in tot)
     if n_miss == 0:
@@ -1439,19 +1227,18 @@ def _preview_frame(values, state, method, use_bounds, noise, fusion="auto"):
         method, preset = method(n_miss / float(h * w))
         if method != "preview":
             return method, preset
-    _pp_levels(pv, pw, hs, ws, off, levels)
+    _pull_push_levels(pv, pw, hs, ws, off)
     keys = np.array([rng[:, 0].min(), rng[:, 1].max()], np.int32)
     lo, hi = (keys ^ ((keys >> 31) & 0x7FFFFFFF)).view(np.float32)     # `_f32_key` undone
     lo = np.float32(min(lo, np.float32(0.0)))
     fuse = noise is not None and n_noisy > 0
-    flag = np.uint8(validity.RECONSTRUCTED)
-    nbad = _pvf_fill(values, state, known, noisy, lower, pv, off[1], ws[1], lo, hi, bool(use_bounds), fuse,
-                     g, cnt, flag)
+    nbad = _frame_fill(values, state, known, noisy, lower, pv, off[1], ws[1], lo, hi, bool(use_bounds), fuse,
+                       g, cnt)
     if fuse:
         fuse_noisy(g, values, known, noisy, noise, setting=fusion_for(fusion, "preview"))
-        _pvf_put_noisy(values, state, noisy, g, cnt, flag)
+        _frame_put_noisy(values, state, noisy, g, cnt)
     n = n_miss - nbad
     if nbad:
-        # never seen (a fill that overflows float32): the general path fills what is left, as it would
+        # a fill that overflows float32: the general path fills what is left, as it would
         n += _reconstruct_frame_general(values, state, "preview", "balanced", use_bounds, noise, fusion)
     return n

@@ -1,13 +1,13 @@
 """Per-thread scratch storage for the working arrays the kernels reuse frame after frame (no per-frame
 allocation): `planes(name, key, make)` is the one cache every stage uses.
 
-`threading.local()` does not do this job inside GStreamer: its data lives in the Python thread state, and
+`threading.local()` cannot do this job inside GStreamer: its data lives in the Python thread state, and
 the Python bindings create a thread state when a streaming thread calls into a Python element and destroy it
-when the call returns (PyGILState_Ensure / PyGILState_Release). Under gst-launch-1.0 most runs therefore
-found an empty `threading.local()` at every frame and allocated the 1080p scratch planes again; the fresh pages cost
-~3,200 page faults per frame (perf stat: 350 k faults for 90 frames against 58 k in-process) and made
-nrreconstruct `preview` take 22-26 ms per frame instead of 14-15 ms. `ThreadScratch` keys the storage by
-the OS thread instead, so it outlives the Python thread state.
+when the call returns (PyGILState_Ensure / PyGILState_Release). Under gst-launch-1.0 a `threading.local()`
+is then empty at most frames and the planes are allocated again; at 1080p the fresh pages cost ~3,200 page
+faults per frame (perf stat: 350 k faults for 90 frames against 58 k in-process), which makes nrreconstruct
+`preview` take 22-26 ms per frame instead of 14-15 ms. `ThreadScratch` keys the storage by the OS thread
+instead, so it outlives the Python thread state.
 """
 from __future__ import annotations
 

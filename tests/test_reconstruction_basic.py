@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from nrhdr_core import reconstruct
-from nrhdr_core.reconstruction import ReconstructionWarning
+from nrhdr_core.reconstruction import FUSIONS, METHODS, ReconstructionWarning
 
 
 @pytest.fixture
@@ -88,3 +88,35 @@ def test_one_row_images():
     k = np.zeros((1, 10), bool)
     k[0, [0, 9]] = True
     assert np.allclose(reconstruct(img, k, method="linear"), img)
+
+
+@pytest.mark.parametrize("pos", [(0, 0), (17, 23), (39, 49)])
+def test_preview_of_one_known_pixel_is_its_value_everywhere(pos):
+    img = np.zeros((40, 50), np.float32)
+    known = np.zeros(img.shape, bool)
+    known[pos] = True
+    img[pos] = 42.5
+    assert np.array_equal(reconstruct(img, known, method="preview"), np.full(img.shape, 42.5, np.float32))
+
+
+def test_preview_on_a_checkerboard_is_the_mean_of_the_four_neighbours(ramp_case):
+    """Known where y + x is even: every missing pixel has its four edge neighbours known and its corners
+    missing, so it gets their mean; on a plane that is the plane's value (interior pixels)."""
+    img, _ = ramp_case
+    yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    known = (yy + xx) % 2 == 0
+    out = reconstruct(img, known, method="preview")
+    np.testing.assert_allclose(out[1:-1, 1:-1], img[1:-1, 1:-1], rtol=0, atol=1e-4)
+    pad = np.pad(img, 1)
+    mean4 = (pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:]) / 4
+    np.testing.assert_allclose(out[1:-1, 1:-1], mean4[1:-1, 1:-1], rtol=0, atol=1e-4)
+
+
+def test_every_method_and_fusion_setting_is_accepted_and_others_rejected(ramp_case):
+    img, known = ramp_case
+    for method in METHODS:
+        for fusion in FUSIONS:
+            out = reconstruct(img, known, method=method, preset="fast", fusion=fusion)
+            assert np.array_equal(out[known], img[known])
+    with pytest.raises(ValueError, match="fusion"):
+        reconstruct(img, known, method="preview", fusion="exact")

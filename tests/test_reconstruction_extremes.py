@@ -1,5 +1,4 @@
-"""Stability of `nrhdr_core.reconstruct(method="fse")` at the extremes (issue 3, item 8): no or one known
-pixel, constants, 1e-6..1e6 in one frame, NaN/Inf rejection, determinism, odd sizes, 1 x N, tiny images."""
+"""Stability of `nrhdr_core.reconstruct(method="fse")` at the extremes: no or one known pixel, constants, 1e-6..1e6 in one frame, NaN/Inf rejection, determinism, odd sizes, 1 x N, tiny images."""
 from __future__ import annotations
 
 import warnings
