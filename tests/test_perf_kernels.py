@@ -463,12 +463,12 @@ def test_fse_local_bound_passes_equal_scipy(rng, threads):
                     numba.set_num_threads(t)
                     work, state = np.empty(shape, np.float32), np.empty(shape, np.uint8)
                     a, b = np.empty(shape, np.float32), np.empty(shape, np.float32)
-                    fse.bounds.prep_local(v, k, c, floor, size // 2, work, state, a, b)
+                    fse.bounds.prep_local(v, k, (c, floor), size // 2, (work, state, a, b))
                     assert np.array_equal(state, state_r)
                     np.testing.assert_allclose(work, work_r, rtol=1e-6)
                     glo, ghi = np.full(shape, np.nan, np.float32), np.full(shape, np.nan, np.float32)
-                    fse.bounds.bounds_local(a, b, size // 2, np.float32(1.0), lo, hi, True, True, c, floor, glo, ghi,
-                                      state)
+                    fse.bounds.bounds_local((a, b), size // 2, np.float32(1.0), (lo, hi, True, True), (c, floor),
+                                            (glo, ghi), state)
                     # the missing pixels' bounds (the only ones the block kernels read); known ones untouched
                     m = state == 0
                     np.testing.assert_allclose(glo[m], elo[m], rtol=1e-6)

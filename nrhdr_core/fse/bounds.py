@@ -78,9 +78,10 @@ def log_local_prep(v32, k, lower, upper, p, c, floor):
     r = int(p["local_bound"]) // 2
     cf = np.float32(c)
     ff = np.float32(floor)
-    prep_local(v32, k, cf, ff, r, work, state, hmx, hmn)
-    bounds_local(hmx, hmn, r, np.float32(p["local_margin"]), dummy if lw is None else lw,
-                  dummy if up is None else up, use_lo, use_hi, cf, ff, lo, hi, state)
+    prep_local(v32, k, (cf, ff), r, (work, state, hmx, hmn))
+    bounds_local((hmx, hmn), r, np.float32(p["local_margin"]),
+                 (dummy if lw is None else lw, dummy if up is None else up, use_lo, use_hi), (cf, ff), (lo, hi),
+                 state)
     return work, state, lo, hi
 
 
@@ -107,10 +108,12 @@ def bound_flags(lower, upper, has_lo, has_hi):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def prep_local(v, k, c, floor, r, work, state, hmx, hmn):
-    """work = log2(max(v + c, floor)) at known pixels (KNOWN), 0 elsewhere (MISSING); hmx/hmn: max/min
-    of the known work values in the 2r + 1 wide row window (edges replicated, like scipy's "nearest"),
-    -/+ float32 max where there is none."""
+def prep_local(v, k, lc, r, planes4):
+    """``planes4`` = (work, state, hmx, hmn), ``lc`` = (c, floor): work = log2(max(v + c, floor)) at known
+    pixels (KNOWN = 1), 0 elsewhere (MISSING = 0); hmx/hmn: max/min of the known work values in the 2r + 1
+    wide row window (edges replicated, like scipy's "nearest"), -/+ float32 max where there is none."""
+    c, floor = lc
+    work, state, hmx, hmn = planes4
     h, w = v.shape
     big = np.float32(3.4028234663852886e38)
     nch = min(h, 64)
@@ -149,13 +152,19 @@ def prep_local(v, k, c, floor, r, work, state, hmx, hmn):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def bounds_local(hmx, hmn, r, margin, lower, upper, use_lo, use_hi, c, floor, lo, hi, state):
-    """Log-domain bounds of the missing pixels (the block kernels read no other pixel's bounds, and known
-    ones keep whatever `lo`/`hi` held; rows with nothing missing are skipped): the local bound (column
-    window over hmx/hmn, widened by `margin` stops) narrowed by the data's bounds log2(max(b + c, floor)),
+def bounds_local(rows, r, margin, data, lc, out, state):
+    """Log-domain bounds (lo, hi) = ``out`` of the missing pixels (the block kernels read no other pixel's
+    bounds, and known ones keep whatever lo/hi held; rows with nothing missing are skipped): the local
+    bound (column window over the row max/min ``rows`` = (hmx, hmn) of :func:`prep_local`, widened by
+    `margin` stops) narrowed by the data's bounds ``data`` = (lower, upper, use_lo, use_hi) as
+    log2(max(b + c, floor)), ``lc`` = (c, floor),
     the data's bound winning where they conflict (a local floor above the data's ceiling yields to the
     ceiling, a local ceiling below the floor to the floor), clipped to +-1e38 (finite sentinels for the
     fastmath block kernels)."""
+    hmx, hmn = rows
+    lower, upper, use_lo, use_hi = data
+    c, floor = lc
+    lo, hi = out
     h, w = hmx.shape
     sent = np.float32(1e38)
     inf = np.float32(np.inf)

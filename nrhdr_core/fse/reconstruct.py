@@ -76,8 +76,8 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
         return fill_bounded(out, ~k, lower if p["use_bounds"] else None, upper if p["use_bounds"] else None)
     domain, c = D.working_domain(p, v32, k, lower, kmin, kmax)
     logd = domain == "log"
-    work, state, lo, hi, use_lo, use_hi, scale, floor = _prepare(v32, k, lower, upper, p, logd, c, kmin, kmax,
-                                                                 minpos)
+    work, state, lo, hi, use_lo, use_hi, scale, floor = _prepare(v32, k, lower, upper, p, (logd, c),
+                                                                 (kmin, kmax, minpos))
     if skip is not None:
         _mark_skip(state, skip)
     nz = None
@@ -110,11 +110,14 @@ def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanc
     return out
 
 
-def _prepare(v32, k, lower, upper, p, logd, c, kmin, kmax, minpos):
-    """Step 2: (work, state, lo, hi, use_lo, use_hi, scale, floor) in the working domain (docs/FSE.md
+def _prepare(v32, k, lower, upper, p, dom, st):
+    """Step 2: (work, state, lo, hi, use_lo, use_hi, scale, floor) in the working domain ``dom`` = (log
+    domain?, c) for the known values' statistics ``st`` = (kmin, kmax, smallest positive) (docs/FSE.md
     "Domain and bounds"): the log domain log2(max(x + c, floor)) with its log-range scale and, with
     ``local_bound``, the local bound merged with the data's bounds; or the linear domain with the known
     values' range as scale."""
+    logd, c = dom
+    kmin, kmax, minpos = st
     if logd:
         floor = D.log_floor(c, minpos)
         scale = D.log_scale(p, c, kmin, kmax, floor)
