@@ -92,7 +92,8 @@ def test_fill_left_sources_by_state(rng, monkeypatch):
     skipped ones; nearest by `nearest_fill`'s rule, both branches; no source: 0."""
     for ring_max in (10**9, 0):
         monkeypatch.setattr(fallback, "NEAREST_RING_MAX", ring_max)
-        state = rng.choice(np.array([MISSING, KNOWN, RECONSTRUCTED, NOISY, SKIP], np.uint8), size=(30, 40), p=[0.1, 0.3, 0.2, 0.1, 0.3])
+        state = rng.choice(np.array([MISSING, KNOWN, RECONSTRUCTED, NOISY, SKIP], np.uint8), size=(30, 40),
+                           p=[0.1, 0.3, 0.2, 0.1, 0.3])
         work = rng.random((30, 40)).astype(np.float32)
         got, st = work.copy(), state.copy()
         ys, xs = fallback.fill_left(got, st)

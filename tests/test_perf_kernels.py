@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from nrhdr_core import crosstalk, fse, profile as profiles, reconstruction as R, validity as V
-import fse_reference  # noqa: E402  (tests/: numpy expectations of fse's passes)
+import fse_reference  # tests/: numpy expectations of the fse passes
 
 SHAPES = [(1, 1), (1, 9), (9, 1), (2, 2), (3, 5), (17, 33), (40, 63)]
 SHARES = [0.0, 0.01, 0.5, 0.99]

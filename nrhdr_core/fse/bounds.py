@@ -85,25 +85,27 @@ def log_local_prep(v32, k, lower, upper, p, c, floor):
     return work, state, lo, hi
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _row_has_finite(a, y):
+    """Whether row y of `a` holds a finite value."""
+    for x in range(a.shape[1]):
+        v = a[y, x]
+        if v - v == 0:
+            return True
+    return False
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def bound_flags(lower, upper, has_lo, has_hi):
     """(any finite lower, any finite upper): whether the data's bounds are used at all (:func:`data_bounds`)."""
-    h, w = lower.shape if has_lo else upper.shape
+    h = lower.shape[0] if has_lo else upper.shape[0]
     r_lo = np.zeros(h, np.uint8)
     r_hi = np.zeros(h, np.uint8)
     for y in prange(h):
-        if has_lo:
-            for x in range(w):
-                a = lower[y, x]
-                if a - a == 0:
-                    r_lo[y] = 1
-                    break
-        if has_hi:
-            for x in range(w):
-                a = upper[y, x]
-                if a - a == 0:
-                    r_hi[y] = 1
-                    break
+        if has_lo and _row_has_finite(lower, y):
+            r_lo[y] = 1
+        if has_hi and _row_has_finite(upper, y):
+            r_hi[y] = 1
     return bool(r_lo.any()), bool(r_hi.any())
 
 

@@ -56,8 +56,9 @@ def _fill_at(work, src, is_src, ys, xs):
 
 
 def crop_nearest(work, src, is_src, ys, xs):
-    """The distance transform of a crop reaching `m` pixels beyond the bounding box of (ys, xs): a source outside it is more than `m` away from every one of them, so the result is exact once
-    each found a source within `m` (else `m` grows, up to the whole frame)."""
+    """The distance transform of a crop reaching `m` pixels beyond the bounding box of (ys, xs): a source
+    outside it is more than `m` away from every one of them, so the result is exact once each found a
+    source within `m` (else `m` grows, up to the whole frame)."""
     from scipy import ndimage
     h, w = work.shape
     y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
@@ -120,7 +121,8 @@ def ring_nearest(work, src, is_src, ys, xs, rcap):
                 y = y0 + dy
                 if y < 0 or y >= h:
                     continue
-                step = 1 if (dy == -r or dy == r) else 2 * r   # full rows at the top and bottom, else the two sides
+                # full rows at the top and bottom, else the two sides
+                step = 1 if (dy == -r or dy == r) else 2 * r
                 for dx in range(-r, r + 1, step):
                     x = x0 + dx
                     if x < 0 or x >= w or not is_src[src[y, x]]:

@@ -167,8 +167,8 @@ def gather(ctx, wp, blk, n, scr, joint):
 
 @njit(**_INL)
 def moments(wbuf, xbuf, n):
-    """(sum w, sum w f, count, sum f, sum f^2) over the usable pixels of the area: a pure reduction
-    pass (no stores), which vectorises."""
+    """Step 2a: (sum w, sum w f, count, sum f, sum f^2) over the usable pixels of the area: a pure
+    reduction pass (no stores), which vectorises."""
     sw = 0.0
     swf = 0.0
     cnt = 0.0
@@ -188,8 +188,8 @@ def moments(wbuf, xbuf, n):
 
 @njit(**_INL)
 def iteration_count(cnt, s1, s2, par):
-    """Texture-adaptive iteration count (Genser et al., IWSSIP 2017): clip(round(iter_c * sigma), iter_min,
-    iter_max), sigma = (unweighted) std of the usable pixels relative to the data scale."""
+    """Step 2b, texture-adaptive iteration count (Genser et al., IWSSIP 2017): clip(round(iter_c * sigma),
+    iter_min, iter_max), sigma = (unweighted) std of the usable pixels relative to the data scale."""
     scale = par.scale
     iter_c = par.iter_c
     iter_min = par.iter_min
@@ -287,7 +287,7 @@ def split_bin(zb, n, ia, ib, vu, hx, prior2, scr):
 
 @njit(**_INL)
 def forward_dft(n, tab, scr, xi):
-    """Step 2 (fse-reference.md, spectra), W = DFT(w) and R = DFT(w (f - mean)) from zb[0:n^2] = w and
+    """Step 3 (fse-reference.md, spectra), W = DFT(w) and R = DFT(w (f - mean)) from zb[0:n^2] = w and
     zb[n^2:2n^2] = w (f - mean) / xi (row-major [i, j]; xi a power of two, :func:`pack_scale`) straight
     into the layout of the iterations: R[v, u] (v = half-spectrum index, u full, contiguous) with its
     selection energies |R|^2 prior^2 and their per-row maxima; W on a doubled periodic grid W[v', u'] so
@@ -340,7 +340,7 @@ def row_maxima(n, en, rm):
 
 @njit(**_INL)
 def select_bin(n, en, rm):
-    """Step 3a (fse-reference.md, iterations), basis choice: the half-spectrum bin (kv, ku) of the largest
+    """Step 4a (fse-reference.md, iterations), basis choice: the half-spectrum bin (kv, ku) of the largest
     weighted residual energy |R(k)|^2 prior(k)^2 (per-row maxima first, then the row); best = that energy."""
     hh = n // 2 + 1
     kv = 0
@@ -359,7 +359,7 @@ def select_bin(n, en, rm):
 
 @njit(**_INL)
 def update_self(n, kv, ku, cr, prior2, scr):
-    """Step 3c for a self-conjugate bin (DC, Nyquist): R(j) -= c W(j - k), c real; energies refreshed."""
+    """Step 4b for a self-conjugate bin (DC, Nyquist): R(j) -= c W(j - k), c real; energies refreshed."""
     wr, wi, rr, ri, en, rm = spectra(scr)
     hh = n // 2 + 1
     u1 = n - ku
@@ -376,7 +376,7 @@ def update_self(n, kv, ku, cr, prior2, scr):
 
 @njit(**_INL)
 def update_pair(n, kv, ku, cr, ci, prior2, scr):
-    """Step 3c for a conjugate pair, in the frequency domain without an inverse FFT:
+    """Step 4b for a conjugate pair, in the frequency domain without an inverse FFT:
     R(j) -= c W(j - k) + conj(c) W(j + k) (= DFT(w (f - g)) exactly); energies refreshed."""
     wr, wi, rr, ri, en, rm = spectra(scr)
     hh = n // 2 + 1
@@ -399,7 +399,7 @@ def update_pair(n, kv, ku, cr, ci, prior2, scr):
 
 @njit(**_INL)
 def extrapolate(n, nit, gamma, prior2, scr):
-    """Step 3 (fse-reference.md, iterations): choose the basis function (bin) of largest weighted
+    """Step 4 (fse-reference.md, iterations): choose the basis function (bin) of largest weighted
     residual energy, its coefficient c = gamma R(k) / W(0) (gamma: orthogonality-deficiency compensation),
     add c at k and conj(c) at -k to the model (a pair counts 2 iterations, DC / Nyquist 1), update the
     residual spectrum. The model's coefficients go to scr.sel_*; returns their count."""
@@ -433,7 +433,7 @@ def extrapolate(n, nit, gamma, prior2, scr):
 
 @njit(**_INL)
 def synthesize(b, lvl, ns, phs, scr):
-    """Step 4 (fse-reference.md, synthesis), the model on the block only: g(m) - mean = sum Re(c e^{+i 2
+    """Step 5 (fse-reference.md, synthesis), the model on the block only: g(m) - mean = sum Re(c e^{+i 2
     pi k m / N}) into scr.xbuf[:b, :b] (no inverse FFT). Separable phases: Re(c e^{i(a + b)}) = cos b (c_r
     cos a - c_i sin a) - sin b (c_r sin a + c_i cos a), a = 2 pi u (o + i) / N per row, b = 2 pi v (o + j)
     / N per column, read from the block size's phase table (``Tables.phs``), vectorised over the block row."""
@@ -458,7 +458,7 @@ def synthesize(b, lvl, ns, phs, scr):
 
 @njit(**_INL)
 def write_block(frame, mest, par, blk, mean, xbuf, joint):
-    """Step 5, the block's missing pixels only: mean + model, clamped to [lo, hi] where bounded, become
+    """Step 6, the block's missing pixels only: mean + model, clamped to [lo, hi] where bounded, become
     reconstructed (weight delta) for later blocks; known pixels stay bit-exact. `joint`: the model at
     noisy measurements (which stay measurements for later blocks) goes to ``mest``. A block inside the
     image is written branch-free (random masks make ``state`` unpredictable): every pixel is stored, a

@@ -117,7 +117,7 @@ def worker(ctx, noisy, r, counter):
 
 @njit(cache=True, nogil=True, parallel=True)
 def run(frame, plan, tab, par, noisy, nthreads):
-    """Steps 1-5 of every leaf (the block kernel): the rounds one after the other; the tiles of a round on
+    """Steps 1-6 of the block kernel on every leaf: the rounds one after the other; the tiles of a round on
     ``nthreads`` threads. The records of ``kernel.Context``, passed one by one (numba's parallel loops take
     no nested tuples); ``noisy``: None or (wp, mest)."""
     nround = plan.round_ptr.shape[0] - 1

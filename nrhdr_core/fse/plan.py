@@ -26,8 +26,9 @@ Plan = namedtuple("Plan", "tile_round tshift tw_tiles round_ptr round_tiles leaf
 
 
 def block_plan(work, state, p, tab, scale) -> Plan:
-    """Step 0 of the frame (Genser et al.): quadtree leaves per tile (only leaves with missing pixels) and
-    the round of every tile, for parameters ``p`` and tables ``tab`` (``params.tables``)."""
+    """Step 3 of the frame (``reconstruct``; Genser et al.): quadtree leaves per tile (only leaves with
+    missing pixels) and the round of every tile, for parameters ``p`` and tables ``tab``
+    (``params.tables``)."""
     tile = int(p["max_block"])
     h, w = state.shape
     miss = _missing_per_tile(state, tile)
