@@ -1,6 +1,6 @@
 """`fast` preset: the sparse switch (32 x 32 window below `sparse_below` known) at 40 % against 30 %, on
 1080p Desk frames near 40 % known (log2 PSNR of the reconstructed pixels against the truth) and Kodak at
-35 / 38 % known (session 4, docs/FSE.md "Presets"). Needs a calibrated 1080p profile and a Desk clip:
+35 / 38 % known (docs/FSE.md "Presets"). Needs a calibrated 1080p profile and a Desk clip:
 
     nrhdr simulate-flats flats --width 1920 --height 1080 --sensor-model prototype --exposures 24 --frames 2
     nrhdr calibrate flats --mask flats/mask.png -o cal/cam.json

@@ -575,7 +575,6 @@ def main(argv=None):
     hdr_methods = {
         "fse balanced (auto)": m_fse("balanced"),
         "fse balanced linear": m_fse("balanced", domain="linear"),
-        "fse balanced local": m_fse("balanced", domain="local"),
         "fse balanced log": m_fse("balanced", domain="log"),
         "fse balanced log, no bounds": m_fse("balanced", domain="log"),
         "fse balanced linear, no bounds": m_fse("balanced", domain="linear"),

@@ -18,8 +18,8 @@ import warnings
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from .fse import _key as _f32_key  # order-preserving int32 keys of float32 bits (min/max that vectorise)
-from .fse import _unkey
+from .fse import f32_key as _f32_key  # order-preserving int32 keys of float32 bits (min/max that vectorise)
+from .fse import f32_unkey as _unkey
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
@@ -114,14 +114,14 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
                       ReconstructionWarning, stacklevel=2)
         return _fill_from_bounds(out, lower, upper)
     if method == "fse":
-        from .fse import _fse
+        from .fse import fse_reconstruct
         # in place: FSE writes only the missing pixels of `out` (no copy back)
         wts = skip = None
         if noisy is not None and noisy_joint > 0:
             wts = noisy_weights(v_meas, noisy & ~k, noise, noisy_joint)
         elif noisy is not None and fusion == "accurate" and (NOISY_SKIP if noisy_skip is None else noisy_skip):
             skip = np.ascontiguousarray(noisy)
-        res = _fse(out, k, lower, upper, preset, True, params, weights=wts, skip=skip)
+        res = fse_reconstruct(out, k, lower, upper, preset, weights=wts, skip=skip, inplace=True, **params)
         if skip is not None:
             # the fusion's noise level at the skipped pixels (they still hold their measurement)
             _noisy_level(res, k, skip)

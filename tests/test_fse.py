@@ -1,4 +1,4 @@
-"""FSE (nrhdr_core/fse.py) against independent expectations: sparse sinusoid sums, constants, scale
+"""FSE (nrhdr_core/fse/) against independent expectations: sparse sinusoid sums, constants, scale
 invariance, bounds, presets, determinism, and real images against Delaunay-linear / OpenCV FSR_FAST.
 Small images and the fast presets only; no timing assertions (speed is the benchmark's job)."""
 from __future__ import annotations
@@ -162,8 +162,8 @@ def test_kodak_crop_beats_linear_and_opencv_fsr_fast():
     assert p_fse > p_cv, (p_fse, p_cv)
 
 
-# ---- one block kernel source (issue 13 item 3): the n = 16 specialisation, the generic kernel and an
-# ---- independent numpy FSE of one block (np.fft, complex128, residual by explicit FFT of the update)
+# ---- the block kernel: the n = 16 / 32 specialisations, the generic kernel and an independent numpy FSE
+# ---- of one block (np.fft, complex128, residual by explicit FFT of the update)
 def _numpy_fse_block(img, known, by, bx, b, n, rho, gamma, nit):
     """Seiler & Kaup's FSE of one block, written from fse-reference.md with np.fft: weights w = known *
     rho^r, mean removed, c = gamma R(k) / W(0) at the largest |R(k)| prior(k) of the half spectrum,
@@ -198,31 +198,30 @@ def _numpy_fse_block(img, known, by, bx, b, n, rho, gamma, nit):
     return g[o:o + b, o:o + b]
 
 
-def _run_block_kernel(kernel, img, state, by, bx, b, n, rho, gamma, nit):
+def _run_block_kernel(block_kernel, img, state, by, bx, b, n, rho, gamma, nit):
+    """One leaf (by, bx) of size b through `block_kernel` (fse.kernel), its tile in round 0."""
     p = fse.resolve_params("balanced", window=n, max_block=b, min_block=b, rho={b: rho}, gamma=gamma)
-    _cos, _sin, tw_c, tw_s, bitrev, prior2, rho_tab, _split, _sizes = fse._make_tables(p)
+    tab = fse.params.tables(p)
     img = img.copy()
     state = state.copy()
     tshift = int(np.log2(b))
     tw_tiles = -(-img.shape[1] // b)
     tile_round = np.zeros(-(-img.shape[0] // b) * tw_tiles, np.int64)
-    hh, f32 = n // 2 + 1, np.float32
-    scratch = ([np.zeros((n, n), f32) for _ in range(2)] + [np.zeros(4 * n * n, f32)]
-               + [np.zeros((2 * n, 2 * n), f32) for _ in range(2)] + [np.zeros((hh, n), f32) for _ in range(3)]
-               + [np.zeros(hh, f32), np.zeros(nit + 2, np.int64), np.zeros(nit + 2, np.int64),
-                  np.zeros(nit + 2, f32), np.zeros(nit + 2, f32)])
-    dummy = np.zeros((1, 1), f32)
-    ok = kernel(img, state, dummy, dummy, False, False, tile_round, tshift, tw_tiles,
-                (by >> tshift) * tw_tiles + (bx >> tshift), 0, by, bx, b, 0, n, rho_tab, bitrev,
-                tw_c, tw_s, prior2, fse._phase_table(n, _sizes, tw_c, tw_s), 0.5, gamma, 0.0, nit, nit, 1.0,
-                False, False, *scratch, dummy, dummy)
-    assert ok
+    t = (by >> tshift) * tw_tiles + (bx >> tshift)
+    one = lambda a: np.array([a], np.int64)  # noqa: E731
+    plan = fse.plan.Plan(tile_round, tshift, tw_tiles, np.array([0, 1]), one(t), np.zeros(len(tile_round) + 1,
+                         np.int64), one(by), one(bx), one(0))
+    dummy = np.zeros((1, 1), np.float32)
+    K = fse.kernel
+    ctx = K.Context(K.Frame(img, state, dummy, dummy), plan, tab, K.Params(0.5, gamma, 0.0, nit, nit, 1.0, False,
+                                                                         False))
+    assert block_kernel(ctx, (dummy, dummy), 0, K.make_scratch(n, nit + 2))
     return img, state
 
 
 @pytest.mark.parametrize("n, b", [(16, 8), (16, 4), (32, 8), (8, 4)])
 def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b):
-    """The block kernel (one source, issue 13) against an independent numpy FSE of the same block; for
+    """The block kernel (one source) against an independent numpy FSE of the same block; for
     n = 16 and 32 the specialised kernel (compile-time n) gives the generic kernel's result to float rounding."""
     rng = np.random.default_rng(n + b)
     img = (sinusoids(48, 48) + rng.normal(0, 3, (48, 48))).astype(np.float32)
@@ -231,7 +230,7 @@ def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b)
     work = np.where(known, img, 0).astype(np.float32)
     by = bx = 24   # a block inside the image, on the block grid
     nit, rho, gamma = 12, 0.7, 0.5
-    out, st = _run_block_kernel(fse._block, work, state, by, bx, b, n, rho, gamma, nit)
+    out, st = _run_block_kernel(fse.kernel.block_generic, work, state, by, bx, b, n, rho, gamma, nit)
     ref = _numpy_fse_block(work, known, by, bx, b, n, rho, gamma, nit)
     blk = (slice(by, by + b), slice(bx, bx + b))
     miss = ~known[blk]
@@ -242,13 +241,13 @@ def test_block_kernel_matches_numpy_fse_and_specialisation_matches_generic(n, b)
     outside[blk] = False
     np.testing.assert_array_equal(out[outside], work[outside])            # nothing outside the block
     if n in (16, 32):
-        spec = fse._block16 if n == 16 else fse._block32
+        spec = fse.kernel.block16 if n == 16 else fse.kernel.block32
         out16, st16 = _run_block_kernel(spec, work, state, by, bx, b, n, rho, gamma, nit)
         np.testing.assert_array_equal(st16, st)
         np.testing.assert_allclose(out16, out, rtol=1e-6, atol=1e-5)
 
 
-# ---- joint estimation: noisy measurements as weighted samples (issue 8, helper dark2) ----------------
+# ---- joint estimation: noisy measurements as weighted samples --------------------------------------------
 def _joint_case(seed=4):
     """A dark HDR field with fine random texture (not sparse: 50 % samples do not determine it, as on
     real dark scene regions) and a bright corner (log-domain FSE): truth, masks."""
@@ -300,31 +299,31 @@ def test_joint_estimate_uses_the_noisy_samples():
     assert rms(clean, miss) < rms(plain, miss)
 
 
-# ---- FSE skips NOISY pixels before the accurate noise fusion (issue 7, helper fsenoisy) ----------------
+# ---- FSE skips NOISY pixels before the accurate noise fusion ----------------------------------------------
 def _prof():
     from types import SimpleNamespace
     return SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35)
 
 
 def test_skipped_pixels_are_neither_read_nor_written():
-    """State SKIP: FSE writes no skipped pixel (they keep their input bits), and the other missing
+    """Skipped pixels: FSE writes no skipped pixel (they keep their input bits), and the other missing
     pixels do not depend on the skipped pixels' values (weight 0: garbage there gives the same bits);
     with every missing pixel skipped nothing is reconstructed at all."""
     t, known, noisy, rng = _joint_case()
     skip = noisy & ~known
-    a = fse._fse(t, known, None, None, "fast", False, {}, skip=skip)
+    a = fse.fse_reconstruct(t, known, preset="fast", skip=skip)
     assert np.array_equal(a[skip], t[skip]) and np.array_equal(a[known], t[known])
     garbage = t.copy()
     garbage[skip] = rng.random(int(skip.sum())).astype(np.float32) * 1e6
-    b = fse._fse(garbage, known, None, None, "fast", False, {}, skip=skip)
+    b = fse.fse_reconstruct(garbage, known, preset="fast", skip=skip)
     miss = ~known & ~skip
     assert np.array_equal(a[miss], b[miss])
     assert np.array_equal(b[skip], garbage[skip])
     # the plain path would read them (delta-weighted reconstructions) and write them
-    c = fse._fse(t, known, None, None, "fast", False, {})
+    c = fse.fse_reconstruct(t, known, preset="fast")
     assert not np.array_equal(c[skip], t[skip])
     # nothing but skipped pixels missing: the input comes back unchanged
-    d = fse._fse(t, known | miss, None, None, "fast", False, {}, skip=skip)
+    d = fse.fse_reconstruct(t, known | miss, preset="fast", skip=skip)
     assert np.array_equal(d, t)
 
 
@@ -338,7 +337,7 @@ def test_noisy_skip_without_a_noisy_pixel_gives_the_same_bits():
 
 
 def _fusion_numpy(g, m, known, noisy, prof, texture=1.0, r=2):
-    """`fuse_noisy` accurate written out in numpy/float64 from its docstring (issue 8): e = inverse-variance
+    """`fuse_noisy` accurate written out in numpy/float64 from its docstring: e = inverse-variance
     mean of the measured 3 x 3 neighbours (known: 1 / var_r, other NOISY: 1 / var_m), var_e = 1 / sum of
     weights + texture x excess variance of the known pixels of the 5 x 5 window; e = g, var_e = var_r / 4
     + excess when no neighbour is measured; f = max(e + var_e / (var_e + var_m) (m - e), 0)."""
@@ -380,7 +379,7 @@ def test_noisy_skip_fused_result_matches_numpy():
     known, noisy = known[:32, :40].copy(), noisy[:32, :40] & ~known[:32, :40]
     meas = np.where(noisy, t * (1.0 + 0.3 * rng.standard_normal(t.shape)), t).astype(np.float32)
     out = reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof())
-    g = fse._fse(meas, known, None, None, "fast", False, {}, skip=noisy).astype(np.float64)
+    g = fse.fse_reconstruct(meas, known, preset="fast", skip=noisy).astype(np.float64)
     lvl = g.copy()
     for y, x in zip(*np.nonzero(noisy)):
         win = (slice(max(y - 1, 0), y + 2), slice(max(x - 1, 0), x + 2))
@@ -392,7 +391,7 @@ def test_noisy_skip_fused_result_matches_numpy():
     miss = ~known & ~noisy
     np.testing.assert_allclose(out[miss], lvl[miss], rtol=1e-6)
     np.testing.assert_allclose(out[noisy], want[noisy], rtol=2e-5, atol=1e-4)
-    # the switch: noisy_skip=False is the former path (FSE's value at the NOISY pixels), a different result
+    # the switch: noisy_skip=False keeps FSE's value at the NOISY pixels, a different result
     old = reconstruct(meas, known, preset="fast", noisy=noisy, noise=_prof(), noisy_skip=False)
     assert not np.array_equal(old, out)
     # the fast fusion and the joint estimation keep FSE at the NOISY pixels (the skip is for accurate only)
@@ -401,10 +400,10 @@ def test_noisy_skip_fused_result_matches_numpy():
                                       noisy_skip=False))
 
 
-# ---- issue 7 session 4 (helper fse2): the fallback fill of blocks without data, cropped -------------
+# ---- the fallback fill of blocks without data ------------------------------------------------------------
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_nearest_fill_crop_gives_a_nearest_source(seed):
-    """`_nearest_fill` (ring search around each left pixel; a crop's distance transform where no source is
+    """`nearest_fill` (ring search around each left pixel; a crop's distance transform where no source is
     within RING_RADIUS_MAX, seed 2): every left pixel gets the value of a source pixel at the minimal
     Euclidean distance (the whole-frame distance transform)."""
     from scipy import ndimage
@@ -419,7 +418,7 @@ def test_nearest_fill_crop_gives_a_nearest_source(seed):
         src[0, 0] = True                                  # one source in a corner: the crop must grow
     work = np.arange(h * w, dtype=np.float64).reshape(h, w).astype(np.float32)   # value = source id
     ref = work.copy()
-    fse._nearest_fill(work, left, src)
+    fse.nearest_fill(work, left, src)
     dist = ndimage.distance_transform_edt(~src)
     ys, xs = np.nonzero(left)
     sid = work[ys, xs].astype(np.int64)
@@ -427,10 +426,11 @@ def test_nearest_fill_crop_gives_a_nearest_source(seed):
     assert np.all(src[sy, sx])                                                    # sources only
     np.testing.assert_allclose(np.hypot(sy - ys, sx - xs), dist[ys, xs], rtol=0, atol=1e-9)  # nearest
     np.testing.assert_array_equal(work[~left], ref[~left])                        # nothing else touched
-    # the driver's form: left = state 0, sources = state 1 or 2 (skipped pixels, state 4, are not)
-    state = np.where(left, 0, np.where(src, 1, 4)).astype(np.uint8)
+    # the driver's form: left = MISSING, sources = KNOWN (skipped pixels are not)
+    P = fse.params
+    state = np.where(left, P.MISSING, np.where(src, P.KNOWN, P.SKIP)).astype(np.uint8)
     work2 = ref.copy()
-    ys2, xs2 = fse._fill_left(work2, state)
+    ys2, xs2 = fse.fallback.fill_left(work2, state)
     np.testing.assert_array_equal(ys2, ys)
     np.testing.assert_array_equal(xs2, xs)
     np.testing.assert_array_equal(work2, work)

@@ -1,13 +1,15 @@
-"""FSE's driver around the block kernels (issue 7: its passes made branch-free or cheaper), against
-independent numpy/scipy expectations: the fallback for blocks whose support held no usable pixel
-(`_nearest_fill`, `_fill_left`: every left pixel takes the value of a source pixel at the Euclidean-nearest
-distance, checked against scipy's exact distance transform; both branches, ring search and transform),
-`_finish_at`, and the statistics passes `_stats` / `_finite_max`."""
+"""FSE's passes around the block kernels against independent numpy/scipy expectations: the fallback for
+blocks whose support held no usable pixel (`fse.nearest_fill`, `fallback.fill_left`: every left pixel takes
+the value of a source pixel at the Euclidean-nearest distance, checked against scipy's exact distance
+transform; both branches, ring search and transform), `domain.finish_at`, and the statistics passes
+`domain.stats` / `domain.finite_max`."""
 import numpy as np
 import pytest
 from scipy import ndimage
 
 from nrhdr_core import fse
+from nrhdr_core.fse import domain, fallback
+from nrhdr_core.fse.params import KNOWN, MISSING, NOISY, RECONSTRUCTED, SKIP
 
 
 def _check(work, left, src, got):
@@ -26,14 +28,14 @@ def _check(work, left, src, got):
 
 @pytest.mark.parametrize("ring_max", [10**9, 0])   # ring search, scipy's transform
 def test_nearest_fill_takes_a_nearest_source(ring_max, rng, monkeypatch):
-    monkeypatch.setattr(fse, "NEAREST_RING_MAX", ring_max)
+    monkeypatch.setattr(fallback, "NEAREST_RING_MAX", ring_max)
     for trial in range(60):
         h, w = rng.integers(1, 40, 2)
         work = rng.random((h, w)).astype(np.float32)
         left = rng.random((h, w)) < rng.random() * 0.5
         src = None if trial % 3 == 0 else (~left) & (rng.random((h, w)) < rng.random())
         got = work.copy()
-        fse._nearest_fill(got, left, src)
+        fse.nearest_fill(got, left, src)
         _check(work, left, src, got)
 
 
@@ -45,25 +47,25 @@ def test_nearest_fill_far_source():
     src[0, 0] = True
     left = np.zeros_like(src)
     left[199, 299] = True
-    fse._nearest_fill(work, left, src)
+    fse.nearest_fill(work, left, src)
     assert work[199, 299] == 7.0
 
 
 @pytest.mark.parametrize("with_c,logd", [(True, True), (False, True), (False, False)])
 def test_finish_at_equals_the_whole_frame_finish(with_c, logd, rng):
-    """The fallback's pixels are finished alone (`_finish_at`): the values `_finish_c` / `_finish` give them."""
+    """The fallback's pixels are finished alone (`finish_at`): the values `finish_c` / `finish` give them."""
     work = (rng.random((20, 30)) * 10).astype(np.float32)
-    state = np.full((20, 30), 1, np.uint8)
+    state = np.full((20, 30), KNOWN, np.uint8)
     ys, xs = np.nonzero(rng.random((20, 30)) < 0.2)
-    state[ys, xs] = 2
+    state[ys, xs] = RECONSTRUCTED
     c = np.float32(3.5)
     ref = np.zeros((20, 30), np.float32)
     if with_c:
-        fse._finish_c(ref, work, state, c)
+        domain.finish_c(ref, work, state, c)
     else:
-        fse._finish(ref, work, state, logd)
+        domain.finish(ref, work, state, logd)
     got = np.zeros_like(ref)
-    fse._finish_at(got, work, ys, xs, c if with_c else np.float32(0.0), with_c, logd)
+    domain.finish_at(got, work, ys, xs, c if with_c else np.float32(0.0), with_c, logd)
     assert np.array_equal(got, ref)
 
 
@@ -76,7 +78,7 @@ def test_fse_far_from_any_sample_gets_a_nearest_value(rng):
     k[:, :8] = rng.random((h, 8)) < 0.6
     skip = ~k
     skip[20:44, 36:60] = False                 # missing, surrounded by skipped pixels only
-    out = fse._fse(v.copy(), k, None, None, "fast", False, {}, skip=skip)
+    out = fse.fse_reconstruct(v.copy(), k, preset="fast", skip=skip)
     area = out[20:44, 36:60]
     assert np.isfinite(area).all()
     # (to float rounding: the value went through FSE's log2(x + c) working domain and back)
@@ -86,20 +88,22 @@ def test_fse_far_from_any_sample_gets_a_nearest_value(rng):
 
 
 def test_fill_left_sources_by_state(rng, monkeypatch):
-    """`_fill_left` (the driver's fallback): sources are known, reconstructed and noisy pixels (states
-    1-3), never skipped ones (4); nearest by `_nearest_fill`'s rule, both branches; no source: 0."""
+    """`fill_left` (the driver's fallback): sources are known, reconstructed and noisy pixels, never
+    skipped ones; nearest by `nearest_fill`'s rule, both branches; no source: 0."""
     for ring_max in (10**9, 0):
-        monkeypatch.setattr(fse, "NEAREST_RING_MAX", ring_max)
-        state = rng.choice(np.array([0, 1, 2, 3, 4], np.uint8), size=(30, 40), p=[0.1, 0.3, 0.2, 0.1, 0.3])
+        monkeypatch.setattr(fallback, "NEAREST_RING_MAX", ring_max)
+        state = rng.choice(np.array([MISSING, KNOWN, RECONSTRUCTED, NOISY, SKIP], np.uint8), size=(30, 40),
+                           p=[0.1, 0.3, 0.2, 0.1, 0.3])
         work = rng.random((30, 40)).astype(np.float32)
         got, st = work.copy(), state.copy()
-        ys, xs = fse._fill_left(got, st)
-        assert np.array_equal(np.argwhere(state == 0), np.stack([ys, xs], 1)) and (st[ys, xs] == 2).all()
-        _check(work, state == 0, np.isin(state, (1, 2, 3)), got)
-    st = np.where(rng.random((8, 9)) < 0.5, 0, 4).astype(np.uint8)
+        ys, xs = fallback.fill_left(got, st)
+        assert np.array_equal(np.argwhere(state == MISSING), np.stack([ys, xs], 1))
+        assert (st[ys, xs] == RECONSTRUCTED).all()
+        _check(work, state == MISSING, np.isin(state, (KNOWN, RECONSTRUCTED, NOISY)), got)
+    st = np.where(rng.random((8, 9)) < 0.5, MISSING, SKIP).astype(np.uint8)
     got = np.ones((8, 9), np.float32)
-    fse._fill_left(got, st)
-    assert (got[st == 2] == 0).all() and (got[st == 4] == 1).all()
+    fallback.fill_left(got, st)
+    assert (got[st == RECONSTRUCTED] == 0).all() and (got[st == SKIP] == 1).all()
 
 
 def test_stats_and_finite_max_equal_numpy(rng):
@@ -111,7 +115,7 @@ def test_stats_and_finite_max_equal_numpy(rng):
         v[rng.random((h, w)) < 0.05] = 0.0
         v[rng.random((h, w)) < 0.02] = -0.0
         k = rng.random((h, w)) < rng.random()
-        nk, kmin, kmax, minpos = fse._stats(v, k)
+        nk, kmin, kmax, minpos = domain.stats(v, k)
         kv = v[k].astype(np.float64)
         assert nk == kv.size
         if nk:
@@ -122,7 +126,7 @@ def test_stats_and_finite_max_equal_numpy(rng):
         b = v.copy()
         for val, share in ((np.nan, 0.3), (np.inf, 0.1), (-np.inf, 0.1)):
             b[rng.random((h, w)) < share] = val
-        found, m = fse._finite_max(b)
+        found, m = domain.finite_max(b)
         fb = b[np.isfinite(b)]
         assert found == (fb.size > 0) and m == (fb.max() if fb.size else -np.inf)
 

@@ -13,6 +13,7 @@ import tonemap_reference
 import validity_reference
 import reconstruction_reference as RR
 from nrhdr_core import crosstalk, fse, profile as profiles, reconstruction as R, validity as V
+import fse_reference  # tests/: numpy expectations of the fse passes
 
 SHAPES = [(1, 1), (1, 9), (9, 1), (2, 2), (3, 5), (17, 33), (40, 63)]
 SHARES = [0.0, 0.01, 0.5, 0.99]
@@ -233,21 +234,21 @@ def test_fse_wrapper_passes_equal_numpy(shape, rng, threads):
         v = (rng.random(shape) * 200 - 50).astype(np.float32)
         for t in threads:
             numba.set_num_threads(t)
-            nk, kmin, kmax, minpos = fse._stats(v, k)
+            nk, kmin, kmax, minpos = fse.domain.stats(v, k)
             assert nk == k.sum()
             if k.any():
                 assert kmin == v[k].min() and kmax == v[k].max()
                 pos = v[k][v[k] > 0]
                 assert minpos == (pos.min() if pos.size else 0.0)
             for logd in (False, True):
-                work, state = fse._prep(v, k, logd, np.float32(0.5))
+                work, state = fse.domain.prep(v, k, logd, np.float32(0.5))
                 assert np.array_equal(state, k.astype(np.uint8))
                 exp = np.where(k, np.log2(np.maximum(v, np.float32(0.5))) if logd else v, 0).astype(np.float32)
                 np.testing.assert_allclose(work, exp, rtol=1e-6)
                 out = np.zeros_like(v)
                 st2 = state.copy()
                 st2[~k] = np.where(rng.random((~k).sum()) < 0.5, 2, 0)
-                left = fse._finish(out, work, st2, logd)
+                left = fse.domain.finish(out, work, st2, logd)
                 assert left == (st2 == 0).sum()
                 rec = st2 == 2
                 np.testing.assert_allclose(out[rec], (2.0 ** work[rec]) if logd else work[rec], rtol=1e-6)
@@ -351,7 +352,7 @@ def test_log_offset_equals_the_numpy_statistics(rng):
     cases.append((big, rng.random(big.shape) < 0.5, None))
     cases.append((big[:, :2].copy(), rng.random((700, 2)) < 0.5, None))  # narrower than a 3-pixel triple
     for v, k, lo in cases:
-        assert fse.log_offset(v, k, 2.0, lo) == fse._log_offset_reference(v, k, 2.0, lo)
+        assert fse.log_offset(v, k, 2.0, lo) == fse_reference.log_offset_reference(v, k, 2.0, lo)
 
 
 @pytest.mark.parametrize("preset", ["fast", "preview", "balanced"])
@@ -359,7 +360,7 @@ def test_fse_fused_driver_equals_the_reference(preset, rng, threads):
     """The fused driver against the numpy passes it replaces: the same output to float rounding (the log2 of
     the bounds is libm's instead of numpy's SIMD one: <= 1 ulp), known pixels bit-exact, the same PSNR."""
     for v, k, lo, hi in _hdr_cases(rng):
-        ref = fse._fse_reconstruct_reference(v, k, lo, hi, preset=preset)
+        ref = fse_reference.fse_reconstruct_reference(v, k, lo, hi, preset=preset)
         for t in threads:
             numba.set_num_threads(t)
             out = fse.fse_reconstruct(v, k, lo, hi, preset=preset)
@@ -377,21 +378,21 @@ def test_fse_local_bound_passes_equal_scipy(rng, threads):
             hi = np.where(rng.random(shape) < 0.1, v * 0.5, np.nan).astype(np.float32)
             c, floor = np.float32(3.0), np.float32(3.0)
             for size in (3, 5, 9):
-                work_r, state_r = fse._prep(v + c, k, True, floor)
-                llo, lhi = fse._local_bounds(work_r, state_r, size, 1.0, True)
+                work_r, state_r = fse.domain.prep(v + c, k, True, floor)
+                llo, lhi = fse_reference.local_bounds(work_r, state_r, size, 1.0, True)
                 lor = np.log2(np.maximum(np.where(np.isnan(lo), -np.inf, lo) + c, floor)).astype(np.float32)
                 hir = np.log2(np.maximum(np.where(np.isnan(hi), np.inf, hi) + c, floor)).astype(np.float32)
-                elo, ehi = fse._merge_bounds(lor, hir, True, True, llo, lhi, shape)
+                elo, ehi = fse_reference.merge_bounds(lor, hir, True, True, llo, lhi, shape)
                 for t in threads:
                     numba.set_num_threads(t)
                     work, state = np.empty(shape, np.float32), np.empty(shape, np.uint8)
                     a, b = np.empty(shape, np.float32), np.empty(shape, np.float32)
-                    fse._prep_local(v, k, c, floor, size // 2, work, state, a, b)
+                    fse.bounds.prep_local(v, k, (c, floor), size // 2, (work, state, a, b))
                     assert np.array_equal(state, state_r)
                     np.testing.assert_allclose(work, work_r, rtol=1e-6)
                     glo, ghi = np.full(shape, np.nan, np.float32), np.full(shape, np.nan, np.float32)
-                    fse._bounds_local(a, b, size // 2, np.float32(1.0), lo, hi, True, True, c, floor, glo, ghi,
-                                      state)
+                    fse.bounds.bounds_local((a, b), size // 2, np.float32(1.0), (lo, hi, True, True), (c, floor),
+                                            (glo, ghi), state)
                     # the missing pixels' bounds (the only ones the block kernels read); known ones untouched
                     m = state == 0
                     np.testing.assert_allclose(glo[m], elo[m], rtol=1e-6)
