@@ -17,7 +17,7 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
   with white = the profile's white (the caps' field) unless given.
 
 The settings' vocabularies are the stages' own (`validity.MODES`, `validity.DARK_POLICIES`, `crosstalk.MODES`,
-`crosstalk.LUT_FORMS`, `reconstruction.METHODS`, `reconstruction.FUSION_CHOICES`, `fse.FSE_PRESETS`,
+`crosstalk.LUT_FORMS`, `reconstruction.METHODS`, `reconstruction.FUSIONS`, `fse.FSE_PRESETS`,
 `tonemap.TRANSFERS`). `warmup` is the one entry point that compiles the chain's numba kernels (`nrhdr warmup`,
 the elements' start, `nrhdr batch`).
 """
@@ -31,7 +31,7 @@ import numpy as np
 from .crosstalk import LUT_FORMS
 from .crosstalk import MODES as CROSSTALK_MODES
 from .fse import FSE_PRESETS
-from .reconstruction import FUSION_CHOICES as NOISE_FUSIONS
+from .reconstruction import FUSIONS as NOISE_FUSIONS
 from .reconstruction import METHODS
 from .tonemap import TRANSFERS as HDR_TRANSFERS
 from .validity import DARK_POLICIES

@@ -89,7 +89,7 @@ def test_choices_are_the_core_tuples(gst):
     assert t["nrcrosstalk"]["lut"].choices == crosstalk.LUT_FORMS
     assert t["nrreconstruct"]["method"].choices == reconstruction.METHODS + ("auto",)
     assert t["nrreconstruct"]["preset"].choices == tuple(fse.FSE_PRESETS)
-    assert t["nrreconstruct"]["noise-fusion"].choices == reconstruction.FUSION_CHOICES
+    assert t["nrreconstruct"]["noise-fusion"].choices == reconstruction.FUSIONS
     assert t["nrtonemap"]["transfer"].choices == ("log",) + tonemap.TRANSFERS
 
 

@@ -333,10 +333,10 @@ def test_reconstruct_noise_fusion_setting_reaches_the_core(gst, tiny_clip, metho
     (nrvalidity's default dark-policy=weighted makes NOISY pixels), and the two settings differ there."""
     from nrhdr_core import chain, reconstruction
     import gst_plugins.elements.nrreconstruct as nrrec
-    assert nrrec.PROPERTIES["noise-fusion"].choices == reconstruction.FUSION_CHOICES
+    assert nrrec.PROPERTIES["noise-fusion"].choices == reconstruction.FUSIONS
     d, prof, raws = tiny_clip
     out = {}
-    for setting in reconstruction.FUSION_CHOICES:
+    for setting in reconstruction.FUSIONS:
         r = run_appsrc(f"nrvalidity profile={d / 'camera.json'} ! nrreconstruct method={method} preset=fast "
                        f"noise-fusion={setting}", raw_caps(prof.width, prof.height), raw_buffers(raws[:2]))
         assert r.error is None, r.error_text

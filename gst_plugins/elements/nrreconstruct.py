@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 
 from nrhdr_core.fse import FSE_PRESETS
-from nrhdr_core.reconstruction import FUSION_CHOICES, METHODS
+from nrhdr_core.reconstruction import FUSIONS, METHODS
 
 from ._common import (LATENCY_PROP, GObject, Gst, GstBase, HdrInfo, LiveTiming, NrElement, Prop, PropertyTable,
                       debug_category, guarded, hdr_template_caps, load_profile, map_hdr, starting)
@@ -38,7 +38,7 @@ PROPERTIES = PropertyTable("GstNrReconstruct", [
     Prop("use-bounds", bool, True, "Use bounds",
          "Keep reconstructed clipped pixels at or above their clip level and too-dark pixels at or below "
          "l_min x ND (the bounds their state implies)", playing=True),
-    Prop("noise-fusion", FUSION_CHOICES, "auto", "Noise fusion",
+    Prop("noise-fusion", FUSIONS, "auto", "Noise fusion",
          "How NOISY pixels (nrvalidity dark-policy=weighted) are fused with their noisy measurement: "
          "'accurate' = from the measured 3 x 3 neighbours and the pixel by inverse noise variance, 'fast' = "
          "the reconstruction and the pixel (about 25 % less time, about 0.3 dB lower in dark regions; "
