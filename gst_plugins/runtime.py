@@ -185,6 +185,7 @@ STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
 STOP_TIMEOUT_S = 10.0   # after the EOS request: then SIGTERM, and SIGKILL KILL_TIMEOUT_S later
 KILL_TIMEOUT_S = 5.0
 DUPLICATE_S = 1.0       # a second signal within this time of the first is the same request, not an escalation
+QUIET_S = 0.2          # after a stop, the handlers are restored only once no copy arrived for this long
 
 
 def _stop_timeout() -> float:
@@ -213,7 +214,10 @@ class StopSignals:
     together), so all decisions are taken in the caller's loop, which never nests. A signal within
     DUPLICATE_S of the first is the same request and is dropped. Installs nothing outside the main
     thread. `restore=False` (a command whose process ends with the run) keeps the
-    handler after the block: a late copy of the same stop must not raise KeyboardInterrupt in the exit."""
+    handler after the block: a late copy of the same stop must not raise KeyboardInterrupt in the exit.
+    With `restore`, the old handlers come back only once the copies of a stop request have stopped arriving
+    (QUIET_S without one, at most DUPLICATE_S after the first), so none reaches the caller as a
+    KeyboardInterrupt."""
 
     def __init__(self, enabled: bool = True, restore: bool = True):
         self.enabled = enabled
@@ -222,10 +226,12 @@ class StopSignals:
         self._first = 0.0
         self._arrived: list[tuple[int, float]] = []
         self._old: dict = {}
+        self._last = 0.0                # when the last signal arrived (monotonic)
 
     def _on_signal(self, signum, frame):
         import time
-        self._arrived.append((signum, time.monotonic()))
+        self._last = time.monotonic()
+        self._arrived.append((signum, self._last))
 
     def __enter__(self):
         import signal
@@ -244,6 +250,7 @@ class StopSignals:
         import signal
         if not self.restore:
             return False
+        self._wait_quiet()
         for sig, h in self._old.items():
             try:
                 signal.signal(sig, h)
@@ -251,6 +258,17 @@ class StopSignals:
                 pass
         self._old = {}
         return False
+
+    def _wait_quiet(self) -> None:
+        import time
+        if not self._last:
+            return
+        first = self._first or self._last
+        while True:
+            now = time.monotonic()
+            if now - self._last >= QUIET_S or now - first >= DUPLICATE_S:
+                return
+            time.sleep(0.01)
 
     def add(self, signum: int, at: float) -> bool:
         """Record one stop request; False when it duplicates the first (within DUPLICATE_S)."""

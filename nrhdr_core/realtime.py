@@ -264,13 +264,14 @@ class SceneCamera:
 
 def load_scene(arg: str, height: int = 1200) -> tuple[np.ndarray, str]:
     """An HDR file's linear luminance, or for 'synthetic' the synthesised scene (4:3) at twice `height`
-    rows, at most the 1200 rows `nrhdr simulate` uses (small frames need no big scene)."""
+    rows, at most the 1200 rows `nrhdr simulate` uses (small frames need no big scene), through the scene
+    file cache (`scene.cached_synthetic_hdr_scene`)."""
     from pathlib import Path
 
     from . import io, scene
     if arg in ("", "synthetic"):
         h = int(min(1200, max(120, 2 * height)))
-        return scene.synthetic_hdr_scene(h, h * 4 // 3), "synthetic"
+        return scene.cached_synthetic_hdr_scene(h, h * 4 // 3), "synthetic"
     return io.read_luminance(arg), Path(arg).name
 
 

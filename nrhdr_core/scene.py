@@ -68,3 +68,38 @@ def synthetic_hdr_scene(height: int = 1200, width: int = 1600, seed: int = 7) ->
     d2 = ((xx - lx) ** 2 + (yy - ly) ** 2) / (0.006 * width) ** 2
     lum = lum + 20000.0 / (1.0 + d2 ** 2)
     return lum.astype(np.float32)
+
+
+def cached_synthetic_hdr_scene(height: int = 1200, width: int = 1600, seed: int = 7, cache_dir=None) -> np.ndarray:
+    """`synthetic_hdr_scene` through a file cache (`cache_dir`, default $XDG_CACHE_HOME/nrhdr/scenes), keyed on
+    the size, the seed and this module's source, so a live source (nrcamsrc scene=synthetic) starts in
+    milliseconds once the scene was made (`nrhdr warmup` makes the 1080p one). The file is written atomically
+    and checked when read (shape, dtype, finite); any problem with it means synthesising again."""
+    import hashlib
+    import os
+    import tempfile
+    from pathlib import Path
+    if cache_dir is None:
+        cache_dir = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "nrhdr" / "scenes"
+    key = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:16]
+    path = Path(cache_dir) / f"synthetic-{height}x{width}-seed{seed}-{key}.npy"
+    try:
+        a = np.load(path, allow_pickle=False)
+        if a.shape == (height, width) and a.dtype == np.float32 and np.isfinite(a).all():
+            return a
+    except (OSError, ValueError):
+        pass
+    a = synthetic_hdr_scene(height, width, seed)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npy.nrtmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.save(f, a, allow_pickle=False)
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    except OSError:
+        pass                        # a read-only cache: synthesise each time
+    return a

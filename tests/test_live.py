@@ -446,3 +446,21 @@ def test_element_reports_compilation_on_the_bus(gst):
     assert el.nr_warmup(fresh, 3) == 6
     m = p.get_bus().pop_filtered(gst.MessageType.INFO)
     assert m is not None and "nrhdr warmup" in m.parse_info()[0].message
+
+
+def test_synthetic_scene_cache_is_the_scene_and_survives_damage(tmp_path):
+    """The scene file cache returns exactly `synthetic_hdr_scene`; a damaged or foreign cache file is
+    replaced, never used."""
+    from nrhdr_core import scene
+    want = scene.synthetic_hdr_scene(60, 80, seed=3)
+    got = scene.cached_synthetic_hdr_scene(60, 80, seed=3, cache_dir=tmp_path)
+    assert np.array_equal(got, want)
+    (f,) = tmp_path.glob("synthetic-60x80-seed3-*.npy")
+    assert np.array_equal(scene.cached_synthetic_hdr_scene(60, 80, seed=3, cache_dir=tmp_path), want)
+    for damage in (b"not a npy file", None):
+        if damage is None:
+            np.save(f, np.zeros((60, 80), np.float64))       # the wrong dtype
+        else:
+            f.write_bytes(damage)
+        assert np.array_equal(scene.cached_synthetic_hdr_scene(60, 80, seed=3, cache_dir=tmp_path), want)
+    assert [p.name for p in tmp_path.iterdir()] == [f.name]   # no temporary left

@@ -62,6 +62,10 @@ def run_warmup(out=None) -> tuple[int, float]:
 
 def cmd_warmup(a) -> int:
     n, sec = run_warmup()
+    from nrhdr_core import realtime
+    t0 = time.perf_counter()
+    realtime.load_scene("synthetic", 1080)          # the 1080p camera stand-in's scene, into its file cache
+    print(f"nrhdr warmup: nrcamsrc scene=synthetic at 1080p ... {time.perf_counter() - t0:.1f} s (scene cache)")
     print(f"nrhdr warmup: done in {sec:.1f} s ({n} function(s) compiled; a second run compiles none)")
     if a.check and n:
         print("nrhdr warmup: --check: kernels were not in the cache", file=sys.stderr)
