@@ -198,7 +198,7 @@ def dark_split(scenes) -> int:
     NOISY pixels missing); an oracle inverse-variance fusion of the FSE estimate g and the measurement m
     with the true error, w = (g - t)^2 / ((g - t)^2 + var_m(t)); the same with g from noise-free
     regular pixels (sampling error only; measured pixels keep their noisy value): how far an
-    interpolate-then-fuse estimator can go. Joint FSE (helper dark2): the NOISY measurements enter FSE's
+    interpolate-then-fuse estimator can go. Joint FSE: the NOISY measurements enter FSE's
     fit weighted `reconstruction.noisy_weights` (x JOINT_FACTOR) instead of being missing; alone, with
     the fusions, a blend, its oracle fusion, and a leave-one-out variant (two FSE runs, each with the
     NOISY pixels of the even / odd rows as samples and the others estimated: an estimate independent

@@ -1,5 +1,5 @@
 """`make validate-crosstalk` (benchmarks/crosstalk_validation.py) never replaces the committed results with
-a partial run (issue 10): without natural scenes, with --quick or a subset of sensors it writes elsewhere,
+a partial run: without natural scenes, with --quick or a subset of sensors it writes elsewhere,
 and it refuses to overwrite an explicit output that exists."""
 import importlib.util
 from pathlib import Path

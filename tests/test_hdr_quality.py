@@ -304,7 +304,7 @@ def test_noisy_without_noise_model_is_a_clear_error():
 
 
 def test_noisy_weights_are_the_noise_ratio_of_eq_4_7():
-    """Joint FSE sample weights (helper dark2): factor x var_regular / var_ND at the measured level
+    """Joint FSE sample weights: factor x var_regular / var_ND at the measured level
     (Eq. 4-7): factor / ND^2 at black (read noise), towards factor / ND when shot noise dominates;
     0 at pixels that are not NOISY; at most 1 (a known pixel's weight)."""
     prof = profile.default(8, 8)

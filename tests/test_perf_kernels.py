@@ -317,7 +317,7 @@ def test_crosstalk_lut_on_a_smooth_frame_equals_the_reference(rng, threads):
         assert np.array_equal(vv, ref_v) and np.array_equal(ss, ref_s)
 
 
-# ---- fse driver: fused log-domain wrapper passes (issue 7 item 3, helper perf2) -------------------------------
+# ---- fse driver: fused log-domain wrapper passes -------------------------------------------------
 def _hdr_capture(h, w, seed):
     """A sensor capture of the synthetic HDR scene (clipped and dark pixels with their bounds, read and shot
     noise): values, known mask, lower, upper as the element hands them to `reconstruct`."""
