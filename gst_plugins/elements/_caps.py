@@ -26,6 +26,12 @@ def hdr_template_caps(strict: bool = False) -> Gst.Caps:
     return Gst.Caps.from_string(text)
 
 
+def hdr_transform_templates() -> tuple:
+    """The sink and src pad templates of an element that takes and gives HDR frames."""
+    return (Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, hdr_template_caps()),
+            Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()))
+
+
 def raw_template_caps(formats: str, extra: str = "") -> Gst.Caps:
     """`video/x-raw, format=<formats>, width, height, framerate[, extra]` (formats: one name or `{ A, B }`)."""
     return Gst.Caps.from_string(f"video/x-raw, format=(string){formats}, width={INT_RANGE}, "

@@ -8,6 +8,14 @@ from __future__ import annotations
 import os
 import threading
 
+from ._props import Prop
+
+ALLOW_OUTSIDE_PROP = Prop(
+    "allow-outside-paths", bool, False, "Allow paths outside",
+    "Read a profile (or clip folder) whose mask, calibration or frames file lies outside its folder (absolute, "
+    "'..' or a symlink leaving it); refused by default, since these files may come from others "
+    "(docs/RELIABILITY.md)")
+
 _cache: dict = {}
 _outside_allowed: set[str] = set()    # profiles read with allow_outside=True in this process
 _lock = threading.Lock()

@@ -26,6 +26,7 @@ import threading
 
 from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, load_profile, np,
                       raw_template_caps, starting)
+from ._profiles import ALLOW_OUTSIDE_PROP
 
 RING = 4  # frames a camera driver buffers (v4l2src's default); reported as the maximum latency
 CACHE_BYTES = 256 << 20  # rendered frames kept for the path's repeats when all of them fit
@@ -40,9 +41,7 @@ PROPERTIES = PropertyTable("GstNrCamSrc", [
     Prop("profile", str, "", "Camera profile",
          "Scene mode: camera profile JSON (size, mask, noise); empty = the default profile of width x height "
          "(written to a cache file, see 'profile-path'). Clip mode: ignored (the clip's camera.json)"),
-    Prop("allow-outside-paths", bool, False, "Allow paths outside",
-         "Read a clip folder or profile whose files lie outside its folder (absolute, '..' or a symlink "
-         "leaving it); refused by default, since clips may come from others (docs/RELIABILITY.md)"),
+    ALLOW_OUTSIDE_PROP,
     Prop("profile-path", str, "", "Profile in use",
          "The camera profile JSON of the frames (resolved from location / scene / profile / width / height): "
          "give it to nrvalidity profile=...", readonly=True),

@@ -12,16 +12,15 @@ import time
 from nrhdr_core.crosstalk import LUT_FORMS, MODES
 
 from ._common import (LATENCY_PROP, Gst, GstBase, HdrInfo, LiveTiming, NrElement, Prop, PropertyTable,
-                      check_hdr_buffer, debug_category, guarded, hdr_template_caps, load_profile, map_hdr,
+                      check_hdr_buffer, debug_category, guarded, hdr_transform_templates, load_profile, map_hdr,
                       starting)
+from ._profiles import ALLOW_OUTSIDE_PROP
 
 PROPERTIES = PropertyTable("GstNrCrosstalk", [
     Prop("profile", str, "", "Camera profile",
          "Camera profile JSON with the crosstalk calibration. Empty = the profile named in the caps by "
          "nrvalidity (field 'profile')"),
-    Prop("allow-outside-paths", bool, False, "Allow paths outside",
-         "Read a profile whose mask or calibration file lies outside the profile's folder (absolute, '..' or a "
-         "symlink leaving it); refused by default, since profiles may come from others (docs/RELIABILITY.md)"),
+    ALLOW_OUTSIDE_PROP,
     Prop("mode", MODES, "kernel", "Correction mode",
          "'kernel' = each pixel's calibrated neighbour kernel applied to its actual neighbours (accurate, "
          "slower: docs/CROSSTALK.md); 'lut' = the paper's per-code look-up table (fast, assumes neighbours as "
@@ -47,10 +46,7 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
         "(other/x-nrhdr) with the camera profile's calibration (paper 3.2); identity without a calibration",
         "nrhdr project",
     )
-    __gsttemplates__ = (
-        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, hdr_template_caps()),
-        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
-    )
+    __gsttemplates__ = hdr_transform_templates()
 
     do_gst_base_transform_query = LiveTiming.nr_live_query
 

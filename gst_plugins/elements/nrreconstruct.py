@@ -18,7 +18,7 @@ from nrhdr_core.fse import FSE_PRESETS
 from nrhdr_core.reconstruction import FUSIONS, METHODS
 
 from ._common import (LATENCY_PROP, GObject, Gst, GstBase, HdrInfo, LiveTiming, NrElement, Prop, PropertyTable,
-                      debug_category, guarded, hdr_template_caps, load_profile, map_hdr, starting)
+                      debug_category, guarded, hdr_transform_templates, load_profile, map_hdr, starting)
 
 BUDGET_SHARE = 0.7  # method=auto without budget-ms: this share of the frame period (the rest: other stages)
 STATS_MESSAGE = "nrhdr-frame-stats"
@@ -64,10 +64,7 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         "pull-push preview; posts 'nrhdr-frame-stats' element messages",
         "nrhdr project",
     )
-    __gsttemplates__ = (
-        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, hdr_template_caps()),
-        Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, hdr_template_caps()),
-    )
+    __gsttemplates__ = hdr_transform_templates()
 
     do_gst_base_transform_query = LiveTiming.nr_live_query
 

@@ -21,14 +21,13 @@ from ._common import (HDR_LAYOUT, HDR_MEDIA_TYPE, LATENCY_PROP, GstBase, GstVide
                       LiveTiming, NrElement, Prop, PropertyTable, check_video_buffer, copy_fields,
                       copy_timestamps, debug_category, guarded, hdr_template_caps, load_profile, map_hdr,
                       map_video, raw_template_caps, starting, transform_caps_by_structure)
+from ._profiles import ALLOW_OUTSIDE_PROP
 
 PROPERTIES = PropertyTable("GstNrValidity", [
     Prop("profile", str, "", "Camera profile",
          "Camera profile JSON (nrhdr_core.profile): ND mask, ND factor, clip code, black level, l_min. "
          "Required; the stream's frame size must equal the mask's"),
-    Prop("allow-outside-paths", bool, False, "Allow paths outside",
-         "Read a profile whose mask or calibration file lies outside the profile's folder (absolute, '..' or a "
-         "symlink leaving it); refused by default, since profiles may come from others (docs/RELIABILITY.md)"),
+    ALLOW_OUTSIDE_PROP,
     Prop("mode", MODES, "threshold", "Selection mode",
          "Pixel selection (paper 2.3): 'all' = every pixel neither clipped nor below SNR 0 dB; 'best' = "
          "attenuated pixels dropped where a valid regular neighbour exists; 'threshold' = attenuated pixels "
