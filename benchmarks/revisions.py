@@ -13,7 +13,8 @@ revision runs the same script in its own interpreter with only its own tree on t
   preset, both dark policies, crosstalk off / LUT compact / LUT full / kernel (identity calibration), plus
   the log tone map and PQ encoding: one SHA-256 over every value and state byte;
 - speed: `chain.process_frame` at --width x --height for the settings of the live preview and of recording
-  (`preview`, `fse fast`, with the LUT crosstalk), median milliseconds per frame over --frames frames.
+  (`preview`, `fse fast`, with the LUT crosstalk), median milliseconds per frame over --frames frames, and
+  each stage of it (validity, crosstalk, reconstruction) timed alone on the same frames.
 """
 from __future__ import annotations
 
@@ -64,17 +65,36 @@ if mode == "outputs":
 else:
     prof, cal, raws = frames(h, w, n, 2)
     out = {}
+    from nrhdr_core import crosstalk as xt, reconstruction as rc, validity as vd
+
+    def stages(raw, st):      # chain.process_frame's calls, timed one by one
+        t0 = time.perf_counter()
+        v, s = vd.classify(raw, cal, mode=st.mode, l_min=st.l_min, dark_policy=st.dark_policy)
+        t1 = time.perf_counter()
+        v2, s2 = xt.correct(v, s, cal, st.crosstalk, lut=st.crosstalk_lut)
+        t2 = time.perf_counter()
+        rc.reconstruct_frame(v2, s2, method=st.method, preset=st.preset, use_bounds=st.use_bounds, noise=cal,
+                             fusion=st.noise_fusion)
+        t3 = time.perf_counter()
+        return t1 - t0, t2 - t1, t3 - t2
+
     for name, s in (("preview, lut compact", dict(method="preview", crosstalk="lut")),
                     ("fse fast, lut compact", dict(method="fse", preset="fast", crosstalk="lut"))):
         st = chain.ChainSettings(**s)
         chain.process_frame(raws[0].copy(), cal, st)                       # compile / load the cache
-        ts = []
+        stages(raws[0].copy(), st)
+        ts, parts = [], []
         for raw in raws:
             r = raw.copy()
             t = time.perf_counter()
             chain.process_frame(r, cal, st)
             ts.append(time.perf_counter() - t)
+            parts.append(stages(raw.copy(), st))
         out[name] = 1e3 * sorted(ts)[len(ts) // 2]
+        for j, stage in enumerate(("validity", "crosstalk", "reconstruction")):
+            if name.startswith("fse") and stage != "reconstruction":
+                continue                                                   # the same stages as preview's
+            out[f"  {stage} ({name.split(',')[0]})"] = 1e3 * sorted(p[j] for p in parts)[len(parts) // 2]
     print(json.dumps(out))
 '''
 
@@ -131,10 +151,10 @@ def main(argv=None) -> int:
                 times[i].setdefault(k, []).append(v)
     print(f"\nms per frame, chain.process_frame at {a.width} x {a.height} (median of {a.frames} frames; "
           f"each round's median, {a.rounds} alternating rounds)")
-    print(f"{'setting':24s} | {revs[0][0]:>32s} | {revs[1][0]:>32s} | head / base")
+    print(f"{'setting':30s} | {revs[0][0]:>32s} | {revs[1][0]:>32s} | head / base")
     for k in times[0]:
         b, h = times[0][k], times[1][k]
-        print(f"{k:24s} | {' '.join(f'{x:6.1f}' for x in b):>32s} | {' '.join(f'{x:6.1f}' for x in h):>32s} | "
+        print(f"{k:30s} | {' '.join(f'{x:6.1f}' for x in b):>32s} | {' '.join(f'{x:6.1f}' for x in h):>32s} | "
               f"{statistics.median(h) / statistics.median(b):.3f}")
     return 0 if same else 1
 
