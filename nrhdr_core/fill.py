@@ -9,14 +9,17 @@ follows it, so the result does not depend on the strategy :func:`nearest_at` pic
   and their distance to a source, not with the frame), exact within RING_RADIUS_MAX;
 - the rest: the exact Euclidean distance transform with argmin tracking (Felzenszwalb & Huttenlocher,
   Theory of Computing 2012: nearest source row per column, then the lower envelope of parabolas per row)
-  on a crop reaching `m` pixels beyond the targets' bounding box. A source outside the crop is more than
-  `m` away from every target, so the result is exact once each target found a source within `m`; else
-  `m` grows, up to the whole frame.
+  on a crop reaching `m` pixels beyond the targets' bounding box (the whole frame once the crop would
+  cover half of it). A source outside the crop is more than `m` away from every target, so the result is
+  exact once each target found a source within `m`; else `m` becomes the largest distance found (then
+  exact), or grows 4-fold while the crop holds no source.
 
 Sources and targets are given as code arrays with lookup tables (a pixel is a source where
 ``is_src[src[y, x]]``, a target where ``is_tgt[tgt[y, x]]``): a bool mask viewed as uint8, or a state plane.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit, prange
@@ -81,6 +84,8 @@ def nearest_at(vals, dst, src, is_src, tgt, is_tgt, ys=None, xs=None):
     m = 16
     while True:
         cy0, cy1, cx0, cx1 = max(0, y0 - m), min(h, y1 + m), max(0, x0 - m), min(w, x1 + m)
+        if 2 * (cy1 - cy0) * (cx1 - cx0) >= h * w:     # most of the frame: the whole one (no second pass)
+            cy0, cy1, cx0, cx1 = 0, h, 0, w
         whole = (cy0, cy1, cx0, cx1) == (0, h, 0, w)
         flat = planes("fill.rows", (h, w), lambda: np.empty(h * w, np.int32))
         row = flat[:(cy1 - cy0) * (cx1 - cx0)].reshape(cy1 - cy0, cx1 - cx0)
@@ -88,7 +93,8 @@ def nearest_at(vals, dst, src, is_src, tgt, is_tgt, ys=None, xs=None):
         d2 = _rows(vals, dst, tgt, is_tgt, cy0, cx0, y0, y1, x0, x1, row)
         if whole or d2 <= m * m:
             return
-        m *= 4
+        # a source within the largest distance found is within that margin: the next crop is exact
+        m = 4 * m if d2 >= _NONE else math.isqrt(int(d2) - 1) + 1
 
 
 def coords(codes, table):
