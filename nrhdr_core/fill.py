@@ -42,7 +42,7 @@ def nearest(values, known, out=None):
     """Every pixel not ``known`` gets the value of the nearest known pixel (the tie rule of the module),
     written into ``out`` (may be ``values``: known pixels are only read) or a new float32 array."""
     vals = np.ascontiguousarray(values, dtype=np.float32)
-    codes = np.ascontiguousarray(known).view(np.uint8)
+    codes = np.ascontiguousarray(known, dtype=np.bool_).view(np.uint8)
     if out is None:
         out = vals.copy()
     nearest_at(vals, out, codes, TRUE_CODES, codes, FALSE_CODES)
@@ -52,11 +52,12 @@ def nearest(values, known, out=None):
 def nearest_fill(work, left, src=None):
     """Pixels ``left`` (bool (H, W)) of ``work`` get the value of the nearest ``src`` pixel (bool (H, W);
     default: every pixel not left), in place; no source anywhere: 0."""
-    left = np.ascontiguousarray(left).view(np.uint8)
+    left = np.ascontiguousarray(left, dtype=np.bool_).view(np.uint8)
     if src is None:
         nearest_at(work, work, left, FALSE_CODES, left, TRUE_CODES)
     else:
-        nearest_at(work, work, np.ascontiguousarray(src).view(np.uint8), TRUE_CODES, left, TRUE_CODES)
+        nearest_at(work, work, np.ascontiguousarray(src, dtype=np.bool_).view(np.uint8), TRUE_CODES, left,
+                   TRUE_CODES)
 
 
 def nearest_at(vals, dst, src, is_src, tgt, is_tgt, ys=None, xs=None):
@@ -64,6 +65,9 @@ def nearest_at(vals, dst, src, is_src, tgt, is_tgt, ys=None, xs=None):
     strategies); no source anywhere: 0. ``vals`` and ``dst`` float32 (H, W), may be one array; ``ys``,
     ``xs``: the targets' coordinates when the caller has them (exactly the target pixels)."""
     h, w = src.shape
+    if not (vals.shape == dst.shape == tgt.shape == (h, w)) or vals.ndim != 2:
+        raise ValueError(f"nearest fill: values {vals.shape}, output {dst.shape}, sources {src.shape} and "
+                         f"targets {tgt.shape} must be one (H, W) shape")
     if ys is None:
         n, y0, y1, x0, x1 = _target_box(tgt, is_tgt)
         if n == 0:

@@ -122,3 +122,8 @@ def test_no_source_gives_zero_and_coords_are_row_major(rng):
     assert (got[left] == 0).all() and (got[~left] == 1).all()
     ys, xs = fill.coords(left.view(np.uint8), fill.TRUE_CODES)
     np.testing.assert_array_equal(np.stack([ys, xs], 1), np.argwhere(left))
+
+
+def test_shapes_that_differ_are_refused():
+    with pytest.raises(ValueError, match="nearest fill"):
+        fill.nearest_fill(np.zeros((4, 5), np.float32), np.zeros((5, 4), bool))
