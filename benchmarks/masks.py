@@ -36,7 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nrhdr_core import figures, mask as masks, metrics, reconstruction  # noqa: E402
+from nrhdr_core import chain, figures, mask as masks, metrics, reconstruction  # noqa: E402
 
 DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
 OUT = ROOT / "bench_out" / "masks"
@@ -187,7 +187,7 @@ def main(argv=None) -> int:
     ap.add_argument("-o", "--output", default=str(OUT))
     a = ap.parse_args(argv)
     t0 = time.time()
-    reconstruction.warmup("fse")
+    chain.warmup(chain.ChainSettings(method="fse"), stages=("reconstruction",))
     seeds = list(range(a.seeds))
     n = 256 if a.quick else 512
     res = {"quick": a.quick, "preset": a.preset, "masks": a.masks, "machine": platform.platform(),

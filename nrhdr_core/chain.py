@@ -125,6 +125,68 @@ def _warm_frame(prof, s: ChainSettings, raw: np.ndarray):
     return values, state
 
 
+def _warm_method(method: str) -> None:
+    """Reconstruction `method` through the public calls on small frames that reach the kernels the
+    chain's own 12 x 16 frame does not: the nearest fill's distance transform (a target more than
+    `fill.RING_RADIUS_MAX` from any source), the preview's parallel pyramid levels (from 512 x 512 on),
+    FSE's presets, log domain, skipped pixels and fallback (an area no block can fill), the data-range
+    clamp, the noise fusions, both bound settings."""
+    from types import SimpleNamespace
+
+    from . import fill, fse, reconstruction
+    from .states import ATTENUATED, CLIPPED, DARK, NOISY, VALID
+    rec = reconstruction.reconstruct
+    noise = SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35)
+    v = np.zeros((4, 4), np.float32)
+    k = np.ones((4, 4), bool)
+    k[1, 1] = False
+    nan = np.full(v.shape, np.nan, np.float32)
+    kf = np.zeros((2, 80), bool)
+    kf[:, 0] = True
+    fill.nearest(np.ones((2, 80), np.float32), kf)
+    rec(v, k, method="nearest" if method == "fse" else method, lower=nan)
+    reconstruction.fuse_noisy(v.copy(), v, k, ~k, noise)
+    if method == "preview":
+        kp = np.ones((512, 512), bool)
+        kp[1, 1] = False
+        rec(np.ones((512, 512), np.float32), kp, method="preview")
+    if method == "fse":
+        rng = np.random.default_rng(0)
+        v24 = rng.random((24, 24)).astype(np.float32)
+        k24 = rng.random((24, 24)) < 0.5
+        n24 = np.full_like(v24, np.nan)
+        for preset in ("preview", "balanced"):
+            fse.fse_reconstruct(v24, k24, lower=n24, upper=n24, preset=preset)
+        # HDR data (12 stops, a clipped and a dark bound): the log domain's passes
+        hv = (2.0 ** (12.0 * v24)).astype(np.float32)
+        lo, hi = n24.copy(), n24.copy()
+        lo[0, 0] = hv.max()
+        hi[1, 1] = hv.min()
+        fse.fse_reconstruct(hv, k24, lower=lo, upper=hi, preset="preview")
+        # NOISY pixels skipped by FSE and given their noise level (the accurate fusion)
+        rec(v24, k24, method="fse", preset="preview", noisy=~k24 & (rng.random((24, 24)) < 0.5), noise=noise,
+            fusion="accurate", noisy_skip=True)
+        # an area whose support windows hold skipped pixels only: the fallback
+        v64 = (2.0 ** (rng.random((64, 64)) * 8)).astype(np.float32)
+        k64 = np.zeros((64, 64), bool)
+        k64[:, :8] = rng.random((64, 8)) < 0.6
+        skip = ~k64
+        skip[20:44, 36:60] = False
+        fse.fse_reconstruct(v64, k64, preset="fast", skip=skip)
+    # tiny frames: clipped and dark bounds on and off, NOISY pixels fused (nrvalidity dark-policy=weighted)
+    state = np.zeros((4, 4), np.uint8)
+    state[1, 1] = CLIPPED
+    state[2, 2] = DARK
+    reconstruction.reconstruct_frame(v.copy(), state, method=method, preset="preview", use_bounds=True)
+    reconstruction.reconstruct_frame(v.copy(), state.copy(), method=method, preset="preview", use_bounds=False)
+    state = np.full((4, 4), ATTENUATED | CLIPPED, np.uint8)
+    state[0, :] = VALID
+    state[1, 1] = CLIPPED
+    state[2, 2] = ATTENUATED | NOISY
+    reconstruction.reconstruct_frame(v.copy() + 1, state, method=method, preset="preview", use_bounds=True,
+                                     noise=noise)
+
+
 def _padded(a: np.ndarray, pad: int) -> np.ndarray:
     """`a` as a view with rows `pad` elements longer than its width (GStreamer pads video rows to 4 bytes)."""
     out = np.zeros((a.shape[0], a.shape[1] + pad), a.dtype)[:, :a.shape[1]]
@@ -146,7 +208,7 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
     elements' start and `batch` call it.
 
     - `stages` (of STAGES): ``validity`` (`validity.classify`), ``crosstalk`` (`crosstalk.correct`; nothing
-      with mode off or without a calibration), ``reconstruction`` (`reconstruction.warmup` of each method,
+      with mode off or without a calibration), ``reconstruction`` (each method on the frames of `_warm_method`,
       then `reconstruction.reconstruct_frame` with the settings' preset, bounds and noise fusion),
       ``tonemap`` (the `transfers`). Each stage's input frame is made in numpy, so a stage compiles its own
       kernels only.
@@ -186,7 +248,7 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
 
     if "reconstruction" in stages:
         for method in dict.fromkeys(s.method for s in sets):
-            reconstruction.warmup(method)
+            _warm_method(method)
         for s in {(s.method, s.preset, s.use_bounds, s.noise_fusion, s.mode, s.dark_policy): s
                   for s in sets}.values():
             values, state = _warm_frame(prof, s, raw)

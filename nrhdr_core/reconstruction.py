@@ -2,7 +2,7 @@
 
 Methods, from fastest to most accurate:
 - ``preview``: pull-push normalised averaging on an image pyramid (numba); live preview.
-- ``nearest``: nearest known pixel (exact Euclidean distance transform, Felzenszwalb & Huttenlocher 2012).
+- ``nearest``: nearest known pixel (`nrhdr_core.fill`: exact Euclidean nearest, one tie rule).
 - ``linear``: Delaunay triangulation of the known pixels and linear interpolation on it (scipy), the
   paper's "triangular interpolation" of Fig. 10g.
 - ``fse``: Frequency Selective Extrapolation (ref. 9; `nrhdr_core.fse`), the paper's method of Fig. 10h.
@@ -20,6 +20,7 @@ from numba import get_num_threads, njit, prange
 
 from .fse import f32_key as _f32_key  # order-preserving int32 keys of float32 bits (min/max that vectorise)
 from .fse import f32_unkey as _unkey
+from .fill import nearest  # the nearest fill (method "nearest", outside the hull, non-finite repair)
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
@@ -131,7 +132,7 @@ def reconstruct(values, known, method: str = "fse", preset: str = "balanced", lo
         if method == "preview":
             res = _preview(out, k, out)
         elif method == "nearest":
-            res = _nearest(out, k, out)
+            res = nearest(out, k, out)
         else:
             res = _linear(out, k)
     if res is not out:
@@ -369,7 +370,7 @@ def _clamp_to_data(out, v, k, miss, lower):
     nbad = _clamp_kernel(out, v32, kk, lo_arr, lower is not None)
     if nbad:
         bad = ~np.isfinite(out) & ~kk
-        out[bad] = _nearest(v32, kk)[bad]
+        out[bad] = nearest(v32, kk)[bad]
         _clamp_kernel(out, v32, kk, lo_arr, lower is not None)
     return out
 
@@ -546,94 +547,6 @@ def _clamp_missing(out, miss, b, is_lower):
             out[y, x] = r
 
 
-def _nearest(out, k, dst=None):
-    """Value of the nearest known pixel (exact Euclidean distance; ties may pick another pixel at the
-    same distance than scipy), by a separable distance transform with argmin tracking (Felzenszwalb &
-    Huttenlocher 2012): nearest known row per column, then the lower envelope of parabolas per row.
-    Written into `dst` (may be `out`: known pixels are only read) or a new array."""
-    vals = np.ascontiguousarray(out, dtype=np.float32)
-    k = np.ascontiguousarray(k)
-    if dst is None:
-        dst = vals.copy()
-    h, w = vals.shape
-    row = planes("reconstruction.nearest_rows", (h, w), lambda: np.empty((h, w), np.int32))
-    _nn_columns(k, row)
-    _nn_rows(vals, k, row, dst)
-    return dst
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _nn_columns(known, row):
-    """row[y, x] = row of the nearest known pixel in column x (-1: the column has none); column blocks
-    of 64 in parallel, rows in memory order."""
-    h, w = known.shape
-    nb = (w + 63) // 64
-    for b in prange(nb):
-        x0 = b * 64
-        x1 = min(w, x0 + 64)
-        below = np.empty(x1 - x0, np.int32)
-        for x in range(x0, x1):
-            row[0, x] = 0 if known[0, x] else -1
-        for y in range(1, h):
-            for x in range(x0, x1):
-                row[y, x] = y if known[y, x] else row[y - 1, x]
-        for x in range(x0, x1):
-            below[x - x0] = -1
-        for y in range(h - 1, -1, -1):
-            for x in range(x0, x1):
-                if known[y, x]:
-                    below[x - x0] = y
-                bl = below[x - x0]
-                up = row[y, x]
-                if bl >= 0 and (up < 0 or bl - y < y - up):
-                    row[y, x] = bl
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _nn_rows(vals, known, row, out):
-    """Per row: lower envelope of the parabolas (x - q)^2 + (y - row[y, q])^2 over the columns q that
-    have a known pixel; each missing pixel takes the value at its minimiser."""
-    h, w = vals.shape
-    nch = min(h, 64)
-    for c in prange(nch):
-        v = np.empty(w, np.int64)
-        z = np.empty(w + 1, np.float64)
-        f = np.empty(w, np.float64)
-        for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            kk = -1
-            for q in range(w):
-                r = row[y, q]
-                if r < 0:
-                    continue
-                f[q] = np.float64((y - r) * (y - r))
-                if kk < 0:
-                    kk = 0
-                    v[0] = q
-                    z[0] = -np.inf
-                    z[1] = np.inf
-                    continue
-                fq = f[q] + np.float64(q * q)
-                p = v[kk]
-                s = (fq - (f[p] + np.float64(p * p))) / np.float64(2 * (q - p))
-                while s <= z[kk]:
-                    kk -= 1
-                    p = v[kk]
-                    s = (fq - (f[p] + np.float64(p * p))) / np.float64(2 * (q - p))
-                kk += 1
-                v[kk] = q
-                z[kk] = s
-                z[kk + 1] = np.inf
-            if kk < 0:
-                continue
-            j = 0
-            for x in range(w):
-                while z[j + 1] < x:
-                    j += 1
-                if not known[y, x]:
-                    p = v[j]
-                    out[y, x] = vals[row[y, p], p]
-
-
 @njit(cache=True, nogil=True)
 def _raster_triangles(tris, py, px, pv, known, res, filled):
     """Scan-convert each triangle (integer vertex coordinates) and write the barycentric interpolation
@@ -674,20 +587,20 @@ def _linear(out, k):
     band = k & ndimage.binary_dilation(~k, np.ones((5, 5), bool))
     ky, kx = np.nonzero(band)
     if ky.size < 3:
-        return _nearest(out, k)
+        return nearest(out, k)
     pts = np.column_stack([ky, kx]).astype(np.float64)
     pts += np.random.default_rng(0).uniform(-1e-6, 1e-6, pts.shape)
     try:
         tri = Delaunay(pts)
     except QhullError:  # all known pixels collinear: no triangle exists
-        return _nearest(out, k)
+        return nearest(out, k)
     res = out.astype(np.float32, copy=True)
     filled = np.zeros(out.shape, bool)
     _raster_triangles(tri.simplices.astype(np.int64), ky.astype(np.int64), kx.astype(np.int64),
                       out[ky, kx].astype(np.float64), k, res, filled)
     hole = ~k & ~filled
     if hole.any():
-        near = _nearest(out, k)
+        near = nearest(out, k)
         res[hole] = near[hole]
     return res
 
@@ -969,43 +882,6 @@ def _preview(vals, k, out=None):
     _pull_push_levels(pv, pw, hs, ws, off)
     _fill(zv, kf, pv, off[1], ws[1], out)
     return out
-
-
-def warmup(method: str | None = None) -> None:
-    """Compile the numba code of `method` (all methods when None) on a tiny image; called from element
-    start, never at import. numba's on-disk cache makes later processes load instead of compile."""
-    v = np.zeros((4, 4), np.float32)
-    k = np.ones((4, 4), bool)
-    k[1, 1] = False
-    if method in (None, "preview"):
-        reconstruct(v, k, method="preview")
-        # the parallel pyramid levels (used from 512 x 512 on)
-        pv = np.zeros(8, np.float32)
-        _pull(pv, pv.copy(), 0, 2, 2, 4, 1, 1)
-        _push(pv, pv.copy(), 0, 2, 2, 4, 1)
-    if method in (None, "nearest"):
-        reconstruct(v, k, method="nearest")
-    # the dispatcher's own kernels (every method): data-range clamp, noise fusion
-    from types import SimpleNamespace
-    _clamp_to_data(v.copy(), v, k, ~k, np.full(v.shape, np.nan, np.float32))
-    fuse_noisy(v.copy(), v, k, ~k, SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
-    _noisy_level(v.copy(), k, ~k)
-    if method in (None, "fse"):
-        from . import fse
-        fse.warmup()
-    if method is not None:
-        state = np.zeros((4, 4), np.uint8)
-        state[1, 1] = CLIPPED
-        state[2, 2] = DARK
-        reconstruct_frame(v.copy(), state, method=method, preset="preview", use_bounds=True)
-        reconstruct_frame(v.copy(), state.copy(), method=method, preset="preview", use_bounds=False)
-        # the element's frame with NOISY pixels fused (nrvalidity dark-policy=weighted)
-        state = np.full((4, 4), ATTENUATED | CLIPPED, np.uint8)
-        state[0, :] = VALID
-        state[1, 1] = CLIPPED
-        state[2, 2] = ATTENUATED | NOISY
-        reconstruct_frame(v.copy() + 1, state, method=method, preset="preview", use_bounds=True,
-                          noise=SimpleNamespace(gain=0.55, read_noise=2.0, nd=6.35))
 
 
 # ---- whole-frame entry point for elements: no per-frame allocation -----------------------------------------

@@ -130,8 +130,10 @@ def test_structured_hole_is_filled_from_the_border():
     assert psnr(img, out, 255) > psnr(img, pull_push, 255) + 3.0
 
 
-def test_warmup_runs():
-    fse.warmup()
+def test_chain_warmup_runs_fse():
+    """The one warm-up entry point compiles FSE's kernels (presets, log domain, skipped pixels, fallback)."""
+    from nrhdr_core import chain
+    chain.warmup(chain.ChainSettings(method="fse"), stages=("reconstruction",))
 
 
 def _gray(path):
@@ -403,10 +405,12 @@ def test_noisy_skip_fused_result_matches_numpy():
 # ---- the fallback fill of blocks without data ------------------------------------------------------------
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_nearest_fill_crop_gives_a_nearest_source(seed):
-    """`nearest_fill` (ring search around each left pixel; a crop's distance transform where no source is
-    within RING_RADIUS_MAX, seed 2): every left pixel gets the value of a source pixel at the minimal
-    Euclidean distance (the whole-frame distance transform)."""
+    """`fill.nearest_fill` (ring search around each left pixel; a crop's distance transform where no source
+    is within RING_RADIUS_MAX, seed 2): every left pixel gets the value of a source pixel at the minimal
+    Euclidean distance (the whole-frame distance transform); FSE's `fill_left` gives the same values."""
     from scipy import ndimage
+
+    from nrhdr_core import fill
     rng = np.random.default_rng(seed)
     h, w = 120, 200
     src = rng.random((h, w)) < (0.02 if seed else 0.5)
@@ -418,7 +422,7 @@ def test_nearest_fill_crop_gives_a_nearest_source(seed):
         src[0, 0] = True                                  # one source in a corner: the crop must grow
     work = np.arange(h * w, dtype=np.float64).reshape(h, w).astype(np.float32)   # value = source id
     ref = work.copy()
-    fse.nearest_fill(work, left, src)
+    fill.nearest_fill(work, left, src)
     dist = ndimage.distance_transform_edt(~src)
     ys, xs = np.nonzero(left)
     sid = work[ys, xs].astype(np.int64)

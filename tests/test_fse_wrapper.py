@@ -1,13 +1,13 @@
 """FSE's passes around the block kernels against independent numpy/scipy expectations: the fallback for
-blocks whose support held no usable pixel (`fse.nearest_fill`, `fallback.fill_left`: every left pixel takes
+blocks whose support held no usable pixel (`fill.nearest_fill`, `fallback.fill_left`: every left pixel takes
 the value of a source pixel at the Euclidean-nearest distance, checked against scipy's exact distance
-transform; both branches, ring search and transform), `domain.finish_at`, and the statistics passes
+transform; both strategies, ring search and transform; the tie rule: tests/test_fill.py), `domain.finish_at`, and the statistics passes
 `domain.stats` / `domain.finite_max`."""
 import numpy as np
 import pytest
 from scipy import ndimage
 
-from nrhdr_core import fse
+from nrhdr_core import fill, fse
 from nrhdr_core.fse import domain, fallback
 from nrhdr_core.fse.params import KNOWN, MISSING, NOISY, RECONSTRUCTED, SKIP
 
@@ -26,16 +26,16 @@ def _check(work, left, src, got):
     assert np.array_equal(got[~left], work[~left])
 
 
-@pytest.mark.parametrize("ring_max", [10**9, 0])   # ring search, scipy's transform
+@pytest.mark.parametrize("ring_max", [10**9, 0])   # ring search, distance transform
 def test_nearest_fill_takes_a_nearest_source(ring_max, rng, monkeypatch):
-    monkeypatch.setattr(fallback, "NEAREST_RING_MAX", ring_max)
+    monkeypatch.setattr(fill, "NEAREST_RING_MAX", ring_max)
     for trial in range(60):
         h, w = rng.integers(1, 40, 2)
         work = rng.random((h, w)).astype(np.float32)
         left = rng.random((h, w)) < rng.random() * 0.5
         src = None if trial % 3 == 0 else (~left) & (rng.random((h, w)) < rng.random())
         got = work.copy()
-        fse.nearest_fill(got, left, src)
+        fill.nearest_fill(got, left, src)
         _check(work, left, src, got)
 
 
@@ -47,7 +47,7 @@ def test_nearest_fill_far_source():
     src[0, 0] = True
     left = np.zeros_like(src)
     left[199, 299] = True
-    fse.nearest_fill(work, left, src)
+    fill.nearest_fill(work, left, src)
     assert work[199, 299] == 7.0
 
 
@@ -89,9 +89,9 @@ def test_fse_far_from_any_sample_gets_a_nearest_value(rng):
 
 def test_fill_left_sources_by_state(rng, monkeypatch):
     """`fill_left` (the driver's fallback): sources are known, reconstructed and noisy pixels, never
-    skipped ones; nearest by `nearest_fill`'s rule, both branches; no source: 0."""
+    skipped ones; nearest by `fill`'s rule, both strategies; no source: 0."""
     for ring_max in (10**9, 0):
-        monkeypatch.setattr(fallback, "NEAREST_RING_MAX", ring_max)
+        monkeypatch.setattr(fill, "NEAREST_RING_MAX", ring_max)
         state = rng.choice(np.array([MISSING, KNOWN, RECONSTRUCTED, NOISY, SKIP], np.uint8), size=(30, 40),
                            p=[0.1, 0.3, 0.2, 0.1, 0.3])
         work = rng.random((30, 40)).astype(np.float32)

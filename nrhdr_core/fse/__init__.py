@@ -10,15 +10,13 @@ availability. Facts: ``/work/shared/docs/fse-reference.md``; the package and its
 Modules, in the order of the algorithm: ``params`` (presets, validation, tables), ``domain`` (statistics,
 log domain offset, working image and the way back), ``bounds`` (data and local bounds), ``plan`` (quadtree
 leaves, rounds), ``kernel`` (the block kernel, one function per step), ``parallel`` (worker, run),
-``fallback`` (nearest fill), ``reconstruct`` (:func:`fse_reconstruct`, the steps on a frame).
+``fallback`` (pixels no block could fill; the nearest fill is ``nrhdr_core.fill``), ``reconstruct`` (:func:`fse_reconstruct`, the steps on a frame).
 Nothing is compiled at import time; kernels compile on first call (``cache=True``).
 """
 from __future__ import annotations
 
 from .domain import f32_key, f32_unkey, log_offset
-from .fallback import nearest_fill
 from .params import FSE_PRESETS, resolve_params
-from .reconstruct import fse_reconstruct, warmup
+from .reconstruct import fse_reconstruct
 
-__all__ = ["FSE_PRESETS", "fse_reconstruct", "resolve_params", "log_offset", "nearest_fill", "warmup",
-           "f32_key", "f32_unkey"]
+__all__ = ["FSE_PRESETS", "fse_reconstruct", "resolve_params", "log_offset", "f32_key", "f32_unkey"]

@@ -17,13 +17,13 @@ from numba import get_num_threads, njit, prange, set_num_threads
 
 from . import bounds as B
 from . import domain as D
-from .fallback import fill_bounded, fill_left, fill_without_data, nearest_fill
+from .fallback import fill_bounded, fill_left, fill_without_data
 from .kernel import Frame, Params
 from .parallel import run
 from .params import KNOWN, NOISY, SKIP, density_params, resolve_params, tables
 from .plan import block_plan
 
-__all__ = ["fse_reconstruct", "extrapolate_frame", "warmup"]
+__all__ = ["fse_reconstruct", "extrapolate_frame"]
 
 
 def fse_reconstruct(values, known, lower=None, upper=None, preset: str = "balanced", weights=None, skip=None,
@@ -166,27 +166,3 @@ def _mark_skip(state, skip):
         for x in range(w):
             if skip[y, x] and state[y, x] != KNOWN:
                 state[y, x] = SKIP
-
-
-def warmup() -> None:
-    """Compile the kernels on a tiny image (call from an element's ``do_start``)."""
-    rng = np.random.default_rng(0)
-    v = rng.random((24, 24)).astype(np.float32)
-    k = rng.random((24, 24)) < 0.5
-    for preset in ("preview", "balanced"):
-        fse_reconstruct(v, k, lower=np.full_like(v, np.nan), upper=np.full_like(v, np.nan), preset=preset)
-    # HDR data (12 stops, a clipped and a dark bound): the log domain's passes
-    hv = (2.0 ** (12.0 * v)).astype(np.float32)
-    lo = np.full_like(v, np.nan)
-    hi = np.full_like(v, np.nan)
-    lo[0, 0] = hv.max()
-    hi[1, 1] = hv.min()
-    fse_reconstruct(hv, k, lower=lo, upper=hi, preset="preview")
-    # skipped pixels (NOISY pixels before reconstruct's accurate noise fusion)
-    fse_reconstruct(v, k, preset="preview", skip=~k & (rng.random((24, 24)) < 0.5))
-    # the fallback for pixels no block could fill (ring search)
-    nearest_fill(v.copy(), ~k, k)
-    ys, xs = fill_left(v.copy(), np.where(k, 1, 0).astype(np.uint8))
-    for with_c, logd in ((True, True), (False, True), (False, False)):
-        D.finish_at(v.copy(), v, ys, xs, np.float32(1.0), with_c, logd)
-    # (the joint estimation with `weights=` is opt-in: its kernels compile on first use, not here)
