@@ -354,10 +354,13 @@ def test_demo_prints_only_paths_that_exist_after_it_ends(tmp_path, capsys):
     paths = re.findall(re.escape(str(tmp_path)) + r"[^\s:!]*", text.out + text.err)
     assert paths and any("png" in p for p in paths)
     for p in paths:
-        p = p.rstrip("/,)")
+        p = p.rstrip("/,)'")
         if "%05d" in p:
             p = p % 0
         assert os.path.exists(p), f"printed {p}, which does not exist"
+    line = next(x for x in text.out.splitlines() if x.startswith("pipeline: "))[len("pipeline: "):]
+    words = shlex.split(line)                                   # as bash splits the pasted line
+    assert words[:2] == ["nrhdr", "launch"] and "plane-strides=<64>" in words and "!" in words
 
 
 @pytest.mark.gst

@@ -151,7 +151,8 @@ def _run_demo(a, out: Path):
         truth, _ = io.read_exr(out / "clip" / "truth" / f.name)
         lp.append(metrics.log_psnr(np.minimum(truth, prof.white), v))
     miss = 100.0 * float(np.mean(stats)) if stats else float("nan")
-    lines = [f"pipeline: {desc}",
+    shell = " ".join(w if w == "!" else shlex.quote(w) for w in desc.split())   # pastes into bash as printed
+    lines = [f"pipeline: nrhdr launch {shell}",
              f"tone-mapped frames: {out / 'png'}/ ({len(pngs)} PNG)",
              f"linear HDR frames:  {out / 'exr'}/ ({len(exrs)} OpenEXR, channels Y + state)",
              f"summary: {len(pngs)} frames in {dt:.1f} s = {len(pngs) / dt:.1f} frames/s (JIT warm-up "
