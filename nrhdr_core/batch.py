@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import chain, outputs
+from . import chain, io, outputs
 
 MANIFEST = "batch.json"
 MANIFEST_FORMAT = "nrhdr-batch"
@@ -64,10 +64,12 @@ class Source:
         return 2 * self.width * self.height
 
 
-def open_source(path, profile=None, width=None, height=None, frames=None) -> Source:
+def open_source(path, profile=None, width=None, height=None, frames=None, allow_outside: bool = False) -> Source:
     """A clip folder (clip.json + clip.raw + camera.json, from `nrhdr simulate`) or a raw file with a
     profile. Geometry: the clip's, else width/height given, else the profile's mask. Frame count: every
-    frame the file holds (a partial last one included, so it is reported), at least the clip's count."""
+    frame the file holds (a partial last one included, so it is reported), at least the clip's count. The
+    files clip.json names must lie in the clip folder unless `allow_outside` (simulate.load_clip): a clip
+    folder received from someone else cannot make batch read a file from elsewhere."""
     p = Path(path)
     clip_frames = 0
     if p.is_dir():
@@ -78,14 +80,14 @@ def open_source(path, profile=None, width=None, height=None, frames=None) -> Sou
                                  f"killed): make it a clip folder with 'nrhdr recover {p}' first")
             raise BatchError(f"{p}: not a clip folder (no clip.json); give a clip folder from 'nrhdr simulate' "
                              f"or a raw file with --profile")
+        from . import simulate
         try:
-            c = json.loads(cj.read_text())
-            w, h = int(c["width"]), int(c["height"])
-            clip_frames = int(c.get("frames", 0))
-            raw = p / c.get("raw", "clip.raw")
-            prof = Path(profile) if profile else p / c.get("profile", "camera.json")
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise BatchError(f"{cj}: cannot read the clip description: {e}") from None
+            c = simulate.load_clip(p, allow_outside=allow_outside)
+        except simulate.ClipError as e:
+            raise BatchError(str(e)) from None
+        w, h, clip_frames = c["width"], c["height"], c["frames"]
+        raw = Path(c["raw_path"])
+        prof = Path(profile) if profile else Path(c["profile_path"])
         if width is not None and int(width) != w or height is not None and int(height) != h:
             raise BatchError(f"{cj} says {w}x{h}; --width/--height {width}x{height} disagree")
     elif p.is_file():
@@ -103,7 +105,7 @@ def open_source(path, profile=None, width=None, height=None, frames=None) -> Sou
         raise BatchError(f"camera profile {prof} not found")
     if w is None:
         from . import profile as profile_mod
-        pm = profile_mod.load(prof)
+        pm = profile_mod.load(prof, allow_outside=allow_outside)
         w, h = pm.width, pm.height
     if w < 1 or h < 1:
         raise BatchError(f"frame size must be positive, got {w}x{h}")
@@ -158,18 +160,19 @@ class Job:
     settings: chain.ChainSettings = chain.ChainSettings()
     png: bool = False
     crosstalk_profile: Path | None = None
+    allow_outside: bool = False      # profiles naming files outside their folder (profile.load)
 
     def __post_init__(self):
         from . import profile as profile_mod
         self.out_dir = Path(self.out_dir)
-        self.profile = profile_mod.load(self.source.profile)
+        self.profile = profile_mod.load(self.source.profile, allow_outside=self.allow_outside)
         if (self.profile.width, self.profile.height) != (self.source.width, self.source.height):
             raise BatchError(f"profile {self.source.profile} has a {self.profile.width}x{self.profile.height} "
                              f"mask but the frames are {self.source.width}x{self.source.height}")
         self.xt_profile = None
         if self.crosstalk_profile is not None:
             self.crosstalk_profile = Path(self.crosstalk_profile).resolve()
-            self.xt_profile = profile_mod.load(self.crosstalk_profile)
+            self.xt_profile = profile_mod.load(self.crosstalk_profile, allow_outside=self.allow_outside)
             if (self.xt_profile.width, self.xt_profile.height) != (self.profile.width, self.profile.height):
                 raise BatchError(f"crosstalk profile {self.crosstalk_profile} has a {self.xt_profile.width}x"
                                  f"{self.xt_profile.height} mask but the frames are {self.profile.width}x"
@@ -232,9 +235,9 @@ def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
     resume = False
     if mpath.is_file():
         try:
-            have = json.loads(mpath.read_text())
-            ours = isinstance(have, dict) and have.get("format") == MANIFEST_FORMAT
-        except (OSError, ValueError):
+            have = io.read_json(mpath, "batch manifest")
+            ours = have.get("format") == MANIFEST_FORMAT
+        except io.FileContentError:
             have, ours = None, False
         if ours and have == want:
             resume = True

@@ -378,3 +378,24 @@ def test_given_crosstalk_calibration_equals_gstreamer(tmp_path, gst_subprocess_e
     compact, _ = chain.process_frame(raws[0], uncalibrated, chain.ChainSettings(
         method="preview", crosstalk="lut", crosstalk_lut="compact"), crosstalk_profile=cal_prof)
     assert not np.array_equal(io.read_exr(a[0])[0], compact)
+
+
+@pytest.mark.parametrize("field", ["raw", "profile"])
+def test_clip_naming_a_file_outside_its_folder_is_refused_unless_allowed(tmp_path, field):
+    """A clip folder from someone else whose clip.json names '../secret.raw' (or a profile outside) must not
+    make batch read that file into its output."""
+    from nrhdr_core import batch
+    d, prof, raws = make_test_clip(tmp_path / "recv", frames=2)
+    name = {"raw": "clip.raw", "profile": "camera.json"}[field]
+    (d / name).rename(tmp_path / name)
+    if field == "profile":
+        (d / "camera_mask.png").rename(tmp_path / "camera_mask.png")
+    doc = json.loads((d / "clip.json").read_text())
+    doc[field] = f"../{name}"
+    (d / "clip.json").write_text(json.dumps(doc))
+    with pytest.raises(batch.BatchError, match=rf"'{field}'.*\.\./{name}"):
+        batch.open_source(d)
+    src = batch.open_source(d, allow_outside=True)
+    assert (src.raw if field == "raw" else src.profile) == (tmp_path / name).resolve()
+    rc, out = nrhdr_batch(d, "-o", tmp_path / "out", "--workers", "0", "--method", "nearest")
+    assert rc == 2 and f"../{name}" in out and not (tmp_path / "out").exists(), out

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .args import number
+from .args import add_allow_outside, number
 
 EPILOG = """\
 examples:
@@ -65,6 +65,7 @@ def add_batch(sub) -> None:
     g.add_argument("--force", action="store_true",
                    help="recompute into a folder holding other settings' or another program's output")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_allow_outside(p)
     p.set_defaults(func=cmd_batch)
 
 
@@ -77,8 +78,9 @@ def cmd_batch(a) -> int:
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion, white=a.white,
                                    exposure=a.exposure, contrast=a.contrast)
-    src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames)
-    job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile)
+    src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames, allow_outside=a.allow_outside_paths)
+    job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile,
+                    allow_outside=a.allow_outside_paths)
     if job.xt_profile is not None:   # another sensor's calibration would correct the wrong pixels
         profile.check_same_sensor(job.xt_profile, job.profile)
     # the stop signals raise outputs.Interrupted once (later ones are ignored, so the clean-up is not
