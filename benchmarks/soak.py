@@ -255,9 +255,7 @@ def main(argv=None) -> int:
     import gst_plugins
     gst_plugins.register_all()
     from gi.repository import Gst, GstApp  # noqa: F401
-    from gst_plugins import runtime
     from nrhdr_core import crosstalk, profile
-    runtime.quiet_floating_noise()
 
     tmp = Path(tempfile.mkdtemp(prefix="nrhdr-soak-"))
     prof = profile.default(a.height, a.width, seed=1)

@@ -16,7 +16,6 @@ Prints per frame: measured / reconstructed / clipped / too-dark pixel counts and
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -35,18 +34,18 @@ import numpy as np  # noqa: E402
 
 import gst_plugins  # noqa: E402
 
-VALID, CLIPPED, DARK = 0, 1, 2              # state & 0x0F (docs/ARCHITECTURE.md)
-RECONSTRUCTED, ATTENUATED = 0x40, 0x80
+from nrhdr_core.states import ATTENUATED, CLIPPED, DARK, REASON_MASK, RECONSTRUCTED, VALID  # noqa: E402,F401
 
 
 def pull_frames(clip: Path, method: str):
     """Yield (pts, values copy, state copy) for every frame of the clip folder."""
     from gst_plugins.elements._common import map_sample
-    c = json.loads((clip / "clip.json").read_text())
-    w, h = int(c["width"]), int(c["height"])
+    from nrhdr_core import simulate
+    c = simulate.load_clip(clip)           # checked: sizes, and the files it names inside the clip folder
+    w, h = c["width"], c["height"]
     pipeline = Gst.parse_launch(
-        f"filesrc location=\"{clip / c['raw']}\" ! rawvideoparse format=gray16-le width={w} height={h} "
-        f"framerate={int(c['fps'])}/1 plane-strides=<{2 * w}> ! nrvalidity profile=\"{clip / c['profile']}\" "
+        f"filesrc location=\"{c['raw_path']}\" ! rawvideoparse format=gray16-le width={w} height={h} "
+        f"framerate={c['fps']}/1 plane-strides=<{2 * w}> ! nrvalidity profile=\"{c['profile_path']}\" "
         f"! nrcrosstalk ! nrreconstruct method={method} "
         f"! appsink name=sink sync=false caps=other/x-nrhdr")
     sink = pipeline.get_by_name("sink")
@@ -87,7 +86,7 @@ def main(argv=None) -> int:
     frames = []
     try:
         for i, (pts, values, state) in enumerate(pull_frames(clip, a.method)):
-            reason = state & 0x0F
+            reason = state & REASON_MASK
             filled = (state & RECONSTRUCTED) != 0
             print(f"frame {i} pts {pts / Gst.SECOND:.3f} s: {values.shape[1]}x{values.shape[0]} float32, "
                   f"measured {np.count_nonzero(reason == VALID)}, reconstructed {np.count_nonzero(filled)} "

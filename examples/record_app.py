@@ -19,7 +19,6 @@ Exit status: 0 when every frame was recorded, 1 on a pipeline error (printed wit
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import sys
@@ -59,12 +58,12 @@ def parse_args(argv=None):
 def clip_settings(a) -> dict:
     info = {}
     if a.clip:
-        f = Path(a.clip) / "clip.json"
-        if not f.is_file():
-            raise SystemExit(f"record_app: {a.clip} is not a clip folder (no clip.json)")
-        info = json.loads(f.read_text())
-        info["raw"] = str(Path(a.clip) / info.get("raw", "clip.raw"))
-        info["profile"] = str(Path(a.clip) / info.get("profile", "camera.json"))
+        from nrhdr_core import simulate
+        try:
+            info = simulate.load_clip(a.clip)   # checked: sizes, and the files it names inside the clip folder
+        except simulate.ClipError as e:
+            raise SystemExit(f"record_app: {e}")
+        info["raw"], info["profile"] = info["raw_path"], info["profile_path"]
     for k in ("raw", "profile", "width", "height", "fps"):
         v = getattr(a, k)
         if v is not None:

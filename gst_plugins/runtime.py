@@ -175,9 +175,6 @@ def _tool(name: str) -> str:
     return exe
 
 
-# PyGObject 3.42 makes GStreamer print this CRITICAL for every Python element it creates; it is harmless
-# (shared docs, gstreamer-python.md) but alarming, so the nrhdr commands drop exactly this message.
-FLOATING_NOISE = "The created element should be floating, this is probably caused by faulty bindings"
 
 
 # Signals a wrapper turns into a clean stop of its gst-launch child (SIGINT = EOS with `gst-launch -e`).
@@ -325,9 +322,9 @@ def _exit_status(rc: int) -> int:
 
 
 class StderrFilter:
-    """gst-launch's stderr as nrhdr passes it on (`feed(line)` -> the line to print, or None): drops the
-    harmless FLOATING_NOISE criticals, an exact repeat of an `ERROR:` line already printed (gst-launch prints
-    "ERROR: pipeline doesn't want to preroll." once per error message) and, after a first element error, the
+    """gst-launch's stderr as nrhdr passes it on (`feed(line)` -> the line to print, or None): drops an exact
+    repeat of an `ERROR:` line already printed (gst-launch prints "ERROR: pipeline doesn't want to preroll."
+    once per error message) and, after a first element error, the
     "Internal data stream error." block that upstream elements post as its consequence (a source or parser
     stopping because of that error: "streaming stopped, reason error / not-negotiated")."""
 
@@ -338,8 +335,6 @@ class StderrFilter:
 
     def feed(self, line: str) -> str | None:
         s = line.rstrip("\r\n")
-        if FLOATING_NOISE in s:
-            return None
         if self.skipping:
             if s.startswith("streaming stopped, reason"):
                 self.skipping = False
@@ -544,17 +539,6 @@ def inspect(args: list[str]) -> int:
     return _call_filtered([exe] + list(args), gst_env())
 
 
-def quiet_floating_noise() -> None:
-    """In-process: drop the harmless FLOATING_NOISE criticals, keep every other GStreamer message."""
-    from gi.repository import GLib
-
-    def handler(domain, level, message, *user):
-        if FLOATING_NOISE not in (message or ""):
-            GLib.log_default_handler(domain, level, message, None)
-
-    GLib.log_set_handler("GStreamer", GLib.LogLevelFlags.LEVEL_CRITICAL, handler, None)
-
-
 def run_pipeline(description: str, on_message=None) -> int:
     """Run a gst-launch style pipeline in this process with the nrhdr elements registered in-process.
 
@@ -566,7 +550,6 @@ def run_pipeline(description: str, on_message=None) -> int:
     import gst_plugins
     gst_plugins.register_all()
     from gi.repository import GLib, Gst
-    quiet_floating_noise()
 
     try:
         pipeline = Gst.parse_launch(description)
