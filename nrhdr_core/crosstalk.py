@@ -408,9 +408,11 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
 # ======================================================================================================
 
 # The full table as the kernels take it (`lut_record`): codes_q (H, W, K) uint16, n_knots (H, W), knot_flux
-# (K,) float64, clip_flux (H, W) float32, the float32 quantisation qs, qo (`quantize_codes`) and clip_rel, the
-# clip code above black.
-Lut = namedtuple("Lut", "codes_q n_knots knot_flux clip_flux qs qo clip_rel")
+# (K,) float64, clip_flux (H, W) float32 and its scalars `LutScale`. A kernel unpacks it before its pixel
+# loop: an array read out of a tuple inside the loop costs a reference count per pixel.
+Lut = namedtuple("Lut", "codes_q n_knots knot_flux clip_flux scale")
+# float32 quantisation of the knot codes (code = q * qs - qo, `quantize_codes`); clip_rel: clip code - black
+LutScale = namedtuple("LutScale", "qs qo clip_rel")
 # the `kernel` mode's neighbour model: the 8 directions (DIRS), the spill table sigma (8, J) at the source
 # signals sig_e (J,) and the per-pixel crosstalk amplitude alpha (H, W) (`CrosstalkCalibration`)
 Spill = namedtuple("Spill", "dirs sig_e sigma alpha")
@@ -420,8 +422,9 @@ KernelParams = namedtuple("KernelParams", "nd iters clip_share")
 
 def lut_record(calib: CrosstalkCalibration) -> Lut:
     """The kernels' view of a calibration's full table (no copy)."""
-    return Lut(calib.codes_q, calib.n_knots, calib.knot_flux, calib.clip_flux, np.float32(calib.qscale),
-               np.float32(calib.qoffset), np.float32(float(calib.clip_code) - float(calib.black_level)))
+    return Lut(calib.codes_q, calib.n_knots, calib.knot_flux, calib.clip_flux,
+               LutScale(np.float32(calib.qscale), np.float32(calib.qoffset),
+                        np.float32(float(calib.clip_code) - float(calib.black_level))))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -438,20 +441,19 @@ def code_threshold(m, qs, qo):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def lut_eval(lut, y, x, m, qe=-1):
-    """Flux of code `m` (above black) on pixel (y, x)'s calibrated code-to-flux curve (paper 3.2) in the
-    full table `lut` (`Lut`): the one evaluator of the full table, used by the `lut` and `kernel` modes and
-    by `compact_lut`. Returns (flux, ok); ok is False above the calibrated range, without a range (fewer
-    than 2 knots) or for NaN.
+def lut_eval(codes_q, knot_flux, scale, y, x, n, cflux, m, qe=-1):
+    """Flux of code `m` (above black) on pixel (y, x)'s calibrated code-to-flux curve (paper 3.2): the one
+    evaluator of the full table (`Lut`'s arrays, `scale` its `LutScale`), used by the `lut` and `kernel`
+    modes and by `compact_lut`. Returns (flux, ok); ok is False above the calibrated range, without a range
+    (n < 2) or for NaN.
 
     Piecewise linear through the pixel's n knots (code_k = codes_q * qs - qo, flux knot_flux[k]); below the
     dark knot c0 the chord from (black level, flux 0), never negative; above the last knot up to the clip
-    code (`clip_rel`) towards the pixel's clipping flux when it was measured. Inside the range the
+    code (`clip_rel`) towards the pixel's clipping flux `cflux` when it was measured. Inside the range the
     knot is found without a data-dependent branch per step: 1 + the count of knots 1..n-1 whose quantised
     code is below `code_threshold(m)` (the knots increase), the same bracket as a binary search. `qe`: that
     threshold when the caller has it (one code for many pixels), else -1."""
-    codes_q, knot_flux, qs, qo, clip_rel = lut.codes_q, lut.knot_flux, lut.qs, lut.qo, lut.clip_rel
-    n = lut.n_knots[y, x]
+    qs, qo, clip_rel = scale
     if n < 2:
         return np.float32(0.0), False
     c0 = np.float32(codes_q[y, x, 0]) * qs - qo
@@ -474,7 +476,6 @@ def lut_eval(lut, y, x, m, qe=-1):
         pf = np.float32(knot_flux[lo - 1])
         return pf + (m - pc) * (f - pf) / max(c - pc, np.float32(1e-3)), True
     prev_f = np.float32(knot_flux[n - 1])
-    cflux = lut.clip_flux[y, x]
     # between the last knot and the clipping point (measured: the pixel clipped before the next knot)
     if cflux == cflux and clip_rel > last_c and m <= clip_rel:
         return prev_f + (m - last_c) * (cflux - prev_f) / (clip_rel - last_c), True
@@ -487,8 +488,10 @@ def _lut_kernel(values, state, lut, nd):
     range), DARK pixels their bound's flux when positive, CLIPPED pixels at most their clipping flux."""
     h, w = values.shape
     ndf = np.float32(nd)
-    clip_flux = lut.clip_flux
+    codes_q, n_knots, knot_flux, clip_flux, scale = lut
+    qs, qo, clip_rel = scale
     for y in prange(h):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         for x in range(w):
             st = state[y, x]
             reason = st & REASON_MASK
@@ -501,7 +504,7 @@ def _lut_kernel(values, state, lut, nd):
                 continue
             att = (st & ATTENUATED) != 0
             s = ndf if att else np.float32(1.0)
-            f, ok = lut_eval(lut, y, x, values[y, x] / s)
+            f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n_knots[y, x], clip_flux[y, x], values[y, x] / s)
             if reason == VALID:
                 if ok:
                     values[y, x] = f
@@ -561,12 +564,13 @@ def _grid_residual(lut, ys, xs, s_px, gcodes, out, rng_out):
     is continued, above its range its last segment (the compact form's lerp then follows it up to the
     range's top). rng_out[i] = (c0, top)."""
     n_pix, g = out.shape
-    codes_q, n_knots, knot_flux, clip_flux = lut.codes_q, lut.n_knots, lut.knot_flux, lut.clip_flux
-    qs, qo, clip_rel = lut.qs, lut.qo, lut.clip_rel
+    codes_q, n_knots, knot_flux, clip_flux, scale = lut
+    qs, qo, clip_rel = scale
     gq = np.empty(g, np.int64)
     for j in range(g):
         gq[j] = code_threshold(gcodes[j], qs, qo)
     for i in prange(n_pix):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         y = ys[i]
         x = xs[i]
         n = n_knots[y, x]
@@ -588,13 +592,13 @@ def _grid_residual(lut, ys, xs, s_px, gcodes, out, rng_out):
         for j in range(g):
             m = gcodes[j]
             if m > c0 and m <= top:
-                f, ok = lut_eval(lut, y, x, m, gq[j])
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m, gq[j])
                 out[i, j] = f / s - m
                 if first < 0:
                     first = j
                 last = j
         if first < 0:      # range narrower than a grid step: evaluate at its top
-            f, ok = lut_eval(lut, y, x, top)
+            f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, top)
             for j in range(g):
                 out[i, j] = f / s - top
             continue
@@ -746,7 +750,10 @@ def _lut_pass(values, state, lut, nd, lut_out, ok_out):
     """lut_out = flux of every pixel's value in the full table `lut` (`Lut`) (for VALID pixels; others keep
     their bound)."""
     h, w = values.shape
+    codes_q, n_knots, knot_flux, clip_flux, scale = lut
+    qs, qo, clip_rel = scale
     for y in prange(h):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         for x in range(w):
             st = state[y, x]
             s = np.float32(nd) if (st & ATTENUATED) != 0 else np.float32(1.0)
@@ -754,7 +761,7 @@ def _lut_pass(values, state, lut, nd, lut_out, ok_out):
             lut_out[y, x] = v
             ok_out[y, x] = False
             if (st & REASON_MASK) == VALID:
-                f, ok = lut_eval(lut, y, x, v / s)
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n_knots[y, x], clip_flux[y, x], v / s)
                 if ok:
                     lut_out[y, x] = f
                     ok_out[y, x] = True
@@ -767,11 +774,13 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
     send (`spill`: `Spill`), `par.iters` times (`par`: `KernelParams`); CLIPPED and DARK/NOISY pixels as in
     `_lut_kernel`."""
     h, w = values.shape
-    clip_flux = lut.clip_flux
+    codes_q, n_knots, knot_flux, clip_flux, scale = lut
     dirs, sig_e, sigma, alpha = spill.dirs, spill.sig_e, spill.sigma, spill.alpha
     nd, iters, clip_share = par.nd, par.iters, par.clip_share
+    qs, qo, clip_rel = scale
     ndf = np.float32(nd)
     for y in prange(h):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         flat_att = np.empty(8, np.float32)
         flat_reg = np.empty(8, np.float32)
         for x in range(w):
@@ -779,10 +788,11 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
             reason = st & REASON_MASK
             att = (st & ATTENUATED) != 0
             s = ndf if att else np.float32(1.0)
+            n = n_knots[y, x]
             cf = clip_flux[y, x]
             if reason == VALID:
                 m = src[y, x] / s
-                f, ok = lut_eval(lut, y, x, m)
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m)
                 if not ok:
                     state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
                     continue
@@ -806,7 +816,7 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
                         delta += src_spill[d, yy, xx] - flat
                         if (stn & REASON_MASK) == CLIPPED:
                             from_clipped += src_spill[d, yy, xx]
-                    f2, ok2 = lut_eval(lut, y, x, m - a * delta)
+                    f2, ok2 = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m - a * delta)
                     if not ok2:
                         break
                     f = f2
@@ -824,7 +834,7 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
                 if cf == cf and cf < values[y, x]:
                     values[y, x] = cf
             elif reason == DARK or reason == NOISY:
-                f, ok = lut_eval(lut, y, x, src[y, x] / s)
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, src[y, x] / s)
                 if ok and f > 0:
                     values[y, x] = f
 
