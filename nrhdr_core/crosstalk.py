@@ -488,8 +488,8 @@ def _lut_kernel(values, state, lut, nd):
     range), DARK pixels their bound's flux when positive, CLIPPED pixels at most their clipping flux."""
     h, w = values.shape
     ndf = np.float32(nd)
-    codes_q, n_knots, knot_flux, clip_flux, scale = lut
-    qs, qo, clip_rel = scale
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
+    qs, qo, clip_rel = table_scale
     for y in prange(h):
         scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         for x in range(w):
@@ -564,8 +564,8 @@ def _grid_residual(lut, ys, xs, s_px, gcodes, out, rng_out):
     is continued, above its range its last segment (the compact form's lerp then follows it up to the
     range's top). rng_out[i] = (c0, top)."""
     n_pix, g = out.shape
-    codes_q, n_knots, knot_flux, clip_flux, scale = lut
-    qs, qo, clip_rel = scale
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
+    qs, qo, clip_rel = table_scale
     gq = np.empty(g, np.int64)
     for j in range(g):
         gq[j] = code_threshold(gcodes[j], qs, qo)
@@ -750,8 +750,8 @@ def _lut_pass(values, state, lut, nd, lut_out, ok_out):
     """lut_out = flux of every pixel's value in the full table `lut` (`Lut`) (for VALID pixels; others keep
     their bound)."""
     h, w = values.shape
-    codes_q, n_knots, knot_flux, clip_flux, scale = lut
-    qs, qo, clip_rel = scale
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
+    qs, qo, clip_rel = table_scale
     for y in prange(h):
         scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         for x in range(w):
@@ -774,10 +774,10 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
     send (`spill`: `Spill`), `par.iters` times (`par`: `KernelParams`); CLIPPED and DARK/NOISY pixels as in
     `_lut_kernel`."""
     h, w = values.shape
-    codes_q, n_knots, knot_flux, clip_flux, scale = lut
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
     dirs, sig_e, sigma, alpha = spill.dirs, spill.sig_e, spill.sigma, spill.alpha
     nd, iters, clip_share = par.nd, par.iters, par.clip_share
-    qs, qo, clip_rel = scale
+    qs, qo, clip_rel = table_scale
     ndf = np.float32(nd)
     for y in prange(h):
         scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
