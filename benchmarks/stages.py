@@ -6,7 +6,8 @@
 
 One frame of an HDR scene (../shared/data/hdr/MtTamWest.exr, or a synthetic scene when absent) is captured
 by the sensor model at the requested size and pushed through the stages the elements run:
-classify (nrvalidity; the default mode with both dark policies, and mode best), crosstalk `lut` with a calibration of `--knots` knots per pixel (nrcrosstalk),
+classify (nrvalidity; the default mode with both dark policies, and mode best), crosstalk `lut` (full and
+compact table) and `kernel` with a calibration of `--knots` knots per pixel (nrcrosstalk),
 known mask + bounds (nrreconstruct's preparation), each reconstruction method, write-back of the filled
 pixels, tone mapping (nrtonemap). `--missing p` replaces the scene's missing pixels by a uniform random
 mask with share p (no bounds) for the reconstruction stages.
@@ -180,6 +181,9 @@ def main(argv=None):
         np.copyto(sx, s0)
     if not only or "crosstalk" in only:
         rec("crosstalk_lut", timeit(lambda: crosstalk.correct(vx, sx, prof_x, mode="lut"), a.repeat, reset_x))
+        # ---- crosstalk kernel mode (neighbour spill model; the synthetic calibration's spill table is 0) --
+        rec("crosstalk_kernel", timeit(lambda: crosstalk.correct(vx, sx, prof_x, mode="kernel"), a.repeat,
+                                       reset_x))
         # ---- crosstalk lut, compact form (nrcrosstalk lut=compact, its default) ----------------------------
         t0 = CLOCK()
         crosstalk.compact_for(prof_x)                     # derived once, when the element starts

@@ -34,6 +34,7 @@ import os
 import tempfile
 import threading
 import zipfile
+from collections import namedtuple
 from pathlib import Path
 
 import numpy as np
@@ -406,6 +407,26 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
 # Correction kernels (numba)
 # ======================================================================================================
 
+# The full table as the kernels take it (`lut_record`): codes_q (H, W, K) uint16, n_knots (H, W), knot_flux
+# (K,) float64, clip_flux (H, W) float32 and its scalars `LutScale`. A kernel unpacks it before its pixel
+# loop: an array read out of a tuple inside the loop costs a reference count per pixel.
+Lut = namedtuple("Lut", "codes_q n_knots knot_flux clip_flux scale")
+# float32 quantisation of the knot codes (code = q * qs - qo, `quantize_codes`); clip_rel: clip code - black
+LutScale = namedtuple("LutScale", "qs qo clip_rel")
+# the `kernel` mode's neighbour model: the 8 directions (DIRS), the spill table sigma (8, J) at the source
+# signals sig_e (J,) and the per-pixel crosstalk amplitude alpha (H, W) (`CrosstalkCalibration`)
+Spill = namedtuple("Spill", "dirs sig_e sigma alpha")
+# the `kernel` mode's scalars: ND, iterations per pass, the clipped-spill share (`correct`)
+KernelParams = namedtuple("KernelParams", "nd iters clip_share")
+
+
+def lut_record(calib: CrosstalkCalibration) -> Lut:
+    """The kernels' view of a calibration's full table (no copy)."""
+    return Lut(calib.codes_q, calib.n_knots, calib.knot_flux, calib.clip_flux,
+               LutScale(np.float32(calib.qscale), np.float32(calib.qoffset),
+                        np.float32(float(calib.clip_code) - float(calib.black_level))))
+
+
 @njit(cache=True, nogil=True, inline="always")
 def code_threshold(m, qs, qo):
     """The smallest quantised code Q with Q * qs - qo >= m (`quantize_codes`): that float32 map is monotone
@@ -420,17 +441,19 @@ def code_threshold(m, qs, qo):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m, qe=-1):
+def lut_eval(codes_q, knot_flux, scale, y, x, n, cflux, m, qe=-1):
     """Flux of code `m` (above black) on pixel (y, x)'s calibrated code-to-flux curve (paper 3.2): the one
-    evaluator of the full table, used by the `lut` and `kernel` modes and by `compact_lut`. Returns
-    (flux, ok); ok is False above the calibrated range, without a range (n < 2) or for NaN.
+    evaluator of the full table (`Lut`'s arrays, `scale` its `LutScale`), used by the `lut` and `kernel`
+    modes and by `compact_lut`. Returns (flux, ok); ok is False above the calibrated range, without a range
+    (n < 2) or for NaN.
 
-    Piecewise linear through the pixel's knots (code_k = codes_q * qs - qo, flux knot_flux[k]); below the
+    Piecewise linear through the pixel's n knots (code_k = codes_q * qs - qo, flux knot_flux[k]); below the
     dark knot c0 the chord from (black level, flux 0), never negative; above the last knot up to the clip
     code (`clip_rel`) towards the pixel's clipping flux `cflux` when it was measured. Inside the range the
     knot is found without a data-dependent branch per step: 1 + the count of knots 1..n-1 whose quantised
     code is below `code_threshold(m)` (the knots increase), the same bracket as a binary search. `qe`: that
     threshold when the caller has it (one code for many pixels), else -1."""
+    qs, qo, clip_rel = scale
     if n < 2:
         return np.float32(0.0), False
     c0 = np.float32(codes_q[y, x, 0]) * qs - qo
@@ -460,12 +483,15 @@ def lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cflux, m, qe=-1):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _lut_kernel(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, nd):
+def _lut_kernel(values, state, lut, nd):
     """`lut` mode in place with the full table: VALID pixels take their LUT flux (UNCALIBRATED outside the
     range), DARK pixels their bound's flux when positive, CLIPPED pixels at most their clipping flux."""
     h, w = values.shape
     ndf = np.float32(nd)
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
+    qs, qo, clip_rel = table_scale
     for y in prange(h):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         for x in range(w):
             st = state[y, x]
             reason = st & REASON_MASK
@@ -478,8 +504,7 @@ def _lut_kernel(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, cl
                 continue
             att = (st & ATTENUATED) != 0
             s = ndf if att else np.float32(1.0)
-            f, ok = lut_eval(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel, clip_flux[y, x],
-                             values[y, x] / s)
+            f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n_knots[y, x], clip_flux[y, x], values[y, x] / s)
             if reason == VALID:
                 if ok:
                     values[y, x] = f
@@ -522,18 +547,30 @@ class CompactLut:
     nd: float
     info: dict = dataclasses.field(default_factory=dict)
 
+    def record(self) -> CompactRecord:
+        """The kernels' view of this LUT (float32 scalars, no copy)."""
+        return CompactRecord(self.rec, self.dscale, np.float32(self.clip_rel), np.float32(self.qscale),
+                             np.float32(self.qoffset), np.float32(self.f0), self.nd)
+
+
+# `CompactLut` as `_lut_kernel_compact` takes it
+CompactRecord = namedtuple("CompactRecord", "rec dscale clip_rel qs qo f0 nd")
+
 
 @njit(cache=True, nogil=True, parallel=True)
-def _grid_residual(codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, ys, xs, s_px, gcodes, out, rng_out):
-    """out[i, j] = F(m_j) / s - m_j for pixel (ys[i], xs[i]) at the grid codes m_j = gcodes[j] from its full LUT;
-    below the pixel's dark knot c0 the chord from (c0, 0) to the first grid code above it is continued,
-    above its range its last segment (the compact form's lerp then follows it up to the range's top). rng_out[i] =
-    (c0, top)."""
+def _grid_residual(lut, ys, xs, s_px, gcodes, out, rng_out):
+    """out[i, j] = F(m_j) / s - m_j for pixel (ys[i], xs[i]) at the grid codes m_j = gcodes[j] from its full
+    LUT `lut` (`Lut`); below the pixel's dark knot c0 the chord from (c0, 0) to the first grid code above it
+    is continued, above its range its last segment (the compact form's lerp then follows it up to the
+    range's top). rng_out[i] = (c0, top)."""
     n_pix, g = out.shape
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
+    qs, qo, clip_rel = table_scale
     gq = np.empty(g, np.int64)
     for j in range(g):
         gq[j] = code_threshold(gcodes[j], qs, qo)
     for i in prange(n_pix):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         y = ys[i]
         x = xs[i]
         n = n_knots[y, x]
@@ -555,13 +592,13 @@ def _grid_residual(codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, ys,
         for j in range(g):
             m = gcodes[j]
             if m > c0 and m <= top:
-                f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m, gq[j])
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m, gq[j])
                 out[i, j] = f / s - m
                 if first < 0:
                     first = j
                 last = j
         if first < 0:      # range narrower than a grid step: evaluate at its top
-            f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, top)
+            f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, top)
             for j in range(g):
                 out[i, j] = f / s - top
             continue
@@ -589,15 +626,14 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
     g = COMPACT_POINTS - 1
     clip_rel = np.float32(float(calib.clip_code) - float(calib.black_level))
     gcodes = (clip_rel * (np.arange(COMPACT_POINTS) / g) ** 2).astype(np.float32)
-    args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset), calib.knot_flux,
-            clip_rel, calib.clip_flux)
+    lut = lut_record(calib)
     d_all = np.empty((h * w, COMPACT_POINTS), np.float32)
     rng_all = np.empty((h * w, 2), np.float32)
     ys, xs = np.divmod(np.arange(h * w, dtype=np.int64), w)
     s_px = np.where(mask.reshape(-1), np.float32(nd), np.float32(1.0))
     for a in range(0, h * w, chunk):
         b = min(a + chunk, h * w)
-        _grid_residual(*args, ys[a:b], xs[a:b], s_px[a:b], gcodes, d_all[a:b], rng_all[a:b])
+        _grid_residual(lut, ys[a:b], xs[a:b], s_px[a:b], gcodes, d_all[a:b], rng_all[a:b])
     att = mask.reshape(-1)
     dscale = np.ones(2, np.float32)
     for grp in (0, 1):
@@ -619,10 +655,12 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _lut_kernel_compact(values, state, rec, dscale, clip_rel, qs, qo, f0, clip_flux, nd):
-    """`lut` mode in place with the compact LUT: the same state handling as `_lut_kernel`, written without
-    data-dependent branches (attenuated and regular pixels alternate at random in the mask)."""
+def _lut_kernel_compact(values, state, c, clip_flux):
+    """`lut` mode in place with the compact LUT `c` (`CompactRecord`) and the table's clipping fluxes: the
+    same state handling as `_lut_kernel`, written without data-dependent branches (attenuated and regular
+    pixels alternate at random in the mask)."""
     h, w = values.shape
+    rec, dscale, clip_rel, qs, qo, f0, nd = c.rec, c.dscale, c.clip_rel, c.qs, c.qo, c.f0, c.nd
     g = rec.shape[2] - 3
     inv_step = np.float32(g * g) / clip_rel
     ndf = np.float32(nd)
@@ -708,10 +746,14 @@ def _source_spill(est, state, nd, sig_e, sigma, out):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux, nd, lut_out, ok_out):
-    """lut_out = LUT flux of every pixel's value (for VALID pixels; others keep their bound)."""
+def _lut_pass(values, state, lut, nd, lut_out, ok_out):
+    """lut_out = flux of every pixel's value in the full table `lut` (`Lut`) (for VALID pixels; others keep
+    their bound)."""
     h, w = values.shape
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
+    qs, qo, clip_rel = table_scale
     for y in prange(h):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         for x in range(w):
             st = state[y, x]
             s = np.float32(nd) if (st & ATTENUATED) != 0 else np.float32(1.0)
@@ -719,22 +761,26 @@ def _lut_pass(values, state, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip
             lut_out[y, x] = v
             ok_out[y, x] = False
             if (st & REASON_MASK) == VALID:
-                f, ok = lut_eval(codes_q, y, x, n_knots[y, x], qs, qo, knot_flux, clip_rel,
-                                 clip_flux[y, x], v / s)
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n_knots[y, x], clip_flux[y, x], v / s)
                 if ok:
                     lut_out[y, x] = f
                     ok_out[y, x] = True
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux, clip_rel, clip_flux,
-                    nd, dirs, sig_e, sigma, alpha, iters, src_spill, clip_share):
-    """`kernel` mode: each VALID pixel's LUT flux after removing the difference between the spill its actual
-    neighbours send (`src_spill`) and what flat neighbours at its flux would send, `iters` times; CLIPPED and
-    DARK/NOISY pixels as in `_lut_kernel`."""
+def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
+    """`kernel` mode: each VALID pixel's flux in the full table `lut` (`Lut`) after removing the difference
+    between the spill its actual neighbours send (`src_spill`) and what flat neighbours at its flux would
+    send (`spill`: `Spill`), `par.iters` times (`par`: `KernelParams`); CLIPPED and DARK/NOISY pixels as in
+    `_lut_kernel`."""
     h, w = values.shape
+    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
+    dirs, sig_e, sigma, alpha = spill.dirs, spill.sig_e, spill.sigma, spill.alpha
+    nd, iters, clip_share = par.nd, par.iters, par.clip_share
+    qs, qo, clip_rel = table_scale
     ndf = np.float32(nd)
     for y in prange(h):
+        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         flat_att = np.empty(8, np.float32)
         flat_reg = np.empty(8, np.float32)
         for x in range(w):
@@ -746,7 +792,7 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
             cf = clip_flux[y, x]
             if reason == VALID:
                 m = src[y, x] / s
-                f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m)
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m)
                 if not ok:
                     state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
                     continue
@@ -770,7 +816,7 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                         delta += src_spill[d, yy, xx] - flat
                         if (stn & REASON_MASK) == CLIPPED:
                             from_clipped += src_spill[d, yy, xx]
-                    f2, ok2 = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, m - a * delta)
+                    f2, ok2 = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m - a * delta)
                     if not ok2:
                         break
                     f = f2
@@ -788,7 +834,7 @@ def _correct_kernel(values, state, src, est, codes_q, n_knots, qs, qo, knot_flux
                 if cf == cf and cf < values[y, x]:
                     values[y, x] = cf
             elif reason == DARK or reason == NOISY:
-                f, ok = lut_eval(codes_q, y, x, n, qs, qo, knot_flux, clip_rel, cf, src[y, x] / s)
+                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, src[y, x] / s)
                 if ok and f > 0:
                     values[y, x] = f
 
@@ -870,17 +916,14 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         raise ValueError(f"frame is {values.shape[1]}x{values.shape[0]} but the crosstalk calibration is "
                          f"{calib.shape[1]}x{calib.shape[0]}")
     nd = float(profile.nd)
-    clip_rel = np.float32(float(calib.clip_code) - float(calib.black_level))
-    args = (calib.codes_q, calib.n_knots, np.float32(calib.qscale), np.float32(calib.qoffset),
-            calib.knot_flux, clip_rel, calib.clip_flux, nd)
+    table = lut_record(calib)
     if mode == "lut":
         # per pixel, in place (no copy of the frame)
         if lut == "compact":
             c = compact_for(profile)
-            _lut_kernel_compact(values, state, c.rec, c.dscale, np.float32(c.clip_rel), np.float32(c.qscale),
-                                np.float32(c.qoffset), np.float32(c.f0), calib.clip_flux, c.nd)
+            _lut_kernel_compact(values, state, c.record(), calib.clip_flux)
         else:
-            _lut_kernel(values, state, *args)
+            _lut_kernel(values, state, table, nd)
         return values, state
     src = values.copy()
     # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
@@ -889,15 +932,16 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     ok = np.empty(values.shape, np.bool_)
     est = np.empty_like(values)
     spill = np.empty((8,) + values.shape, np.float32)
-    _lut_pass(src, state0, *args, lut, ok)
+    _lut_pass(src, state0, table, nd, lut, ok)
+    spill_model = Spill(DIRS, calib.sig_e, calib.sigma, calib.alpha)
+    par = KernelParams(nd, int(iterations), np.float32(clip_share if clip_share is not None else np.inf))
     for p in range(max(1, int(passes))):
         _neighbour_estimate(src, state0, lut, ok, DIRS, est)
         _source_spill(est, state0, nd, calib.sig_e, calib.sigma, spill)
         if p > 0:
             state[:] = state0
         values[:] = src
-        _correct_kernel(values, state, src, est, *args, DIRS, calib.sig_e, calib.sigma, calib.alpha,
-                        int(iterations), spill, np.float32(clip_share if clip_share is not None else np.inf))
+        _correct_kernel(values, state, src, est, spill, table, spill_model, par)
         lut[:] = values
         ok[:] = (state & REASON_MASK) == VALID
     return values, state

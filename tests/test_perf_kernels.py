@@ -437,7 +437,8 @@ def test_lut_eval_equals_the_binary_search_at_the_knots(rng):
                       (cs[:-1] + cs[1:]) / 2 if n > 1 else cs, np.array([-5.0, 1e5, np.nan], np.float32)]
                 for m in np.concatenate(ms).astype(np.float32):
                     for cflux in (np.float32(np.nan), np.float32(2e5)):
-                        a = crosstalk.lut_eval(q, y, x, n, qs, qo, kf, np.float32(4094.0), cflux, m)
+                        scale = crosstalk.LutScale(qs, qo, np.float32(4094.0))
+                        a = crosstalk.lut_eval(q, kf, scale, y, x, n, cflux, m)
                         b = crosstalk_reference.lut_eval(cq, n, kf, np.float32(4094.0), cflux, m)
                         assert a[1] == b[1] and (a[0] == b[0] or (np.isnan(a[0]) and np.isnan(b[0])))
 
