@@ -214,11 +214,17 @@ class ClipCamera:
 class SceneCamera:
     """Raw frames of an HDR scene through the simulator: the camera path of `simulate.Motion` over
     `frames` frames (then it repeats), exposure from `simulate.exposure_scale`, noise and clipping from
-    `sensor.capture`. The `frames` raw frames are rendered once by `render_all()` (seeded), so playback
-    at video rate costs a copy per frame."""
+    `sensor.capture`. Frame i is rendered when asked for (view at path position i / (frames - 1), noise
+    seeded by (seed, i)), so every repeat gives the same frames; rendered frames are kept only when the
+    whole path fits in `cache_bytes`, so memory stays flat for any `frames`."""
+
+    CACHE_BYTES = 256 << 20          # rendered frames kept for the path's repeats when all of them fit
+    PRERENDER_PIXELS = 10_000_000    # a path this small (all frames' pixels) may be rendered at start (< ~1 s)
 
     def __init__(self, scene: np.ndarray, profile, frames: int = 30, motion=None, seed: int = 0,
-                 exposure_stops: float = 0.0, sensor_model=None):
+                 exposure_stops: float = 0.0, sensor_model=None, cache_bytes: int = CACHE_BYTES):
+        from scipy.ndimage import gaussian_filter
+
         from . import simulate
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
@@ -231,35 +237,38 @@ class SceneCamera:
         self.motion = motion if motion is not None else simulate.Motion()
         self.seed, self.sensor_model = seed, sensor_model
         self.k = simulate.exposure_scale(self.scene, profile, exposure_stops)
-        self._raw: list[np.ndarray] = []
-
-    def render_all(self, progress=None) -> None:
-        """Render the loop's frames (progress(i, n) after each)."""
-        from scipy.ndimage import gaussian_filter
-
-        from . import sensor, simulate
-        # the same anti-aliasing as simulate.simulate_clip: the view shrinks the scene ~W * fov / w
+        # the anti-aliasing of simulate.simulate_clip: the view shrinks the scene ~W * fov / w
         shrink = max(self.scene.shape[1] * self.motion.fov / self.width, 1.0)
-        pre = (gaussian_filter(self.scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2
-               else self.scene)
-        rng = np.random.default_rng(self.seed)
-        out = []
-        for i in range(self.n):
-            t = i / max(self.n - 1, 1)
-            flux = simulate.view(self.scene, self.height, self.width, t, self.motion, prefiltered=pre)
-            out.append(sensor.capture(flux * np.float32(self.k), self.profile, rng,
-                                      sensor_model=self.sensor_model))
-            if progress is not None:
-                progress(i + 1, self.n)
-        self._raw = out
+        self._pre = (gaussian_filter(self.scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2
+                     else self.scene)
+        self._keep = self.n * self.width * self.height * 2 <= cache_bytes
+        self._frames: dict = {}
 
     def __len__(self) -> int:
         return self.n
 
-    def frame(self, i: int) -> np.ndarray:
-        if not self._raw:
-            self.render_all()
-        return self._raw[i % self.n]
+    def prerender(self, max_pixels: int = PRERENDER_PIXELS) -> bool:
+        """Render the whole path now when it is small (a live source then keeps its frame rate from the
+        first frame); True when done."""
+        if not self._keep or self.n * self.width * self.height > max_pixels:
+            return False
+        for i in range(self.n):
+            self.frame(i)
+        return True
+
+    def frame(self, k: int) -> np.ndarray:
+        """Raw frame k (uint16 H x W) of the repeating path."""
+        from . import sensor, simulate
+        i = k % self.n
+        f = self._frames.get(i)
+        if f is None:
+            t = i / max(self.n - 1, 1)
+            flux = simulate.view(self.scene, self.height, self.width, t, self.motion, prefiltered=self._pre)
+            f = sensor.capture(flux * np.float32(self.k), self.profile, np.random.default_rng((self.seed, i)),
+                               sensor_model=self.sensor_model)
+            if self._keep:
+                self._frames[i] = f
+        return f
 
 
 def load_scene(arg: str, height: int = 1200) -> tuple[np.ndarray, str]:

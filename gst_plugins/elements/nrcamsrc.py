@@ -8,9 +8,9 @@ Run (30 fps live, the simulator's camera over the synthesised scene, into the ch
 
 Modes: `location=` a clip folder of `nrhdr simulate` (clip.json + clip.raw; `loop`), or `scene=` an HDR
 file / "synthetic" rendered with the simulator's motion and noise model (`nrhdr_core.realtime.SceneCamera`:
-a path of `frames` frames, repeated; a path of at most PRERENDER_PIXELS pixels is rendered at start, a
+a path of `frames` frames, repeated; a path of at most SceneCamera.PRERENDER_PIXELS pixels is rendered at start, a
 longer one frame by frame when each is due, kept for the repeats only while the whole path fits in
-CACHE_BYTES, so memory stays flat for any `frames`). Live (default): frame k
+SceneCamera.CACHE_BYTES, so memory stays flat for any `frames`). Live (default): frame k
 of the sensor's timeline is exposed during [t0 + k T, t0 + (k+1) T) of the pipeline's running time (t0:
 the first request) and pushed when complete, with PTS t0 + k T and duration T, so the LATENCY query
 answers one frame period (min) and RING periods (max). A camera driver holds RING frames: when downstream
@@ -20,7 +20,6 @@ count sensor frames), so put a `queue` after the source, as after any live sourc
 """
 from __future__ import annotations
 
-import math
 import os
 import threading
 
@@ -29,8 +28,6 @@ from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, gu
 from ._profiles import ALLOW_OUTSIDE_PROP
 
 RING = 4  # frames a camera driver buffers (v4l2src's default); reported as the maximum latency
-CACHE_BYTES = 256 << 20  # rendered frames kept for the path's repeats when all of them fit
-PRERENDER_PIXELS = 10_000_000  # a path this small (all frames' pixels) is rendered at start (< ~1 s)
 
 PROPERTIES = PropertyTable("GstNrCamSrc", [
     Prop("location", str, "", "Clip folder",
@@ -64,46 +61,6 @@ PROPERTIES = PropertyTable("GstNrCamSrc", [
     Prop("dropped", "uint64", 0, "Frames dropped",
          "Live: sensor frames lost because downstream had not taken the previous one in time", readonly=True),
 ])
-
-
-class SceneFrames:
-    """Frame i of a `nrhdr_core.realtime.SceneCamera` path rendered on demand (view at path position
-    i / (n - 1), sensor noise seeded by (seed, i)), the same frames on every repeat. Rendered frames are
-    kept only when the whole path fits in `cache_bytes`."""
-
-    def __init__(self, cam, cache_bytes: int = CACHE_BYTES):
-        from scipy.ndimage import gaussian_filter
-        self.cam = cam
-        self.n, self.width, self.height = cam.n, cam.width, cam.height
-        # the anti-aliasing of simulate.simulate_clip: the view shrinks the scene ~W * fov / w
-        shrink = max(cam.scene.shape[1] * cam.motion.fov / cam.width, 1.0)
-        self._pre = (gaussian_filter(cam.scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2
-                     else cam.scene)
-        self._keep = self.n * self.width * self.height * 2 <= cache_bytes
-        self._frames: dict = {}
-
-    def prerender(self, max_pixels: int = PRERENDER_PIXELS) -> bool:
-        """Render the whole path now when it is small (a live source then keeps its frame rate from the
-        first frame); True when done."""
-        if not self._keep or self.n * self.width * self.height > max_pixels:
-            return False
-        for i in range(self.n):
-            self.frame(i)
-        return True
-
-    def frame(self, k: int) -> np.ndarray:
-        from nrhdr_core import sensor, simulate
-        i = k % self.n
-        f = self._frames.get(i)
-        if f is None:
-            cam = self.cam
-            t = i / max(self.n - 1, 1)
-            flux = simulate.view(cam.scene, self.height, self.width, t, cam.motion, prefiltered=self._pre)
-            rng = np.random.default_rng((cam.seed, i))
-            f = sensor.capture(flux * np.float32(cam.k), cam.profile, rng, sensor_model=cam.sensor_model)
-            if self._keep:
-                self._frames[i] = f
-        return f
 
 
 class NrCamSrc(NrElement, GstBase.BaseSrc):
@@ -225,11 +182,10 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
             self.post_error(f"scene={s.scene}: {e}", kind="read")
             return None
         cam = realtime.SceneCamera(scene, prof, frames=s.frames, seed=s.seed, exposure_stops=s.exposure)
-        frames = SceneFrames(cam)
-        when = "rendered at start" if frames.prerender() else "each rendered when it is due"
+        when = "rendered at start" if cam.prerender() else "each rendered when it is due"
         Gst.info(f"{self.get_name()}: scene {name}, {cam.n}-frame path of {cam.width}x{cam.height} frames, "
                  f"{when} (simulator motion and noise)")
-        return frames
+        return cam
 
     @staticmethod
     def _cached_default_profile(width: int, height: int) -> str:
