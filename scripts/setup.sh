@@ -7,7 +7,11 @@ cd "$(dirname "$0")/.."
 
 PKGS=(gstreamer1.0-tools gstreamer1.0-python3-plugin-loader python3-gst-1.0 python3-gi
       gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base
-      gstreamer1.0-plugins-good python3-venv python3-dev libgomp1)
+      gstreamer1.0-plugins-good python3-venv python3-dev libgomp1
+      gstreamer1.0-plugins-bad gstreamer1.0-libav ffmpeg
+      libaravis-0.8-0 aravis-tools gir1.2-aravis-0.8)
+# plugins-bad: x265enc / h265parse (HDR10, HLG); libav: avdec_h265 (10-bit HEVC decode); ffmpeg: ffprobe and an
+# independent decoder for the HDR round trip; Aravis: aravissrc (GenICam cameras) and its fake GigE Vision camera.
 missing=()
 for p in "${PKGS[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
