@@ -5,6 +5,7 @@ written completely or not at all.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -121,17 +122,18 @@ MAX_PIXELS = 1 << 27        # 16384 x 8192: larger images are refused before dec
 MAX_CHANNELS = 64
 
 
-def _read_pixels(path, fmt_of, shape=None, channels=None, check=None):
+def _read_pixels(path, fmt_of, shape=None, channels=None, check=None, one_image=False, decode=True):
     """Open `path` with OpenImageIO, check its header (2-D, at most MAX_PIXELS pixels and MAX_CHANNELS
-    channels, `shape` (H, W) where given, `check(spec)`), then decode channels `channels(spec)` -> (begin,
-    end) (default all) as `fmt_of(spec)`; returns (pixels (H, W, C), spec, channel names). Errors:
-    ImageFileError naming the file, also for a truncated or corrupt file."""
+    channels, `shape` (H, W) where given, `check(spec)`, with `one_image` a single image: no second page
+    or subimage), then decode channels `channels(spec)` -> (begin, end) (default all) as `fmt_of(spec)`;
+    returns (pixels (H, W, C), spec, channel names); pixels None without `decode` (the header only).
+    Errors: ImageFileError naming the file, also for a truncated or corrupt file."""
     oiio = _oiio()
     path = str(path)
     if not os.path.isfile(path):
         raise ImageFileError(f"{path}: no such file")
     try:
-        return _decode(oiio, path, fmt_of, shape, channels, check)
+        return _decode(oiio, path, fmt_of, shape, channels, check, one_image, decode)
     except UnicodeDecodeError:      # a corrupt header's names reach us through OpenImageIO's messages
         raise ImageFileError(f"{path}: cannot read image: its header holds text that is not UTF-8 (corrupt "
                              f"file?)") from None
@@ -144,7 +146,7 @@ def _error_text(get) -> str:
         return "(an error message that is not UTF-8)"
 
 
-def _decode(oiio, path, fmt_of, shape, channels, check):
+def _decode(oiio, path, fmt_of, shape, channels, check, one_image=False, decode=True):
     inp = oiio.ImageInput.open(path)
     if inp is None:
         raise ImageFileError(f"{path}: cannot read image: {_error_text(oiio.geterror)}")
@@ -162,6 +164,14 @@ def _decode(oiio, path, fmt_of, shape, channels, check):
                                  f"decoded")
         if check is not None:
             check(spec)
+        if one_image:
+            if inp.seek_subimage(1, 0):
+                raise ImageFileError(f"{path}: holds more than one image (pages or subimages); one frame per "
+                                     f"file is read")
+            _error_text(inp.geterror)       # clears the failed seek's message: not an error of the file
+            inp.seek_subimage(0, 0)
+        if not decode:
+            return None, spec, names
         cb, ce = channels(spec) if channels is not None else (0, c)
         px = inp.read_image(0, 0, cb, ce, fmt_of(spec))
         err = _error_text(inp.geterror) if inp.has_error else ""
@@ -326,6 +336,173 @@ def read_mask(path, shape=None) -> np.ndarray:
                              f"have other values" + (" (an 8-bit mask saved as 16 bit? write 0/255 as 8-bit "
                                                       "PNG)" if bits == 16 and int(vals.max()) <= 255 else ""))
     return m == full
+
+
+# ======================================================================================================
+# Still sequences: raw frames stored one per file as 16-bit gray TIFF or PNG (nrimagesrc, nrhdr batch)
+# ======================================================================================================
+
+STILL_EXTENSIONS = (".tif", ".tiff", ".png")
+_PRINTF = re.compile(r"%(?:%|0?\d*d)")
+_NUMBERED = re.compile(r"(.*?)(\d+)(\.[^.]+)")
+
+
+def _still_check(path):
+    oiio = _oiio()
+
+    def check(spec):
+        c, names = int(spec.nchannels), [str(n) for n in spec.channelnames]
+        if c != 1:
+            raise ImageFileError(f"{path}: {c} channels ({', '.join(names)}); a raw frame is one gray channel "
+                                 f"of sensor codes: save it without colour or alpha")
+        base = spec.format.basetype
+        if base == oiio.UINT8:
+            raise ImageFileError(f"{path}: an 8-bit image; a raw frame holds the sensor's codes in unsigned "
+                                 f"16-bit words (an 8-bit export has lost them): save 16-bit TIFF or PNG")
+        if base != oiio.UINT16:
+            raise ImageFileError(f"{path}: pixel type {spec.format}; a raw frame is unsigned 16-bit integers")
+        bits = spec.get_int_attribute("oiio:BitsPerSample", 16)
+        if bits != 16:
+            raise ImageFileError(f"{path}: {bits} bits per sample; OpenImageIO would rescale them to 16 bits "
+                                 f"and lose the sensor's codes: save them as 16-bit words")
+    return check
+
+
+def read_still(path, shape=None) -> np.ndarray:
+    """A raw frame stored as a still image: one channel of unsigned 16-bit codes (TIFF, PNG), one image per
+    file; returns (H, W) uint16 as stored. `shape` (H, W): the size it must have, checked before decoding.
+    Anything else (8-bit, colour, alpha, float, 10/12-bit packed TIFF samples) is an ImageFileError."""
+    oiio = _oiio()
+    px = _read_pixels(path, lambda spec: oiio.UINT16, shape, check=_still_check(path), one_image=True)[0]
+    return np.ascontiguousarray(px[:, :, 0])
+
+
+def still_size(path, shape=None) -> tuple[int, int]:
+    """(H, W) of a raw still from its header, with every check of `read_still` but the decoding."""
+    spec = _read_pixels(path, None, shape, check=_still_check(path), one_image=True, decode=False)[1]
+    return int(spec.height), int(spec.width)
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+@dataclasses.dataclass(frozen=True)
+class StillSequence:
+    """A raw still sequence: `files` in frame order, each `width` x `height`, one gray 16-bit channel."""
+    location: str
+    files: tuple[str, ...]
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame `index` as (H, W) uint16, checked again as it is read (`read_still`)."""
+        return read_still(self.files[index], (self.height, self.width))
+
+
+def _pattern_names(folder: Path, pattern: str, start_index: int) -> list[str]:
+    """The names of a printf pattern's files, `start_index` (< 0: the lowest index present) onwards, up to
+    the last one present; a gap is an error naming the missing file."""
+    convs = [m.group(0) for m in _PRINTF.finditer(pattern) if m.group(0) != "%%"]
+    rest = _PRINTF.sub("", pattern)
+    if len(convs) != 1 or "%" in rest:
+        raise ImageFileError(f"{pattern}: a file pattern holds one %d conversion (e.g. frame_%05d.tif), '%%' "
+                             f"for a literal %")
+    try:
+        names = os.listdir(folder)
+    except OSError as e:
+        raise ImageFileError(f"{folder}: cannot list the folder: {e.strerror or e}") from None
+    rx = re.compile(re.escape(pattern.replace("%%", "\x00")).replace(re.escape(convs[0]), r"(\d+)")
+                    .replace("\x00", "%") + r"\Z")
+    present = set()
+    for n in names:
+        m = rx.match(n)
+        if m is not None and pattern % int(m.group(1)) == n:
+            present.add(int(m.group(1)))
+    if not present:
+        raise ImageFileError(f"{folder / pattern}: no file matches the pattern")
+    start = min(present) if start_index < 0 else start_index
+    if start not in present:
+        raise ImageFileError(f"{folder / (pattern % start)}: no such file (start-index {start}; the pattern's "
+                             f"files start at index {min(present)})")
+    end = start
+    while end + 1 in present:
+        end += 1
+    later = sorted(i for i in present if i > end)
+    if later:
+        raise ImageFileError(f"{folder / (pattern % (end + 1))}: missing: the sequence has frames {start}..{end} "
+                             f"and {len(later)} more from index {later[0]} on; frames are consecutive files "
+                             f"(their timestamps are their positions)")
+    return [pattern % i for i in range(start, end + 1)]
+
+
+def _folder_names(folder: Path) -> list[str]:
+    """The still images of a folder (STILL_EXTENSIONS, one of them; hidden files and other files ignored) in
+    natural order; numbered names (one prefix, a number) must be consecutive."""
+    try:
+        entries = list(os.scandir(folder))
+    except OSError as e:
+        raise ImageFileError(f"{folder}: cannot list the folder: {e.strerror or e}") from None
+    names = [e.name for e in entries if not e.name.startswith(".")
+             and os.path.splitext(e.name)[1].lower() in STILL_EXTENSIONS]
+    if not names:
+        raise ImageFileError(f"{folder}: no still images in the folder (files ending in "
+                             f"{', '.join(STILL_EXTENSIONS)})")
+    exts = sorted({os.path.splitext(n)[1].lower() for n in names})
+    if len(exts) > 1:
+        counts = ", ".join(f"{sum(os.path.splitext(n)[1].lower() == x for n in names)} {x}" for x in exts)
+        raise ImageFileError(f"{folder}: holds {counts} files; a sequence folder holds one kind of file (move "
+                             f"the others out, or name one kind with a pattern such as frame_%05d{exts[0]})")
+    names.sort(key=_natural_key)
+    parts = [_NUMBERED.fullmatch(n) for n in names]
+    if all(parts) and len({(m.group(1), m.group(3)) for m in parts}) == 1:
+        numbers = [int(m.group(2)) for m in parts]
+        for a, b, na, nb in zip(numbers, numbers[1:], names, names[1:]):
+            if b != a + 1:
+                what = (f"{b - a - 1} frame(s) missing between {na} and {nb}" if b > a + 1 else
+                        f"{na} and {nb} carry the same number")
+                raise ImageFileError(f"{folder}: {what}; frames are consecutive files (their timestamps are "
+                                     f"their positions)")
+    return names
+
+
+def still_sequence(location, start_index: int = -1, allow_outside: bool = False) -> StillSequence:
+    """Open a raw still sequence (docs/BATCH.md, nrimagesrc): `location` a folder (its STILL_EXTENSIONS
+    files of one kind, natural order: frame_2 before frame_10) or a printf pattern (`dir/frame_%05d.tif`,
+    from `start_index`, default the lowest index present). Checked before any frame is used: the files
+    exist and are consecutive, lie in the folder (no link out of it, unless `allow_outside`), and every
+    header is a single one-channel unsigned 16-bit image of the first file's size. Errors: ImageFileError
+    naming the folder or file."""
+    loc = str(location)
+    if "%" in os.path.basename(loc):
+        folder = Path(os.path.dirname(loc) or ".")
+        if not folder.is_dir():
+            raise ImageFileError(f"{folder}: no such folder (the folder of the pattern {loc})")
+        if os.path.splitext(loc)[1].lower() not in STILL_EXTENSIONS:
+            raise ImageFileError(f"{loc}: a still pattern ends in one of {', '.join(STILL_EXTENSIONS)}")
+        names = _pattern_names(folder, os.path.basename(loc), int(start_index))
+    elif os.path.isdir(loc):
+        if start_index >= 0:
+            raise ImageFileError(f"{loc}: start-index {start_index} is for a file pattern (frame_%05d.tif); a "
+                                 f"folder's sequence is all its images")
+        folder = Path(loc)
+        names = _folder_names(folder)
+    elif os.path.exists(loc):
+        raise ImageFileError(f"{loc}: not a folder; a still sequence is a folder of images or a file pattern "
+                             f"such as frame_%05d.tif")
+    else:
+        raise ImageFileError(f"{loc}: no such folder")
+    files = [str(resolve_named(folder / n, "location", n, ImageFileError, allow_outside)) for n in names]
+    h, w = still_size(files[0])
+    for f in files[1:]:
+        try:
+            still_size(f, (h, w))
+        except ImageSizeError as e:
+            raise ImageSizeError(f"{e}: every frame of a sequence has the size of the first, {files[0]}") from None
+    return StillSequence(loc, tuple(files), w, h)
 
 
 class RawVideoWriter:

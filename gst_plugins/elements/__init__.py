@@ -14,6 +14,7 @@ ELEMENTS = {
     "nrtonemap": ("nrtonemap", "NrTonemap"),
     "nrexrsink": ("nrexrsink", "NrExrSink"),
     "nrcamsrc": ("nrcamsrc", "NrCamSrc"),
+    "nrimagesrc": ("nrimagesrc", "NrImageSrc"),
 }
 
 
