@@ -1,4 +1,5 @@
-"""Batch reprocessing of recorded raw clips, frame-parallel on Dask (dask.distributed); docs/BATCH.md.
+"""Batch reprocessing of recorded raw clips and raw still sequences, frame-parallel on Dask
+(dask.distributed); docs/BATCH.md.
 
 Every frame goes through `chain.process_frame` (the elements' own core calls, so the output equals the
 GStreamer chain's bit for bit) and is written with `io.write_exr(path, values, state)` (nrexrsink's writer)
@@ -52,34 +53,52 @@ def usable_cores() -> int:
 @dataclasses.dataclass(frozen=True)
 class Source:
     """A GRAY16_LE raw file: `frames` frames of width x height (frames past the file's end, or a partial
-    last frame, fail when read)."""
+    last frame, fail when read); or, with `stills`, a raw still sequence (`raw`: its folder or pattern),
+    the first `frames` of its files."""
     raw: Path
     width: int
     height: int
     frames: int
     profile: Path
+    stills: io.StillSequence | None = None
 
     @property
     def frame_bytes(self) -> int:
         return 2 * self.width * self.height
 
+    def read(self, index: int) -> np.ndarray:
+        """Frame `index` as uint16 (H, W): nrimagesrc's frame of a still sequence, rawvideoparse's of a
+        raw file; errors name the file."""
+        if self.stills is not None:
+            return self.stills.read(index)
+        return read_frame(self.raw, self.width, self.height, index)
 
-def open_source(path, profile=None, width=None, height=None, frames=None, allow_outside: bool = False) -> Source:
-    """A clip folder (clip.json + clip.raw + camera.json, from `nrhdr simulate`) or a raw file with a
-    profile. Geometry: the clip's, else width/height given, else the profile's mask. Frame count: every
-    frame the file holds (a partial last one included, so it is reported), at least the clip's count. The
-    files clip.json names must lie in the clip folder unless `allow_outside` (simulate.load_clip): a clip
-    folder received from someone else cannot make batch read a file from elsewhere."""
+    def frame_file(self, index: int) -> str:
+        """The file frame `index` comes from (for error reports)."""
+        if self.stills is not None and 0 <= index < len(self.stills):
+            return self.stills.files[index]
+        return str(self.raw)
+
+
+def open_source(path, profile=None, width=None, height=None, frames=None, allow_outside: bool = False,
+                start_index: int = -1) -> Source:
+    """A clip folder (clip.json + clip.raw + camera.json, from `nrhdr simulate`), a raw file with a
+    profile, or a raw still sequence (`open_stills`). Geometry: the clip's, else width/height given, else
+    the profile's mask. Frame count: every frame the file holds (a partial last one included, so it is
+    reported), at least the clip's count. The files clip.json names must lie in the clip folder unless
+    `allow_outside` (simulate.load_clip): a clip folder received from someone else cannot make batch read a
+    file from elsewhere."""
     p = Path(path)
     clip_frames = 0
+    if "%" in p.name and not p.exists() or p.is_dir() and not (p / "clip.json").is_file():
+        if (p / outputs.RECORDING_PART).is_file():
+            raise BatchError(f"{p}: an unfinished recording ({outputs.RECORDING_PART}, its recorder was "
+                             f"killed): make it a clip folder with 'nrhdr recover {p}' first")
+        return open_stills(p, profile, width, height, frames, allow_outside, start_index)
+    if start_index >= 0:
+        raise BatchError(f"--start-index is for a still sequence's file pattern, not {p}")
     if p.is_dir():
         cj = p / "clip.json"
-        if not cj.is_file():
-            if (p / outputs.RECORDING_PART).is_file():
-                raise BatchError(f"{p}: an unfinished recording ({outputs.RECORDING_PART}, its recorder was "
-                                 f"killed): make it a clip folder with 'nrhdr recover {p}' first")
-            raise BatchError(f"{p}: not a clip folder (no clip.json); give a clip folder from 'nrhdr simulate' "
-                             f"or a raw file with --profile")
         from . import simulate
         try:
             c = simulate.load_clip(p, allow_outside=allow_outside)
@@ -118,6 +137,38 @@ def open_source(path, profile=None, width=None, height=None, frames=None, allow_
     if n < 1:
         raise BatchError(f"{raw}: no frames ({size} bytes, {w}x{h} GRAY16_LE frames are {fb} bytes)")
     return Source(raw=raw.resolve(), width=w, height=h, frames=n, profile=prof.resolve())
+
+
+def open_stills(location, profile=None, width=None, height=None, frames=None, allow_outside: bool = False,
+                start_index: int = -1) -> Source:
+    """A raw still sequence (a folder of 16-bit gray TIFF / PNG files or a printf pattern, read as nrimagesrc
+    reads it: `io.still_sequence`, every header checked here) with its camera profile: `profile`, else the
+    folder's camera.json. `frames`: the first that many files; width/height, when given, must be the
+    files'."""
+    loc = Path(location)
+    try:
+        seq = io.still_sequence(loc, start_index, allow_outside=allow_outside)
+    except io.ImageFileError as e:
+        if not loc.is_dir():
+            raise BatchError(str(e)) from None
+        raise BatchError(f"{loc}: not a clip folder (no clip.json) nor a still sequence: {e}; give a clip "
+                         f"folder from 'nrhdr simulate', a raw file with --profile, or a folder of 16-bit "
+                         f"stills") from None
+    folder = loc if loc.is_dir() else loc.parent
+    prof = Path(profile) if profile else folder / "camera.json"
+    if not prof.is_file():
+        raise BatchError(f"{loc}: a still sequence needs its camera profile: --profile FILE (or a camera.json "
+                         f"in the folder)" if not profile else f"camera profile {prof} not found")
+    if (width is not None and int(width) != seq.width) or (height is not None and int(height) != seq.height):
+        raise BatchError(f"{loc}: the stills are {seq.width}x{seq.height}; --width/--height {width}x{height} "
+                         f"disagree")
+    n = len(seq)
+    if frames is not None:
+        if int(frames) > n:
+            raise BatchError(f"{loc}: --frames {frames} but the sequence has {n} files")
+        n = int(frames)
+    return Source(raw=Path(os.path.abspath(loc)), width=seq.width, height=seq.height, frames=n,
+                  profile=prof.resolve(), stills=seq)
 
 
 def read_frame(raw, width: int, height: int, index: int) -> np.ndarray:
@@ -188,8 +239,17 @@ class Job:
         return outputs.temp_path(self.out_dir / "frames")
 
     def manifest(self) -> dict:
-        """Everything the output depends on: a rerun resumes only when this is equal."""
+        """Everything the output depends on: a rerun resumes only when this is equal. A still sequence is
+        identified by its location and the SHA-256 of its files' names, sizes and mtimes."""
         s = self.source
+        if s.stills is None:
+            ident = _file_id(s.raw)
+        else:
+            h = hashlib.sha256()
+            for f in s.stills.files[:s.frames]:
+                st = os.stat(f)
+                h.update(f"{f}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+            ident = {"path": str(s.raw), "stills": s.stills.files[0], "files_sha256": h.hexdigest()}
 
         def prof(path):
             if path is None:
@@ -197,7 +257,7 @@ class Job:
             return {"path": str(path), "sha256": _sha256(path)}
 
         return {"format": MANIFEST_FORMAT, "version": 1, "writer": "nrhdr batch",
-                "input": dict(_file_id(s.raw), width=s.width, height=s.height, frames=s.frames),
+                "input": dict(ident, width=s.width, height=s.height, frames=s.frames),
                 "profile": prof(s.profile), "crosstalk_profile": prof(self.crosstalk_profile),
                 "settings": self.settings.as_dict(), "png": self.png,
                 "files": {"exr": "frame_%05d.exr", "png": "frame_%05d.png" if self.png else None}}
@@ -287,7 +347,7 @@ def frame_task(index: int, src: Source, profile, xt_profile, settings: chain.Cha
     write. Returns (index, (wall seconds, CPU seconds of this process), {name: bytes} or None)."""
     t0, c0 = time.perf_counter(), time.process_time()
     if raw is None:
-        raw = read_frame(src.raw, src.width, src.height, index)
+        raw = src.read(index)
     values, state = chain.process_frame(raw, profile, settings, xt_profile)
     tone = chain.tonemap_frame(values, profile, settings) if len(files) > 1 else None
     if not return_files:
@@ -356,7 +416,7 @@ def run_loop(job: Job, todo, progress: bool = False, on_failure=None) -> Result:
                 res.frame_seconds += dt
                 res.frame_cpu_seconds += cpu
             except Exception as e:  # noqa: BLE001 - reported by frame, the others go on
-                f = Failure(i, str(job.source.raw), _error_text(e))
+                f = Failure(i, job.source.frame_file(i), _error_text(e))
                 res.failures.append(f)
                 if on_failure:
                     on_failure(f, bar)
@@ -439,6 +499,7 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
     window = window or 2 * nthreads + 1
     prof_f = client.scatter(job.profile, broadcast=True, hash=False)
     xt_f = client.scatter(job.xt_profile, broadcast=True, hash=False) if job.xt_profile is not None else None
+    src_f = client.scatter(job.source, broadcast=True, hash=False)   # a still sequence's file list: sent once
     if warm:
         warm_workers(client, job.settings, job.png)
     pending = iter(todo)
@@ -447,7 +508,7 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
     src = job.source
 
     def fail(i, text, bar):
-        f = Failure(i, str(src.raw), text)
+        f = Failure(i, src.frame_file(i), text)
         res.failures.append(f)
         if on_failure:
             on_failure(f, bar)
@@ -457,13 +518,13 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
             raw = None
             if return_files:
                 try:
-                    raw = read_frame(src.raw, src.width, src.height, i)
+                    raw = src.read(i)
                 except Exception as e:  # noqa: BLE001
                     fail(i, _error_text(e), bar)
                     bar.update(1)
                     continue
             outs = [str(p) for p in job.outputs(i)]
-            fut = client.submit(frame_task, i, src, prof_f, xt_f, job.settings, outs, raw, return_files,
+            fut = client.submit(frame_task, i, src_f, prof_f, xt_f, job.settings, outs, raw, return_files,
                                 str(job.stage), key=f"nrhdr-frame-{i}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
                                 retries=0)
             inflight[fut] = i

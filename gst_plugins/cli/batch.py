@@ -1,4 +1,4 @@
-"""`nrhdr batch`: reprocess recorded raw clips into an OpenEXR sequence (Y + state), frame-parallel on Dask
+"""`nrhdr batch`: reprocess recorded raw clips or raw still sequences into an OpenEXR sequence (Y + state), frame-parallel on Dask
 (nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames failed (each reported
 by number and file), 2 bad input or a refused output folder, 130 interrupted."""
 from __future__ import annotations
@@ -13,6 +13,7 @@ examples:
   nrhdr batch demo_out/clip -o demo_out/exr                      # one worker per core, fse fast
   nrhdr batch demo_out/clip -o best --preset best --png          # final quality + tone-mapped PNGs
   nrhdr batch rec.raw --profile camera.json -o out --workers 0   # plain loop in this process
+  nrhdr batch stills --profile camera.json -o out                # a folder of 16-bit gray TIFF/PNG stills
   nrhdr batch demo_out/clip -o out --scheduler tcp://host:8786   # an existing Dask cluster
 defaults are pipelines/raw_to_exr.sh's (METHOD=fse PRESET=fast MODE=threshold, nrcrosstalk mode=kernel),
 so the files equal that pipeline's bit for bit."""
@@ -22,14 +23,19 @@ def add_batch(sub) -> None:
     from nrhdr_core import chain
     p = sub.add_parser("batch", help="reprocess a raw clip into OpenEXR frames on a Dask cluster",
                        description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("input", help="clip folder (clip.json, clip.raw, camera.json) or a GRAY16_LE raw file")
+    p.add_argument("input", help="clip folder (clip.json, clip.raw, camera.json), a GRAY16_LE raw file, or a "
+                                 "raw still sequence: a folder of 16-bit gray .tif/.tiff/.png files or a "
+                                 "pattern such as stills/frame_%%05d.tif (as nrimagesrc reads it)")
     p.add_argument("-o", "--output", required=True, help="output folder: frame_%%05d.exr (+ .png), batch.json")
     g = p.add_argument_group("input")
-    g.add_argument("--profile", help="camera profile JSON (default: the clip's camera.json; required for a "
-                                     "raw file)")
+    g.add_argument("--profile", help="camera profile JSON (default: the clip's camera.json, or a still "
+                                     "sequence folder's camera.json; required for a raw file)")
     g.add_argument("--width", type=number(1, 1 << 16, integer=True), help="frame width of a raw file (default: the profile's mask)")
     g.add_argument("--height", type=number(1, 1 << 16, integer=True), help="frame height of a raw file (default: the profile's mask)")
     g.add_argument("--frames", type=number(1, 10_000_000, integer=True), help="number of frames (default: all the file holds)")
+    g.add_argument("--start-index", type=number(0, 2147483647, integer=True), default=-1,
+                   help="still pattern: index of the first file (default: the lowest present; nrimagesrc "
+                        "start-index)")
     g = p.add_argument_group("chain (the elements' properties)")
     g.add_argument("--mode", choices=chain.VALIDITY_MODES, default="threshold", help="nrvalidity mode")
     g.add_argument("--dark-policy", choices=chain.DARK_POLICIES, default="weighted",
@@ -78,7 +84,8 @@ def cmd_batch(a) -> int:
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion, white=a.white,
                                    exposure=a.exposure, contrast=a.contrast)
-    src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames, allow_outside=a.allow_outside_paths)
+    src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames, allow_outside=a.allow_outside_paths,
+                            start_index=a.start_index)
     job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile,
                     allow_outside=a.allow_outside_paths)
     if job.xt_profile is not None:   # another sensor's calibration would correct the wrong pixels
