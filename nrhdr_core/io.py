@@ -439,14 +439,27 @@ def _pattern_names(folder: Path, pattern: str, start_index: int) -> list[str]:
     return [pattern % i for i in range(start, end + 1)]
 
 
+def _profile_names(folder: Path) -> set[str]:
+    """The files the folder's camera profile (camera.json) names: its mask image is not a frame."""
+    try:
+        doc = read_json(folder / "camera.json", "camera profile")
+    except FileContentError:
+        return set()
+    xt = doc.get("crosstalk")
+    names = [doc.get("mask"), xt.get("file") if isinstance(xt, dict) else None]
+    return {os.path.normpath(n) for n in names if isinstance(n, str)}
+
+
 def _folder_names(folder: Path) -> list[str]:
-    """The still images of a folder (STILL_EXTENSIONS, one of them; hidden files and other files ignored) in
-    natural order; numbered names (one prefix, a number) must be consecutive."""
+    """The still images of a folder (STILL_EXTENSIONS, one of them; hidden files, other files and the files
+    of the folder's camera.json ignored) in natural order; numbered names (one prefix, a number) must be
+    consecutive."""
     try:
         entries = list(os.scandir(folder))
     except OSError as e:
         raise ImageFileError(f"{folder}: cannot list the folder: {e.strerror or e}") from None
-    names = [e.name for e in entries if not e.name.startswith(".")
+    profile_files = _profile_names(folder) if (folder / "camera.json").is_file() else set()
+    names = [e.name for e in entries if not e.name.startswith(".") and e.name not in profile_files
              and os.path.splitext(e.name)[1].lower() in STILL_EXTENSIONS]
     if not names:
         raise ImageFileError(f"{folder}: no still images in the folder (files ending in "
@@ -471,7 +484,8 @@ def _folder_names(folder: Path) -> list[str]:
 
 def still_sequence(location, start_index: int = -1, allow_outside: bool = False) -> StillSequence:
     """Open a raw still sequence (docs/BATCH.md, nrimagesrc): `location` a folder (its STILL_EXTENSIONS
-    files of one kind, natural order: frame_2 before frame_10) or a printf pattern (`dir/frame_%05d.tif`,
+    files of one kind, natural order: frame_2 before frame_10; the mask its camera.json names is not a
+    frame) or a printf pattern (`dir/frame_%05d.tif`,
     from `start_index`, default the lowest index present). Checked before any frame is used: the files
     exist and are consecutive, lie in the folder (no link out of it, unless `allow_outside`), and every
     header is a single one-channel unsigned 16-bit image of the first file's size. Errors: ImageFileError

@@ -399,3 +399,76 @@ def test_clip_naming_a_file_outside_its_folder_is_refused_unless_allowed(tmp_pat
     assert (src.raw if field == "raw" else src.profile) == (tmp_path / name).resolve()
     rc, out = nrhdr_batch(d, "-o", tmp_path / "out", "--workers", "0", "--method", "nearest")
     assert rc == 2 and f"../{name}" in out and not (tmp_path / "out").exists(), out
+
+
+# ---- raw still sequences ------------------------------------------------------------------------------------
+
+def _stills(folder, raws, pattern="frame_{:05d}.tif"):
+    from nrhdr_core import io
+    folder.mkdir(parents=True)
+    for i, r in enumerate(raws):
+        io.write_image(folder / pattern.format(i), r, np.uint16)
+    return folder
+
+
+@pytest.mark.gst
+def test_still_sequence_equals_the_stills_pipeline_and_the_raw_clip(clip6, tmp_path, gst_subprocess_env):
+    """A folder of 16-bit TIFFs (the clip's frames) with its camera.json: nrhdr batch on a local Dask worker
+    == pipelines/stills_to_hdr.sh (nrimagesrc ! chain ! nrexrsink) == nrhdr batch over the raw clip, every
+    pixel's float32 bits and state byte; the rerun resumes, a changed file is another input."""
+    import shutil
+    d, _, raws = clip6
+    stills = _stills(tmp_path / "stills", raws)
+    for f in ("camera.json", "camera_mask.png"):
+        shutil.copy(d / f, stills / f)
+    rc, out = nrhdr_batch(stills, "-o", tmp_path / "batch", "--workers", "1", env=gst_subprocess_env)
+    assert rc == 0, out
+    assert "wrote 6 frames" in out
+    p = subprocess.run(["bash", str(PIPELINES / "stills_to_hdr.sh"), str(stills), str(tmp_path / "gst")],
+                       env=gst_subprocess_env, capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stdout + p.stderr
+    rc, out = nrhdr_batch(d, "-o", tmp_path / "raw", "--workers", "0", env=gst_subprocess_env)
+    assert rc == 0, out
+    a, b, c = (exr_frames(tmp_path / n) for n in ("batch", "gst", "raw"))
+    assert [f.name for f in a] == [f.name for f in b] == [f.name for f in c] == \
+        [f"frame_{i:05d}.exr" for i in range(len(raws))]
+    for fa, fb, fc in zip(a, b, c):
+        assert_same_exr(fa, fb)
+        assert_same_exr(fa, fc)
+    # resume: nothing to do; a rewritten still is another input
+    rc, out = nrhdr_batch(stills, "-o", tmp_path / "batch", "--workers", "0")
+    assert rc == 0 and "skipped 6 done" in out, out
+    os.utime(stills / "frame_00003.tif", ns=(1, 1))
+    rc, out = nrhdr_batch(stills, "-o", tmp_path / "batch", "--workers", "0")
+    assert rc == 2 and "other input or settings" in out and "files_sha256" in out, out
+
+
+def test_still_sequence_pattern_frames_and_refusals(clip6, tmp_path):
+    """A pattern with --start-index and --frames; a sequence without a profile, of 8-bit files, or asked
+    for more frames than it has is refused (exit 2) naming the folder or file; a still whose pixels cannot
+    be decoded fails that frame only, reported with its file (exit 1)."""
+    from nrhdr_core import batch, io
+    d, prof, raws = clip6
+    stills = _stills(tmp_path / "s", raws, "img_{:03d}.png")
+    src = batch.open_source(stills / "img_%03d.png", d / "camera.json", start_index=2, frames=3)
+    assert (src.frames, src.width, src.height) == (3, 64, 48)
+    assert np.array_equal(src.read(0), raws[2]) and src.frame_file(2).endswith("img_004.png")
+    rc, out = nrhdr_batch(stills / "img_%03d.png", "--profile", d / "camera.json", "--start-index", "4", "-o",
+                          tmp_path / "o1", "--workers", "0", "--method", "nearest")
+    assert rc == 0 and "wrote 2 frames" in out, out
+    rc, out = nrhdr_batch(stills, "-o", tmp_path / "o2", "--workers", "0")
+    assert rc == 2 and "needs its camera profile: --profile" in out, out
+    rc, out = nrhdr_batch(stills, "--profile", d / "camera.json", "--frames", "7", "-o", tmp_path / "o3")
+    assert rc == 2 and "--frames 7 but the sequence has 6 files" in out, out
+    eight = tmp_path / "eight"
+    eight.mkdir()
+    io.write_image(eight / "a.tif", raws[0] >> 8, np.uint8)
+    rc, out = nrhdr_batch(eight, "--profile", d / "camera.json", "-o", tmp_path / "o4")
+    assert rc == 2 and "a.tif: an 8-bit image" in out and "not a clip folder (no clip.json) nor a still" in out, out
+    assert not (tmp_path / "o4").exists()
+    data = (stills / "img_001.png").read_bytes()
+    (stills / "img_001.png").write_bytes(data[:len(data) // 2])
+    rc, out = nrhdr_batch(stills, "--profile", d / "camera.json", "-o", tmp_path / "o5", "--workers", "0",
+                          "--method", "nearest")
+    assert rc == 1 and "failed: frame 1 of " + str(stills / "img_001.png") in out, out
+    assert [f.name for f in exr_frames(tmp_path / "o5")] == [f"frame_{i:05d}.exr" for i in (0, 2, 3, 4, 5)]

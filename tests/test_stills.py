@@ -86,13 +86,16 @@ def test_still_sequence_reads_the_codes_in_frame_order(clip4, tmp_path):
         d = write_stills(tmp_path / ext, [full, full[::-1]], "f{}." + ext)
         seq = io.still_sequence(d)
         assert np.array_equal(seq.read(0), full) and np.array_equal(seq.read(1), full[::-1])
-    # other files and hidden files are not frames
-    (tif / "notes.txt").write_text("camera settings")
-    (tif / "camera.json").write_text("{}")
-    (tif / ".frame_00009.tif").write_bytes(b"")
-    assert len(io.still_sequence(tif)) == 4
-    for f in ("notes.txt", "camera.json", ".frame_00009.tif"):
-        (tif / f).unlink()
+    # other files, hidden files and the mask of the folder's camera profile are not frames
+    import shutil
+    d = clip4[0]
+    (png / "notes.txt").write_text("camera settings")
+    (png / ".shot9.png").write_bytes(b"")
+    for f in ("camera.json", "camera_mask.png"):
+        shutil.copy(d / f, png / f)
+    assert [os.path.basename(f) for f in io.still_sequence(png).files] == [f"shot{i}.png" for i in (1, 2, 3, 4)]
+    for f in ("notes.txt", ".shot9.png", "camera.json", "camera_mask.png"):
+        (png / f).unlink()
 
 
 def _bad(tmp_path, raws, case):

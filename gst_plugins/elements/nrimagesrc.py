@@ -5,8 +5,8 @@ Run (a folder of 16-bit TIFFs from any camera through the chain into OpenEXR):
     nrhdr launch nrimagesrc location=stills framerate=30/1 ! nrvalidity profile=cam.json ! nrcrosstalk \
         ! nrreconstruct ! nrexrsink location=out/frame_%05d.exr write-state=true
 
-`location` is a folder (its .tif/.tiff/.png files of one kind in natural order; other files and hidden
-files are not frames) or a printf pattern (`stills/frame_%05d.tif`, from `start-index`, default the lowest
+`location` is a folder (its .tif/.tiff/.png files of one kind in natural order; other files, hidden
+files and the mask its camera.json names are not frames) or a printf pattern (`stills/frame_%05d.tif`, from `start-index`, default the lowest
 index present). Before the first frame every file's header is checked (`nrhdr_core.io.still_sequence`):
 consecutive files, inside the folder, one image of one unsigned 16-bit channel, all of the first file's
 size; each frame is checked again as it is read. Frame i (of the pushed frames, loops included) has PTS
