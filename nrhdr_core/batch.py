@@ -146,14 +146,14 @@ def open_stills(location, profile=None, width=None, height=None, frames=None, al
     folder's camera.json. `frames`: the first that many files; width/height, when given, must be the
     files'."""
     loc = Path(location)
+    if loc.is_dir() and not any(os.path.splitext(n)[1].lower() in io.STILL_EXTENSIONS for n in os.listdir(loc)):
+        raise BatchError(f"{loc}: not a clip folder (no clip.json) nor a still sequence (no "
+                         f"{', '.join(io.STILL_EXTENSIONS)} files); give a clip folder from 'nrhdr simulate', a "
+                         f"raw file with --profile, or a folder of 16-bit gray stills")
     try:
         seq = io.still_sequence(loc, start_index, allow_outside=allow_outside)
     except io.ImageFileError as e:
-        if not loc.is_dir():
-            raise BatchError(str(e)) from None
-        raise BatchError(f"{loc}: not a clip folder (no clip.json) nor a still sequence: {e}; give a clip "
-                         f"folder from 'nrhdr simulate', a raw file with --profile, or a folder of 16-bit "
-                         f"stills") from None
+        raise BatchError(str(e)) from None
     folder = loc if loc.is_dir() else loc.parent
     prof = Path(profile) if profile else folder / "camera.json"
     if not prof.is_file():

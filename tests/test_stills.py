@@ -171,6 +171,7 @@ BAD = ["mixed-sizes", "8-bit", "rgb", "gray-alpha", "float", "12-bit-samples", "
        "link-out-of-folder", "pattern-start-missing", "two-pages"]
 
 
+@pytest.mark.gst
 @pytest.mark.parametrize("case", BAD)
 def test_bad_sequences_are_errors_naming_the_file(clip4, tmp_path, case, gst):
     """io.still_sequence refuses the sequence before any frame is used, and nrimagesrc fails to start with
@@ -215,6 +216,7 @@ def test_a_file_removed_after_the_check_fails_when_read(clip4, tmp_path):
 
 # ---- nrimagesrc --------------------------------------------------------------------------------------------
 
+@pytest.mark.gst
 def test_nrimagesrc_frames_timestamps_and_count(clip4, gst):
     """Frames out = files in, as written; PTS = i / framerate (exact for 30000/1001), durations to the
     next PTS, offsets i; caps GRAY16_LE at the files' size and the frame rate."""
@@ -231,6 +233,7 @@ def test_nrimagesrc_frames_timestamps_and_count(clip4, gst):
     assert el.get_property("frames") == 0 and el.get_property("framerate") == "30/1"
 
 
+@pytest.mark.gst
 def test_nrimagesrc_start_index_and_loop(clip4, gst):
     _, _, raws, tif, _ = clip4
     samples, error = run_source(f"nrimagesrc location={tif}/frame_%05d.tif start-index=1 loop=true "
@@ -241,6 +244,7 @@ def test_nrimagesrc_start_index_and_loop(clip4, gst):
         assert np.array_equal(s[3], raws[1 + i % 3]), i
 
 
+@pytest.mark.gst
 @pytest.mark.parametrize("bad", ["abc", "0/1", "30/0", "-5", "1000001/1"])
 def test_nrimagesrc_refuses_a_bad_framerate(clip4, gst, bad):
     _, _, _, tif, _ = clip4
@@ -248,6 +252,7 @@ def test_nrimagesrc_refuses_a_bad_framerate(clip4, gst, bad):
     assert samples == [] and error is not None and f"framerate={bad}: " in error, error
 
 
+@pytest.mark.gst
 def test_nrimagesrc_start_index_is_for_patterns(clip4, gst):
     _, _, _, tif, _ = clip4
     samples, error = run_source(f"nrimagesrc location={tif} start-index=2")
@@ -256,6 +261,7 @@ def test_nrimagesrc_start_index_is_for_patterns(clip4, gst):
     assert samples == [] and "location is empty" in error, error
 
 
+@pytest.mark.gst
 @pytest.mark.parametrize("fmt", ["tif", "png"])
 def test_stills_through_the_chain_equal_the_raw_clip(clip4, gst, fmt):
     """nrimagesrc ! chain gives, frame by frame, the values and states (float32 bits) of filesrc !
@@ -277,6 +283,7 @@ def test_stills_through_the_chain_equal_the_raw_clip(clip4, gst, fmt):
     assert all(0 < ((s[3][1] & states.RECONSTRUCTED) != 0).mean() < 1 for s in got)
 
 
+@pytest.mark.gst
 def test_odd_width_frames_fill_the_padded_rows(tmp_path, gst):
     """GStreamer pads GRAY16_LE rows of an odd width to 4 bytes: the frame is written at the caps' stride."""
     frames = np.arange(2 * 5 * 7, dtype=np.uint16).reshape(2, 5, 7) * 900

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import re
 
-from ._common import (ALLOW_OUTSIDE_PROP, Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, np,
+from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, np,
                       raw_template_caps, starting)
 
 MAX_FPS = 100000
@@ -34,7 +34,9 @@ PROPERTIES = PropertyTable("GstNrImageSrc", [
          maximum=2147483647),
     Prop("loop", bool, False, "Loop", "Start again at the first file after the last (timestamps go on); "
                                       "else EOS"),
-    ALLOW_OUTSIDE_PROP,
+    Prop("allow-outside-paths", bool, False, "Allow paths outside",
+         "Read files of the sequence that are symbolic links out of its folder; refused by default, since a "
+         "received folder could otherwise make the source read files from elsewhere (docs/RELIABILITY.md)"),
     Prop("frames", int, 0, "Frames in the sequence",
          "Number of files in the sequence (known once started; 0 before)", minimum=0, maximum=2147483647,
          readonly=True),
