@@ -1,6 +1,6 @@
-"""`nrhdr batch`: reprocess recorded raw clips or raw still sequences into an OpenEXR sequence (Y + state), frame-parallel on Dask
-(nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames failed (each reported
-by number and file), 2 bad input or a refused output folder, 130 interrupted."""
+"""`nrhdr batch`: reprocess recorded raw clips or raw still sequences into an OpenEXR sequence (Y + state),
+frame-parallel on Dask (nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames
+failed (each reported by number and file), 2 bad input or a refused output folder, 130 interrupted."""
 from __future__ import annotations
 
 import argparse
