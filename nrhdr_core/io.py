@@ -460,7 +460,7 @@ def _folder_names(folder: Path) -> list[str]:
         raise ImageFileError(f"{folder}: cannot list the folder: {e.strerror or e}") from None
     profile_files = _profile_names(folder) if (folder / "camera.json").is_file() else set()
     names = [e.name for e in entries if not e.name.startswith(".") and e.name not in profile_files
-             and os.path.splitext(e.name)[1].lower() in STILL_EXTENSIONS]
+             and os.path.splitext(e.name)[1].lower() in STILL_EXTENSIONS and not e.is_dir()]
     if not names:
         raise ImageFileError(f"{folder}: no still images in the folder (files ending in "
                              f"{', '.join(STILL_EXTENSIONS)})")
