@@ -348,6 +348,7 @@ _NUMBERED = re.compile(r"(.*?)(\d+)(\.[^.]+)")
 
 
 def _still_check(path):
+    """The header check (`_read_pixels` check=) of a raw frame stored as a still."""
     oiio = _oiio()
 
     def check(spec):
