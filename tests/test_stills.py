@@ -291,3 +291,34 @@ def test_odd_width_frames_fill_the_padded_rows(tmp_path, gst):
     samples, error = run_source(f"nrimagesrc location={d}")
     assert error is None, error
     assert [np.array_equal(s[3], f) for s, f in zip(samples, frames)] == [True, True]
+
+
+def test_fuzz_locations_are_a_sequence_or_an_error_naming_them(tmp_path):
+    """Any location text (patterns with stray or several conversions, numbering gaps, names out of order)
+    over a folder of numbered stills gives a checked sequence of consecutive files in that folder, or an
+    ImageFileError; never another exception."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+    from nrhdr_core import io
+    d = tmp_path / "s"
+    frame = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    for name in ("f_1.tif", "f_2.tif", "f_03.tif", "f_10.tif", "g%1.png", "g%2.png", "h0001.tif"):
+        write_stills(d, [frame], name)
+    fuzz = settings(max_examples=int(os.environ.get("NRHDR_FUZZ_EXAMPLES", "0") or 0) or 60, deadline=None,
+                    derandomize=not os.environ.get("NRHDR_FUZZ_EXAMPLES"), database=None,
+                    suppress_health_check=list(HealthCheck))
+
+    @fuzz
+    @given(text=st.text(st.sampled_from("fgh_%01234d.tifpng"), max_size=14), start=st.integers(-1, 12))
+    def run(text, start):
+        try:
+            seq = io.still_sequence(d / text, start)
+        except io.ImageFileError as e:
+            assert str(e)
+            return
+        assert len(seq) >= 1 and all(os.path.dirname(f) == str(d) for f in seq.files)
+        assert np.array_equal(seq.read(0), frame)
+    run()
+    assert len(io.still_sequence(d / "h%04d.tif")) == 1 and len(io.still_sequence(d / "g%%%d.png")) == 2
+    with pytest.raises(io.ImageFileError, match=r"f_3.tif: missing: the sequence has frames 1..2 and 1 more"):
+        io.still_sequence(d / "f_%d.tif")          # f_1, f_2, f_10 (f_03 is not f_3)
