@@ -117,7 +117,7 @@ def _strategy(p):
 
 
 @pytest.mark.parametrize("factory", ["nrvalidity", "nrcrosstalk", "nrreconstruct", "nrtonemap", "nrexrsink",
-                                     "nrcamsrc"])
+                                     "nrcamsrc", "nrimagesrc"])
 def test_fuzz_every_property(gst, factory, capfd):
     """Any value of any property: accepted and within range (read back), or refused with a message naming
     the property (TypeError from PyGObject for an unknown word, else a settings error that names the
