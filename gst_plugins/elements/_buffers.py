@@ -184,3 +184,24 @@ def copy_timestamps(src: Gst.Buffer, dst: Gst.Buffer) -> None:
     dst.offset_end = src.offset_end
     if src.has_flags(Gst.BufferFlags.DISCONT):
         dst.set_flags(Gst.BufferFlags.DISCONT)
+
+
+def gray16_buffer(vi: GstVideo.VideoInfo, frame: np.ndarray, index: int, pts: int, duration: int) -> Gst.Buffer:
+    """A new GRAY16_LE buffer holding `frame` (uint16 (H, W)) at the caps' row stride, with PTS, duration and
+    offsets of frame `index` (no DTS): what the raw sources push."""
+    buf = Gst.Buffer.new_allocate(None, vi.size, None)
+    ok, mi = buf.map(Gst.MapFlags.WRITE)
+    if not ok:
+        raise RuntimeError("cannot map a new buffer for writing")
+    try:
+        dst = np.ndarray((vi.height, vi.width), "<u2", buffer=mi.data, offset=vi.offset[0],
+                         strides=(vi.stride[0], 2))
+        np.copyto(dst, frame)
+    finally:
+        buf.unmap(mi)
+    buf.pts = pts
+    buf.dts = Gst.CLOCK_TIME_NONE
+    buf.duration = duration
+    buf.offset = index
+    buf.offset_end = index + 1
+    return buf

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from ._base import NrElement, guarded, starting
 from ._buffers import (FrameSizeError, HdrPool, alloc_hdr_buffer, check_hdr_buffer, check_video_buffer,
-                       copy_timestamps, map_hdr, map_sample, map_video)
+                       copy_timestamps, gray16_buffer, map_hdr, map_sample, map_video)
 from ._caps import (HDR_LAYOUT, HDR_MEDIA_TYPE, HdrInfo, copy_fields, hdr_template_caps, hdr_transform_templates,
                     raw_template_caps, transform_caps_by_structure)
 from ._gst import GLib, GObject, Gst, GstBase, GstVideo, np
@@ -17,6 +17,6 @@ from ._props import CONTROLLABLE, MUTABLE_PLAYING, MUTABLE_READY, Prop, Property
 __all__ = ["ALLOW_OUTSIDE_PROP", "CONTROLLABLE", "FrameSizeError", "GLib", "GObject", "Gst", "GstBase", "GstVideo", "HDR_LAYOUT",
            "HDR_MEDIA_TYPE", "HdrInfo", "HdrPool", "LATENCY_PROP", "LiveTiming", "MUTABLE_PLAYING",
            "MUTABLE_READY", "NrElement", "Prop", "PropertyTable", "alloc_hdr_buffer", "check_hdr_buffer",
-           "check_video_buffer", "copy_fields", "copy_timestamps", "debug_category", "guarded",
+           "check_video_buffer", "copy_fields", "copy_timestamps", "debug_category", "gray16_buffer", "guarded",
            "hdr_template_caps", "hdr_transform_templates", "load_profile", "map_hdr", "map_sample", "map_video", "np",
            "raw_template_caps", "starting", "transform_caps_by_structure"]

@@ -23,8 +23,8 @@ from __future__ import annotations
 import os
 import threading
 
-from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, load_profile, np,
-                      raw_template_caps, starting)
+from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, gray16_buffer, guarded,
+                      load_profile, raw_template_caps, starting)
 from ._profiles import ALLOW_OUTSIDE_PROP
 
 RING = 4  # frames a camera driver buffers (v4l2src's default); reported as the maximum latency
@@ -295,22 +295,8 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
             ret = self._wait_complete(k)
             if ret != Gst.FlowReturn.OK:
                 return ret, None
-        vi = self._vi
-        buf = Gst.Buffer.new_allocate(None, vi.size, None)
-        ok, mi = buf.map(Gst.MapFlags.WRITE)
-        if not ok:
-            raise RuntimeError("cannot map a new buffer for writing")
-        try:
-            dst = np.ndarray((vi.height, vi.width), "<u2", buffer=mi.data, offset=vi.offset[0],
-                             strides=(vi.stride[0], 2))
-            np.copyto(dst, frame)
-        finally:
-            buf.unmap(mi)
-        buf.pts = self._origin + self._t(k) if live and self._origin is not None else self._t(k)
-        buf.dts = Gst.CLOCK_TIME_NONE
-        buf.duration = self._t(k + 1) - self._t(k)
-        buf.offset = k
-        buf.offset_end = k + 1
+        pts = self._origin + self._t(k) if live and self._origin is not None else self._t(k)
+        buf = gray16_buffer(self._vi, frame, k, pts, self._t(k + 1) - self._t(k))
         if discont or self._pushed == 0:
             buf.set_flags(Gst.BufferFlags.DISCONT)
         self._next = k + 1

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import re
 
-from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, guarded, np,
+from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, gray16_buffer, guarded,
                       raw_template_caps, starting)
 
 MAX_FPS = 100000
@@ -143,22 +143,7 @@ class NrImageSrc(NrElement, GstBase.BaseSrc):
         except (OSError, ValueError) as e:
             self.post_error(f"location={seq.location}: frame {k}: {e}", kind="read")
             return Gst.FlowReturn.ERROR, None
-        vi = self._vi
-        buf = Gst.Buffer.new_allocate(None, vi.size, None)
-        ok, mi = buf.map(Gst.MapFlags.WRITE)
-        if not ok:
-            raise RuntimeError("cannot map a new buffer for writing")
-        try:
-            dst = np.ndarray((vi.height, vi.width), "<u2", buffer=mi.data, offset=vi.offset[0],
-                             strides=(vi.stride[0], 2))
-            np.copyto(dst, frame)
-        finally:
-            buf.unmap(mi)
-        buf.pts = self._t(k)
-        buf.dts = Gst.CLOCK_TIME_NONE
-        buf.duration = self._t(k + 1) - self._t(k)
-        buf.offset = k
-        buf.offset_end = k + 1
+        buf = gray16_buffer(self._vi, frame, k, self._t(k), self._t(k + 1) - self._t(k))
         if k == 0:
             buf.set_flags(Gst.BufferFlags.DISCONT)
         self._next = k + 1
