@@ -23,9 +23,10 @@ Metrics (`metrics.clip_report`, as `nrhdr compare` and hdr_quality.py): log2 PSN
 log2(white), truth and output capped at the ND camera's white) per region of the truth (dark < l_min x ND,
 bright >= the regular clip, mid between), the mean over all frames of all scenes; flicker: the RMS over
 consecutive frame pairs of the change of the log2 error in stops, at pixels not bright in either truth,
-pooled over pairs and scenes. Frames/s: each clip kind of the first scene rendered at 1920 x 1080 through
-`chain.process_frame` in sequence (best of `--repeat` timed passes after an untimed one), for the
-single-frame preview method (the anchor, same run), fse fast, and fse fast with the temporal state.
+pooled over pairs and scenes. Frames/s: each clip kind of the first scene (or `--fps-scene`) rendered at
+1920 x 1080 through `chain.process_frame` in sequence (best of `--repeat` timed passes after an untimed
+one), for the single-frame preview method (the anchor, same run), fse fast, and fse fast with the temporal
+state.
 Writes bench_out/temporal/results.json and results.md.
 """
 from __future__ import annotations
@@ -245,6 +246,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fps-frames", type=int, default=None, help="frames per timed clip (default 8)")
     ap.add_argument("--repeat", type=int, default=2, help="timed passes per configuration (best counts)")
     ap.add_argument("--no-fps", action="store_true", help="quality only")
+    ap.add_argument("--fps-scene", default=None, help="scene of the frames/s clips (default: the first scene)")
     ap.add_argument("--scenes", nargs="+", default=None,
                     help="HDR scene files, or 'synthetic' (default: GoldenGate, memorial, venice_sunset in the "
                          "shared data where present, else all of its HDR scenes)")
@@ -265,7 +267,10 @@ def main(argv=None) -> int:
         print(f"temporal: scene file(s) not found: {', '.join(missing) or DATA / 'hdr'} (set NRHDR_SHARED_DATA "
               f"or pass --scenes)", file=sys.stderr)
         return 2
-    loaded = [realtime.load_scene(p, height=max(h, fh)) for p in paths]
+    if a.fps_scene is not None and a.fps_scene != "synthetic" and not Path(a.fps_scene).is_file():
+        print(f"temporal: --fps-scene {a.fps_scene}: no such file", file=sys.stderr)
+        return 2
+    loaded = [realtime.load_scene(p, height=h) for p in paths]
     scenes, names = [s for s, _ in loaded], [n for _, n in loaded]
     configs = ["off"] + (["on"] if TemporalReconstructor is not None else []) + ["camera"]
     note = ("" if TemporalReconstructor is not None else
@@ -278,15 +283,22 @@ def main(argv=None) -> int:
             + quality_table(q, configs) + "\n")
     sp = None
     if not a.no_fps:
-        print(f"frames/s: {fw} x {fh}, {fframes} frames per clip, {names[0]}", flush=True)
-        sp = speed(scenes, fh, fw, fframes, a.seed, a.repeat)
-        text += f"\nframes/s, {names[0]}, best of {a.repeat}:\n\n" + speed_table(sp, fh, fw, fframes) + "\n"
+        fscenes = list(scenes)
+        fname = names[0]
+        if a.fps_scene is not None:       # first, the others stay for the cut
+            fs, fname = realtime.load_scene(a.fps_scene, height=fh)
+            fscenes = [fs] + [s for s, n in zip(scenes, names) if n != fname]
+        elif paths[0] == "synthetic":     # at the size of the timed frames
+            fscenes[0] = realtime.load_scene("synthetic", height=fh)[0]
+        print(f"frames/s: {fw} x {fh}, {fframes} frames per clip, {fname}", flush=True)
+        sp = speed(fscenes, fh, fw, fframes, a.seed, a.repeat)
+        text += f"\nframes/s, {fname}, best of {a.repeat}:\n\n" + speed_table(sp, fh, fw, fframes) + "\n"
     total = time.perf_counter() - t_start
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     info = {"quick": a.quick, "size": [w, h], "frames": frames, "scenes": names, "seed": a.seed,
             "temporal": TemporalReconstructor is not None, "quality": q, "fps_size": [fw, fh],
-            "fps_frames": fframes, "fps": sp, "seconds": total}
+            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "seconds": total}
     (out / "results.json").write_text(json.dumps(info, indent=1) + "\n")
     (out / "results.md").write_text(text)
     print("\n" + text + f"\n({total:.0f} s)")
