@@ -162,3 +162,19 @@ def test_cli_objects_and_cut(tmp_path, capsys):
                        "12", *args])
         assert rc == 2 and match in capsys.readouterr().err
         assert not (tmp_path / "bad").exists()
+
+
+def test_live_scene_camera_renders_the_objects_and_the_cut():
+    from nrhdr_core import realtime
+    prof = profile.default(H, W, seed=1)
+    bright = simulate.MovingObject(x=12.0, y=24.0, vx=10.0, size=16, level=simulate.OBJECT_BRIGHT)
+    plain = realtime.SceneCamera(scene_a(), prof, frames=4, motion=STILL, seed=2)
+    cam = realtime.SceneCamera(scene_a(), prof, frames=4, motion=STILL, seed=2, objects=[bright], cut_frame=3,
+                               cut_scene=scene_b())
+    for i in range(3):
+        disc, away = distance(12 + 10 * i, 24) <= 6, distance(12 + 10 * i, 24) >= 10
+        assert cam.frame(i)[disc].mean() > 2 * plain.frame(i)[disc].mean()        # the bright disc, moving
+        assert abs(cam.frame(i)[away].mean() / plain.frame(i)[away].mean() - 1) < 0.02
+    assert np.array_equal(cam.frame(3 + 4), cam.frame(3))                           # the path repeats
+    second = realtime.SceneCamera(scene_b(), prof, frames=4, motion=STILL, seed=2)
+    assert np.array_equal(cam.frame(3), second.frame(3))            # the cut: scene b's view, the same noise
