@@ -184,7 +184,6 @@ def patch_texture(prefiltered: np.ndarray, obj: MovingObject, scale: float) -> n
     return np.maximum(map_coordinates(prefiltered, [yy, xx], order=1, mode="nearest"), 0.0).astype(np.float32)
 
 
-
 EXPOSURE_STOPS_MAX = 30.0   # |exposure| beyond 30 stops is all black or all clipped on any sensor
 
 
