@@ -7,7 +7,8 @@ controller of nrreconstruct, the frame sources of `nrcamsrc` and a report of num
   measured per-rung costs scaled by the frame's missing share, with hysteresis (down at once when over
   budget, up only after `up_after` comfortable frames) so quality does not flicker.
 - `ClipCamera` / `SceneCamera`: raw GRAY16 frames of a clip folder (`nrhdr simulate`) or rendered from an
-  HDR scene with the simulator's motion and sensor noise model (`simulate.view`, `sensor.capture`).
+  HDR scene with the simulator's camera path, moving objects, cut and sensor noise model
+  (`simulate.ClipRenderer`, `sensor.capture`).
 - `JitWatch`: counts numba compilations (cache misses) so elements can report them instead of stalling
   silently.
 """
@@ -212,19 +213,18 @@ class ClipCamera:
 
 
 class SceneCamera:
-    """Raw frames of an HDR scene through the simulator: the camera path of `simulate.Motion` over
-    `frames` frames (then it repeats), exposure from `simulate.exposure_scale`, noise and clipping from
-    `sensor.capture`. Frame i is rendered when asked for (view at path position i / (frames - 1), noise
-    seeded by (seed, i)), so every repeat gives the same frames; rendered frames are kept only when the
-    whole path fits in `cache_bytes`, so memory stays flat for any `frames`."""
+    """Raw frames of an HDR scene through the simulator: the clip of `simulate.ClipRenderer` (the camera
+    path of `simulate.Motion`, optional moving `objects` and a cut at `cut_frame` to `cut_scene`) over
+    `frames` frames (then it repeats), noise and clipping from `sensor.capture`. Frame i is rendered when
+    asked for (noise seeded by (seed, i)), so every repeat gives the same frames; rendered frames are kept
+    only when the whole path fits in `cache_bytes`, so memory stays flat for any `frames`."""
 
     CACHE_BYTES = 256 << 20          # rendered frames kept for the path's repeats when all of them fit
     PRERENDER_PIXELS = 10_000_000    # a path this small (all frames' pixels) may be rendered at start (< ~1 s)
 
     def __init__(self, scene: np.ndarray, profile, frames: int = 30, motion=None, seed: int = 0,
-                 exposure_stops: float = 0.0, sensor_model=None, cache_bytes: int = CACHE_BYTES):
-        from scipy.ndimage import gaussian_filter
-
+                 exposure_stops: float = 0.0, sensor_model=None, cache_bytes: int = CACHE_BYTES, objects=(),
+                 cut_frame: int | None = None, cut_scene=None):
         from . import simulate
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
@@ -236,11 +236,9 @@ class SceneCamera:
         self.n = int(frames)
         self.motion = motion if motion is not None else simulate.Motion()
         self.seed, self.sensor_model = seed, sensor_model
-        self.k = simulate.exposure_scale(self.scene, profile, exposure_stops)
-        # the anti-aliasing of simulate.simulate_clip: the view shrinks the scene ~W * fov / w
-        shrink = max(self.scene.shape[1] * self.motion.fov / self.width, 1.0)
-        self._pre = (gaussian_filter(self.scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2
-                     else self.scene)
+        self._render = simulate.ClipRenderer(self.scene, profile, self.n, exposure_stops, self.motion, objects,
+                                             cut_frame, cut_scene)
+        self.k = self._render.scale
         self._keep = self.n * self.width * self.height * 2 <= cache_bytes
         self._frames: dict = {}
 
@@ -258,13 +256,11 @@ class SceneCamera:
 
     def frame(self, k: int) -> np.ndarray:
         """Raw frame k (uint16 H x W) of the repeating path."""
-        from . import sensor, simulate
+        from . import sensor
         i = k % self.n
         f = self._frames.get(i)
         if f is None:
-            t = i / max(self.n - 1, 1)
-            flux = simulate.view(self.scene, self.height, self.width, t, self.motion, prefiltered=self._pre)
-            f = sensor.capture(flux * np.float32(self.k), self.profile, np.random.default_rng((self.seed, i)),
+            f = sensor.capture(self._render.flux(i), self.profile, np.random.default_rng((self.seed, i)),
                                sensor_model=self.sensor_model)
             if self._keep:
                 self._frames[i] = f

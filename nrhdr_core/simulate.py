@@ -1,4 +1,5 @@
-"""Scene to raw sensor video: camera motion across an HDR scene, captured by the sensor model.
+"""Scene to raw sensor video: camera motion across an HDR scene, objects moving over it and a scene cut,
+captured by the sensor model.
 
 Writes a clip folder (docs/SIMULATOR.md): `clip.raw` (GRAY16_LE, for `filesrc ! rawvideoparse`),
 `camera.json` + `camera_mask.png` (the profile), `clip.json` (size, rate, frames), `truth/frame_%05d.exr`
@@ -7,6 +8,7 @@ Writes a clip folder (docs/SIMULATOR.md): `clip.raw` (GRAY16_LE, for `filesrc ! 
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -47,10 +49,146 @@ class Motion:
                 raise ValueError(f"{k} must be within -1..1 (a fraction of the scene), got {getattr(self, k)}")
 
 
+OBJECT_KINDS = ("disc", "patch")
+OBJECT_BRIGHT = 24.0        # a bright disc: 24 x the scene's median (beyond the regular pixels' clip at 0 stops)
+OBJECT_DARK = 1.0 / 32      # a dark disc: the scene's median / 32 (below l_min x ND at 0 stops)
+OBJECTS_MAX = 1000
+OBJECT_SIZE_MAX = 4096.0    # pixels
+OBJECT_SPEED_MAX = 10000.0  # pixels per frame
+OBJECT_POSITION_MAX = 1e7   # pixels from the view's corner
+
+
+@dataclass(frozen=True)
+class MovingObject:
+    """An object crossing the view on a straight line at constant velocity, in output pixels (pixel
+    centres at integer coordinates): centre (x, y) at frame 0, (vx, vy) pixels per frame, `size` the
+    diameter (disc) or side (patch). A disc is uniform at `level` times the scene's median luminance; a
+    patch is a square of the scene's texture at the first view's scale, cut around `source` (fractions
+    of the scene's width and height). Edges are blended by the share of the pixel the object covers;
+    objects occlude the background and the objects before them."""
+    kind: str = "disc"
+    x: float = 0.0
+    y: float = 0.0
+    vx: float = 0.0
+    vy: float = 0.0
+    size: float = 32.0
+    level: float = OBJECT_BRIGHT
+    source: tuple = (0.5, 0.5)
+
+    def centre(self, i: int) -> tuple[float, float]:
+        """(x, y) of the centre in frame i."""
+        return self.x + self.vx * i, self.y + self.vy * i
+
+    def validate(self, name: str = "object") -> None:
+        """ValueError naming `name` and the field: kind in OBJECT_KINDS, finite position within
+        +-OBJECT_POSITION_MAX, speed within +-OBJECT_SPEED_MAX pixels per frame, size in
+        1..OBJECT_SIZE_MAX, level in (0, 1e6], source two fractions in 0..1."""
+        if self.kind not in OBJECT_KINDS:
+            raise ValueError(f"{name}: kind must be one of {', '.join(OBJECT_KINDS)}, got {self.kind!r}")
+        for k, lim in (("x", OBJECT_POSITION_MAX), ("y", OBJECT_POSITION_MAX), ("vx", OBJECT_SPEED_MAX),
+                       ("vy", OBJECT_SPEED_MAX)):
+            v = getattr(self, k)
+            if not (_finite(v) and abs(v) <= lim):
+                raise ValueError(f"{name}: {k} must be a finite number within -{lim:g}..{lim:g}, got {v!r}")
+        if not (_finite(self.size) and 1 <= self.size <= OBJECT_SIZE_MAX):
+            raise ValueError(f"{name}: size must be a number in 1..{OBJECT_SIZE_MAX:g} pixels, got {self.size!r}")
+        if not (_finite(self.level) and 0 < self.level <= 1e6):
+            raise ValueError(f"{name}: level must be in (0, 1e6] (times the scene's median), got {self.level!r}")
+        src = self.source
+        if not (isinstance(src, (tuple, list)) and len(src) == 2 and all(_finite(u) and 0 <= u <= 1 for u in src)):
+            raise ValueError(f"{name}: source must be two fractions (u, v) in 0..1 of the scene, got {src!r}")
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+OBJECT_MIXES = OBJECT_KINDS + ("mixed",)   # `random_objects`' kinds: mixed cycles patch, bright disc, dark disc
+OBJECT_STREAM = 0x6F626A                   # the objects' random stream beside the noise's: seed (seed, this)
+
+
+def random_objects(count: int, height: int, width: int, frames: int, speed: float, size: float,
+                   kind: str = "mixed", seed: int = 0) -> tuple[MovingObject, ...]:
+    """`count` objects crossing a height x width view at `speed` pixels per frame, drawn from `seed` (a
+    stream of its own: the sensor noise is the same with and without objects): a direction uniform on the
+    circle, the mid-clip centre uniform in the view's central 70 %, a patch's source uniform in the
+    scene's central 80 %. Discs alternate bright (OBJECT_BRIGHT) and dark (OBJECT_DARK); `mixed` cycles
+    patch, bright disc, dark disc."""
+    if not (isinstance(count, (int, np.integer)) and not isinstance(count, bool) and 0 <= count <= OBJECTS_MAX):
+        raise ValueError(f"objects must be an integer in 0..{OBJECTS_MAX}, got {count!r}")
+    if kind not in OBJECT_MIXES:
+        raise ValueError(f"object kind must be one of {', '.join(OBJECT_MIXES)}, got {kind!r}")
+    if not (_finite(speed) and 0 <= speed <= OBJECT_SPEED_MAX):
+        raise ValueError(f"object speed must be in 0..{OBJECT_SPEED_MAX:g} pixels per frame, got {speed!r}")
+    rng = np.random.default_rng((seed, OBJECT_STREAM))
+    mid = (frames - 1) / 2
+    out = []
+    for j in range(count):
+        ang = rng.uniform(0, 2 * math.pi)
+        xm, ym = rng.uniform(0.15, 0.85) * width, rng.uniform(0.15, 0.85) * height
+        src = (float(rng.uniform(0.1, 0.9)), float(rng.uniform(0.1, 0.9)))
+        k = kind if kind != "mixed" else ("patch", "disc", "disc")[j % 3]
+        nth_disc = j if kind == "disc" else j % 3 - 1
+        vx, vy = speed * math.cos(ang), speed * math.sin(ang)
+        o = MovingObject(kind=k, x=xm - vx * mid, y=ym - vy * mid, vx=vx, vy=vy, size=float(size),
+                         level=1.0 if k == "patch" else OBJECT_BRIGHT if nth_disc % 2 == 0 else OBJECT_DARK,
+                         source=src)
+        o.validate(f"object {j}")
+        out.append(o)
+    return tuple(out)
+
+
+def _coverage(lo: float, hi: float, n: int) -> np.ndarray:
+    """Share of each pixel 0..n-1 (pixel c covering [c - 0.5, c + 0.5]) inside the interval [lo, hi]."""
+    c = np.arange(n, dtype=np.float64)
+    return np.clip(np.minimum(c + 0.5, hi) - np.maximum(c - 0.5, lo), 0.0, 1.0)
+
+
+def composite(frame: np.ndarray, objects, i: int, median: float, textures) -> None:
+    """Draw `objects` at their frame-i positions over `frame` (scene units, in place), in order (later
+    ones in front): value = a x object + (1 - a) x below, a the covered share of the pixel (a disc's
+    a = clip(r + 0.5 - d, 0, 1), d the distance of the pixel's centre; a patch's the exact area).
+    `textures[j]`: patch j's texture (`patch_texture`), None for a disc."""
+    from scipy.ndimage import map_coordinates
+    h, w = frame.shape
+    for o, tex in zip(objects, textures):
+        cx, cy = o.centre(i)
+        r = o.size / 2
+        x0, x1 = max(int(math.floor(cx - r - 1)), 0), min(int(math.ceil(cx + r + 1)) + 1, w)
+        y0, y1 = max(int(math.floor(cy - r - 1)), 0), min(int(math.ceil(cy + r + 1)) + 1, h)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        ys = np.arange(y0, y1, dtype=np.float64)[:, None]
+        xs = np.arange(x0, x1, dtype=np.float64)[None, :]
+        if o.kind == "disc":
+            a = np.clip(r + 0.5 - np.hypot(xs - cx, ys - cy), 0.0, 1.0)
+            val = np.float64(np.float32(o.level * median))
+        else:
+            a = _coverage(cy - r, cy + r, h)[y0:y1, None] * _coverage(cx - r, cx + r, w)[None, x0:x1]
+            c = (tex.shape[0] - 1) / 2
+            yy, xx = np.broadcast_arrays(ys - cy + c, xs - cx + c)
+            val = map_coordinates(tex, [yy, xx], order=1, mode="nearest").astype(np.float64)
+        below = frame[y0:y1, x0:x1].astype(np.float64)
+        frame[y0:y1, x0:x1] = np.where(a >= 1.0, val, a * val + (1.0 - a) * below).astype(np.float32)
+
+
+def patch_texture(prefiltered: np.ndarray, obj: MovingObject, scale: float) -> np.ndarray:
+    """The square texture of patch `obj`: the (anti-aliased) scene around `obj.source`, resampled to
+    output pixels at `scale` scene pixels per output pixel, with a 2-pixel margin (float32, odd side)."""
+    from scipy.ndimage import map_coordinates
+    n = 2 * (int(math.ceil(obj.size / 2)) + 2) + 1
+    H, W = prefiltered.shape
+    c = (n - 1) / 2
+    d = (np.arange(n) - c) * scale
+    yy, xx = np.meshgrid(obj.source[1] * H - 0.5 + d, obj.source[0] * W - 0.5 + d, indexing="ij")
+    return np.maximum(map_coordinates(prefiltered, [yy, xx], order=1, mode="nearest"), 0.0).astype(np.float32)
+
+
 EXPOSURE_STOPS_MAX = 30.0   # |exposure| beyond 30 stops is all black or all clipped on any sensor
 
 
-def check_args(frames: int, fps: int, exposure_stops: float, motion: Motion, sequence=None) -> None:
+def check_args(frames: int, fps: int, exposure_stops: float, motion: Motion, sequence=None, objects=(),
+               cut_frame=None) -> None:
     """Validate simulate_clip's arguments up front (before anything is written); ValueError names them."""
     if not (isinstance(frames, (int, np.integer)) and not isinstance(frames, bool) and frames >= 1):
         raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
@@ -63,6 +201,17 @@ def check_args(frames: int, fps: int, exposure_stops: float, motion: Motion, seq
     if sequence not in (None, "png", "tiff"):
         raise ValueError(f"sequence must be 'png' or 'tiff', got {sequence!r}")
     motion.validate()
+    objects = tuple(objects)
+    if len(objects) > OBJECTS_MAX:
+        raise ValueError(f"objects: at most {OBJECTS_MAX} moving objects, got {len(objects)}")
+    for j, o in enumerate(objects):
+        if not isinstance(o, MovingObject):
+            raise ValueError(f"objects[{j}] must be a simulate.MovingObject, got {type(o).__name__}")
+        o.validate(f"objects[{j}]")
+    if cut_frame is not None and not (isinstance(cut_frame, (int, np.integer)) and not isinstance(cut_frame, bool)
+                                      and 1 <= cut_frame < frames):
+        raise ValueError(f"cut_frame must be an integer in 1..{frames - 1} (the first frame of the second shot, "
+                         f"inside the clip's {frames} frames), got {cut_frame!r}")
 
 
 # What simulate_clip writes into a clip folder (outputs.staged_folder: with overwrite, only these are replaced).
@@ -74,8 +223,13 @@ CLIP_OUTPUTS = io.owned_by_patterns(r"clip\.json", r"clip\.raw", r"camera\.json"
 def exposure_scale(scene: np.ndarray, profile, stops: float) -> float:
     """Scene to flux factor: the scene's median lands at 18 % of the regular pixels' range, times 2^stops
     (fixed per clip, so the video does not flicker)."""
-    med = float(np.median(scene[scene > 0])) if (scene > 0).any() else 1.0
-    return 0.18 * profile.regular_white / med * 2.0 ** stops
+    return 0.18 * profile.regular_white / scene_median(scene) * 2.0 ** stops
+
+
+def scene_median(scene: np.ndarray) -> float:
+    """The median of the scene's positive values (1 when there is none): the exposure's and the moving
+    discs' reference level."""
+    return float(np.median(scene[scene > 0])) if (scene > 0).any() else 1.0
 
 
 FLUX_MAX = 1e30   # DN: far beyond any full well, far below float32's overflow (3.4e38)
@@ -123,38 +277,94 @@ def view(scene: np.ndarray, h: int, w: int, t: float, motion: Motion, prefiltere
     return np.maximum(out, 0.0).astype(np.float32)
 
 
+def prefilter(scene: np.ndarray, width: int, motion: Motion) -> np.ndarray:
+    """The anti-aliased scene the views sample: a Gaussian for the view's shrink of about W x fov / width."""
+    from scipy.ndimage import gaussian_filter
+    shrink = max(scene.shape[1] * motion.fov / width, 1.0)
+    return gaussian_filter(scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2 else scene
+
+
+class ClipRenderer:
+    """The noise-free flux (float32 DN, the profile's size) of frame i of a clip, what `simulate_clip`
+    writes as its truth: the view of `scene` along `motion` at t = i / (frames - 1) times the exposure
+    factor (`exposure_scale`), with `objects` (MovingObject) drawn over it (`composite`); from frame
+    `cut_frame` on, the second shot: the view of `cut_scene` (default: `scene` turned by 180 degrees, a
+    far region upside down) along the same path, exposed for that scene, without the objects."""
+
+    def __init__(self, scene: np.ndarray, profile, frames: int, exposure_stops: float = 0.0,
+                 motion: Motion = Motion(), objects=(), cut_frame: int | None = None, cut_scene=None,
+                 cut_scene_name: str | None = None):
+        self.h, self.w = profile.height, profile.width
+        self.frames, self.motion = frames, motion
+        self.objects = tuple(objects)
+        self.scene = scene
+        self.scale = exposure_scale(scene, profile, exposure_stops)
+        self._pre = prefilter(scene, self.w, motion)
+        self.cut_frame = cut_frame
+        if cut_frame is not None:
+            self.cut_scene = (np.ascontiguousarray(np.rot90(scene, 2)) if cut_scene is None
+                              else np.asarray(cut_scene, np.float32))
+            self.cut_scale = exposure_scale(self.cut_scene, profile, exposure_stops)
+            self.cut_name = cut_scene_name or ("the scene turned by 180 degrees" if cut_scene is None
+                                               else "cut scene")
+            self._cut_pre = prefilter(self.cut_scene, self.w, motion)
+        if self.objects:
+            self.median = scene_median(scene)
+            H, W = scene.shape
+            px = min(W, H * self.w / self.h) * motion.fov / self.w     # scene pixels per output pixel at t = 0
+            self._tex = [patch_texture(self._pre, o, px) if o.kind == "patch" else None for o in self.objects]
+
+    def flux(self, i: int) -> np.ndarray:
+        """Frame i's noise-free flux (float32 H x W, DN)."""
+        t = i / max(self.frames - 1, 1)
+        if self.cut_frame is not None and i >= self.cut_frame:
+            return view(self.cut_scene, self.h, self.w, t, self.motion, prefiltered=self._cut_pre) \
+                * np.float32(self.cut_scale)
+        v = view(self.scene, self.h, self.w, t, self.motion, prefiltered=self._pre)
+        if self.objects:
+            composite(v, self.objects, i, self.median, self._tex)
+        return v * np.float32(self.scale)
+
+
 def simulate_clip(scene: np.ndarray, out_dir, profile=None, frames: int = 60, fps: int = 30,
                   exposure_stops: float = 0.0, motion: Motion = Motion(), seed: int = 0,
                   sensor_model=None, sequence: str | None = None, scene_name: str = "scene",
-                  progress: bool = True, overwrite: bool = False) -> dict:
+                  progress: bool = True, overwrite: bool = False, objects=(), cut_frame: int | None = None,
+                  cut_scene=None, cut_scene_name: str | None = None) -> dict:
     """Simulate `frames` raw frames of `scene` (linear luminance) and write the clip folder; returns the
     clip description also written to clip.json. `sequence`: None, "png" or "tiff" (16-bit raw frames).
+    `objects` (MovingObject, e.g. from `random_objects`) move over the view; `cut_frame` starts a second
+    shot of `cut_scene` (None: `scene` turned by 180 degrees), see `ClipRenderer`. Without objects and
+    cut the frames do not depend on these arguments.
 
     The folder is written as a whole (outputs.staged_folder): a stopped run (SIGINT, SIGTERM, SIGHUP)
     removes its temporary folder and leaves an existing clip untouched, a killed run's is removed by the
     next run, a second writer of the folder is refused (outputs.OutputLockedError); a non-empty `out_dir`
     is refused (io.OutputExistsError) unless `overwrite`, which replaces only the files a clip consists of
     (CLIP_OUTPUTS) and keeps any other file there."""
-    check_args(frames, fps, exposure_stops, motion, sequence)
+    check_args(frames, fps, exposure_stops, motion, sequence, objects, cut_frame)
     prof = profile if profile is not None else profiles.default()
     scene = np.asarray(scene, np.float32)
     check_scene(scene, prof, exposure_stops, scene_name)
+    if cut_scene is not None:
+        if cut_frame is None:
+            raise ValueError("cut_scene is given but cut_frame is not: say at which frame the second shot starts")
+        cut_scene = np.asarray(cut_scene, np.float32)
+        check_scene(cut_scene, prof, exposure_stops, cut_scene_name or "cut scene")
+    render = ClipRenderer(scene, prof, frames, exposure_stops, motion, objects, cut_frame, cut_scene,
+                          cut_scene_name)
     with outputs.staged_folder(out_dir, force=overwrite, owned=CLIP_OUTPUTS) as tmp:
-        info = _write_clip(scene, tmp, prof, frames, fps, exposure_stops, motion, seed, sensor_model,
-                           sequence, scene_name, progress)
+        info = _write_clip(render, tmp, prof, fps, exposure_stops, seed, sensor_model, sequence, scene_name,
+                           progress)
     return info
 
 
-def _write_clip(scene, out: Path, prof, frames, fps, exposure_stops, motion, seed, sensor_model, sequence,
+def _write_clip(render: ClipRenderer, out: Path, prof, fps, exposure_stops, seed, sensor_model, sequence,
                 scene_name, progress) -> dict:
-    from scipy.ndimage import gaussian_filter
-    h, w = prof.height, prof.width
+    h, w, frames, motion = prof.height, prof.width, render.frames, render.motion
     (out / "truth").mkdir(exist_ok=True)
     profiles.save(prof, out / "camera.json")
-    k = exposure_scale(scene, prof, exposure_stops)
-    # anti-alias once: the view shrinks the scene by about W * fov / w
-    shrink = max(scene.shape[1] * motion.fov / w, 1.0)
-    pre = gaussian_filter(scene, 0.5 * math.sqrt(max(shrink ** 2 - 1, 0))) if shrink > 1.2 else scene
+    k = render.scale
     rng = np.random.default_rng(seed)
     seq_dir = None
     if sequence:
@@ -166,8 +376,7 @@ def _write_clip(scene, out: Path, prof, frames, fps, exposure_stops, motion, see
         it = tqdm(it, desc="simulate", unit="frame")
     with io.RawVideoWriter(out / "clip.raw", w, h) as writer:
         for i in it:
-            t = i / max(frames - 1, 1)
-            flux = view(scene, h, w, t, motion, prefiltered=pre) * np.float32(k)
+            flux = render.flux(i)
             raw = sensor.capture(flux, prof, rng, sensor_model=sensor_model)
             writer.write(raw)
             io.write_exr(out / "truth" / f"frame_{i:05d}.exr", flux)
@@ -181,6 +390,11 @@ def _write_clip(scene, out: Path, prof, frames, fps, exposure_stops, motion, see
             "motion": {"pan": motion.pan, "tilt": motion.tilt, "zoom": motion.zoom, "fov": motion.fov},
             "sensor_model": getattr(sensor_model, "name", None) if sensor_model is not None else None,
             "sequence": sequence}
+    if render.objects:
+        info["objects"] = [{**dataclasses.asdict(o), "source": list(o.source)} for o in render.objects]
+    if render.cut_frame is not None:
+        info["cut"] = {"frame": int(render.cut_frame), "scene": render.cut_name,
+                       "exposure_scale": render.cut_scale}
     outputs.write_text(out / "clip.json", json.dumps(info, indent=2) + "\n")
     return info
 

@@ -40,6 +40,22 @@ def test_clip_folder_contents_and_truth(tmp_path, rng):
     assert info["exposure_scale"] > 0
 
 
+def test_truth_is_the_camera_paths_view_without_objects_or_cut(tmp_path):
+    """Without moving objects and cut, frame i's truth is the view at t = i / (frames - 1) times the exposure
+    factor, and clip.json names neither."""
+    yy, xx = np.mgrid[0:60, 0:80].astype(np.float32)
+    sc = (1.0 + 0.5 * np.sin(xx / 3.0) + (yy > 30) * 9.0).astype(np.float32)   # 1:1 at fov 0.8: no prefilter
+    p = profile.default(48, 64, seed=2)
+    m = simulate.Motion(pan=0.2, tilt=-0.1, zoom=1.1, fov=0.8)
+    info = simulate.simulate_clip(sc, tmp_path / "c", p, frames=3, motion=m, seed=1, progress=False)
+    k = np.float32(simulate.exposure_scale(sc, p, 0.0))
+    for i in range(3):
+        truth, _ = io.read_exr(tmp_path / "c" / "truth" / f"frame_{i:05d}.exr")
+        assert np.array_equal(truth, simulate.view(sc, 48, 64, i / 2, m) * k)
+    assert "objects" not in info and "cut" not in info
+    assert not {"objects", "cut"} & set(json.loads((tmp_path / "c" / "clip.json").read_text()))
+
+
 def test_simulation_is_deterministic(tmp_path, rng):
     s = small_scene(rng)
     p = profile.default(24, 32, seed=1)

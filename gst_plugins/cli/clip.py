@@ -32,9 +32,11 @@ def cmd_simulate(a) -> int:
     from nrhdr_core import simulate
     motion = simulate.Motion(pan=a.pan, tilt=a.tilt, zoom=a.zoom, fov=a.fov)
     try:                                   # before anything is read or written; messages start with the name
-        simulate.check_args(a.frames, a.fps, a.exposure, motion, a.sequence)
+        simulate.check_args(a.frames, a.fps, a.exposure, motion, a.sequence, cut_frame=a.cut_frame)
     except ValueError as e:
-        raise ValueError(f"--{e}") from None
+        raise ValueError(f"--{str(e).replace('cut_frame', 'cut-frame', 1)}") from None
+    if a.cut_scene is not None and a.cut_frame is None:
+        raise ValueError("--cut-scene needs --cut-frame (the frame at which the second shot starts)")
     prof = _profile_from_args(a)
     model = None
     if a.sensor_model and a.sensor_model != "none":
@@ -43,10 +45,16 @@ def cmd_simulate(a) -> int:
                                                  seed=a.sensor_seed)
     scene, name = _scene(a.scene)
     simulate.check_scene(scene, prof, a.exposure, a.scene or "synthetic")
+    cut_scene, cut_name = _scene(a.cut_scene) if a.cut_scene is not None else (None, None)
+    if cut_scene is not None:
+        simulate.check_scene(cut_scene, prof, a.exposure, a.cut_scene)
+    objects = simulate.random_objects(a.objects, prof.height, prof.width, a.frames, a.object_speed,
+                                      a.object_size, a.object_kind, a.seed)
     info = simulate.simulate_clip(scene, a.output, prof, frames=a.frames, fps=a.fps,
                                   exposure_stops=a.exposure, motion=motion, seed=a.seed,
                                   sensor_model=model, sequence=a.sequence, scene_name=name,
-                                  overwrite=a.force)
+                                  overwrite=a.force, objects=objects, cut_frame=a.cut_frame,
+                                  cut_scene=cut_scene, cut_scene_name=cut_name)
     out = Path(a.output)
     print(f"wrote {info['frames']} frames {info['width']}x{info['height']} GRAY16_LE to {out / 'clip.raw'}")
     print(f"profile {out / 'camera.json'}, ground truth {out / 'truth'}/")
@@ -197,6 +205,21 @@ def add_simulate(sub) -> None:
     p.add_argument("--zoom", type=number(0, 100, lo_open=True), default=1.25,
                    help="zoom factor over the clip (1 = none)")
     p.add_argument("--fov", type=number(0, 1, lo_open=True), default=0.8, help="first view's share of the scene")
+    g = p.add_argument_group("moving objects and scene cut (docs/SIMULATOR.md)")
+    g.add_argument("--objects", type=number(0, 1000, integer=True), default=0,
+                   help="objects moving on straight lines over the view, drawn from --seed (default 0: none)")
+    g.add_argument("--object-kind", choices=("mixed", "disc", "patch"), default="mixed",
+                   help="disc: uniform, alternately bright (24 x the scene median) and dark (median / 32); "
+                        "patch: a square of the scene's texture; mixed: patch, bright disc, dark disc in turn")
+    g.add_argument("--object-speed", type=number(0, 10000), default=4.0,
+                   help="pixels per frame (direction drawn from --seed)")
+    g.add_argument("--object-size", type=number(1, 4096), default=48.0,
+                   help="diameter of a disc / side of a patch, pixels")
+    g.add_argument("--cut-frame", type=number(1, 10 ** 6, integer=True), default=None,
+                   help="first frame of a second shot (a scene cut), 1..frames-1")
+    g.add_argument("--cut-scene", default=None,
+                   help="scene of the second shot (file or 'synthetic'); default: the scene turned by 180 "
+                        "degrees")
     p.add_argument("--sensor-model", default="none",
                    help="crosstalk/PRNU/DSNU preset: none or prototype (paper section 3)")
     p.add_argument("--sensor-seed", type=SEED, default=0,

@@ -1,0 +1,309 @@
+"""Video quality and speed of the chain per clip kind: single-frame against temporal reconstruction against an
+unmodified camera, on simulated clips of the shared HDR scenes.
+
+    python benchmarks/temporal.py             # 384 x 288, 8 frames per clip; frames/s at 1920 x 1080
+    python benchmarks/temporal.py --quick     # smoke run: 96 x 72, 4 frames, 2 scenes; frames/s at 320 x 180
+
+Clip kinds (`CLIPS`, rendered by `simulate.ClipRenderer`, docs/SIMULATOR.md), fov 0.8 of each scene:
+static; slow pan (3 % of the scene width over the clip); fast motion (a pan of 25 % of the width and 5 % of
+the height, plus six objects, patches of the scene's texture and bright and dark discs, of 15 % of the
+height crossing the view at 3 % of its width per frame); cut (the slow pan, then from the middle frame the
+next scene). Scenes: GoldenGate, memorial and venice_sunset under ../shared/data/hdr ($NRHDR_SHARED_DATA/hdr)
+where present, else every scene there; `--scenes` names others ('synthetic' for the synthesised one).
+
+Each clip is captured with shot and read noise (no crosstalk) by the non-regular ND camera
+(`profile.default`, ND 6.35) and by an unmodified camera (no ND pixel) whose regular pixels carry the same
+noise (the ND camera's regular pixels are the unmodified camera's codes, as in hdr_quality.py --dark). The
+ND camera's frames run through `chain.process_frame` (default settings: weighted dark policy, fse fast),
+alone per frame ("temporal off") and with `nrhdr_core.temporal.TemporalReconstructor` (state reset per clip,
+"temporal on"; skipped with a note where this tree has no `nrhdr_core.temporal`); the unmodified camera's
+are classified and their clipped pixels filled from their bound (preview), as in hdr_quality.py.
+
+Metrics (`metrics.clip_report`, as `nrhdr compare` and hdr_quality.py): log2 PSNR (1 DN floor, peak
+log2(white), truth and output capped at the ND camera's white) per region of the truth (dark < l_min x ND,
+bright >= the regular clip, mid between), the mean over all frames of all scenes; flicker: the RMS over
+consecutive frame pairs of the change of the log2 error in stops, at pixels not bright in either truth,
+pooled over pairs and scenes. Frames/s: each clip kind of the first scene (or `--fps-scene`) rendered at
+1920 x 1080 through `chain.process_frame` in sequence (best of `--repeat` timed passes after an untimed
+one), for the single-frame preview method (the anchor, same run), fse fast, and fse fast with the temporal
+state.
+Writes bench_out/temporal/results.json and results.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from nrhdr_core import (chain, metrics, profile, realtime, reconstruction, sensor, simulate,  # noqa: E402
+                        validity)
+
+try:
+    from nrhdr_core.temporal import TemporalReconstructor
+except ModuleNotFoundError as e:           # a tree without the temporal mode: temporal "off" only
+    if e.name != "nrhdr_core.temporal":
+        raise
+    TemporalReconstructor = None
+
+DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
+OUT = ROOT / "bench_out" / "temporal"
+PREFERRED = ("GoldenGate", "memorial", "venice_sunset")
+FOV = 0.8
+CLIPS = {   # name: (camera path, objects?, cut?)
+    "static": (simulate.Motion(pan=0.0, tilt=0.0, zoom=1.0, fov=FOV), False, False),
+    "slow pan": (simulate.Motion(pan=0.03, tilt=0.0, zoom=1.0, fov=FOV), False, False),
+    "fast motion": (simulate.Motion(pan=0.25, tilt=0.05, zoom=1.0, fov=FOV), True, False),
+    "cut": (simulate.Motion(pan=0.03, tilt=0.0, zoom=1.0, fov=FOV), False, True),
+}
+OBJECTS, OBJECT_SIZE, OBJECT_SPEED = 6, 0.15, 0.03    # count, share of the height, share of the width per frame
+SETTINGS = chain.ChainSettings()                      # weighted dark policy, fse fast
+PREVIEW = chain.ChainSettings(method="preview")
+
+
+def default_scenes() -> list[str]:
+    d = DATA / "hdr"
+    found = [p for n in PREFERRED for p in (d / f"{n}.exr", d / f"{n}.hdr") if p.is_file()]
+    return [str(p) for p in found] or [str(p) for p in sorted(d.glob("*.exr"))]
+
+
+def renderer(kind, scenes, j, prof, frames, seed):
+    """`simulate.ClipRenderer` of clip kind `kind` over scene j (the cut goes to scene j + 1)."""
+    motion, moving, cut = CLIPS[kind]
+    h, w = prof.height, prof.width
+    objects = (simulate.random_objects(OBJECTS, h, w, frames, OBJECT_SPEED * w, max(OBJECT_SIZE * h, 1.0),
+                                       "mixed", seed + j) if moving else ())
+    cut_frame = max(frames // 2, 1) if cut and frames > 1 else None
+    other = scenes[(j + 1) % len(scenes)] if len(scenes) > 1 else None     # None: the scene turned by 180 degrees
+    return simulate.ClipRenderer(scenes[j], prof, frames, 0.0, motion, objects, cut_frame,
+                                 other if cut_frame is not None else None)
+
+
+def temporal():
+    """The temporal state for `SETTINGS`' reconstruction."""
+    return TemporalReconstructor(method=SETTINGS.method, preset=SETTINGS.preset, use_bounds=SETTINGS.use_bounds,
+                                 fusion=SETTINGS.noise_fusion)
+
+
+def capture_pair(truths, prof, seed):
+    """Raw frames of the ND camera and of the unmodified camera; the regular pixels share their codes."""
+    p0 = profile.make(np.zeros((prof.height, prof.width), bool))
+    r0, r1 = np.random.default_rng((seed, 0)), np.random.default_rng((seed, 1))
+    nd, cam = [], []
+    for t in truths:
+        c = sensor.capture(t, p0, r0)
+        cam.append(c)
+        nd.append(np.where(prof.mask, sensor.capture(t, prof, r1), c).astype(np.uint16))
+    return nd, cam, p0
+
+
+def run_chain(raws, prof, settings, temporal=None):
+    """Each raw frame through the chain, in order; with `temporal` (reset first) as the elements run it."""
+    outs = []
+    if temporal is not None:
+        temporal.reset()
+    for r in raws:
+        if temporal is None:
+            v, _ = chain.process_frame(r, prof, settings)
+        else:
+            v, _ = chain.process_frame(r, prof, settings, temporal=temporal)
+        outs.append(v)
+    return outs
+
+
+def camera(raws, p0):
+    """The unmodified camera's output: clipped pixels filled from their bound (hdr_quality.camera_baseline)."""
+    outs = []
+    for raw in raws:
+        v, s = validity.classify(raw, p0)
+        lo, hi = validity.bounds(v, s)
+        outs.append(reconstruction.reconstruct(v, validity.known_mask(s), method="preview", lower=lo, upper=hi))
+    return outs
+
+
+class Flicker:
+    """RMS over consecutive frames of the change of the log2 error (stops; 1 DN floor, capped at `white`),
+    at the pixels below `bright` in both truths; pooled over every pair added."""
+
+    def __init__(self, white, bright):
+        self.white, self.bright = white, bright
+        self.sse, self.n = 0.0, 0
+
+    def add_clip(self, truths, outs):
+        err = [np.log2(np.clip(np.asarray(o, np.float64), 1.0, self.white))
+               - np.log2(np.clip(np.asarray(t, np.float64), 1.0, self.white)) for t, o in zip(truths, outs)]
+        for i in range(1, len(err)):
+            m = (truths[i] < self.bright) & (truths[i - 1] < self.bright)
+            d = err[i][m] - err[i - 1][m]
+            self.sse += float(np.sum(d * d))
+            self.n += int(m.sum())
+
+    def value(self):
+        return float(np.sqrt(self.sse / self.n)) if self.n else None
+
+
+def quality(scenes, names, h, w, frames, seed, configs):
+    """{clip kind: {config: report with 'flicker'}} over all scenes."""
+    prof = profile.default(h, w, seed=3)
+    res = {}
+    for kind in CLIPS:
+        pairs = {c: [] for c in configs}
+        flick = {c: Flicker(prof.white, prof.regular_white) for c in configs}
+        for j in range(len(scenes)):
+            t0 = time.perf_counter()
+            truths = [renderer(kind, scenes, j, prof, frames, seed).flux(i) for i in range(frames)]
+            nd, cam, p0 = capture_pair(truths, prof, seed + 100 * j)
+            for c in configs:
+                if c == "camera":
+                    outs = camera(cam, p0)
+                else:
+                    outs = run_chain(nd, prof, SETTINGS, temporal() if c == "on" else None)
+                pairs[c] += zip(truths, outs)
+                flick[c].add_clip(truths, outs)
+            print(f"  {kind}, {names[j]}: {time.perf_counter() - t0:.1f} s", flush=True)
+        res[kind] = {}
+        for c in configs:
+            r = metrics.clip_report(pairs[c], prof.l_min * prof.nd, prof.regular_white, prof.white)
+            r["flicker"] = flick[c].value()
+            res[kind][c] = r
+    return res
+
+
+def speed(scene_list, h, w, frames, seed, repeat):
+    """{clip kind: {config: frames/s}} at h x w on the first scene."""
+    prof = profile.default(h, w, seed=3)
+    configs = [("preview", PREVIEW, None), ("off", SETTINGS, None)]
+    if TemporalReconstructor is not None:
+        configs.append(("on", SETTINGS, temporal()))
+    res = {}
+    for kind in CLIPS:
+        r = renderer(kind, scene_list, 0, prof, frames, seed)
+        raws, _, _ = capture_pair([r.flux(i) for i in range(frames)], prof, seed)
+        res[kind] = {}
+        for name, s, tr in configs:
+            run_chain(raws, prof, s, tr)                 # untimed: compiles, fills caches
+            best = float("inf")
+            for _ in range(repeat):
+                t0 = time.perf_counter()
+                run_chain(raws, prof, s, tr)
+                best = min(best, time.perf_counter() - t0)
+            res[kind][name] = frames / best
+        print(f"  {kind}: " + ", ".join(f"{k} {v:.1f}" for k, v in res[kind].items()) + " frames/s", flush=True)
+    return res
+
+
+LABELS = {"off": "single-frame (temporal off)", "on": "temporal on", "camera": "unmodified camera, same noise"}
+
+
+def quality_table(res, configs) -> str:
+    """One row per clip kind, the outputs side by side: log2 PSNR all / dark / mid / bright (dB); flicker."""
+    f = lambda x: "-" if x is None else f"{x:.2f}"
+    lines = ["| clip | " + " | ".join(LABELS[c] for c in configs) + " |", "|---" * (len(configs) + 1) + "|"]
+    for kind, by in res.items():
+        cells = []
+        for c in configs:
+            r = by[c]
+            fl = "-" if r["flicker"] is None else f"{r['flicker']:.3f}"
+            cells.append(" / ".join(f(r[k]["log2_psnr"]) for k in metrics.REGIONS) + f"; {fl}")
+        lines.append(f"| {kind} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def speed_table(res, h, w, frames) -> str:
+    cols = [("preview", "preview (anchor)"), ("off", "fse fast, temporal off"), ("on", "fse fast, temporal on")]
+    cols = [c for c in cols if any(c[0] in by for by in res.values())]
+    lines = [f"| clip ({w} x {h}, {frames} frames) | " + " | ".join(c[1] for c in cols) + " |",
+             "|---" * (len(cols) + 1) + "|"]
+    for kind, by in res.items():
+        lines.append(f"| {kind} | " + " | ".join(f"{by[c]:.1f}" for c, _ in cols) + " |")
+    return "\n".join(lines)
+
+
+def size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT") from None
+    if not (8 <= w <= 8192 and 8 <= h <= 8192):
+        raise argparse.ArgumentTypeError(f"{text}: width and height must be in 8..8192")
+    return w, h
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smoke run: 96 x 72, 4 frames, 2 scenes, frames/s at "
+                                                         "320 x 180 over 3 frames")
+    ap.add_argument("--size", type=size, default=None, help="quality clips WIDTHxHEIGHT (default 384x288)")
+    ap.add_argument("--frames", type=int, default=None, help="frames per clip (default 8)")
+    ap.add_argument("--fps-size", type=size, default=None, help="frames/s at WIDTHxHEIGHT (default 1920x1080)")
+    ap.add_argument("--fps-frames", type=int, default=None, help="frames per timed clip (default 8)")
+    ap.add_argument("--repeat", type=int, default=2, help="timed passes per configuration (best counts)")
+    ap.add_argument("--no-fps", action="store_true", help="quality only")
+    ap.add_argument("--fps-scene", default=None, help="scene of the frames/s clips (default: the first scene)")
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="HDR scene files, or 'synthetic' (default: GoldenGate, memorial, venice_sunset in the "
+                         "shared data where present, else all of its HDR scenes)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--out", default=str(OUT))
+    a = ap.parse_args(argv)
+    (w, h) = a.size or ((96, 72) if a.quick else (384, 288))
+    frames = a.frames or (4 if a.quick else 8)
+    (fw, fh) = a.fps_size or ((320, 180) if a.quick else (1920, 1080))
+    fframes = a.fps_frames or (3 if a.quick else 8)
+    if min(frames, fframes, a.repeat) < 1:
+        ap.error("--frames, --fps-frames and --repeat must be >= 1")
+    paths = a.scenes or default_scenes()
+    if a.quick and not a.scenes:
+        paths = paths[:2]
+    missing = [p for p in paths if p != "synthetic" and not Path(p).is_file()]
+    if missing or not paths:
+        print(f"temporal: scene file(s) not found: {', '.join(missing) or DATA / 'hdr'} (set NRHDR_SHARED_DATA "
+              f"or pass --scenes)", file=sys.stderr)
+        return 2
+    if a.fps_scene is not None and a.fps_scene != "synthetic" and not Path(a.fps_scene).is_file():
+        print(f"temporal: --fps-scene {a.fps_scene}: no such file", file=sys.stderr)
+        return 2
+    loaded = [realtime.load_scene(p, height=h) for p in paths]
+    scenes, names = [s for s, _ in loaded], [n for _, n in loaded]
+    configs = ["off"] + (["on"] if TemporalReconstructor is not None else []) + ["camera"]
+    note = ("" if TemporalReconstructor is not None else
+            "nrhdr_core.temporal is not in this tree: temporal off and the unmodified camera only\n\n")
+    print(note + f"quality: {w} x {h}, {frames} frames per clip, scenes {', '.join(names)}", flush=True)
+    t_start = time.perf_counter()
+    q = quality(scenes, names, h, w, frames, a.seed, configs)
+    text = (note + f"{w} x {h}, {frames} frames per clip, scenes {', '.join(names)}, shot and read noise, "
+            "chain defaults (weighted, fse fast); log2 PSNR all / dark / mid / bright dB; flicker in stops\n\n"
+            + quality_table(q, configs) + "\n")
+    sp = None
+    if not a.no_fps:
+        fscenes = list(scenes)
+        fname = names[0]
+        if a.fps_scene is not None:       # first, the others stay for the cut
+            fs, fname = realtime.load_scene(a.fps_scene, height=fh)
+            fscenes = [fs] + [s for s, n in zip(scenes, names) if n != fname]
+        elif paths[0] == "synthetic":     # at the size of the timed frames
+            fscenes[0] = realtime.load_scene("synthetic", height=fh)[0]
+        print(f"frames/s: {fw} x {fh}, {fframes} frames per clip, {fname}", flush=True)
+        sp = speed(fscenes, fh, fw, fframes, a.seed, a.repeat)
+        text += f"\nframes/s, {fname}, best of {a.repeat}:\n\n" + speed_table(sp, fh, fw, fframes) + "\n"
+    total = time.perf_counter() - t_start
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    info = {"quick": a.quick, "size": [w, h], "frames": frames, "scenes": names, "seed": a.seed,
+            "temporal": TemporalReconstructor is not None, "quality": q, "fps_size": [fw, fh],
+            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "seconds": total}
+    (out / "results.json").write_text(json.dumps(info, indent=1) + "\n")
+    (out / "results.md").write_text(text)
+    print("\n" + text + f"\n({total:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

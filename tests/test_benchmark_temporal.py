@@ -1,0 +1,51 @@
+"""benchmarks/temporal.py: its flicker measure on frames of known error, and a `--quick` run at a tiny size
+(every clip kind, every output, the tables)."""
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_temporal", ROOT / "benchmarks" / "temporal.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_flicker_is_the_rms_change_of_the_log2_error_outside_bright(bench):
+    truth = np.full((4, 5), 100.0)
+    truth[0] = 5000.0                                  # bright in every frame: not counted
+    f = bench.Flicker(white=1e6, bright=4000.0)
+    outs = [truth * 2, truth.copy(), truth * 2, truth * 0.5]     # errors +1, 0, +1, -1 stops
+    outs[1][0] = 1e5                                   # a change only in the bright row
+    f.add_clip([truth] * 4, outs)
+    assert f.value() == pytest.approx(math.sqrt((1 + 1 + 4) / 3))
+    assert bench.Flicker(1e6, 4000.0).value() is None
+
+
+def test_quick_run_at_a_tiny_size(bench, tmp_path, capsys):
+    rc = bench.main(["--quick", "--scenes", "synthetic", "--size", "48x36", "--frames", "3",
+                     "--fps-size", "64x48", "--fps-frames", "2", "--repeat", "1", "--out", str(tmp_path)])
+    assert rc == 0
+    info = json.loads((tmp_path / "results.json").read_text())
+    configs = ["off", "on", "camera"] if bench.TemporalReconstructor is not None else ["off", "camera"]
+    assert list(info["quality"]) == list(bench.CLIPS)
+    for kind, by in info["quality"].items():
+        assert list(by) == configs
+        for r in by.values():
+            assert r["frames"] == 3 and r["negative"] == 0 and r["nonfinite"] == 0
+            assert r["all"]["log2_psnr"] > 10 and 0 < r["flicker"] < 3
+        # the ND pixels measure what the unmodified camera clips
+        assert by["off"]["bright"]["log2_psnr"] > by["camera"]["bright"]["log2_psnr"]
+    for by in info["fps"].values():
+        assert set(by) == {"preview", *configs} - {"camera"} and all(v > 0 for v in by.values())
+    out = capsys.readouterr().out
+    assert "| static |" in out and "| cut |" in out and "preview (anchor)" in out
+    assert (tmp_path / "results.md").read_text().count("| fast motion |") == 2
