@@ -2,8 +2,8 @@
 from its flat-field sweep alone (docs/CROSSTALK.md section 3, "Without a mask").
 
 `detect` runs these steps on a `calibration.FlatSweep`:
-1. levels (`calibration.sensor_levels`, all pixels as one population) and stuck pixels (the same code in
-   every frame of the sweep);
+1. levels (`calibration.sensor_levels`, all pixels as one population) and constant pixels (the same code
+   in every frame of the sweep);
 2. each pixel's response: slope of a weighted line fit of its mean code against exposure (weights from the
    sweep's photon transfer, one pass rejecting points beyond `REJECT_Z` of the noise) over the exposures
    where 99 % of the pixels are below `LINEAR_LIMIT` of the range (neighbours far from saturation: no
@@ -19,8 +19,9 @@ from its flat-field sweep alone (docs/CROSSTALK.md section 3, "Without a mask").
 5. ND = ratio of the populations' crosstalk-free responses (the regressions' intercepts);
 6. defects: hot (dark code more than max(`HOT_SIGMA` robust sigmas, `HOT_SHARE` of the range) above black,
    or a response above `HOT_RESPONSE` x the regular pixels': dark current), dead (response below
-   `DEAD_RESPONSE` x the attenuated pixels', or none), stuck (step 1); dead and stuck pixels take the kind
-   opposite to most of their four edge neighbours;
+   `DEAD_RESPONSE` x the attenuated pixels', none, or one code at or below black throughout), stuck (one
+   code above black throughout, step 1); dead and stuck pixels take the kind opposite to most of their four
+   edge neighbours;
 7. confidence: the populations' separation (distance of their centres in corrected log response over the
    pooled robust sigma) and the share of ambiguous pixels (farther than a third of that distance from both
    centres); `confident` needs separation >= `MIN_SEPARATION` and ambiguous <= `MAX_AMBIGUOUS`.
@@ -119,16 +120,17 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
     except CalibrationError as e:
         raise CalibrationError(f"{e} (without a mask all pixels count as one population here: every pixel, "
                                f"attenuated ones included, must saturate at the longest exposure)") from None
-    stuck = (sweep.tvar.max(0) <= STUCK_VAR) & (np.ptp(sweep.mean, axis=0) <= STUCK_RANGE)
-    if stuck.all():
+    constant = (sweep.tvar.max(0) <= STUCK_VAR) & (np.ptp(sweep.mean, axis=0) <= STUCK_RANGE)
+    stuck = constant & (sweep.mean[0] > lv.black + STUCK_RANGE)       # a constant code at black: dead
+    if constant.all():
         raise CalibrationError(f"{where}: every pixel reads one code throughout the sweep")
-    slope, offset, used = pixel_response(sweep, lv, stuck)
+    slope, offset, used = pixel_response(sweep, lv, constant)
     dark_frame = sweep.exposures[0] == 0
     dark = lv.dark if dark_frame else offset
-    hot = _hot_offset(dark, lv, stuck)
+    hot = _hot_offset(dark, lv, constant)
     with np.errstate(divide="ignore", invalid="ignore"):
         L = np.where(slope > 0, np.log(slope), np.nan)
-    ok = ~stuck & np.isfinite(L)
+    ok = ~constant & np.isfinite(L)
     if ok.sum() < 16:
         raise CalibrationError(f"{where}: fewer than 16 pixels respond to the exposure")
     # first split: log response relative to the local mean of all pixels, Otsu's threshold
@@ -149,7 +151,7 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
     st = _populations(L, att, pop, window)
     defects = np.zeros((H, W), np.uint8)
     defects[hot | (hot_resp & ok)] = DEFECT_HOT
-    defects[~stuck & dead] = DEFECT_DEAD
+    defects[~stuck & (dead | constant)] = DEFECT_DEAD
     defects[stuck] = DEFECT_STUCK
     unknown = (defects == DEFECT_DEAD) | (defects == DEFECT_STUCK)
     att = att & ~unknown
@@ -176,9 +178,11 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
 def pixel_response(sweep: calibration.FlatSweep, lv: calibration.SensorLevels, skip=None, rows: int = 128):
     """(slope (H, W) DN/s, offset (H, W) DN, exposures used): weighted line fit of each pixel's mean code
     against exposure over the dark frame and the lit exposures where 99 % of the pixels are below
-    LINEAR_LIMIT of the range, only where the pixel is unclipped; weights 1 / variance of the mean from the
-    photon transfer (var = k signal + v0, fitted over all pixels); one pass drops points beyond REJECT_Z
-    sigmas. NaN where fewer than two points remain."""
+    LINEAR_LIMIT of the range, only where the pixel is unclipped (and, by a first unweighted fit, more than 3
+    read-noise sigmas above code 0: a sensor without black offset cuts the noise there); weights 1 / variance of the mean from the
+    photon transfer (var = k signal + v0, fitted over all pixels) at the signal of an unweighted first fit
+    (weights from the noisy points themselves would bias the slope low); one pass drops points beyond
+    REJECT_Z sigmas. NaN where fewer than two points remain."""
     where = str(sweep.folder)
     t = sweep.exposures.astype(np.float64)
     E = t.size
@@ -194,6 +198,7 @@ def pixel_response(sweep: calibration.FlatSweep, lv: calibration.SensorLevels, s
                                f"(99 % below {LINEAR_LIMIT * 100:.0f} % of saturation); without a mask the sweep "
                                f"needs such exposures (and a dark frame, or two of them)")
     k, v0 = _noise_model(sweep, lv, use, step, sub)
+    floor = 3.0 * math.sqrt(v0)              # the noise of a mean this close to code 0 is cut by the ADC
     slope = np.full((H, W), np.nan)
     offset = np.full((H, W), np.nan)
     x = t[idx][:, None, None]
@@ -201,8 +206,10 @@ def pixel_response(sweep: calibration.FlatSweep, lv: calibration.SensorLevels, s
     for y0 in range(0, H, rows):
         ys = slice(y0, min(H, y0 + rows))
         Y = sweep.mean[idx, ys].astype(np.float64)
-        S = np.maximum(lv.signal[idx, ys], 0.0)
-        w = np.where(lv.unclipped[idx, ys], n / (k * S + v0), 0.0)
+        unc = lv.unclipped[idx, ys]
+        a, b = _line_fit(x, Y, unc.astype(np.float64))           # unweighted: the signal for the weights
+        unc &= a + b * x > floor                                 # not clipped, at either end
+        w = np.where(unc, n / (k * np.maximum(np.nan_to_num(b) * x, 0.0) + v0), 0.0)
         a, b = _line_fit(x, Y, w)
         z = (Y - a - b * x) * np.sqrt(w)
         keep = (np.abs(z) <= REJECT_Z) | (w == 0)
