@@ -7,7 +7,8 @@ it, 5 hot (+300 DN offset), 5 dead (dark level throughout) and 5 stuck (code 150
 planted into the per-exposure statistics, then `flats.detect` runs and `calibration.calibrate` calibrates
 with the mask it found. Reported: misclassified pixels (the planted dead/stuck pixels excluded: their kind
 cannot be measured), the detector's ND and the calibrated ND against the truth, defects found / missed /
-false, the separation and the ambiguous share, and whether the detection counts as confident.
+false, the separation and the ambiguous share, and whether the detection counts as confident. A second
+table lowers the ND to where the two populations meet (the confidence figures against the errors).
 
     .venv/bin/python benchmarks/mask_detect.py [--size 128] [--quick] [--json bench_out/mask_detect.json]
 """
@@ -29,6 +30,7 @@ from nrhdr_core import calibration, crosstalk, flats, profile  # noqa: E402
 
 NOISE = {"low": (2.0, 4), "mid": (10.0, 2), "high": (40.0, 2)}      # read noise (e-), frames per exposure
 N_DEFECTS = 5
+TRANSITION_ND = (1.1, 1.2, 1.3, 1.5, 2.0)
 
 
 def plant(sweep: calibration.FlatSweep, rng) -> np.ndarray:
@@ -52,12 +54,12 @@ def plant(sweep: calibration.FlatSweep, rng) -> np.ndarray:
     return truth
 
 
-def run_case(preset, noise, pattern, size, seed, folder):
+def run_case(preset, noise, pattern, size, seed, folder, nd=6.35):
     h, w = size
     read_noise, frames = NOISE[noise]
-    prof = profile.default(h, w, seed=seed, pattern=pattern).replace(read_noise=read_noise)
+    prof = profile.default(h, w, seed=seed, pattern=pattern, nd=nd).replace(read_noise=read_noise)
     model = crosstalk.sensor_model_preset(preset, h, w, seed=seed + 1)
-    out = Path(folder) / f"{preset}_{noise}_{pattern}"
+    out = Path(folder) / f"{preset}_{noise}_{pattern}_{nd:g}"
     calibration.simulate_flats(out, prof, model, frames_per_exposure=frames, seed=seed, progress=False)
     sweep = calibration.read_flats(out, progress=False)
     truth = plant(sweep, np.random.default_rng(seed))
@@ -93,21 +95,34 @@ def main(argv=None) -> int:
     presets = ["prototype"] if a.quick else ["none", "mild", "linear", "prototype"]
     patterns = ["nonregular"] if a.quick else ["nonregular", "regular", "bluenoise"]
     rows = []
-    print("| preset | noise (read e-, frames) | mask | misclassified | ND detector (err %) | ND calibrated "
-          "(err %) | defects found / missed / false | separation | ambiguous % | confident |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(f"{a.size} x {a.size}, ND 6.35, {N_DEFECTS} hot / dead / stuck pixels planted, masks: {', '.join(patterns)}; "
+          f"per row the sum (misclassified, defects) or the range (ND errors, separation, ambiguous) over the masks\n")
+    print("| preset | noise (read e-, frames) | misclassified | ND detector err % | ND calibrated err % | "
+          "defects found / missed / false | separation | ambiguous % | confident |")
+    print("|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for preset in presets:
             for noise in NOISE:
-                for pattern in patterns:
-                    r = run_case(preset, noise, pattern, (a.size, a.size), a.seed, tmp)
-                    rows.append(r)
-                    print(f"| {preset} | {noise} ({r['read_noise_e']:g}, {r['frames']}) | {pattern} | "
-                          f"{r['misclassified']} of {r['pixels']} | {r['nd_detector']:.3f} "
-                          f"({r['nd_detector_err_pct']:+.2f}) | {r['nd_calibrated']:.3f} "
-                          f"({r['nd_calibrated_err_pct']:+.2f}) | {r['defects_found']} / {r['defects_missed']} / "
-                          f"{r['defects_false']} | {r['separation']:.1f} | {r['ambiguous_pct']:.3f} | "
-                          f"{'yes' if r['confident'] else 'no'} |", flush=True)
+                rs = [run_case(preset, noise, pattern, (a.size, a.size), a.seed, tmp) for pattern in patterns]
+                rows += rs
+                rng = lambda k, f: f"{f.format(min(r[k] for r in rs))} .. {f.format(max(r[k] for r in rs))}"  # noqa: E731
+                tot = lambda k: sum(r[k] for r in rs)                                                 # noqa: E731
+                print(f"| {preset} | {noise} ({rs[0]['read_noise_e']:g}, {rs[0]['frames']}) | {tot('misclassified')} "
+                      f"of {tot('pixels')} | {rng('nd_detector_err_pct', '{:+.2f}')} | "
+                      f"{rng('nd_calibrated_err_pct', '{:+.2f}')} | {tot('defects_found')} / {tot('defects_missed')} / "
+                      f"{tot('defects_false')} | {rng('separation', '{:.0f}')} | {rng('ambiguous_pct', '{:.3f}')} | "
+                      f"{sum(r['confident'] for r in rs)} of {len(rs)} |", flush=True)
+        if not a.quick:
+            print("\nSmall ND factors (where the populations meet), prototype preset, high noise, non-regular mask:\n")
+            print("| ND | misclassified | ND detector (err %) | separation | ambiguous % | confident |")
+            print("|---|---|---|---|---|---|")
+            for nd in TRANSITION_ND:
+                r = run_case("prototype", "high", "nonregular", (a.size, a.size), a.seed, tmp, nd=nd)
+                r["table"] = "transition"
+                rows.append(r)
+                print(f"| {nd:g} | {r['misclassified']} of {r['pixels']} | {r['nd_detector']:.3f} "
+                      f"({r['nd_detector_err_pct']:+.2f}) | {r['separation']:.1f} | {r['ambiguous_pct']:.3f} | "
+                      f"{'yes' if r['confident'] else 'no'} |", flush=True)
     out = Path(a.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"size": a.size, "seed": a.seed, "nd": rows[0]["nd_true"], "rows": rows},

@@ -1217,7 +1217,7 @@ def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, c
                     progress, overwrite, allow_outside, accept_low_confidence=False) -> dict:
     if not overwrite:
         io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
-                                                          ("curves", "nd_eff", "valid_ratio")])
+                                                          ("curves", "nd_eff", "valid_ratio", "detection")])
     if mask_path is not None:
         try:
             mask = io.read_mask(mask_path)
@@ -1240,5 +1240,8 @@ def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, c
     profiles.save(res.profile, tmp / out.name)
     res.summary["profile"] = str(out)
     if plots:
-        res.summary["plots"] = [str(out.parent / p.name) for p in write_plots(res, tmp / f"{out.stem}_calib")]
+        made = write_plots(res, tmp / f"{out.stem}_calib")
+        if det is not None:
+            made.append(flat_analysis.write_plot(det, tmp / f"{out.stem}_calib_detection.png"))
+        res.summary["plots"] = [str(out.parent / p.name) for p in made]
     return res.summary

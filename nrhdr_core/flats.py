@@ -387,3 +387,31 @@ def _opposite_of_neighbours(att, unknown):
         n_att += crosstalk._shift((att & known).astype(np.float64), dy, dx)
         n_known += crosstalk._shift(known.astype(np.float64), dy, dx)
     return 2 * n_att < n_known
+
+
+def write_plot(det: MaskDetection, path):
+    """Histogram of the corrected log responses by found kind, the centres and the threshold (the check of
+    a detection: two narrow peaks about log(ND) apart, nothing in between)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    v = det.log_response
+    ok = np.isfinite(v)
+    lo, hi = np.percentile(v[ok], [0.01, 99.99]) if ok.any() else (-3.0, 1.0)
+    bins = np.linspace(min(lo, det.centres[0]) - 0.1, max(hi, det.centres[1]) + 0.1, 200)
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=90)
+    ax.hist(v[ok & det.mask], bins=bins, color="tab:blue", label="attenuated")
+    ax.hist(v[ok & ~det.mask], bins=bins, color="tab:orange", label="regular")
+    ax.set_yscale("log")
+    for c in det.centres:
+        ax.axvline(c, color="k", ls=":", lw=1)
+    ax.axvline(0.5 * sum(det.centres), color="r", ls="--", lw=1, label="threshold")
+    ax.set_xlabel("log response relative to the local regular response (crosstalk removed)")
+    ax.set_ylabel("pixels")
+    ax.set_title(f"Mask from the flats: ND {det.nd:.3f}, separation {det.separation:.1f}, "
+                 f"ambiguous {det.ambiguous * 100:.3f} %", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -239,10 +239,13 @@ def test_cli_without_mask(written_sweep, tmp_path, capsys):
 
 
 def test_cli_without_mask_prints_confidence(written_sweep, tmp_path, capsys):
+    """The text report names the confidence figures and the defects; the plots include the detection's."""
     folder, _, _ = written_sweep
-    assert _cli([folder, "-o", tmp_path / "c.json", "-q", "--no-plots"]) == 0
+    assert _cli([folder, "-o", tmp_path / "c.json", "-q"]) == 0
     text = capsys.readouterr().out
     assert "mask from the flats" in text and "separation" in text and "ambiguous" in text
+    assert "2 hot, 2 dead, 2 stuck" in text
+    assert (tmp_path / "c_calib_detection.png").stat().st_size > 1000
 
 
 def test_cli_refuses_low_separation(tmp_path, capsys):
