@@ -8,15 +8,17 @@ from its flat-field sweep alone (docs/CROSSTALK.md section 3, "Without a mask").
    sweep's photon transfer, one pass rejecting points beyond `REJECT_Z` of the noise) over the exposures
    where 99 % of the pixels are below `LINEAR_LIMIT` of the range (neighbours far from saturation: no
    blooming) and the pixel itself is unclipped;
-3. log response relative to the local mean log response of the regular pixels (a box of `window` pixels):
-   vignetting, illumination gradients and PRNU cancel; regular pixels sit near 0, attenuated ones near
+3. log response relative to the local log response of the regular pixels (a plane fitted to them in a box
+   of `window` pixels, their crosstalk removed once it is known): vignetting, illumination gradients and
+   PRNU cancel; regular pixels sit near 0, attenuated ones near
    -log(ND);
 4. classification, iterated: a first split by Otsu's threshold on the log response relative to the local
    mean of all pixels; then crosstalk is modelled as a linear share of the response per neighbour of the
    other kind (edge and corner neighbours apart, fitted per population like `calibration.reference_curves`),
    removed under each hypothesis, and a pixel joins the population whose centre its corrected log response
    is nearer to (the threshold is half-way between the centres: sqrt(ND) x the attenuated response);
-5. ND = ratio of the populations' crosstalk-free responses (the regressions' intercepts);
+5. ND = ratio of the populations' crosstalk-free responses (the regressions' intercepts; on the checkerboard,
+   where every interior pixel of a kind has the same neighbours, they rest on the sensor's border pixels);
 6. defects: hot (dark code more than max(`HOT_SIGMA` robust sigmas, `HOT_SHARE` of the range) above black,
    or a response above `HOT_RESPONSE` x the regular pixels': dark current), dead (response below
    `DEAD_RESPONSE` x the attenuated pixels', none, or one code at or below black throughout), stuck (one
@@ -70,8 +72,8 @@ class MaskDetection:
     sigmas: tuple                 # (attenuated, regular) robust sigmas
     separation: float             # centre distance / pooled robust sigma
     ambiguous: float              # share of classified pixels farther than a third of the distance from both
-    nd_crosstalk_corrected: bool  # False where every pixel of a kind has the same neighbours (regular mask):
-                                  # the ND then includes the crosstalk (the calibration measures it apart)
+    nd_border_only: bool          # a neighbour count hardly varies inside a population (the checkerboard): the
+                                  # ND's crosstalk correction rests on the sensor's border pixels
     crosstalk_share: dict         # response added per neighbour of the other kind, share of the own response
     exposures_used: int
 
@@ -86,7 +88,7 @@ class MaskDetection:
     def summary(self) -> dict:
         """The figures `nrhdr calibrate` reports and saves with the profile."""
         return {"attenuated_share": round(float(self.mask.mean()), 5), "nd": round(self.nd, 4),
-                "nd_crosstalk_corrected": self.nd_crosstalk_corrected,
+                "nd_border_only": self.nd_border_only,
                 "separation": round(self.separation, 2), "ambiguous_share": round(self.ambiguous, 6),
                 "ambiguous_pixels": int(round(self.ambiguous * self.mask.size)),
                 "confident": bool(self.confident),
@@ -137,18 +139,15 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
     r0 = L - _local_mean(L, ok & ~hot, window)
     att = r0 < _otsu(r0[ok])
     pop = ok.copy()
-    for _ in range(iterations):
-        st = _populations(L, att, pop, window)
-        att_new = np.abs(st.la - st.mu_att) < np.abs(st.lr - st.mu_reg)
+    st = None
+    for _ in range(iterations):         # classification and the crosstalk-free local response, in turn
+        st = _populations(L, att, pop, window, st)
+        att = ok & (np.abs(st.la - st.mu_att) < np.abs(st.lr - st.mu_reg))
         # dead: far below the attenuated pixels; hot: far above the regular ones
         dead = ~np.isfinite(L) | (st.y < DEAD_RESPONSE * st.b0)
         hot_resp = st.y > HOT_RESPONSE * st.a0
-        pop_new = ok & ~dead & ~hot_resp & ~hot
-        done = np.array_equal(att_new & ok, att & ok) and np.array_equal(pop_new, pop)
-        att, pop = att_new & ok, pop_new
-        if done:
-            break
-    st = _populations(L, att, pop, window)
+        pop = ok & ~dead & ~hot_resp & ~hot
+    st = _populations(L, att, pop, window, st)
     defects = np.zeros((H, W), np.uint8)
     defects[hot | (hot_resp & ok)] = DEFECT_HOT
     defects[~stuck & (dead | constant)] = DEFECT_DEAD
@@ -170,7 +169,7 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
         amb_share = float(amb.sum()) / max(int(sel.sum()), 1)
     nd = st.a0 / st.b0 if st.b0 > 0 else float("nan")
     return MaskDetection(att, float(nd), defects, own, (st.mu_att, st.mu_reg), (st.s_att, st.s_reg),
-                         float(separation), amb_share, st.corrected, st.share, int(used))
+                         float(separation), amb_share, not st.corrected, st.share, int(used))
 
 
 # ---- the response of each pixel --------------------------------------------------------------------------
@@ -269,6 +268,7 @@ def _hot_offset(dark, lv, stuck):
 
 @dataclasses.dataclass
 class _Populations:
+    field: np.ndarray              # (H, W) local log response of the regular pixels
     y: np.ndarray                  # (H, W) response relative to the local regular response
     la: np.ndarray                 # (H, W) log response if the pixel were attenuated (its crosstalk removed)
     lr: np.ndarray                 # (H, W) ... if it were regular
@@ -282,12 +282,14 @@ class _Populations:
     share: dict
 
 
-def _populations(L, att, pop, window) -> _Populations:
+def _populations(L, att, pop, window, prev=None) -> _Populations:
     """Both hypotheses' corrected log responses and the populations' robust centres, given a classification
-    (`att`) of the pixels `pop` that represent their population."""
+    (`att`) of the pixels `pop` that represent their population. The local regular response comes from the
+    regular pixels' responses with their crosstalk removed by `prev` (the previous iteration, where its
+    regressions were identifiable), so that it does not depend on how many attenuated pixels are around."""
     reg = pop & ~att
     a_sel = pop & att
-    field = _local_mean(L, reg, window)
+    field = _local_mean(L if prev is None or not prev.corrected else prev.lr + prev.field, reg, window)
     y = np.exp(L - field)
     ne_reg, nc_reg = _neighbour_counts(att, True)
     ne_att, nc_att = _neighbour_counts(att, False)
@@ -302,13 +304,13 @@ def _populations(L, att, pop, window) -> _Populations:
              "attenuated_per_regular_corner": bcoef[1] / b0 if b0 > 0 else float("nan"),
              "regular_per_attenuated_edge": acoef[0] / a0 if a0 > 0 else float("nan"),
              "regular_per_attenuated_corner": acoef[1] / a0 if a0 > 0 else float("nan")}
-    return _Populations(y, la, lr, mu_att, mu_reg, s_att, s_reg, a0, b0, bcorr and acorr, share)
+    return _Populations(field, y, la, lr, mu_att, mu_reg, s_att, s_reg, a0, b0, bcorr and acorr, share)
 
 
 def _share_fit(y, ne, nc):
-    """(intercept, (per edge, per corner), identifiable) of y ~ 1 + ne + nc (robust least squares);
-    a count that takes one value in all but max(20, 2 %) of the population gets no coefficient
-    (identifiable False)."""
+    """(intercept, (per edge, per corner), identifiable) of y ~ 1 + ne + nc (robust least squares, as
+    calibration.reference_curves, with the neighbours counted by kind: edge and corner); a count that takes
+    one value in all but max(20, 2 %) of the population gets no coefficient (identifiable False)."""
     if y.size < 3:
         return (float(np.median(y)) if y.size else float("nan")), (0.0, 0.0), False
     cols = [np.ones(y.size)]
@@ -340,24 +342,40 @@ def _centre(v):
 
 
 def _local_mean(v, sel, window):
-    """Mean of `v` over the pixels `sel` in a window x window box around each pixel (normalised box filter,
-    the box grown where it holds no selected pixel)."""
+    """Local value of `v` from the pixels `sel` in a window x window box around each pixel: a plane fitted by
+    least squares (box-filtered moments; unbiased by a gradient, also at the sensor's border, where the box
+    is cut), its mean where the box's pixels do not determine a plane; the box grows where it holds none."""
     from scipy.ndimage import uniform_filter
-    w = sel & np.isfinite(v)
-    num = np.where(w, v, 0.0).astype(np.float64)
-    den = w.astype(np.float64)
+    w = (sel & np.isfinite(v)).astype(np.float64)
+    vv = np.where(w > 0, v, 0.0).astype(np.float64)
+    H, W = v.shape
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
     out = np.full(v.shape, np.nan)
     size = int(window)
     while True:
-        n = uniform_filter(num, size, mode="nearest")
-        d = uniform_filter(den, size, mode="nearest")
-        good = np.isnan(out) & (d > 0.5 / (size * size))
-        out[good] = n[good] / d[good]
+        def box(a):
+            return uniform_filter(a, size, mode="constant", cval=0.0)
+        s1, sx, sy = box(w), box(w * xx), box(w * yy)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mx, my = sx / s1, sy / s1                            # centroid of the selected pixels
+            cxx = box(w * xx * xx) / s1 - mx * mx
+            cyy = box(w * yy * yy) / s1 - my * my
+            cxy = box(w * xx * yy) / s1 - mx * my
+            mv = box(w * vv) / s1
+            cxv = box(w * xx * vv) / s1 - mx * mv
+            cyv = box(w * yy * vv) / s1 - my * mv
+            det = cxx * cyy - cxy * cxy
+            plane = (det > 0.2 * size ** 4 / 144) & (s1 * size * size >= 12)   # at least ~2/3 of the box
+            gx = np.where(plane, (cxv * cyy - cyv * cxy) / det, 0.0)
+            gy = np.where(plane, (cyv * cxx - cxv * cxy) / det, 0.0)
+            val = mv + gx * (xx - mx) + gy * (yy - my)
+        good = np.isnan(out) & (s1 > 0.5 / (size * size)) & np.isfinite(val)
+        out[good] = val[good]
         if not np.isnan(out).any() or size >= 2 * max(v.shape):
             break
         size *= 2
     if np.isnan(out).any():
-        out[np.isnan(out)] = float(np.mean(v[w])) if w.any() else 0.0
+        out[np.isnan(out)] = float(np.mean(v[w > 0])) if w.any() else 0.0
     return out
 
 
