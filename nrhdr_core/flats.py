@@ -96,7 +96,14 @@ class MaskDetection:
                 "centres_log": [round(c, 4) for c in self.centres],
                 "sigmas_log": [round(s, 5) for s in self.sigmas],
                 "crosstalk_share": {k: round(v, 5) for k, v in self.crosstalk_share.items()},
-                "defects": self.counts(), "exposures_used": self.exposures_used}
+                "defects": self.counts(), "defect_pixels": self.defect_list(),
+                "exposures_used": self.exposures_used}
+
+    def defect_list(self, limit: int = 1000) -> list:
+        """[[y, x, "hot" | "dead" | "stuck"], ...] of the first `limit` defect pixels (row-major)."""
+        names = {DEFECT_HOT: "hot", DEFECT_DEAD: "dead", DEFECT_STUCK: "stuck"}
+        ys, xs = np.nonzero(self.defects)
+        return [[int(y), int(x), names[int(self.defects[y, x])]] for y, x in zip(ys[:limit], xs[:limit])]
 
 
 def check_confidence(det: MaskDetection, where: str, accept: bool = False) -> None:

@@ -229,6 +229,8 @@ def test_cli_without_mask(written_sweep, tmp_path, capsys):
     det = s["mask_detection"]
     assert det["confident"] and det["separation"] > 20 and det["ambiguous_share"] == 0
     assert det["defects"] == {"hot": 2, "dead": 2, "stuck": 2}
+    assert sorted((y, x) for y, x, _ in det["defect_pixels"]) == sorted(
+        [(y, x) for y, x, _ in d["hot"]] + list(d["dead"]) + [(y, x) for y, x, _ in d["stuck"]])
     prof = profile.load(out)
     truth = defect_map(m.shape, d)
     measurable = ~np.isin(truth, (flats.DEFECT_DEAD, flats.DEFECT_STUCK))
