@@ -20,7 +20,8 @@ sensor model.
 5. `effective_nd` (4.1, Eq. 8; Fig. 8a), `valid_pixel_ratio` (4.2, Fig. 8b), `dynamic_range_gain` (4.2: at
    40 % and 20 % known pixels).
 The command line is gst_plugins/cli/calibrate.py (`run_calibrate` here is the whole command as a function).
-Without a mask, `flats.detect` finds the ND pixels, the ND and the defect pixels in the sweep first.
+Without a mask, `flats.detect` (through `run_calibrate`'s `find_mask`) finds the ND pixels, the ND and the
+defect pixels in the sweep first.
 """
 from __future__ import annotations
 
@@ -1196,10 +1197,11 @@ def check_options(nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None) 
 
 
 def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None,
-                  plots=True, progress=True, overwrite=False, allow_outside=False, accept_low_confidence=False):
+                  plots=True, progress=True, overwrite=False, allow_outside=False, find_mask=None):
     """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary. Without
-    `mask_path` (None) the mask, ND and defect pixels are found in the flats (flats.detect; its figures in
-    the summary's `mask_detection`), refused when not confident unless `accept_low_confidence`. Existing
+    `mask_path` (None) `find_mask(sweep)` finds the mask in the flats (`flats.finder`: a
+    `flats.MaskDetection` with the mask, the defect map, `summary()` for the summary's `mask_detection` and
+    `write_plot(path)`), or raises CalibrationError. Existing
     outputs (the profile's files, the plots) are refused before any work unless `overwrite`; frames named
     outside the flats folder only with `allow_outside` (read_index). The files are made in a temporary
     folder and moved in together at the end (outputs.staged_files): a stopped or failed run leaves none of
@@ -1210,14 +1212,16 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
     out = Path(output)
     with outputs.staged_files(out, out.parent) as tmp:
         return _calibrate_into(tmp, out, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
-                               progress, overwrite, allow_outside, accept_low_confidence)
+                               progress, overwrite, allow_outside, find_mask)
 
 
 def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
-                    progress, overwrite, allow_outside, accept_low_confidence=False) -> dict:
+                    progress, overwrite, allow_outside, find_mask=None) -> dict:
     if not overwrite:
         io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
                                                           ("curves", "nd_eff", "valid_ratio", "detection")])
+    if mask_path is None and find_mask is None:
+        raise CalibrationError(f"{flats}: no mask: pass a mask file or a way to find it in the flats")
     if mask_path is not None:
         try:
             mask = io.read_mask(mask_path)
@@ -1226,9 +1230,7 @@ def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, c
     sweep = read_flats(flats, progress=progress, allow_outside=allow_outside)
     det = None
     if mask_path is None:
-        from . import flats as flat_analysis
-        det = flat_analysis.detect(sweep, clip_code=clip_code, bit_depth=bit_depth)
-        flat_analysis.check_confidence(det, str(sweep.folder), accept_low_confidence)
+        det = find_mask(sweep)
         mask = det.mask
     res = calibrate(sweep, mask, nd_nominal=nd_nominal, l_min=l_min, clip_code=clip_code,
                     bit_depth=bit_depth, name=out.stem,
@@ -1242,6 +1244,6 @@ def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, c
     if plots:
         made = write_plots(res, tmp / f"{out.stem}_calib")
         if det is not None:
-            made.append(flat_analysis.write_plot(det, tmp / f"{out.stem}_calib_detection.png"))
+            made.append(det.write_plot(tmp / f"{out.stem}_calib_detection.png"))
         res.summary["plots"] = [str(out.parent / p.name) for p in made]
     return res.summary

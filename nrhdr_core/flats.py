@@ -99,11 +99,24 @@ class MaskDetection:
                 "defects": self.counts(), "defect_pixels": self.defect_list(),
                 "exposures_used": self.exposures_used}
 
+    def write_plot(self, path):
+        """Histogram of the corrected log responses by found kind (the check of a detection); returns path."""
+        return _write_plot(self, path)
+
     def defect_list(self, limit: int = 1000) -> list:
         """[[y, x, "hot" | "dead" | "stuck"], ...] of the first `limit` defect pixels (row-major)."""
         names = {DEFECT_HOT: "hot", DEFECT_DEAD: "dead", DEFECT_STUCK: "stuck"}
         ys, xs = np.nonzero(self.defects)
         return [[int(y), int(x), names[int(self.defects[y, x])]] for y, x in zip(ys[:limit], xs[:limit])]
+
+
+def finder(clip_code: int | None = None, bit_depth: int | None = None, accept_low_confidence: bool = False):
+    """`find_mask` for calibration.run_calibrate: `detect`, then `check_confidence`."""
+    def find(sweep: calibration.FlatSweep) -> MaskDetection:
+        det = detect(sweep, clip_code=clip_code, bit_depth=bit_depth)
+        check_confidence(det, str(sweep.folder), accept_low_confidence)
+        return det
+    return find
 
 
 def check_confidence(det: MaskDetection, where: str, accept: bool = False) -> None:
@@ -414,7 +427,7 @@ def _opposite_of_neighbours(att, unknown):
     return 2 * n_att < n_known
 
 
-def write_plot(det: MaskDetection, path):
+def _write_plot(det: MaskDetection, path):
     """Histogram of the corrected log responses by found kind, the centres and the threshold (the check of
     a detection: two narrow peaks about log(ND) apart, nothing in between)."""
     import matplotlib

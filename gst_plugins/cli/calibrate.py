@@ -10,13 +10,13 @@ from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
 
 
 def cmd_calibrate(a) -> int:
-    from nrhdr_core import calibration, io
+    from nrhdr_core import calibration, flats, io
+    find = None if a.mask else flats.finder(a.clip_code, a.bit_depth, a.accept_low_confidence)
     try:
         s = calibration.run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
                                       clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
                                       progress=not a.quiet, overwrite=a.force,
-                                      allow_outside=a.allow_outside_paths,
-                                      accept_low_confidence=a.accept_low_confidence)
+                                      allow_outside=a.allow_outside_paths, find_mask=find)
     except (calibration.CalibrationError, io.OutputExistsError) as e:
         print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
         return 2
