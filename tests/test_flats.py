@@ -175,6 +175,28 @@ def test_any_seed_and_nd(seed, nd, kind):
     assert not det.defects.any()
 
 
+def test_without_dark_frame():
+    """No dark frame (the sweep starts at the shortest lit exposure, black level 64): the mask, the ND within
+    1 %, the defects (hot ones by the intercept of the response fit)."""
+    m = nonregular(48, 64, 3)
+    d = planted(m, np.random.default_rng(3))
+    det = flats.detect(in_memory(make_frames(m, 6.0, 3, defects=d)[1:]))
+    truth = defect_map(m.shape, d)
+    measurable = ~np.isin(truth, (flats.DEFECT_DEAD, flats.DEFECT_STUCK))
+    assert np.array_equal(det.mask[measurable], m[measurable])
+    assert np.array_equal(det.defects, truth)
+    assert det.nd == pytest.approx(6.0, rel=0.01)
+
+
+def test_constant_code_at_black_is_dead():
+    """One code in every frame: at the black level a dead pixel, above it a stuck one."""
+    m = checkerboard(32, 40)
+    det = flats.detect(in_memory(make_frames(m, 4.0, 2, defects={"stuck": [(10, 10, BLACK), (20, 20, 2000)]})))
+    assert det.defects[10, 10] == flats.DEFECT_DEAD and det.defects[20, 20] == flats.DEFECT_STUCK
+    assert np.count_nonzero(det.defects) == 2
+    assert det.mask[10, 10] == m[10, 10] and det.mask[20, 20] == m[20, 20]      # opposite of the neighbours
+
+
 def test_strong_crosstalk_and_noise():
     """Crosstalk 2.5 % per edge and 0.6 % per corner (an attenuated pixel among regular ones reads ~1.8 x its
     own signal at ND 8) and read noise 20 e-: the mask still exactly; the crosstalk share per regular edge
