@@ -1218,8 +1218,9 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
 def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
                     progress, overwrite, allow_outside, find_mask=None) -> dict:
     if not overwrite:
+        plots_made = ("curves", "nd_eff", "valid_ratio") + (("detection",) if mask_path is None else ())
         io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
-                                                          ("curves", "nd_eff", "valid_ratio", "detection")])
+                                                          plots_made])
     if mask_path is None and find_mask is None:
         raise CalibrationError(f"{flats}: no mask: pass a mask file or a way to find it in the flats")
     if mask_path is not None:

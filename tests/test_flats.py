@@ -271,6 +271,11 @@ def test_cli_without_mask_prints_confidence(written_sweep, tmp_path, capsys):
     assert "mask from the flats" in text and "separation" in text and "ambiguous" in text
     assert "2 hot, 2 dead, 2 stuck" in text
     assert (tmp_path / "c_calib_detection.png").stat().st_size > 1000
+    for p in tmp_path.glob("c*"):                         # the detection's plot alone is refused too
+        if p.name != "c_calib_detection.png":
+            p.unlink()
+    assert _cli([folder, "-o", tmp_path / "c.json", "-q"]) == 2
+    assert "c_calib_detection.png already exists" in capsys.readouterr().err
 
 
 def test_cli_refuses_low_separation(tmp_path, capsys):
