@@ -5,10 +5,11 @@ For each sensor model preset (crosstalk strength), noise level (read noise, fram
 pattern: `calibration.simulate_flats` writes a sweep as a user would (default 40 exposures), `read_flats` reads
 it, 5 hot (+300 DN offset), 5 dead (dark level throughout) and 5 stuck (code 1500 in every frame) pixels are
 planted into the per-exposure statistics, then `flats.detect` runs and `calibration.calibrate` calibrates
-with the mask it found and, as the anchor, with the true mask. Reported: misclassified pixels (the planted dead/stuck pixels excluded: their kind
-cannot be measured), the detector's ND and the calibrated ND against the truth, defects found / missed /
-false, the separation and the ambiguous share, and whether the detection counts as confident. A second
-table lowers the ND to where the two populations meet (the confidence figures against the errors).
+with the mask it found and, as the anchor, with the true mask. Reported: misclassified pixels (the planted
+dead/stuck pixels excluded: their kind cannot be measured), the detector's ND and the calibrated ND against
+the truth, defects found / missed / false, the separation and the ambiguous share, and whether the detection
+counts as confident. A second table lowers the ND to where the two populations meet (the confidence figures
+against the errors).
 
     .venv/bin/python benchmarks/mask_detect.py [--size 128] [--quick] [--json bench_out/mask_detect.json]
 """
@@ -110,8 +111,11 @@ def main(argv=None) -> int:
             for noise in NOISE:
                 rs = [run_case(preset, noise, pattern, (a.size, a.size), a.seed, tmp) for pattern in patterns]
                 rows += rs
-                rng = lambda k, f: f"{f.format(min(r[k] for r in rs))} .. {f.format(max(r[k] for r in rs))}"  # noqa: E731
-                tot = lambda k: sum(r[k] for r in rs)                                                 # noqa: E731
+                def rng(k, f, rs=rs):
+                    return f"{f.format(min(r[k] for r in rs))} .. {f.format(max(r[k] for r in rs))}"
+
+                def tot(k, rs=rs):
+                    return sum(r[k] for r in rs)
                 print(f"| {preset} | {noise} ({rs[0]['read_noise_e']:g}, {rs[0]['frames']}) | {tot('misclassified')} "
                       f"of {tot('pixels')} | {rng('nd_detector_err_pct', '{:+.2f}')} | "
                       f"{rng('nd_calibrated_err_pct', '{:+.2f}')} | {rng('nd_true_mask_err_pct', '{:+.2f}')} | "

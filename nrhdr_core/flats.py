@@ -10,8 +10,7 @@ from its flat-field sweep alone (docs/CROSSTALK.md section 3, "Without a mask").
    blooming) and the pixel itself is unclipped;
 3. log response relative to the local log response of the regular pixels (a plane fitted to them in a box
    of `window` pixels, their crosstalk removed once it is known): vignetting, illumination gradients and
-   PRNU cancel; regular pixels sit near 0, attenuated ones near
-   -log(ND);
+   PRNU cancel; regular pixels sit near 0, attenuated ones near -log(ND);
 4. classification, iterated: a first split by Otsu's threshold on the log response relative to the local
    mean of all pixels; then crosstalk is modelled as a linear share of the response per neighbour of the
    other kind (edge and corner neighbours apart, fitted per population like `calibration.reference_curves`),
@@ -32,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 
 import numpy as np
 
@@ -72,6 +70,7 @@ class MaskDetection:
     sigmas: tuple                 # (attenuated, regular) robust sigmas
     separation: float             # centre distance / pooled robust sigma
     ambiguous: float              # share of classified pixels farther than a third of the distance from both
+    ambiguous_pixels: int         # their number
     nd_border_only: bool          # a neighbour count hardly varies inside a population (the checkerboard): the
                                   # ND's crosstalk correction rests on the sensor's border pixels
     crosstalk_share: dict         # response added per neighbour of the other kind, share of the own response
@@ -90,7 +89,7 @@ class MaskDetection:
         return {"attenuated_share": round(float(self.mask.mean()), 5), "nd": round(self.nd, 4),
                 "nd_border_only": self.nd_border_only,
                 "separation": round(self.separation, 2), "ambiguous_share": round(self.ambiguous, 6),
-                "ambiguous_pixels": int(round(self.ambiguous * self.mask.size)),
+                "ambiguous_pixels": self.ambiguous_pixels,
                 "confident": bool(self.confident),
                 "min_separation": MIN_SEPARATION, "max_ambiguous_share": MAX_AMBIGUOUS,
                 "centres_log": [round(c, 4) for c in self.centres],
@@ -183,13 +182,14 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
         amb = sel & (np.abs(st.la - st.mu_att) > gap / 3) & (np.abs(st.lr - st.mu_reg) > gap / 3)
     pooled = math.sqrt(0.5 * (st.s_att ** 2 + st.s_reg ** 2))
     separation = gap / pooled if pooled > 0 else float("inf")
+    n_amb = int(amb.sum())
     if not (att.any() and (~att).any()) or gap <= 0:
-        separation, amb_share = 0.0, 1.0
+        separation, amb_share, n_amb = 0.0, 1.0, int(sel.sum())
     else:
-        amb_share = float(amb.sum()) / max(int(sel.sum()), 1)
+        amb_share = n_amb / max(int(sel.sum()), 1)
     nd = st.a0 / st.b0 if st.b0 > 0 else float("nan")
     return MaskDetection(att, float(nd), defects, own, (st.mu_att, st.mu_reg), (st.s_att, st.s_reg),
-                         float(separation), amb_share, not st.corrected, st.share, int(used))
+                         float(separation), amb_share, n_amb, not st.corrected, st.share, int(used))
 
 
 # ---- the response of each pixel --------------------------------------------------------------------------
@@ -197,11 +197,11 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
 def pixel_response(sweep: calibration.FlatSweep, lv: calibration.SensorLevels, skip=None, rows: int = 128):
     """(slope (H, W) DN/s, offset (H, W) DN, exposures used): weighted line fit of each pixel's mean code
     against exposure over the dark frame and the lit exposures where 99 % of the pixels are below
-    LINEAR_LIMIT of the range, only where the pixel is unclipped (and, by a first unweighted fit, more than 3
-    read-noise sigmas above code 0: a sensor without black offset cuts the noise there); weights 1 / variance of the mean from the
-    photon transfer (var = k signal + v0, fitted over all pixels) at the signal of an unweighted first fit
-    (weights from the noisy points themselves would bias the slope low); one pass drops points beyond
-    REJECT_Z sigmas. NaN where fewer than two points remain."""
+    LINEAR_LIMIT of the range, only where the pixel is unclipped (and, by a first unweighted fit, more than
+    3 read-noise sigmas above code 0: a sensor without black offset cuts the noise there); weights
+    1 / variance of the mean from the photon transfer (var = k signal + v0, fitted over all pixels) at the
+    signal of the first fit (weights from the noisy points themselves would bias the slope low); one pass
+    drops points beyond REJECT_Z sigmas. NaN where fewer than two points remain."""
     where = str(sweep.folder)
     t = sweep.exposures.astype(np.float64)
     E = t.size
@@ -241,9 +241,9 @@ def pixel_response(sweep: calibration.FlatSweep, lv: calibration.SensorLevels, s
 
 def _noise_model(sweep, lv, use, step, sub):
     """(k, v0): temporal variance of a frame = k x signal + v0 over the pixels (photon transfer)."""
-    s = np.concatenate([lv.signal[i][::step, ::step][sub & lv.unclipped[i][::step, ::step]] for i in np.nonzero(use)[0]])
-    v = np.concatenate([sweep.tvar[i][::step, ::step][sub & lv.unclipped[i][::step, ::step]]
-                        for i in np.nonzero(use)[0]])
+    sel = [(i, sub & lv.unclipped[i][::step, ::step]) for i in np.nonzero(use)[0]]
+    s = np.concatenate([lv.signal[i][::step, ::step][m] for i, m in sel])
+    v = np.concatenate([sweep.tvar[i][::step, ::step][m] for i, m in sel])
     if not lv.lit[0]:
         v0 = float(np.mean(sweep.tvar[0][::step, ::step][sub]))
     else:

@@ -41,7 +41,8 @@ def _print_detection(d: dict) -> None:
     df = d["defects"]
     print(f"  mask from the flats: {d['attenuated_share'] * 100:.2f} % attenuated, ND {d['nd']:.3f} by population "
           f"response; separation {d['separation']:.1f} sigma (>= {d['min_separation']:g} needed), ambiguous "
-          f"{d['ambiguous_pixels']} pixels ({d['ambiguous_share'] * 100:.3f} %, <= {d['max_ambiguous_share'] * 100:g} %)"
+          f"{d['ambiguous_pixels']} pixels ({d['ambiguous_share'] * 100:.3f} %, "
+          f"<= {d['max_ambiguous_share'] * 100:g} %)"
           + ("" if d["confident"] else ": LOW CONFIDENCE, accepted"))
     print(f"  defect pixels: {df['hot']} hot, {df['dead']} dead, {df['stuck']} stuck")
 
