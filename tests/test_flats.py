@@ -208,6 +208,15 @@ def test_strong_crosstalk_and_noise():
     assert det.crosstalk_share["attenuated_per_regular_edge"] == pytest.approx(0.2, rel=0.15)
 
 
+@pytest.mark.parametrize("kind", sorted(MASKS))
+def test_strong_vignetting(kind):
+    """The corners get a fifth of the centre's light (80 % vignetting), ND 4: the mask exactly."""
+    m = MASKS[kind](48, 64, 5)
+    det = flats.detect(in_memory(make_frames(m, 4.0, 5, vignetting=0.8)))
+    assert np.array_equal(det.mask, m)
+    assert det.confident
+
+
 def test_low_separation_is_not_confident():
     """An ND of 1.05 under 30 e- read noise: the populations overlap, the detection says so."""
     m = nonregular(32, 40, 3)
