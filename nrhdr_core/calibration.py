@@ -20,6 +20,8 @@ sensor model.
 5. `effective_nd` (4.1, Eq. 8; Fig. 8a), `valid_pixel_ratio` (4.2, Fig. 8b), `dynamic_range_gain` (4.2: at
    40 % and 20 % known pixels).
 The command line is gst_plugins/cli/calibrate.py (`run_calibrate` here is the whole command as a function).
+Without a mask, `flats.detect` (through `run_calibrate`'s `find_mask`) finds the ND pixels, the ND and the
+defect pixels in the sweep first.
 """
 from __future__ import annotations
 
@@ -905,9 +907,10 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
               clip_code: int | None = None, bit_depth: int | None = None, name: str = "calibrated",
               mask_name: str = "mask", progress: bool = True, smooth_chi2: float = 1.5,
               smooth_taps: int = 5, prior_g: float = 0.02, prior_alpha: float = 0.5,
-              prior_c: float = 0.0002) -> CalibrationResult:
+              prior_c: float = 0.0002, defects: np.ndarray | None = None) -> CalibrationResult:
     """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep: the steps of
-    paper 3.2, 4.1 and 4.2 (module doc), each a function of this module."""
+    paper 3.2, 4.1 and 4.2 (module doc), each a function of this module. `defects`: a defect map
+    (flats.detect) for the profile, where the profile holds one."""
     from tqdm import tqdm
     check_options(nd_nominal, l_min, clip_code, bit_depth)
     mask = check_mask(sweep, mask, mask_name)
@@ -929,7 +932,8 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         del curve
         clip_flux = clip_points(lut, sweep, mask, lv, ptc, flux)                    # paper 4.1
         bar.update(1)
-        prof = _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, fit.alpha, l_min, name, where)
+        prof = _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, fit.alpha, l_min, name, where,
+                                   defects)
         nd_eff_map = effective_nd(clip_flux, lv.top)                                # paper 4.1, Eq. 8
         lmin_flux = _flux_at_code(lut.codes, lut.knot_flux, lut.n_knots, prof.l_min)
         rf, ratio = valid_pixel_ratio(mask, clip_flux, lmin_flux, flux)             # paper 4.2, Fig. 8b
@@ -946,8 +950,9 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
                              _measured_ratio(sweep, prof), examples)
 
 
-def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_min, name, where):
-    """The camera profile with its crosstalk calibration (crosstalk.CrosstalkCalibration)."""
+def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_min, name, where, defects=None):
+    """The camera profile with its crosstalk calibration (crosstalk.CrosstalkCalibration) and, where the
+    profile holds one, the defect map."""
     codes_t = np.ascontiguousarray(np.moveaxis(lut.codes, 0, -1))          # (H, W, K)
     q, qs, qo = crosstalk.quantize_codes(codes_t, lv.max_code)
     calib = crosstalk.CrosstalkCalibration(
@@ -958,9 +963,16 @@ def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_
         return profiles.make(mask, nd=float(ndf.nd), bit_depth=int(lv.bit_depth), clip_code=int(lv.clip_code),
                              black_level=float(lv.black), gain=float(ptc.gain), read_noise=float(ptc.read_noise),
                              full_well=float(ptc.full_well), l_min=float(min(l_min, 0.5 * lv.top)), name=name,
-                             crosstalk=calib)
+                             crosstalk=calib, **_defect_field(defects))
     except profiles.ProfileError as e:
         raise CalibrationError(f"{where}: calibrated parameters are inconsistent: {e}") from None
+
+
+def _defect_field(defects) -> dict:
+    """{"defects": map} for profiles.make where the profile has that field and a map is given, else {}."""
+    if defects is None or "defects" not in {f.name for f in dataclasses.fields(profiles.CameraProfile)}:
+        return {}
+    return {"defects": defects}
 
 
 def _example_pixels(mask, refs, nd_eff_map):
@@ -1163,7 +1175,7 @@ def write_plots(res: CalibrationResult, prefix) -> list[Path]:
 
 
 # ======================================================================================================
-# The whole calibration from files (`nrhdr calibrate`, gst_plugins/cli/calibration.py)
+# The whole calibration from files (`nrhdr calibrate`, gst_plugins/cli/calibrate.py)
 # ======================================================================================================
 
 def check_options(nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None) -> None:
@@ -1185,8 +1197,11 @@ def check_options(nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None) 
 
 
 def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None,
-                  plots=True, progress=True, overwrite=False, allow_outside=False):
-    """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary. Existing
+                  plots=True, progress=True, overwrite=False, allow_outside=False, find_mask=None):
+    """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary. Without
+    `mask_path` (None) `find_mask(sweep)` finds the mask in the flats (`flats.finder`: a
+    `flats.MaskDetection` with the mask, the defect map, `summary()` for the summary's `mask_detection` and
+    `write_plot(path)`), or raises CalibrationError. Existing
     outputs (the profile's files, the plots) are refused before any work unless `overwrite`; frames named
     outside the flats folder only with `allow_outside` (read_index). The files are made in a temporary
     folder and moved in together at the end (outputs.staged_files): a stopped or failed run leaves none of
@@ -1197,23 +1212,39 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
     out = Path(output)
     with outputs.staged_files(out, out.parent) as tmp:
         return _calibrate_into(tmp, out, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
-                               progress, overwrite, allow_outside)
+                               progress, overwrite, allow_outside, find_mask)
 
 
 def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
-                    progress, overwrite, allow_outside) -> dict:
+                    progress, overwrite, allow_outside, find_mask=None) -> dict:
     if not overwrite:
+        plots_made = ("curves", "nd_eff", "valid_ratio") + (("detection",) if mask_path is None else ())
         io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
-                                                          ("curves", "nd_eff", "valid_ratio")])
-    try:
-        mask = io.read_mask(mask_path)
-    except io.ImageFileError as e:
-        raise CalibrationError(str(e)) from None
+                                                          plots_made])
+    if mask_path is None and find_mask is None:
+        raise CalibrationError(f"{flats}: no mask: pass a mask file or a way to find it in the flats")
+    if mask_path is not None:
+        try:
+            mask = io.read_mask(mask_path)
+        except io.ImageFileError as e:
+            raise CalibrationError(str(e)) from None
     sweep = read_flats(flats, progress=progress, allow_outside=allow_outside)
+    det = None
+    if mask_path is None:
+        det = find_mask(sweep)
+        mask = det.mask
     res = calibrate(sweep, mask, nd_nominal=nd_nominal, l_min=l_min, clip_code=clip_code,
-                    bit_depth=bit_depth, name=out.stem, mask_name=str(mask_path), progress=progress)
+                    bit_depth=bit_depth, name=out.stem,
+                    mask_name="mask found in the flats" if det is not None else str(mask_path),
+                    progress=progress, defects=None if det is None else det.defects)
+    if det is not None:
+        res.summary["mask_detection"] = det.summary()
+        res.profile.crosstalk.info["mask_detection"] = res.summary["mask_detection"]
     profiles.save(res.profile, tmp / out.name)
     res.summary["profile"] = str(out)
     if plots:
-        res.summary["plots"] = [str(out.parent / p.name) for p in write_plots(res, tmp / f"{out.stem}_calib")]
+        made = write_plots(res, tmp / f"{out.stem}_calib")
+        if det is not None:
+            made.append(det.write_plot(tmp / f"{out.stem}_calib_detection.png"))
+        res.summary["plots"] = [str(out.parent / p.name) for p in made]
     return res.summary

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from nrhdr_core import calibration, crosstalk, io, profile, sensor, validity
+from nrhdr_core import flats as flat_analysis
 from conftest import shared_data
 
 H, W = 64, 64
@@ -172,6 +173,26 @@ def test_cli_calibrate_json(linear_sweep, tmp_path, capsys):
     for k in ("nd", "nd_eff_median", "dr_gain_stops_40", "dr_gain_stops_20"):
         assert k in s
     assert profile.load(tmp_path / "cam.json").crosstalk is not None
+
+
+def test_without_mask_matches_the_mask_calibration(linear_sweep, linear_cal, tmp_path):
+    """run_calibrate without a mask (flats.detect first) on the simulator's sweep: the simulated mask exactly,
+    the same ND as the calibration with the mask file (within 0.1 %), the detection's figures reported."""
+    flats, prof, _ = linear_sweep
+    s = calibration.run_calibrate(flats, None, tmp_path / "c.json", plots=False, progress=False,
+                                  find_mask=flat_analysis.finder())
+    cal = profile.load(tmp_path / "c.json")
+    assert np.array_equal(cal.mask, prof.mask)
+    assert s["nd"] == pytest.approx(linear_cal[0]["nd"], rel=1e-3)
+    d = s["mask_detection"]
+    assert d["confident"] and d["separation"] > 20 and d["defects"] == {"hot": 0, "dead": 0, "stuck": 0}
+    assert d["nd"] == pytest.approx(ND, rel=0.02)
+
+
+def test_without_mask_needs_a_finder(small_flats, tmp_path):
+    with pytest.raises(calibration.CalibrationError, match="no mask"):
+        calibration.run_calibrate(small_flats, None, tmp_path / "c.json", plots=False, progress=False)
+    assert not (tmp_path / "c.json").exists()
 
 
 def test_cli_simulate_flats(tmp_path):

@@ -10,12 +10,13 @@ from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
 
 
 def cmd_calibrate(a) -> int:
-    from nrhdr_core import calibration, io
+    from nrhdr_core import calibration, flats, io
+    find = None if a.mask else flats.finder(a.clip_code, a.bit_depth, a.accept_low_confidence)
     try:
         s = calibration.run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
                                       clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
                                       progress=not a.quiet, overwrite=a.force,
-                                      allow_outside=a.allow_outside_paths)
+                                      allow_outside=a.allow_outside_paths, find_mask=find)
     except (calibration.CalibrationError, io.OutputExistsError) as e:
         print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
         return 2
@@ -24,6 +25,8 @@ def cmd_calibrate(a) -> int:
     else:
         print(f"wrote {s['profile']}: ND {s['nd']:.3f} ({s['nd_stops']:.2f} stops)"
               + (f", nominal {s['nd_nominal']} ({s['nd_vs_nominal_pct']:+.1f} %)" if s.get("nd_nominal") else ""))
+        if "mask_detection" in s:
+            _print_detection(s["mask_detection"])
         print(f"  black {s['black_level']:.1f}, clip code {s['clip_code']}, gain {s['gain_dn_per_e']:.4f} DN/e-, "
               f"read noise {s['read_noise_e']:.2f} e-, full well {s['full_well_e']:.0f} e-")
         print(f"  effective ND (Eq. 8): median {s['nd_eff_median']}, 5-95 % {s['nd_eff_p5']} .. {s['nd_eff_p95']}")
@@ -32,6 +35,16 @@ def cmd_calibrate(a) -> int:
         for p in s.get("plots", []):
             print(f"  plot {p}")
     return 0
+
+
+def _print_detection(d: dict) -> None:
+    df = d["defects"]
+    print(f"  mask from the flats: {d['attenuated_share'] * 100:.2f} % attenuated, ND {d['nd']:.3f} by population "
+          f"response; separation {d['separation']:.1f} sigma (>= {d['min_separation']:g} needed), ambiguous "
+          f"{d['ambiguous_pixels']} pixels ({d['ambiguous_share'] * 100:.3f} %, "
+          f"<= {d['max_ambiguous_share'] * 100:g} %)"
+          + ("" if d["confident"] else ": LOW CONFIDENCE, accepted"))
+    print(f"  defect pixels: {df['hot']} hot, {df['dead']} dead, {df['stuck']} stuck")
 
 
 def cmd_simulate_flats(a) -> int:
@@ -63,9 +76,14 @@ def add_calibrate(sub) -> None:
     p = sub.add_parser("calibrate", help="crosstalk/ND calibration from a flat-field sweep (paper 3.2, 4)",
                        description="Calibrate ND, crosstalk LUT and neighbour kernel from a folder of flat "
                                    "frames + exposures.csv (file,exposure_s); writes a camera profile, plots "
-                                   "and a summary.")
+                                   "and a summary. Without --mask the ND mask, the ND and the defect pixels "
+                                   "are found in the flats first.")
     p.add_argument("flats", help="folder with 16-bit TIFF/PNG frames and exposures.csv")
-    p.add_argument("--mask", required=True, help="ND mask PNG (255 = attenuated)")
+    p.add_argument("--mask", help="ND mask PNG (255 = attenuated); without it the ND pixels, the ND and the "
+                                  "defect pixels are found in the flats (docs/CROSSTALK.md, 'Without a mask')")
+    p.add_argument("--accept-low-confidence", action="store_true",
+                   help="without --mask: use the mask found in the flats even when the two populations are not "
+                        "well separated")
     p.add_argument("-o", "--output", required=True, help="camera profile JSON to write")
     p.add_argument("--nd-nominal", type=ND, help="nominal ND factor (reported against the measured one)")
     p.add_argument("--l-min", type=CODE_LEVEL, default=100.0, help="l_min for the profile and the valid ratio")
