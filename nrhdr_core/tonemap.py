@@ -120,6 +120,344 @@ class WhiteTracker:
         self.white = None
 
 
+# ---- local operator: base / detail on log luminance (Durand and Dorsey 2002) ------------------------------
+#
+# l = log2(x + 1/q), x = L 2^e / white (the log curve's toe: below white / q shadows compress linearly, so
+# the noise floor is not amplified); base = a guided filter of l (He, Sun and Tang 2013, the fast variant of
+# He and Sun 2015: coefficients on CELL x CELL means, bilinearly upsampled), detail = l - base;
+# o = c (base - m) + g detail + s shown through y = log(1 + Q 2^min(o, 0)) / log(1 + Q).
+# c compresses the base's robust range (0.5 .. 99.5th percentile of BLOCK-pixel block means) to at most
+# LOCAL_RANGE stops; s puts the mean display level at LOCAL_MEAN and g (in [1, LOCAL_GAIN_MAX]) gives a mean
+# 11 x 11-scale contrast of LOCAL_CONTRAST: the brightness and contrast of natural images (the mode of TMQI's
+# naturalness model, Yeganeh and Wang 2013 Eq. 9-10). The statistics are smoothed over time like WhiteTracker.
+
+LOCAL_CELL = 4              # pixels per coarse cell (guided-filter subsampling)
+LOCAL_BLOCK = 3             # coarse cells per statistics block (12 x 12 pixels)
+LOCAL_RADIUS = 0.02         # guided-filter radius, fraction of the larger frame side (Durand: 2 %)
+LOCAL_EPS = 0.5             # guided-filter regulariser, stops^2: edges above ~0.7 stop stay in the base
+LOCAL_RANGE = 7.0           # stops of base range shown
+LOCAL_MEAN = 115.94 / 255   # target mean display level
+LOCAL_CONTRAST = 17.5 / 255  # target mean block std (64.29 x the Beta mode 3.4/12.5 of TMQI)
+LOCAL_GAIN_MAX = 5.0
+LOCAL_Q = 300.0             # display curve contrast
+_LUT_LO, _LUT_STEPS = -40.0, 64     # LUT domain o in [-40, 0] stops, 64 entries per stop
+_LOG2_MAX = 100.0                    # x is capped at 2^100 (1e30 and +inf stay finite)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _local_log(values, scale, toe, l, cm, cm2, mbuf):
+    """l = log2(min(max(v scale, 0), 2^100) + toe) (NaN -> log2(toe)) per pixel into `l`; `cm`, `cm2`: means of
+    l and l^2 per LOCAL_CELL^2 cell. log2 by exponent / mantissa split, ln m = 2 atanh(z), z = (m-1)/(m+1)
+    (|error| < 1e-6 stops); rows in chunks, `mbuf` (chunks, w) the chunks' mantissa rows."""
+    h, w = values.shape
+    hc, wc = cm.shape
+    nch = mbuf.shape[0]
+    cell = LOCAL_CELL
+    xmax = np.float32(2.0 ** _LOG2_MAX)
+    k = np.float32(2.0 / math.log(2.0))
+    for c in prange(nch):
+        mrow = mbuf[c]
+        mbits = mrow.view(np.int32)
+        for cy in range((c * hc) // nch, ((c + 1) * hc) // nch):
+            for cx in range(wc):
+                cm[cy, cx] = 0.0
+                cm2[cy, cx] = 0.0
+            y1 = min(h, (cy + 1) * cell)
+            for y in range(cy * cell, y1):
+                lrow = l[y]
+                lbits = lrow.view(np.int32)
+                for x in range(w):
+                    v = values[y, x] * scale
+                    v = v if v > np.float32(0.0) else np.float32(0.0)     # also NaN
+                    v = v if v < xmax else xmax
+                    lrow[x] = v + toe
+                for x in range(w):
+                    b = lbits[x]
+                    mbits[x] = (b & 0x7FFFFF) | 0x3F800000
+                    lrow[x] = np.float32((b >> 23) - 127)
+                for x in range(w):
+                    m = mrow[x]
+                    big = m > np.float32(1.4142135)
+                    m = m * np.float32(0.5) if big else m
+                    e = lrow[x] + np.float32(1.0) if big else lrow[x]
+                    z = (m - np.float32(1.0)) / (m + np.float32(1.0))
+                    zz = z * z
+                    p = np.float32(1.0 / 9.0)
+                    p = p * zz + np.float32(1.0 / 7.0)
+                    p = p * zz + np.float32(1.0 / 5.0)
+                    p = p * zz + np.float32(1.0 / 3.0)
+                    p = p * zz + np.float32(1.0)
+                    lrow[x] = e + k * z * p
+                for cx in range(wc):
+                    s1 = 0.0
+                    s2 = 0.0
+                    for x in range(cx * cell, min(w, (cx + 1) * cell)):
+                        t = lrow[x]
+                        s1 += t
+                        s2 += t * t
+                    cm[cy, cx] += s1
+                    cm2[cy, cx] += s2
+            ny = y1 - cy * cell
+            for cx in range(wc):
+                n = ny * (min(w, (cx + 1) * cell) - cx * cell)
+                cm[cy, cx] /= n
+                cm2[cy, cx] /= n
+
+
+@njit(cache=True, nogil=True)
+def _box(src, r, tmp, acc, dst):
+    """Mean over the (2r+1)^2 window clipped to the frame (running sums: along rows, then down the columns
+    with the row vector `acc`)."""
+    h, w = src.shape
+    for y in range(h):
+        s = 0.0
+        for x in range(min(r, w - 1) + 1):
+            s += src[y, x]
+        for x in range(w):
+            lo, hi = x - r, x + r
+            tmp[y, x] = s / (min(hi, w - 1) - max(lo, 0) + 1)
+            if hi + 1 < w:
+                s += src[y, hi + 1]
+            if lo >= 0:
+                s -= src[y, lo]
+    for x in range(w):
+        acc[x] = 0.0
+    for y in range(min(r, h - 1) + 1):
+        for x in range(w):
+            acc[x] += tmp[y, x]
+    for y in range(h):
+        lo, hi = y - r, y + r
+        inv = 1.0 / (min(hi, h - 1) - max(lo, 0) + 1)
+        for x in range(w):
+            dst[y, x] = acc[x] * inv
+        if hi + 1 < h:
+            for x in range(w):
+                acc[x] += tmp[hi + 1, x]
+        if lo >= 0:
+            for x in range(w):
+                acc[x] -= tmp[lo, x]
+
+
+@njit(cache=True, nogil=True)
+def _guided_coefficients(cm, cm2, r, eps, ca, cb, t1, t2, t3, acc):
+    """Guided filter of the coarse log image by itself (He et al. 2013, Alg. 1): a = var / (var + eps),
+    b = mean (1 - a), each box-averaged into `ca`, `cb`."""
+    _box(cm, r, t1, acc, t2)            # mean
+    _box(cm2, r, t1, acc, t3)           # mean of squares
+    h, w = cm.shape
+    for y in range(h):
+        for x in range(w):
+            mu = t2[y, x]
+            var = t3[y, x] - mu * mu
+            var = var if var > 0.0 else 0.0
+            a = var / (var + eps)
+            t2[y, x] = a
+            t3[y, x] = mu - a * mu
+    _box(t2, r, t1, acc, ca)
+    _box(t3, r, t1, acc, cb)
+
+
+@njit(cache=True, nogil=True)
+def _block_stats(cm, cm2, ca, cb, stats):
+    """Per LOCAL_BLOCK^2-cell block: cells, and the sums of the cells' means of base, base^2, detail, detail^2
+    and base detail, from each cell's l moments with its coefficients (base = a l + b, detail = (1 - a) l - b)."""
+    hc, wc = cm.shape
+    stats[:] = 0.0
+    for y in range(hc):
+        by = y // LOCAL_BLOCK
+        for x in range(wc):
+            bx = x // LOCAL_BLOCK
+            a, b, m1, m2 = ca[y, x], cb[y, x], cm[y, x], cm2[y, x]
+            u = 1.0 - a
+            stats[by, bx, 0] += 1.0
+            stats[by, bx, 1] += a * m1 + b
+            stats[by, bx, 2] += a * a * m2 + 2.0 * a * b * m1 + b * b
+            stats[by, bx, 3] += u * m1 - b
+            stats[by, bx, 4] += u * u * m2 - 2.0 * u * b * m1 + b * b
+            stats[by, bx, 5] += a * u * m2 + (b * u - a * b) * m1 - b * b
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lut_at(lut, o):
+    t = (o - _LUT_LO) * _LUT_STEPS
+    t = t if t > 0.0 else 0.0
+    t = t if t < lut.shape[0] - 1 else lut.shape[0] - 1.0
+    i = min(int(t), lut.shape[0] - 2)
+    return lut[i] + (t - i) * (lut[i + 1] - lut[i])
+
+
+@njit(cache=True, nogil=True)
+def _mean_level(rel, wgt, s, lut):
+    acc = 0.0
+    for i in range(rel.shape[0]):
+        acc += wgt[i] * _lut_at(lut, rel[i] + s)
+    return acc
+
+
+@njit(cache=True, nogil=True)
+def _mean_contrast(slope, wgt, vb, vd, cov, c, g):
+    acc = 0.0
+    for i in range(slope.shape[0]):
+        v = c * c * vb[i] + g * g * vd[i] + 2.0 * c * g * cov[i]
+        acc += wgt[i] * slope[i] * math.sqrt(v if v > 0.0 else 0.0)
+    return acc
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _local_apply(l, ca, cb, kb, kl, k0, lut, out_max, rows, out):
+    """o = kb base + kl l + k0 (= c (base - m) + g detail + s), base = a l + b with a, b bilinear from the
+    coarse grid (cell centres); display code by the LUT (linear interpolation). `rows` (h, 2, wc + 2):
+    per output row the coarse a, b interpolated down the column, edge-extended by one cell."""
+    h, w = l.shape
+    hc, wc = ca.shape
+    n = lut.shape[0]
+    steps = np.float32(_LUT_STEPS)
+    lo = np.float32(_LUT_LO)
+    top = np.float32(n - 1)
+    for y in prange(h):
+        f = (y + 0.5) / LOCAL_CELL - 0.5
+        f = f if f > 0.0 else 0.0
+        y0 = min(int(f), hc - 1)
+        y1 = min(y0 + 1, hc - 1)
+        fy = f - y0
+        ra = rows[y, 0]
+        rb = rows[y, 1]
+        for cx in range(wc):
+            ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+            rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+        ra[0], rb[0] = ra[1], rb[1]
+        ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
+        for x in range(w):
+            # pixel x of cell cx sits at cx + (x % 4 - 1.5) / 4 cells: between cells cx-1|cx or cx|cx+1
+            cx = x // LOCAL_CELL
+            j = x - cx * LOCAL_CELL
+            i0 = cx + (j >> 1)                       # index in rows (edge-extended: +1)
+            fx = np.float32(0.625) + np.float32(0.25) * np.float32(j) - np.float32(j >> 1)
+            a = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
+            b = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
+            lv = l[y, x]
+            t = ((kb * (a * lv + b) + kl * lv + k0) - lo) * steps
+            t = t if t > np.float32(0.0) else np.float32(0.0)
+            t = t if t < top else top
+            i = min(int(t), n - 2)
+            ft = t - np.float32(i)
+            out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+
+
+def _display(o):
+    """The local operator's display curve: y = log(1 + Q 2^min(o, 0)) / log(1 + Q)."""
+    return np.log1p(LOCAL_Q * np.exp2(np.minimum(o, 0.0))) / math.log1p(LOCAL_Q)
+
+
+def _display_slope(o):
+    """dy/do of `_display` (per stop), 0 where the curve is at full scale."""
+    x = LOCAL_Q * np.exp2(np.minimum(o, 0.0))
+    return np.where(o < 0.0, math.log(2.0) * x / (1.0 + x) / math.log1p(LOCAL_Q), 0.0)
+
+
+_LUT = []
+
+
+def _lut() -> np.ndarray:
+    if not _LUT:
+        o = _LUT_LO + np.arange(int(-_LUT_LO * _LUT_STEPS) + 1) / _LUT_STEPS
+        _LUT.append(_display(o).astype(np.float32))
+    return _LUT[0]
+
+
+def _bisect(f, lo: float, hi: float, target: float, tol: float) -> float:
+    """x in [lo, hi] where the increasing f(x) reaches target (lo or hi when it never does)."""
+    if f(lo) >= target:
+        return lo
+    if f(hi) <= target:
+        return hi
+    while hi - lo > tol:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if f(mid) < target else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def local_parameters(stats: np.ndarray) -> tuple[float, float, float]:
+    """(c, g, s - c m) from the block sums of `_block_stats`: base compression, detail gain and offset that
+    give the target mean level and contrast (module notes)."""
+    st = stats.reshape(-1, 6)
+    n = st[:, 0]
+    n = np.where(n > 0, n, 1.0)
+    mu, mu_d = st[:, 1] / n, st[:, 3] / n
+    var_b = np.maximum(st[:, 2] / n - mu * mu, 0.0)
+    var_d = np.maximum(st[:, 4] / n - mu_d * mu_d, 0.0)
+    cov = st[:, 5] / n - mu * mu_d
+    wgt = st[:, 0] / st[:, 0].sum()
+    m = float(np.sum(wgt * mu))
+    lo, hi = np.percentile(mu, [0.5, 99.5])
+    c = min(1.0, LOCAL_RANGE / max(float(hi - lo), 1e-6))
+    rel = c * (mu - m)
+    lut = _lut()
+    s = _bisect(lambda s: _mean_level(rel, wgt, s, lut), -60.0, 60.0, LOCAL_MEAN, 1e-3)
+    slope = _display_slope(rel + s)
+    g = _bisect(lambda g: _mean_contrast(slope, wgt, var_b, var_d, cov, c, g), 1.0, LOCAL_GAIN_MAX,
+                LOCAL_CONTRAST, 1e-3)
+    return c, g, s - c * m
+
+
+class LocalTonemap:
+    """The local operator (module notes) with its statistics (c, g, offset) smoothed over time:
+    p_t = speed * frame + (1 - speed) * p_t-1, the first frame initialises them (`reset` restarts)."""
+
+    def __init__(self, speed: float = 1.0):
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"smoothing speed must be in (0, 1], got {speed}")
+        self.speed = speed
+        self.params = None
+
+    def reset(self) -> None:
+        self.params = None
+
+    def __call__(self, values: np.ndarray, white: float, exposure_stops: float = 0.0,
+                 contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None, dtype=np.uint8) -> np.ndarray:
+        """Linear values (H, W) to uint8 / uint16 display codes; `white` / `contrast` set the toe (white / q),
+        `exposure_stops` shifts the automatic brightness."""
+        from .scratch import planes
+        if not (white > 0 and math.isfinite(white)):
+            raise ValueError(f"tone mapping white must be a finite number > 0, got {white}")
+        if not (contrast > 0 and math.isfinite(contrast)):
+            raise ValueError(f"tone mapping contrast must be > 0, got {contrast}")
+        v = np.asarray(values, dtype=np.float32)
+        if v.ndim != 2 or v.size == 0:
+            raise ValueError(f"tone mapping needs a 2-D frame, got shape {v.shape}")
+        if out is None:
+            out = np.empty(v.shape, dtype=dtype)
+        if out.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"tone mapping output must be uint8 or uint16, got {out.dtype}")
+        h, w = v.shape
+        cell = LOCAL_CELL
+        hc, wc = -(-h // cell), -(-w // cell)
+
+        def make():
+            coarse = [np.empty((hc, wc)) for _ in range(7)]
+            return (np.empty((h, w), np.float32), np.empty((min(hc, 64), w), np.float32),
+                    np.empty((h, 2, wc + 2), np.float32), np.empty(wc),
+                    np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 6)), *coarse)
+        l, mbuf, rows, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
+        _local_log(v, np.float32(1.0 / white), np.float32(1.0 / contrast), l, cm, cm2, mbuf)
+        r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
+        _guided_coefficients(cm, cm2, r, LOCAL_EPS, ca, cb, t1, t2, t3, acc)
+        _block_stats(cm, cm2, ca, cb, stats)
+        p = np.array(local_parameters(stats))
+        self.params = p if self.params is None else self.speed * p + (1 - self.speed) * self.params
+        c, g, k0 = (float(t) for t in self.params)
+        out_max = 255.0 if out.dtype == np.uint8 else 65535.0
+        _local_apply(l, ca, cb, np.float32(c - g), np.float32(g), np.float32(k0 + exposure_stops), _lut(),
+                     np.float32(out_max), rows, out)
+        return out
+
+
+def local_tonemap(values: np.ndarray, white: float, exposure_stops: float = 0.0,
+                  contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None, dtype=np.uint8) -> np.ndarray:
+    """One frame through a fresh `LocalTonemap` (stills; video keeps one `LocalTonemap`)."""
+    return LocalTonemap()(values, white, exposure_stops, contrast, out, dtype)
+
+
 # ---- HDR transfer functions (ITU-R BT.2100) --------------------------------------------------------------
 
 # SMPTE ST 2084:2014, section 5 (as published: exact rationals)
