@@ -120,6 +120,43 @@ class WhiteTracker:
         self.white = None
 
 
+AUTO_MEAN_LEVEL = 115.94 / 255   # display level of the log-average: TMQI's natural mean (Yeganeh and Wang Eq. 9)
+
+
+def auto_white(values: np.ndarray, contrast: float = DEFAULT_CONTRAST, stride: int = 4) -> float | None:
+    """The white of inputs without a sensor profile: the log-average (geometric mean) of the lit, finite
+    pixels of a subsampled frame (Reinhard et al. 2002's key) shown by the log curve at AUTO_MEAN_LEVEL:
+    white = key * q / (exp(AUTO_MEAN_LEVEL log(1 + q)) - 1). None when no pixel is lit."""
+    sub = np.asarray(values, np.float32)[::stride, ::stride]
+    sub = sub[np.isfinite(sub) & (sub > 0)]
+    if not sub.size:
+        return None
+    key = float(np.exp(np.mean(np.log(sub.astype(np.float64)))))
+    return key * contrast / math.expm1(AUTO_MEAN_LEVEL * math.log1p(contrast))
+
+
+class AutoWhite:
+    """`auto_white` smoothed over time in the log domain (exposure changes are symmetric):
+    log white_t = speed log w_t + (1 - speed) log white_t-1; the first lit frame initialises it, frames
+    without a lit pixel keep it (1.0 until then)."""
+
+    def __init__(self, speed: float = 0.1, contrast: float = DEFAULT_CONTRAST):
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"smoothing speed must be in (0, 1], got {speed}")
+        self.speed, self.contrast, self.white = speed, contrast, None
+
+    def update(self, values: np.ndarray) -> float:
+        w = auto_white(values, self.contrast)
+        if w is not None:
+            w = min(max(w, 1e-30), 1e30)
+            self.white = w if self.white is None else math.exp(
+                self.speed * math.log(w) + (1 - self.speed) * math.log(self.white))
+        return 1.0 if self.white is None else self.white
+
+    def reset(self) -> None:
+        self.white = None
+
+
 # ---- local operator: base / detail on log luminance (Durand and Dorsey 2002) ------------------------------
 #
 # l = log2(x + 1/q), x = L 2^e / white (the log curve's toe: below white / q shadows compress linearly, so
@@ -304,44 +341,61 @@ def _mean_contrast(slope, wgt, vb, vd, cov, c, g):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _local_apply(l, ca, cb, kb, kl, k0, lut, out_max, rows, out):
+def _local_apply(l, ca, cb, kb, kl, k0, lut, out_max, rows, tbuf, out):
     """o = kb base + kl l + k0 (= c (base - m) + g detail + s), base = a l + b with a, b bilinear from the
-    coarse grid (cell centres); display code by the LUT (linear interpolation). `rows` (h, 2, wc + 2):
-    per output row the coarse a, b interpolated down the column, edge-extended by one cell."""
+    coarse grid (cell centres); display code by the LUT (linear interpolation). Rows in chunks: `rows`
+    (chunks, 2, wc + 2) the coarse a, b interpolated down the column (edge-extended by one cell), `tbuf`
+    (chunks, w) the LUT positions."""
     h, w = l.shape
     hc, wc = ca.shape
     n = lut.shape[0]
+    nch = tbuf.shape[0]
     steps = np.float32(_LUT_STEPS)
     lo = np.float32(_LUT_LO)
     top = np.float32(n - 1)
-    for y in prange(h):
-        f = (y + 0.5) / LOCAL_CELL - 0.5
-        f = f if f > 0.0 else 0.0
-        y0 = min(int(f), hc - 1)
-        y1 = min(y0 + 1, hc - 1)
-        fy = f - y0
-        ra = rows[y, 0]
-        rb = rows[y, 1]
-        for cx in range(wc):
-            ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
-            rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
-        ra[0], rb[0] = ra[1], rb[1]
-        ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
-        for x in range(w):
-            # pixel x of cell cx sits at cx + (x % 4 - 1.5) / 4 cells: between cells cx-1|cx or cx|cx+1
-            cx = x // LOCAL_CELL
-            j = x - cx * LOCAL_CELL
-            i0 = cx + (j >> 1)                       # index in rows (edge-extended: +1)
-            fx = np.float32(0.625) + np.float32(0.25) * np.float32(j) - np.float32(j >> 1)
-            a = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
-            b = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
-            lv = l[y, x]
-            t = ((kb * (a * lv + b) + kl * lv + k0) - lo) * steps
-            t = t if t > np.float32(0.0) else np.float32(0.0)
-            t = t if t < top else top
-            i = min(int(t), n - 2)
-            ft = t - np.float32(i)
-            out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+    cell = LOCAL_CELL
+    for c in prange(nch):
+        ra = rows[c, 0]
+        rb = rows[c, 1]
+        t = tbuf[c]
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            f = (y + 0.5) / cell - 0.5
+            f = f if f > 0.0 else 0.0
+            y0 = min(int(f), hc - 1)
+            y1 = min(y0 + 1, hc - 1)
+            fy = f - y0
+            for cx in range(wc):
+                ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+                rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+            ra[0], rb[0] = ra[1], rb[1]
+            ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
+            lrow = l[y]
+            # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
+            for cx in range(w // cell):
+                for j in range(cell):
+                    x = cx * cell + j
+                    i0 = cx + (j >> 1)                       # in the edge-extended rows
+                    fx = np.float32(0.625 + 0.25 * j - (j >> 1))
+                    av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
+                    bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
+                    lv = lrow[x]
+                    t[x] = ((kb * (av * lv + bv) + kl * lv + k0) - lo) * steps
+            for x in range((w // cell) * cell, w):
+                cx = x // cell
+                j = x - cx * cell
+                i0 = cx + (j >> 1)
+                fx = np.float32(0.625 + 0.25 * j - (j >> 1))
+                av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
+                bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
+                lv = lrow[x]
+                t[x] = ((kb * (av * lv + bv) + kl * lv + k0) - lo) * steps
+            for x in range(w):
+                tv = t[x]
+                tv = tv if tv > np.float32(0.0) else np.float32(0.0)
+                tv = tv if tv < top else top
+                i = min(int(tv), n - 2)
+                ft = tv - np.float32(i)
+                out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
 
 
 def _display(o):
@@ -423,7 +477,7 @@ class LocalTonemap:
         if not (contrast > 0 and math.isfinite(contrast)):
             raise ValueError(f"tone mapping contrast must be > 0, got {contrast}")
         v = np.asarray(values, dtype=np.float32)
-        if v.ndim != 2 or v.size == 0:
+        if v.ndim != 2 or min(v.shape) < 1:
             raise ValueError(f"tone mapping needs a 2-D frame, got shape {v.shape}")
         if out is None:
             out = np.empty(v.shape, dtype=dtype)
@@ -436,9 +490,10 @@ class LocalTonemap:
         def make():
             coarse = [np.empty((hc, wc)) for _ in range(7)]
             return (np.empty((h, w), np.float32), np.empty((min(hc, 64), w), np.float32),
-                    np.empty((h, 2, wc + 2), np.float32), np.empty(wc),
+                    np.empty((min(h, 64), 2, wc + 2), np.float32), np.empty((min(h, 64), w), np.float32),
+                    np.empty(wc),
                     np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 6)), *coarse)
-        l, mbuf, rows, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
+        l, mbuf, rows, tbuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
         _local_log(v, np.float32(1.0 / white), np.float32(1.0 / contrast), l, cm, cm2, mbuf)
         r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
         _guided_coefficients(cm, cm2, r, LOCAL_EPS, ca, cb, t1, t2, t3, acc)
@@ -448,7 +503,7 @@ class LocalTonemap:
         c, g, k0 = (float(t) for t in self.params)
         out_max = 255.0 if out.dtype == np.uint8 else 65535.0
         _local_apply(l, ca, cb, np.float32(c - g), np.float32(g), np.float32(k0 + exposure_stops), _lut(),
-                     np.float32(out_max), rows, out)
+                     np.float32(out_max), rows, tbuf, out)
         return out
 
 
@@ -456,6 +511,26 @@ def local_tonemap(values: np.ndarray, white: float, exposure_stops: float = 0.0,
                   contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None, dtype=np.uint8) -> np.ndarray:
     """One frame through a fresh `LocalTonemap` (stills; video keeps one `LocalTonemap`)."""
     return LocalTonemap()(values, white, exposure_stops, contrast, out, dtype)
+
+
+SDR_OPERATORS = ("log", "local")
+
+
+def warmup_local(elements: bool = False) -> None:
+    """Compile (or load) the local operator's kernels on a tiny frame; `elements`: also a read-only input and
+    padded uint8 / uint16 output rows (nrtonemap's mapped buffers)."""
+    h, w = 12, 16
+    v = np.geomspace(1.0, 1e4, h * w).astype(np.float32).reshape(h, w)
+    inputs = [v]
+    outs = [np.empty((h, w), np.uint8)]
+    if elements:
+        ro = v.copy()
+        ro.setflags(write=False)
+        inputs.append(ro)
+        outs += [np.empty((h, w), np.uint16)] + [np.zeros((h, w + 4), dt)[:, :w] for dt in (np.uint8, np.uint16)]
+    for x in inputs:
+        for out in outs:
+            LocalTonemap()(x, 1e4, out=out)
 
 
 # ---- HDR transfer functions (ITU-R BT.2100) --------------------------------------------------------------
