@@ -1,5 +1,6 @@
-"""Measurements: PSNR (linear and log domain), SSIM, TMQI (tone-mapped images), the SNR of a flat field (paper Eq. 4, Fig. 3/5/9) and
-the HDR quality metrics of `nrhdr compare` (log2 PSNR, PU21-PSNR, pixels stops off, per luminance region)."""
+"""Measurements: PSNR (linear and log domain), SSIM, the SNR of a flat field (paper Eq. 4, Fig. 3/5/9), the HDR
+quality metrics of `nrhdr compare` (log2 PSNR, PU21-PSNR, pixels stops off, per luminance region) and TMQI, the
+quality of a tone-mapped image (Yeganeh and Wang 2013)."""
 from __future__ import annotations
 
 import numpy as np

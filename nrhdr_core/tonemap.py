@@ -177,6 +177,7 @@ LOCAL_MEAN = 115.94 / 255   # target mean display level
 LOCAL_CONTRAST = 17.5 / 255  # target mean block std (64.29 x the Beta mode 3.4/12.5 of TMQI)
 LOCAL_GAIN_MAX = 5.0
 LOCAL_Q = 300.0             # display curve contrast
+LOCAL_TOE_LEVEL = 0.25      # highest display level of the toe (x = white / q)
 _LUT_LO, _LUT_STEPS = -40.0, 64     # LUT domain o in [-40, 0] stops, 64 entries per stop
 _LOG2_MAX = 100.0                    # x is capped at 2^100 (1e30 and +inf stay finite)
 
@@ -431,9 +432,10 @@ def _bisect(f, lo: float, hi: float, target: float, tol: float) -> float:
     return 0.5 * (lo + hi)
 
 
-def local_parameters(stats: np.ndarray) -> tuple[float, float, float]:
+def local_parameters(stats: np.ndarray, toe: float = 1.0 / DEFAULT_CONTRAST) -> tuple[float, float, float]:
     """(c, g, s - c m) from the block sums of `_block_stats`: base compression, detail gain and offset that
-    give the target mean level and contrast (module notes)."""
+    give the target mean level and contrast (module notes). The offset never shows the toe (x = toe,
+    l = log2(2 toe)) above LOCAL_TOE_LEVEL: a black frame stays dark instead of being lifted to the mean."""
     st = stats.reshape(-1, 6)
     n = st[:, 0]
     n = np.where(n > 0, n, 1.0)
@@ -451,7 +453,8 @@ def local_parameters(stats: np.ndarray) -> tuple[float, float, float]:
     slope = _display_slope(rel + s)
     g = _bisect(lambda g: _mean_contrast(slope, wgt, var_b, var_d, cov, c, g), 1.0, LOCAL_GAIN_MAX,
                 LOCAL_CONTRAST, 1e-3)
-    return c, g, s - c * m
+    o_toe = math.log2(math.expm1(LOCAL_TOE_LEVEL * math.log1p(LOCAL_Q)) / LOCAL_Q)     # inverse of _display
+    return c, g, min(s - c * m, o_toe - c * math.log2(2.0 * toe))
 
 
 class LocalTonemap:
@@ -498,7 +501,7 @@ class LocalTonemap:
         r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
         _guided_coefficients(cm, cm2, r, LOCAL_EPS, ca, cb, t1, t2, t3, acc)
         _block_stats(cm, cm2, ca, cb, stats)
-        p = np.array(local_parameters(stats))
+        p = np.array(local_parameters(stats, 1.0 / contrast))
         self.params = p if self.params is None else self.speed * p + (1 - self.speed) * self.params
         c, g, k0 = (float(t) for t in self.params)
         out_max = 255.0 if out.dtype == np.uint8 else 65535.0
