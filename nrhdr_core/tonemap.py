@@ -297,8 +297,8 @@ def _guided_coefficients(cm, cm2, r, eps, ca, cb, t1, t2, t3, acc):
 
 @njit(cache=True, nogil=True)
 def _block_stats(cm, cm2, ca, cb, stats):
-    """Per LOCAL_BLOCK^2-cell block: cells, and the sums of the cells' means of base, base^2, detail, detail^2
-    and base detail, from each cell's l moments with its coefficients (base = a l + b, detail = (1 - a) l - b)."""
+    """Per LOCAL_BLOCK^2-cell block: cells, and the sums of the cells' means of base, base^2, detail, detail^2,
+    base detail and of the coefficient a, from each cell's l moments with its coefficients (base = a l + b, detail = (1 - a) l - b)."""
     hc, wc = cm.shape
     stats[:] = 0.0
     for y in range(hc):
@@ -313,6 +313,7 @@ def _block_stats(cm, cm2, ca, cb, stats):
             stats[by, bx, 3] += u * m1 - b
             stats[by, bx, 4] += u * u * m2 - 2.0 * u * b * m1 + b * b
             stats[by, bx, 5] += a * u * m2 + (b * u - a * b) * m1 - b * b
+            stats[by, bx, 6] += a
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -333,18 +334,20 @@ def _mean_level(rel, wgt, s, lut):
 
 
 @njit(cache=True, nogil=True)
-def _mean_contrast(slope, wgt, vb, vd, cov, c, g):
+def _mean_contrast(slope, wgt, vb, vd, cov, free, c, g):
     acc = 0.0
     for i in range(slope.shape[0]):
-        v = c * c * vb[i] + g * g * vd[i] + 2.0 * c * g * cov[i]
+        gi = 1.0 + (g - 1.0) * free[i]
+        v = c * c * vb[i] + gi * gi * vd[i] + 2.0 * c * gi * cov[i]
         acc += wgt[i] * slope[i] * math.sqrt(v if v > 0.0 else 0.0)
     return acc
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _local_apply(l, ca, cb, kb, kl, k0, lut, out_max, rows, tbuf, out):
-    """o = kb base + kl l + k0 (= c (base - m) + g detail + s), base = a l + b with a, b bilinear from the
-    coarse grid (cell centres); display code by the LUT (linear interpolation). Rows in chunks: `rows`
+def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
+    """o = c base + (1 + (g - 1)(1 - a)) detail + k0 (g1 = g - 1), base = a l + b with a, b bilinear from the
+    coarse grid (cell centres): the gain fades to 1 where the base follows the image (a -> 1, strong edges,
+    where a detail is the filter's residual, not texture); display code by the LUT (linear interpolation). Rows in chunks: `rows`
     (chunks, 2, wc + 2) the coarse a, b interpolated down the column (edge-extended by one cell), `tbuf`
     (chunks, w) the LUT positions."""
     h, w = l.shape
@@ -380,7 +383,9 @@ def _local_apply(l, ca, cb, kb, kl, k0, lut, out_max, rows, tbuf, out):
                     av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
                     bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
                     lv = lrow[x]
-                    t[x] = ((kb * (av * lv + bv) + kl * lv + k0) - lo) * steps
+                    base = av * lv + bv
+                    gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
+                    t[x] = ((c0 * base + gain * (lv - base) + k0) - lo) * steps
             for x in range((w // cell) * cell, w):
                 cx = x // cell
                 j = x - cx * cell
@@ -389,7 +394,9 @@ def _local_apply(l, ca, cb, kb, kl, k0, lut, out_max, rows, tbuf, out):
                 av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
                 bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
                 lv = lrow[x]
-                t[x] = ((kb * (av * lv + bv) + kl * lv + k0) - lo) * steps
+                base = av * lv + bv
+                gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
+                t[x] = ((c0 * base + gain * (lv - base) + k0) - lo) * steps
             for x in range(w):
                 tv = t[x]
                 tv = tv if tv > np.float32(0.0) else np.float32(0.0)
@@ -436,13 +443,14 @@ def local_parameters(stats: np.ndarray, toe: float = 1.0 / DEFAULT_CONTRAST) -> 
     """(c, g, s - c m) from the block sums of `_block_stats`: base compression, detail gain and offset that
     give the target mean level and contrast (module notes). The offset never shows the toe (x = toe,
     l = log2(2 toe)) above LOCAL_TOE_LEVEL: a black frame stays dark instead of being lifted to the mean."""
-    st = stats.reshape(-1, 6)
+    st = stats.reshape(-1, 7)
     n = st[:, 0]
     n = np.where(n > 0, n, 1.0)
     mu, mu_d = st[:, 1] / n, st[:, 3] / n
     var_b = np.maximum(st[:, 2] / n - mu * mu, 0.0)
     var_d = np.maximum(st[:, 4] / n - mu_d * mu_d, 0.0)
     cov = st[:, 5] / n - mu * mu_d
+    free = 1.0 - st[:, 6] / n           # 1 - a: the detail's share that gets the extra gain
     wgt = st[:, 0] / st[:, 0].sum()
     m = float(np.sum(wgt * mu))
     lo, hi = np.percentile(mu, [0.5, 99.5])
@@ -451,7 +459,7 @@ def local_parameters(stats: np.ndarray, toe: float = 1.0 / DEFAULT_CONTRAST) -> 
     lut = _lut()
     s = _bisect(lambda s: _mean_level(rel, wgt, s, lut), -60.0, 60.0, LOCAL_MEAN, 1e-3)
     slope = _display_slope(rel + s)
-    g = _bisect(lambda g: _mean_contrast(slope, wgt, var_b, var_d, cov, c, g), 1.0, LOCAL_GAIN_MAX,
+    g = _bisect(lambda g: _mean_contrast(slope, wgt, var_b, var_d, cov, free, c, g), 1.0, LOCAL_GAIN_MAX,
                 LOCAL_CONTRAST, 1e-3)
     o_toe = math.log2(math.expm1(LOCAL_TOE_LEVEL * math.log1p(LOCAL_Q)) / LOCAL_Q)     # inverse of _display
     return c, g, min(s - c * m, o_toe - c * math.log2(2.0 * toe))
@@ -495,7 +503,7 @@ class LocalTonemap:
             return (np.empty((h, w), np.float32), np.empty((min(hc, 64), w), np.float32),
                     np.empty((min(h, 64), 2, wc + 2), np.float32), np.empty((min(h, 64), w), np.float32),
                     np.empty(wc),
-                    np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 6)), *coarse)
+                    np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 7)), *coarse)
         l, mbuf, rows, tbuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
         _local_log(v, np.float32(1.0 / white), np.float32(1.0 / contrast), l, cm, cm2, mbuf)
         r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
@@ -505,7 +513,7 @@ class LocalTonemap:
         self.params = p if self.params is None else self.speed * p + (1 - self.speed) * self.params
         c, g, k0 = (float(t) for t in self.params)
         out_max = 255.0 if out.dtype == np.uint8 else 65535.0
-        _local_apply(l, ca, cb, np.float32(c - g), np.float32(g), np.float32(k0 + exposure_stops), _lut(),
+        _local_apply(l, ca, cb, np.float32(c), np.float32(g - 1.0), np.float32(k0 + exposure_stops), _lut(),
                      np.float32(out_max), rows, tbuf, out)
         return out
 
