@@ -123,7 +123,7 @@ class WhiteTracker:
 AUTO_MEAN_LEVEL = 115.94 / 255   # display level of the log-average: TMQI's natural mean (Yeganeh and Wang Eq. 9)
 
 
-def auto_white(values: np.ndarray, contrast: float = DEFAULT_CONTRAST, stride: int = 4) -> float | None:
+def auto_white(values: np.ndarray, contrast: float = DEFAULT_CONTRAST, stride: int = 8) -> float | None:
     """The white of inputs without a sensor profile: the log-average (geometric mean) of the lit, finite
     pixels of a subsampled frame (Reinhard et al. 2002's key) shown by the log curve at AUTO_MEAN_LEVEL:
     white = key * q / (exp(AUTO_MEAN_LEVEL log(1 + q)) - 1). None when no pixel is lit."""
@@ -131,7 +131,7 @@ def auto_white(values: np.ndarray, contrast: float = DEFAULT_CONTRAST, stride: i
     sub = sub[np.isfinite(sub) & (sub > 0)]
     if not sub.size:
         return None
-    key = float(np.exp(np.mean(np.log(sub.astype(np.float64)))))
+    key = float(np.exp(np.mean(np.log(sub), dtype=np.float64)))
     return key * contrast / math.expm1(AUTO_MEAN_LEVEL * math.log1p(contrast))
 
 
