@@ -343,6 +343,19 @@ def _mean_contrast(slope, wgt, vb, vd, cov, free, c, g):
     return acc
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _local_position(ra, rb, lv, cx, j, c0, g1, k0, lo, steps):
+    """LUT position of pixel j (0..3) of cell cx: a, b interpolated along the row (`ra`, `rb` edge-extended
+    by one cell), o = c base + (1 + (g - 1)(1 - a)) detail + k0."""
+    i0 = cx + (j >> 1)
+    fx = np.float32(0.625 + 0.25 * j - (j >> 1))
+    av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
+    bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
+    base = av * lv + bv
+    gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
+    return ((c0 * base + gain * (lv - base) + k0) - lo) * steps
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
     """o = c base + (1 + (g - 1)(1 - a)) detail + k0 (g1 = g - 1), base = a l + b with a, b bilinear from the
@@ -375,28 +388,13 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
             ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
             lrow = l[y]
             # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
-            for cx in range(w // cell):
+            full = w // cell
+            for cx in range(full):
                 for j in range(cell):
                     x = cx * cell + j
-                    i0 = cx + (j >> 1)                       # in the edge-extended rows
-                    fx = np.float32(0.625 + 0.25 * j - (j >> 1))
-                    av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
-                    bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
-                    lv = lrow[x]
-                    base = av * lv + bv
-                    gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
-                    t[x] = ((c0 * base + gain * (lv - base) + k0) - lo) * steps
-            for x in range((w // cell) * cell, w):
-                cx = x // cell
-                j = x - cx * cell
-                i0 = cx + (j >> 1)
-                fx = np.float32(0.625 + 0.25 * j - (j >> 1))
-                av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
-                bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
-                lv = lrow[x]
-                base = av * lv + bv
-                gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
-                t[x] = ((c0 * base + gain * (lv - base) + k0) - lo) * steps
+                    t[x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+            for x in range(full * cell, w):
+                t[x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
             for x in range(w):
                 tv = t[x]
                 tv = tv if tv > np.float32(0.0) else np.float32(0.0)
