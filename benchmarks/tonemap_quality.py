@@ -3,6 +3,7 @@ ms per 1920 x 1080 frame, for nrtonemap's operators and OpenCV's (docs/TONEMAP.m
 
     PYTHONPATH=. .venv/bin/python benchmarks/tonemap_quality.py            # TMQI + core timings (~2 min)
     PYTHONPATH=. .venv/bin/python benchmarks/tonemap_quality.py --element  # + nrtonemap in a pipeline
+    PYTHONPATH=. .venv/bin/python benchmarks/tonemap_quality.py --chain    # + on the camera chain's output
 
 Scenes: ../shared/data/hdr/*.exr (or $NRHDR_SHARED_DATA/hdr), luminance (`io.read_luminance`), exposed as the
 simulated camera exposes them (`simulate.exposure_scale`: median at 18 % of the regular pixels' range) for
@@ -16,7 +17,9 @@ nrtonemap runs it (white included: the auto white's statistic; the local operato
 frames; OpenCV's from float luminance to uint8). `--element`: wall ms per frame of
 `appsrc ! nrtonemap operator=X ! fakesink` over `--frames` pre-made 1080p buffers (everything the element
 does: mapping, white, operator, logging checks). The anchor `copy` (one float32 1080p np.copyto) is measured
-in the same run. Writes bench_out/tonemap_quality/results.json and results.md.
+in the same run. `--chain`: TMQI against the noise-free scene of log / local applied to what the camera
+chain outputs (640 x 480 crop, sensor noise, `chain.process_frame` with method preview), beside the same
+operator on the noise-free scene. Writes bench_out/tonemap_quality/results.json and results.md.
 """
 from __future__ import annotations
 
@@ -32,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nrhdr_core import io, metrics, profile, simulate, tonemap  # noqa: E402
+from nrhdr_core import chain, io, metrics, profile, sensor, simulate, tonemap  # noqa: E402
 
 DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
 OUT = ROOT / "bench_out" / "tonemap_quality"
@@ -87,6 +90,22 @@ def quality(scenes, ops, prof):
         res[name]["mean"] = float(np.mean([res[name][sn]["Q"] for sn in scenes]))
         print(f"{name:28s} " + " ".join(f"{res[name][sn]['Q']:.3f}" for sn in scenes)
               + f"  mean {res[name]['mean']:.3f}", flush=True)
+    return res
+
+
+def chain_quality(scenes, seed=0):
+    """TMQI of log / local (profile white) on the noise-free 640 x 480 crop and on the chain's output."""
+    rng = np.random.default_rng(seed)
+    res = {}
+    for sn, lum in scenes.items():
+        crop = np.ascontiguousarray(lum[:480, :640])
+        prof = profile.make(rng.random(crop.shape) < 0.5)
+        values, _ = chain.process_frame(sensor.capture(crop, prof, rng), prof, chain.ChainSettings(method="preview"))
+        for name, fn in (("log", tonemap.log_tonemap), ("local", tonemap.local_tonemap)):
+            clean = metrics.tmqi(crop, fn(crop, prof.white))[0]
+            noisy = metrics.tmqi(crop, fn(values, prof.white))[0]
+            res.setdefault(name, {})[sn] = {"clean": clean, "chain": noisy}
+            print(f"{name:6s} {sn:18s} noise-free {clean:.3f}  chain output {noisy:.3f}", flush=True)
     return res
 
 
@@ -172,6 +191,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=15, help="timed calls per operator (median)")
     ap.add_argument("--element", action="store_true", help="also time nrtonemap in a pipeline")
     ap.add_argument("--frames", type=int, default=60, help="frames for --element")
+    ap.add_argument("--chain", action="store_true", help="also TMQI on the camera chain's output")
     ap.add_argument("--timing-scene", default="MtTamWest", choices=SCENES)
     a = ap.parse_args(argv)
     prof = profile.make(np.zeros((8, 8), bool))
@@ -182,9 +202,10 @@ def main(argv=None) -> int:
     frame = frame_1080(scenes[a.timing_scene])
     t = timings(frame, ops, prof, a.repeat)
     el = element_timings(frame, prof, a.frames) if a.element else {}
+    ch = chain_quality(scenes) if a.chain else {}
     OUT.mkdir(parents=True, exist_ok=True)
     info = {"scenes": list(SCENES), "profile_white": prof.white, "tmqi": q, "ms_1080p": t, "element_ms_1080p": el,
-            "timing_scene": a.timing_scene, "repeat": a.repeat, "cpus": os.cpu_count()}
+            "chain_tmqi": ch, "timing_scene": a.timing_scene, "repeat": a.repeat, "cpus": os.cpu_count()}
     (OUT / "results.json").write_text(json.dumps(info, indent=1) + "\n")
     md = ["| operator | " + " | ".join(SCENES) + " | mean TMQI | ms / 1080p frame |",
           "|---|" + "---|" * (len(SCENES) + 2)]
@@ -194,6 +215,12 @@ def main(argv=None) -> int:
     md.append(f"\nAnchor: one float32 1080p copy {t['copy (anchor)']:.2f} ms.")
     for k, v in el.items():
         md.append(f"{k}: {v:.1f} ms per 1080p frame in a pipeline.")
+    if ch:
+        md += ["", "| TMQI, 640 x 480 crop: noise-free / chain output | " + " | ".join(SCENES) + " |",
+               "|---|" + "---|" * len(SCENES)]
+        for name, r in ch.items():
+            md.append(f"| {name} | " + " | ".join(f"{r[sn]['clean']:.3f} / {r[sn]['chain']:.3f}" for sn in SCENES)
+                      + " |")
     text = "\n".join(md) + "\n"
     (OUT / "results.md").write_text(text)
     print(text)
