@@ -3,7 +3,9 @@
 y = log(1 + q x) / log(1 + q), x = clip(L 2^e / white, 0, 1): the standard logarithmic operator
 (HDR Toolbox LogarithmicTMO) with contrast q and exposure e in stops. The normaliser `white` is fixed
 (the sensor's largest scaled value, (clip - black) * ND) or smoothed over time (`WhiteTracker`), never a
-per-frame min/max: video must not flicker.
+per-frame min/max: video must not flicker. `LocalTonemap` is the local operator (base / detail on log
+luminance, Durand and Dorsey 2002, with a guided filter), `auto_white` / `AutoWhite` the white of inputs
+without a sensor profile (docs/TONEMAP.md).
 
 HDR display output (beyond the paper): the SMPTE ST 2084 (PQ) inverse EOTF and the ARIB STD-B67 / ITU-R
 BT.2100 HLG OETF, named and written as in colour-science (colour/models/rgb/transfer_functions/st_2084.py,
