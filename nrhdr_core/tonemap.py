@@ -3,7 +3,9 @@
 y = log(1 + q x) / log(1 + q), x = clip(L 2^e / white, 0, 1): the standard logarithmic operator
 (HDR Toolbox LogarithmicTMO) with contrast q and exposure e in stops. The normaliser `white` is fixed
 (the sensor's largest scaled value, (clip - black) * ND) or smoothed over time (`WhiteTracker`), never a
-per-frame min/max: video must not flicker.
+per-frame min/max: video must not flicker. `LocalTonemap` is the local operator (base / detail on log
+luminance, Durand and Dorsey 2002, with a guided filter), `auto_white` / `AutoWhite` the white of inputs
+without a sensor profile (docs/TONEMAP.md).
 
 HDR display output (beyond the paper): the SMPTE ST 2084 (PQ) inverse EOTF and the ARIB STD-B67 / ITU-R
 BT.2100 HLG OETF, named and written as in colour-science (colour/models/rgb/transfer_functions/st_2084.py,
@@ -118,6 +120,428 @@ class WhiteTracker:
 
     def reset(self) -> None:
         self.white = None
+
+
+AUTO_MEAN_LEVEL = 115.94 / 255   # display level of the log-average: TMQI's natural mean (Yeganeh and Wang Eq. 9)
+
+
+def auto_white(values: np.ndarray, contrast: float = DEFAULT_CONTRAST, stride: int = 8) -> float | None:
+    """The white of inputs without a sensor profile: the log-average (geometric mean) of the lit, finite
+    pixels of a subsampled frame (Reinhard et al. 2002's key) shown by the log curve at AUTO_MEAN_LEVEL:
+    white = key * q / (exp(AUTO_MEAN_LEVEL log(1 + q)) - 1). None when no pixel is lit."""
+    sub = np.asarray(values, np.float32)[::stride, ::stride]
+    sub = sub[np.isfinite(sub) & (sub > 0)]
+    if not sub.size:
+        return None
+    key = float(np.exp(np.mean(np.log(sub), dtype=np.float64)))
+    return key * contrast / math.expm1(AUTO_MEAN_LEVEL * math.log1p(contrast))
+
+
+class AutoWhite:
+    """`auto_white` smoothed over time in the log domain (exposure changes are symmetric):
+    log white_t = speed log w_t + (1 - speed) log white_t-1; the first lit frame initialises it, frames
+    without a lit pixel keep it (1.0 until then)."""
+
+    def __init__(self, speed: float = 0.1, contrast: float = DEFAULT_CONTRAST):
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"smoothing speed must be in (0, 1], got {speed}")
+        self.speed, self.contrast, self.white = speed, contrast, None
+
+    def update(self, values: np.ndarray) -> float:
+        w = auto_white(values, self.contrast)
+        if w is not None:
+            w = min(max(w, 1e-30), 1e30)
+            self.white = w if self.white is None else math.exp(
+                self.speed * math.log(w) + (1 - self.speed) * math.log(self.white))
+        return 1.0 if self.white is None else self.white
+
+    def reset(self) -> None:
+        self.white = None
+
+
+# ---- local operator: base / detail on log luminance (Durand and Dorsey 2002) ------------------------------
+#
+# l = log2(x + 1/q), x = L 2^e / white (the log curve's toe: below white / q shadows compress linearly, so
+# the noise floor is not amplified); base = a guided filter of l (He, Sun and Tang 2013, the fast variant of
+# He and Sun 2015: coefficients on CELL x CELL means, bilinearly upsampled), detail = l - base;
+# o = c (base - m) + g detail + s shown through y = log(1 + Q 2^min(o, 0)) / log(1 + Q).
+# c compresses the base's robust range (0.5 .. 99.5th percentile of BLOCK-pixel block means) to at most
+# LOCAL_RANGE stops; s puts the mean display level at LOCAL_MEAN and g (in [1, LOCAL_GAIN_MAX]) gives a mean
+# 11 x 11-scale contrast of LOCAL_CONTRAST: the brightness and contrast of natural images (the mode of TMQI's
+# naturalness model, Yeganeh and Wang 2013 Eq. 9-10). The statistics are smoothed over time like WhiteTracker.
+
+LOCAL_CELL = 4              # pixels per coarse cell (guided-filter subsampling)
+LOCAL_BLOCK = 3             # coarse cells per statistics block (12 x 12 pixels)
+LOCAL_RADIUS = 0.02         # guided-filter radius, fraction of the larger frame side (Durand: 2 %)
+LOCAL_EPS = 0.5             # guided-filter regulariser, stops^2: edges above ~0.7 stop stay in the base
+LOCAL_RANGE = 7.0           # stops of base range shown
+LOCAL_MEAN = 115.94 / 255   # target mean display level
+LOCAL_CONTRAST = 17.5 / 255  # target mean block std (64.29 x the Beta mode 3.4/12.5 of TMQI)
+LOCAL_GAIN_MAX = 5.0
+LOCAL_Q = 300.0             # display curve contrast
+LOCAL_TOE_LEVEL = 0.25      # highest display level of the toe (x = white / q)
+_LUT_LO, _LUT_STEPS = -40.0, 64     # LUT domain o in [-40, 0] stops, 64 entries per stop
+_LOG2_MAX = 100.0                    # x is capped at 2^100 (1e30 and +inf stay finite)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _local_log(values, scale, toe, l, cm, cm2, mbuf):
+    """l = log2(min(max(v scale, 0), 2^100) + toe) (NaN -> log2(toe)) per pixel into `l`; `cm`, `cm2`: means of
+    l and l^2 per LOCAL_CELL^2 cell. log2 by exponent / mantissa split, ln m = 2 atanh(z), z = (m-1)/(m+1)
+    (|error| < 1e-6 stops); rows in chunks, `mbuf` (chunks, w) the chunks' mantissa rows."""
+    h, w = values.shape
+    hc, wc = cm.shape
+    nch = mbuf.shape[0]
+    cell = LOCAL_CELL
+    xmax = np.float32(2.0 ** _LOG2_MAX)
+    k = np.float32(2.0 / math.log(2.0))
+    for c in prange(nch):
+        mrow = mbuf[c]
+        mbits = mrow.view(np.int32)
+        for cy in range((c * hc) // nch, ((c + 1) * hc) // nch):
+            for cx in range(wc):
+                cm[cy, cx] = 0.0
+                cm2[cy, cx] = 0.0
+            y1 = min(h, (cy + 1) * cell)
+            for y in range(cy * cell, y1):
+                lrow = l[y]
+                lbits = lrow.view(np.int32)
+                for x in range(w):
+                    v = values[y, x] * scale
+                    v = v if v > np.float32(0.0) else np.float32(0.0)     # also NaN
+                    v = v if v < xmax else xmax
+                    lrow[x] = v + toe
+                for x in range(w):
+                    b = lbits[x]
+                    mbits[x] = (b & 0x7FFFFF) | 0x3F800000
+                    lrow[x] = np.float32((b >> 23) - 127)
+                for x in range(w):
+                    m = mrow[x]
+                    big = m > np.float32(1.4142135)
+                    m = m * np.float32(0.5) if big else m
+                    e = lrow[x] + np.float32(1.0) if big else lrow[x]
+                    z = (m - np.float32(1.0)) / (m + np.float32(1.0))
+                    zz = z * z
+                    p = np.float32(1.0 / 9.0)
+                    p = p * zz + np.float32(1.0 / 7.0)
+                    p = p * zz + np.float32(1.0 / 5.0)
+                    p = p * zz + np.float32(1.0 / 3.0)
+                    p = p * zz + np.float32(1.0)
+                    lrow[x] = e + k * z * p
+                for cx in range(wc):
+                    s1 = 0.0
+                    s2 = 0.0
+                    for x in range(cx * cell, min(w, (cx + 1) * cell)):
+                        t = lrow[x]
+                        s1 += t
+                        s2 += t * t
+                    cm[cy, cx] += s1
+                    cm2[cy, cx] += s2
+            ny = y1 - cy * cell
+            for cx in range(wc):
+                n = ny * (min(w, (cx + 1) * cell) - cx * cell)
+                cm[cy, cx] /= n
+                cm2[cy, cx] /= n
+
+
+@njit(cache=True, nogil=True)
+def _box(src, r, tmp, acc, dst):
+    """Mean over the (2r+1)^2 window clipped to the frame (running sums: along rows, then down the columns
+    with the row vector `acc`)."""
+    h, w = src.shape
+    for y in range(h):
+        s = 0.0
+        for x in range(min(r, w - 1) + 1):
+            s += src[y, x]
+        for x in range(w):
+            lo, hi = x - r, x + r
+            tmp[y, x] = s / (min(hi, w - 1) - max(lo, 0) + 1)
+            if hi + 1 < w:
+                s += src[y, hi + 1]
+            if lo >= 0:
+                s -= src[y, lo]
+    for x in range(w):
+        acc[x] = 0.0
+    for y in range(min(r, h - 1) + 1):
+        for x in range(w):
+            acc[x] += tmp[y, x]
+    for y in range(h):
+        lo, hi = y - r, y + r
+        inv = 1.0 / (min(hi, h - 1) - max(lo, 0) + 1)
+        for x in range(w):
+            dst[y, x] = acc[x] * inv
+        if hi + 1 < h:
+            for x in range(w):
+                acc[x] += tmp[hi + 1, x]
+        if lo >= 0:
+            for x in range(w):
+                acc[x] -= tmp[lo, x]
+
+
+@njit(cache=True, nogil=True)
+def _guided_coefficients(cm, cm2, r, eps, ca, cb, t1, t2, t3, acc):
+    """Guided filter of the coarse log image by itself (He et al. 2013, Alg. 1): a = var / (var + eps),
+    b = mean (1 - a), each box-averaged into `ca`, `cb`."""
+    _box(cm, r, t1, acc, t2)            # mean
+    _box(cm2, r, t1, acc, t3)           # mean of squares
+    h, w = cm.shape
+    for y in range(h):
+        for x in range(w):
+            mu = t2[y, x]
+            var = t3[y, x] - mu * mu
+            var = var if var > 0.0 else 0.0
+            a = var / (var + eps)
+            t2[y, x] = a
+            t3[y, x] = mu - a * mu
+    _box(t2, r, t1, acc, ca)
+    _box(t3, r, t1, acc, cb)
+
+
+@njit(cache=True, nogil=True)
+def _block_stats(cm, cm2, ca, cb, stats):
+    """Per LOCAL_BLOCK^2-cell block: cells, and the sums of the cells' means of base, base^2, detail, detail^2,
+    base detail and of the coefficient a, from each cell's l moments with its coefficients (base = a l + b, detail = (1 - a) l - b)."""
+    hc, wc = cm.shape
+    stats[:] = 0.0
+    for y in range(hc):
+        by = y // LOCAL_BLOCK
+        for x in range(wc):
+            bx = x // LOCAL_BLOCK
+            a, b, m1, m2 = ca[y, x], cb[y, x], cm[y, x], cm2[y, x]
+            u = 1.0 - a
+            stats[by, bx, 0] += 1.0
+            stats[by, bx, 1] += a * m1 + b
+            stats[by, bx, 2] += a * a * m2 + 2.0 * a * b * m1 + b * b
+            stats[by, bx, 3] += u * m1 - b
+            stats[by, bx, 4] += u * u * m2 - 2.0 * u * b * m1 + b * b
+            stats[by, bx, 5] += a * u * m2 + (b * u - a * b) * m1 - b * b
+            stats[by, bx, 6] += a
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lut_at(lut, o):
+    t = (o - _LUT_LO) * _LUT_STEPS
+    t = t if t > 0.0 else 0.0
+    t = t if t < lut.shape[0] - 1 else lut.shape[0] - 1.0
+    i = min(int(t), lut.shape[0] - 2)
+    return lut[i] + (t - i) * (lut[i + 1] - lut[i])
+
+
+@njit(cache=True, nogil=True)
+def _mean_level(rel, wgt, s, lut):
+    acc = 0.0
+    for i in range(rel.shape[0]):
+        acc += wgt[i] * _lut_at(lut, rel[i] + s)
+    return acc
+
+
+@njit(cache=True, nogil=True)
+def _mean_contrast(slope, wgt, vb, vd, cov, free, c, g):
+    acc = 0.0
+    for i in range(slope.shape[0]):
+        gi = 1.0 + (g - 1.0) * free[i]
+        v = c * c * vb[i] + gi * gi * vd[i] + 2.0 * c * gi * cov[i]
+        acc += wgt[i] * slope[i] * math.sqrt(v if v > 0.0 else 0.0)
+    return acc
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _local_position(ra, rb, lv, cx, j, c0, g1, k0, lo, steps):
+    """LUT position of pixel j (0..3) of cell cx: a, b interpolated along the row (`ra`, `rb` edge-extended
+    by one cell), o = c base + (1 + (g - 1)(1 - a)) detail + k0."""
+    i0 = cx + (j >> 1)
+    fx = np.float32(0.625 + 0.25 * j - (j >> 1))
+    av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
+    bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
+    base = av * lv + bv
+    gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
+    return ((c0 * base + gain * (lv - base) + k0) - lo) * steps
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
+    """o = c base + (1 + (g - 1)(1 - a)) detail + k0 (g1 = g - 1), base = a l + b with a, b bilinear from the
+    coarse grid (cell centres): the gain fades to 1 where the base follows the image (a -> 1, strong edges,
+    where a detail is the filter's residual, not texture); display code by the LUT (linear interpolation). Rows in chunks: `rows`
+    (chunks, 2, wc + 2) the coarse a, b interpolated down the column (edge-extended by one cell), `tbuf`
+    (chunks, w) the LUT positions."""
+    h, w = l.shape
+    hc, wc = ca.shape
+    n = lut.shape[0]
+    nch = tbuf.shape[0]
+    steps = np.float32(_LUT_STEPS)
+    lo = np.float32(_LUT_LO)
+    top = np.float32(n - 1)
+    cell = LOCAL_CELL
+    for c in prange(nch):
+        ra = rows[c, 0]
+        rb = rows[c, 1]
+        t = tbuf[c]
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            f = (y + 0.5) / cell - 0.5
+            f = f if f > 0.0 else 0.0
+            y0 = min(int(f), hc - 1)
+            y1 = min(y0 + 1, hc - 1)
+            fy = f - y0
+            for cx in range(wc):
+                ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+                rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+            ra[0], rb[0] = ra[1], rb[1]
+            ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
+            lrow = l[y]
+            # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
+            full = w // cell
+            for cx in range(full):
+                for j in range(cell):
+                    x = cx * cell + j
+                    t[x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+            for x in range(full * cell, w):
+                t[x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+            for x in range(w):
+                tv = t[x]
+                tv = tv if tv > np.float32(0.0) else np.float32(0.0)
+                tv = tv if tv < top else top
+                i = min(int(tv), n - 2)
+                ft = tv - np.float32(i)
+                out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+
+
+def _display(o):
+    """The local operator's display curve: y = log(1 + Q 2^min(o, 0)) / log(1 + Q)."""
+    return np.log1p(LOCAL_Q * np.exp2(np.minimum(o, 0.0))) / math.log1p(LOCAL_Q)
+
+
+def _display_slope(o):
+    """dy/do of `_display` (per stop), 0 where the curve is at full scale."""
+    x = LOCAL_Q * np.exp2(np.minimum(o, 0.0))
+    return np.where(o < 0.0, math.log(2.0) * x / (1.0 + x) / math.log1p(LOCAL_Q), 0.0)
+
+
+_LUT = []
+
+
+def _lut() -> np.ndarray:
+    if not _LUT:
+        o = _LUT_LO + np.arange(int(-_LUT_LO * _LUT_STEPS) + 1) / _LUT_STEPS
+        _LUT.append(_display(o).astype(np.float32))
+    return _LUT[0]
+
+
+def _bisect(f, lo: float, hi: float, target: float, tol: float) -> float:
+    """x in [lo, hi] where the increasing f(x) reaches target (lo or hi when it never does)."""
+    if f(lo) >= target:
+        return lo
+    if f(hi) <= target:
+        return hi
+    while hi - lo > tol:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if f(mid) < target else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def local_parameters(stats: np.ndarray, toe: float = 1.0 / DEFAULT_CONTRAST) -> tuple[float, float, float]:
+    """(c, g, s - c m) from the block sums of `_block_stats`: base compression, detail gain and offset that
+    give the target mean level and contrast (module notes). The offset never shows the toe (x = toe,
+    l = log2(2 toe)) above LOCAL_TOE_LEVEL: a black frame stays dark instead of being lifted to the mean."""
+    st = stats.reshape(-1, 7)
+    n = st[:, 0]
+    n = np.where(n > 0, n, 1.0)
+    mu, mu_d = st[:, 1] / n, st[:, 3] / n
+    var_b = np.maximum(st[:, 2] / n - mu * mu, 0.0)
+    var_d = np.maximum(st[:, 4] / n - mu_d * mu_d, 0.0)
+    cov = st[:, 5] / n - mu * mu_d
+    free = 1.0 - st[:, 6] / n           # 1 - a: the detail's share that gets the extra gain
+    wgt = st[:, 0] / st[:, 0].sum()
+    m = float(np.sum(wgt * mu))
+    lo, hi = np.percentile(mu, [0.5, 99.5])
+    c = min(1.0, LOCAL_RANGE / max(float(hi - lo), 1e-6))
+    rel = c * (mu - m)
+    lut = _lut()
+    s = _bisect(lambda s: _mean_level(rel, wgt, s, lut), -60.0, 60.0, LOCAL_MEAN, 1e-3)
+    slope = _display_slope(rel + s)
+    g = _bisect(lambda g: _mean_contrast(slope, wgt, var_b, var_d, cov, free, c, g), 1.0, LOCAL_GAIN_MAX,
+                LOCAL_CONTRAST, 1e-3)
+    o_toe = math.log2(math.expm1(LOCAL_TOE_LEVEL * math.log1p(LOCAL_Q)) / LOCAL_Q)     # inverse of _display
+    return c, g, min(s - c * m, o_toe - c * math.log2(2.0 * toe))
+
+
+class LocalTonemap:
+    """The local operator (module notes) with its statistics (c, g, offset) smoothed over time:
+    p_t = speed * frame + (1 - speed) * p_t-1, the first frame initialises them (`reset` restarts)."""
+
+    def __init__(self, speed: float = 1.0):
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"smoothing speed must be in (0, 1], got {speed}")
+        self.speed = speed
+        self.params = None
+
+    def reset(self) -> None:
+        self.params = None
+
+    def __call__(self, values: np.ndarray, white: float, exposure_stops: float = 0.0,
+                 contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None, dtype=np.uint8) -> np.ndarray:
+        """Linear values (H, W) to uint8 / uint16 display codes; `white` / `contrast` set the toe (white / q),
+        `exposure_stops` shifts the automatic brightness."""
+        from .scratch import planes
+        if not (white > 0 and math.isfinite(white)):
+            raise ValueError(f"tone mapping white must be a finite number > 0, got {white}")
+        if not (contrast > 0 and math.isfinite(contrast)):
+            raise ValueError(f"tone mapping contrast must be > 0, got {contrast}")
+        v = np.asarray(values, dtype=np.float32)
+        if v.ndim != 2 or min(v.shape) < 1:
+            raise ValueError(f"tone mapping needs a 2-D frame, got shape {v.shape}")
+        if out is None:
+            out = np.empty(v.shape, dtype=dtype)
+        if out.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"tone mapping output must be uint8 or uint16, got {out.dtype}")
+        h, w = v.shape
+        cell = LOCAL_CELL
+        hc, wc = -(-h // cell), -(-w // cell)
+
+        def make():
+            coarse = [np.empty((hc, wc)) for _ in range(7)]
+            return (np.empty((h, w), np.float32), np.empty((min(hc, 64), w), np.float32),
+                    np.empty((min(h, 64), 2, wc + 2), np.float32), np.empty((min(h, 64), w), np.float32),
+                    np.empty(wc),
+                    np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 7)), *coarse)
+        l, mbuf, rows, tbuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
+        _local_log(v, np.float32(1.0 / white), np.float32(1.0 / contrast), l, cm, cm2, mbuf)
+        r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
+        _guided_coefficients(cm, cm2, r, LOCAL_EPS, ca, cb, t1, t2, t3, acc)
+        _block_stats(cm, cm2, ca, cb, stats)
+        p = np.array(local_parameters(stats, 1.0 / contrast))
+        self.params = p if self.params is None else self.speed * p + (1 - self.speed) * self.params
+        c, g, k0 = (float(t) for t in self.params)
+        out_max = 255.0 if out.dtype == np.uint8 else 65535.0
+        _local_apply(l, ca, cb, np.float32(c), np.float32(g - 1.0), np.float32(k0 + exposure_stops), _lut(),
+                     np.float32(out_max), rows, tbuf, out)
+        return out
+
+
+def local_tonemap(values: np.ndarray, white: float, exposure_stops: float = 0.0,
+                  contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None, dtype=np.uint8) -> np.ndarray:
+    """One frame through a fresh `LocalTonemap` (stills; video keeps one `LocalTonemap`)."""
+    return LocalTonemap()(values, white, exposure_stops, contrast, out, dtype)
+
+
+SDR_OPERATORS = ("log", "local")
+
+
+def warmup_local(elements: bool = False) -> None:
+    """Compile (or load) the local operator's kernels on a tiny frame; `elements`: also a read-only input and
+    padded uint8 / uint16 output rows (nrtonemap's mapped buffers)."""
+    h, w = 12, 16
+    v = np.geomspace(1.0, 1e4, h * w).astype(np.float32).reshape(h, w)
+    inputs = [v]
+    outs = [np.empty((h, w), np.uint8)]
+    if elements:
+        ro = v.copy()
+        ro.setflags(write=False)
+        inputs.append(ro)
+        outs += [np.empty((h, w), np.uint16)] + [np.zeros((h, w + 4), dt)[:, :w] for dt in (np.uint8, np.uint16)]
+    for x in inputs:
+        for out in outs:
+            LocalTonemap()(x, 1e4, out=out)
 
 
 # ---- HDR transfer functions (ITU-R BT.2100) --------------------------------------------------------------

@@ -387,7 +387,7 @@ def test_tonemap_log_curve_and_formats(gst, fmt, maxcode):
     v[0, 0] = -5.0
     s = np.zeros((h, w), np.uint8)
     bufs = [hdr_buffer(v, s, pts=i * DUR, duration=DUR) for i in range(3)]
-    r = run_appsrc(f"nrtonemap ! video/x-raw,format={fmt}", hdr_caps(w, h, white), bufs)
+    r = run_appsrc(f"nrtonemap operator=log ! video/x-raw,format={fmt}", hdr_caps(w, h, white), bufs)
     assert r.error is None, r.error_text
     assert len(r.samples) == 3
     exp = expected_log(v, white, maxcode=maxcode)
@@ -414,7 +414,8 @@ def test_tonemap_fixed_white_exposure_contrast_while_playing(gst):
             el.set_property("white", 5000.0)
             el.set_property("contrast", 10.0)
 
-    r = run_appsrc("nrtonemap name=t", hdr_caps(w, h, 26000.0), bufs, before_push=before, lockstep=True)
+    r = run_appsrc("nrtonemap name=t operator=log", hdr_caps(w, h, 26000.0), bufs, before_push=before,
+                   lockstep=True)
     assert r.error is None, r.error_text
     imgs = [smp[3].astype(np.int64) for smp in r.samples]
     assert np.abs(imgs[0] - expected_log(v, 26000.0)).max() <= 1
@@ -445,7 +446,8 @@ def test_tonemap_exposure_follows_a_controller_curve(gst):
             el = pipeline.get_by_name("t")
             el.add_control_binding(GstController.DirectControlBinding.new_absolute(el, "exposure", cs))
 
-    r = run_appsrc("nrtonemap name=t", hdr_caps(w, h, 26000.0), bufs, before_push=before, lockstep=True)
+    r = run_appsrc("nrtonemap name=t operator=log", hdr_caps(w, h, 26000.0), bufs, before_push=before,
+                   lockstep=True)
     assert r.error is None, r.error_text
     for img, ev in zip([smp[3].astype(np.int64) for smp in r.samples], (0.0, 2.0, -1.0)):
         assert np.abs(img - expected_log(v, 26000.0, exposure=ev)).max() <= 1, ev
@@ -457,7 +459,7 @@ def test_tonemap_smoothed_white_does_not_flicker(gst):
     base = np.linspace(100, 1000, h * w, dtype=np.float32).reshape(h, w)
     frames = [base] * 3 + [base * 4] * 3          # a sudden 2-stop brightening
     bufs = [hdr_buffer(f, s, pts=i * DUR, duration=DUR) for i, f in enumerate(frames)]
-    r = run_appsrc("nrtonemap normalise=smoothed smoothing=0.3", hdr_caps(w, h), bufs)
+    r = run_appsrc("nrtonemap operator=log normalise=smoothed smoothing=0.3", hdr_caps(w, h), bufs)
     assert r.error is None, r.error_text
     means = [float(smp[3].mean()) for smp in r.samples]
     assert means[0] == means[1] == means[2]                 # steady scene, steady picture
@@ -466,12 +468,51 @@ def test_tonemap_smoothed_white_does_not_flicker(gst):
     assert means[3] != pytest.approx(means[0], abs=0.5)
 
 
-def test_tonemap_without_white_in_caps_fails_clearly(gst):
+def test_tonemap_without_white_in_caps_uses_the_automatic_white(gst):
+    from nrhdr_core import tonemap
+    h, w = 8, 16
+    v = np.geomspace(1.0, 5000.0, h * w).astype(np.float32).reshape(h, w)
+    s = np.zeros((h, w), np.uint8)
+    r = run_appsrc("nrtonemap operator=log", hdr_caps(w, h), [hdr_buffer(v, s, pts=0, duration=DUR)])
+    assert r.error is None, r.error_text
+    assert np.abs(r.samples[0][3].astype(np.int64) - expected_log(v, tonemap.auto_white(v))).max() <= 1
+
+
+def test_tonemap_fixed_without_white_fails_clearly(gst):
     v = np.ones((4, 4), np.float32)
     s = np.zeros((4, 4), np.uint8)
-    r = run_appsrc("nrtonemap", hdr_caps(4, 4), [hdr_buffer(v, s, pts=0, duration=DUR)])
+    r = run_appsrc("nrtonemap normalise=fixed", hdr_caps(4, 4), [hdr_buffer(v, s, pts=0, duration=DUR)])
     assert r.error is not None and r.error[0].startswith("nrtonemap")
     assert "white" in r.error[1]
+
+
+@pytest.mark.parametrize("fmt,dtype", [("GRAY8", np.uint8), ("GRAY16_LE", np.uint16)])
+def test_tonemap_local_operator_is_the_core_operator_over_frames(gst, fmt, dtype):
+    """operator=local (the default) in a pipeline: frame for frame the core `LocalTonemap` with the
+    element's smoothing, normalised by the caps' white; strided GRAY8 rows."""
+    from nrhdr_core import tonemap
+    h, w = 30, 62
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = (np.geomspace(5.0, 40000.0, h * w).reshape(h, w) * 2.0 ** (0.4 * np.sin(xx / 2.0))).astype(np.float32)
+    frames = [base, base * 2, base * 2]
+    s = np.zeros((h, w), np.uint8)
+    bufs = [hdr_buffer(f, s, pts=i * DUR, duration=DUR) for i, f in enumerate(frames)]
+    r = run_appsrc(f"nrtonemap smoothing=0.5 ! video/x-raw,format={fmt}", hdr_caps(w, h, 26000.0), bufs)
+    assert r.error is None, r.error_text
+    op = tonemap.LocalTonemap(speed=0.5)
+    for (_caps, _pts, _dur, img), f in zip(r.samples, frames):
+        assert np.array_equal(img, op(f, 26000.0, dtype=dtype))
+    assert r.samples[1][3].mean() != r.samples[2][3].mean()       # still adapting: smoothed, not per frame
+
+
+def test_tonemap_operator_is_an_enum(gst):
+    from gst_plugins.elements.nrtonemap import PROPERTIES
+    assert PROPERTIES["operator"].choices == ("log", "local")
+    assert PROPERTIES.check("operator", "fancy")[1] == "invalid value 'fancy' for property 'operator' (one of log, local)"
+    el = gst.ElementFactory.make("nrtonemap", None)
+    assert el.get_property("operator").value_nick == "local"
+    el.set_property("operator", "log")
+    assert el.get_property("operator").value_nick == "log"
 
 
 # ---- nrexrsink -----------------------------------------------------------------------------------------

@@ -1,25 +1,29 @@
-"""nrtonemap: HDR frames to display video. transfer=log (default): logarithmic tone mapping (paper section 5)
-to GRAY8 or GRAY16_LE for any stock sink (format negotiated with downstream). transfer=pq / hlg (beyond the
+"""nrtonemap: HDR frames to display video. transfer=log (default): SDR tone mapping to GRAY8 or GRAY16_LE for any
+stock sink (format negotiated with downstream), by the paper's logarithmic curve (operator=log, section 5) or
+the local base/detail operator (operator=local, docs/TONEMAP.md). transfer=pq / hlg (beyond the
 paper): 10-bit BT.2100 PQ (SMPTE ST 2084) or HLG (ARIB STD-B67) codes, narrow range, in GRAY16_LE/BE words
 (code << 6) with colorimetry=bt2100-pq / bt2100-hlg in the caps, for HDR monitors and 10-bit encoders
 (`videoconvert ! video/x-raw,format=I420_10LE ! vp9enc`).
 
 The normaliser is fixed (the caps' `white` / `diffuse-white`, set by nrvalidity from the profile, or the
-`white` property) or smoothed over time (`nrhdr_core.tonemap.WhiteTracker`), never a per-frame min/max, so
-video does not flicker. pixel-aspect-ratio and interlace-mode pass through.
+`white` property) or smoothed over time (`nrhdr_core.tonemap.WhiteTracker`, or `AutoWhite` where the caps
+carry no white), never a per-frame min/max, so video does not flicker. pixel-aspect-ratio and interlace-mode
+pass through.
 """
 from __future__ import annotations
 
 import math
 import time
 
-from nrhdr_core.tonemap import DEFAULT_CONTRAST, REFERENCE_WHITE_NITS, TRANSFERS as HDR_TRANSFERS
+from nrhdr_core.tonemap import DEFAULT_CONTRAST, REFERENCE_WHITE_NITS, SDR_OPERATORS
+from nrhdr_core.tonemap import TRANSFERS as HDR_TRANSFERS
 
 from ._common import (HDR_MEDIA_TYPE, LATENCY_PROP, Gst, GstBase, GstVideo, HdrInfo, LiveTiming, NrElement,
                       Prop, PropertyTable, copy_fields, debug_category, guarded, hdr_template_caps, map_hdr,
                       map_video, np, raw_template_caps, starting, transform_caps_by_structure)
 
-NORMALISE = ("caps", "fixed", "smoothed")
+NORMALISE = ("caps", "fixed", "smoothed", "auto")
+DEFAULT_OPERATOR = "local"     # docs/TONEMAP.md: the measured choice
 TRANSFERS = ("log",) + HDR_TRANSFERS
 COLORIMETRY = {"pq": "bt2100-pq", "hlg": "bt2100-hlg"}
 LOG_FORMATS = ("GRAY8", "GRAY16_LE")
@@ -35,8 +39,14 @@ def _src_template() -> Gst.Caps:
 PROPERTIES = PropertyTable("GstNrTonemap", [
     Prop("normalise", NORMALISE, "caps", "Normaliser",
          "Where the white (value mapped to full scale) comes from: 'caps' = the caps field white (4094 x ND, "
-         "set by nrvalidity from the profile); 'fixed' = the white property; 'smoothed' = a high percentile "
-         "of each frame smoothed over time (smoothing)", playing=True),
+         "set by nrvalidity from the profile; transfer=log without it: as 'auto'); 'fixed' = the white "
+         "property; 'smoothed' = a high percentile of each frame smoothed over time (smoothing); 'auto' "
+         "(transfer=log) = the frame's log-average shown at the natural mean level, smoothed over time",
+         playing=True),
+    Prop("operator", SDR_OPERATORS, DEFAULT_OPERATOR, "SDR operator",
+         "transfer=log: 'log' = the paper's global curve y = log(1 + q x) / log(1 + q); 'local' = base/detail "
+         "split on log luminance with a guided filter, base range compressed, detail and brightness set "
+         "from statistics smoothed over time (smoothing)", playing=True),
     Prop("transfer", TRANSFERS, "log", "Transfer function",
          "Output: 'log' = the paper's logarithmic tone mapping to SDR GRAY8/GRAY16_LE; 'pq' = SMPTE ST 2084, "
          "'hlg' = ARIB STD-B67: 10-bit BT.2100 narrow-range codes (64..940) << 6 in GRAY16_LE/BE, "
@@ -54,9 +64,9 @@ PROPERTIES = PropertyTable("GstNrTonemap", [
          "Contrast q of the logarithmic curve y = log(1 + q x) / log(1 + q): larger = more shadow detail",
          minimum=1e-3, maximum=1e9, playing=True, controllable=True),
     Prop("smoothing", float, 0.1, "Smoothing speed",
-         "normalise=smoothed: weight of the current frame in the running white, white = speed * frame + "
-         "(1 - speed) * previous (1 = no smoothing)", minimum=0.001, maximum=1.0, playing=True,
-         controllable=True),
+         "normalise=smoothed/auto and operator=local: weight of the current frame in the running white "
+         "and statistics, value = speed * frame + (1 - speed) * previous (1 = no smoothing)", minimum=0.001,
+         maximum=1.0, playing=True, controllable=True),
     LATENCY_PROP,
 ])
 
@@ -68,8 +78,9 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
     __gstmetadata__ = (
         "nrhdr tone mapping and HDR output",
         "Filter/Converter/Video",
-        "Linear HDR frames (other/x-nrhdr) to display video: logarithmic tone mapping (paper section 5) to "
-        "GRAY8/GRAY16_LE normalised by a fixed or temporally smoothed white (no flicker), or 10-bit BT.2100 "
+        "Linear HDR frames (other/x-nrhdr) to display video: SDR tone mapping (a local operator, or the "
+        "paper's logarithmic curve, section 5) to GRAY8/GRAY16_LE normalised by a fixed or temporally "
+        "smoothed white (no flicker), or 10-bit BT.2100 "
         "PQ / HLG (transfer=pq|hlg) with bt2100 colorimetry",
         "nrhdr project",
     )
@@ -91,6 +102,7 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
         self._out_dtype = np.uint8
         self._tracker = None
         self._tracker_speed = None
+        self._sdr_reset()
         self._frames = 0
         self.set_in_place(False)
         self.set_passthrough(False)
@@ -100,18 +112,24 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
     def do_start(self):
         from nrhdr_core import chain
         self.nr_warmup(chain.warmup, stages=("tonemap",), transfers=(self.settings.transfer,), elements=True)
+        if self.settings.transfer == "log" and self.settings.operator == "local":
+            from nrhdr_core import tonemap
+            self.nr_warmup(tonemap.warmup_local, elements=True)
         self._tracker = None
+        self._sdr_reset()
         self._frames = 0
         return True
 
     def do_stop(self):
         self._in_info = self._out_info = None
         self._tracker = None
+        self._sdr_reset()
         return True
 
     def do_sink_event(self, event):
         if event.type == Gst.EventType.FLUSH_STOP:
             self._tracker = None  # a seek restarts the temporal smoothing
+            self._sdr_reset()
         return GstBase.BaseTransform.do_sink_event(self, event)
 
     # ---- caps ---------------------------------------------------------------------------------------
@@ -181,13 +199,46 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
         self._out_transfer = transfer
         self._out_info = vi
         self._tracker = None
+        self._sdr_reset()
         self.gst_debug(f"caps: {incaps.to_string()} -> {outcaps.to_string()} (transfer={transfer})")
         return True
 
     # ---- data ---------------------------------------------------------------------------------------
+    def _sdr_reset(self) -> None:
+        """Restart the SDR path's temporal state: the automatic white and the local operator's statistics."""
+        self._auto = None
+        self._local = None
+        self._auto_noted = False
+
+    def _auto_white(self, p, values) -> float:
+        from nrhdr_core import tonemap
+        if self._auto is None:
+            self._auto = tonemap.AutoWhite(p.smoothing, p.contrast)
+        self._auto.speed, self._auto.contrast = p.smoothing, p.contrast
+        return self._auto.update(values)
+
+    def _sdr(self, p, values, white, out) -> None:
+        """transfer=log: the SDR operator into the mapped output."""
+        from nrhdr_core import tonemap
+        if p.operator == "local":
+            if self._local is None:
+                self._local = tonemap.LocalTonemap(p.smoothing)
+            self._local.speed = p.smoothing
+            self._local(values, white, exposure_stops=p.exposure, contrast=p.contrast, out=out)
+        else:
+            tonemap.log_tonemap(values, white, exposure_stops=p.exposure, contrast=p.contrast, out=out)
+
     def _white(self, p, values, hdr: bool = False) -> float:
         """The normaliser: full scale of the log curve, or (hdr) the value shown at reference white."""
         from nrhdr_core import tonemap
+        if p.normalise == "auto" or (p.normalise == "caps" and not hdr and self._in_info.white is None):
+            if hdr:
+                raise ValueError("normalise=auto is for transfer=log (HDR output needs the caps' diffuse-white "
+                                 "or normalise=fixed white=...)")
+            if p.normalise == "caps" and not self._auto_noted:
+                self._auto_noted = True
+                self.gst_info("the input caps have no 'white' field: automatic white (normalise=auto)")
+            return self._auto_white(p, values)
         if p.normalise == "smoothed":
             if self._tracker is None or self._tracker_speed != p.smoothing:
                 old = self._tracker.white if self._tracker is not None else None
@@ -223,14 +274,14 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
                 raise ValueError(f"tone mapping white is {white}")
             # kernels write straight into the mapped output (strided rows are fine for numba)
             if transfer == "log":
-                tonemap.log_tonemap(values, white, exposure_stops=p.exposure, contrast=p.contrast, out=out)
+                self._sdr(p, values, white, out)
             else:
                 tonemap.hdr_encode(values, white, transfer, reference_white=p.reference_white,
                                    exposure_stops=p.exposure, out=out)
                 if self._byteswap:
                     out.byteswap(inplace=True)
         if self.gst_debug_enabled(Gst.DebugLevel.LOG):
-            self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(inbuf.pts)}: {transfer} "
+            self.gst_log(f"frame {self._frames} pts {Gst.TIME_ARGS(inbuf.pts)}: {transfer} {p.operator} "
                          f"white={white:.6g} exposure={p.exposure:+.2f} in "
                          f"{(time.perf_counter() - t0) * 1e3:.2f} ms")
         self._frames += 1
