@@ -297,6 +297,8 @@ def save(p: CameraProfile, path, overwrite: bool = True) -> Path:
                            "width": p.width, "height": p.height, "mask": mask_name}
     for k in _SCALARS:
         doc[k] = getattr(p, k)
+    if doc["version"] == VERSION:    # a version-2 file states its white level
+        doc["white_level"] = int(p.white_level)
     doc.update(v2)
     if p.defects is not None:
         doc["defects"] = f"{stem}_defects.png"
@@ -339,8 +341,10 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
     if ver == 1:
         late = [k for k in V2_FIELDS if k in doc]
         if late:
-            raise ProfileError(f"{path}: field '{late[0]}' needs version 2 (a version-1 reader would ignore it "
-                               f"and misread the data); the file says version 1")
+            names = ", ".join(f"'{k}'" for k in late)
+            raise ProfileError(f"{path}: field{'s' if len(late) > 1 else ''} {names} need{'' if len(late) > 1 else 's'}"
+                               f" version 2 (a version-1 reader would ignore them and misread the data); the "
+                               f"file says version 1")
     for k in ("mask", "nd", "width", "height"):
         if k not in doc:
             raise ProfileError(f"{path}: missing required field '{k}'")

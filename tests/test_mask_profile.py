@@ -195,7 +195,7 @@ def test_defect_map_is_checked(tmp_path):
                           ({"defects": "wide.png"}, "defects.*8-bit"),
                           ({"defects": "../cam_defects.png"}, "defects.*leaves the folder"),
                           ({"defects": "gone.png"}, "defects.*no such file"),
-                          ({"version": 1}, "'defects' needs version 2")]:
+                          ({"version": 1}, "'defects' need version 2")]:
         f = (tmp_path / "sub" / "edited.json") if "../" in change.get("defects", "") else tmp_path / "edited.json"
         f.write_text(json.dumps(dict(doc, **change)))
         with pytest.raises(profile.ProfileError, match=words):
