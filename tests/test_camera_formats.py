@@ -154,3 +154,55 @@ def test_format_fields_roundtrip_and_version_rules(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps(dict(doc, alignment=3)))
     with pytest.raises(profile.ProfileError, match="'alignment' must be a string"):
         profile.load(tmp_path / "bad.json")
+
+
+def _push_frames(gst, prof_path, w, h, buffers):
+    """appsrc (caps GRAY16_LE w x h, as aravissrc labels Mono12Packed) ! nrvalidity ! appsink: returns
+    (list of (values, state), error text or None)."""
+    from gst_plugins.elements._common import map_sample
+    pipe = gst.parse_launch(f"appsrc name=src format=time caps=video/x-raw,format=GRAY16_LE,width={w},height={h},"
+                            f"framerate=10/1 ! nrvalidity profile={prof_path} ! appsink name=sink sync=false")
+    src, sink = pipe.get_by_name("src"), pipe.get_by_name("sink")
+    pipe.set_state(gst.State.PLAYING)
+    out, err = [], None
+    try:
+        for i, data in enumerate(buffers):
+            buf = gst.Buffer.new_wrapped(bytes(data))
+            buf.pts = i * gst.SECOND // 10
+            src.emit("push-buffer", buf)
+        src.emit("end-of-stream")
+        while True:
+            smp = sink.try_pull_sample(20 * gst.SECOND)
+            if smp is None:
+                break
+            with map_sample(smp) as (v, s):
+                out.append((v.copy(), s.copy()))
+        msg = pipe.get_bus().pop_filtered(gst.MessageType.ERROR)
+        if msg is not None:
+            err = msg.parse_error()[0].message
+    finally:
+        pipe.set_state(gst.State.NULL)
+    return out, err
+
+
+@pytest.mark.gst
+def test_nrvalidity_unpacks_packed_frames_labelled_gray16(gst, tmp_path):
+    w, h = 16, 6
+    base = profile.default(h, w, seed=8)
+    codes = [np.random.default_rng(i).integers(0, 4096, (h, w)).astype(np.uint16) for i in range(3)]
+    packed = profile.make(base.mask, bit_depth=12, packing="mono12packed")
+    f = profile.save(packed, tmp_path / "packed.json")
+    frames, err = _push_frames(gst, f, w, h, [pack_mono12packed(c) for c in codes])
+    assert err is None and len(frames) == 3
+    for (v, s), c in zip(frames, codes):
+        v2, s2 = V.classify(c, base, dark_policy="weighted")      # nrvalidity's default dark policy
+        assert np.array_equal(v, v2) and np.array_equal(s, s2)
+    # the same packed bytes with a profile that says unpacked: an error naming the packing, not garbage
+    plain = profile.save(base, tmp_path / "plain.json")
+    frames, err = _push_frames(gst, plain, w, h, [pack_mono12packed(codes[0])])
+    assert frames == [] and err is not None
+    assert "144 bytes is a 12-bit packed 16x6 frame (mono12p or mono12packed) labelled GRAY16_LE" in err
+    assert "plain.json" in err
+    # unpacked frames with a profile that says packed
+    frames, err = _push_frames(gst, f, w, h, [codes[0].astype("<u2").tobytes()])
+    assert frames == [] and "packed.json says mono12packed" in err and "got 192 bytes" in err
