@@ -485,6 +485,13 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
     if dark_policy not in DARK_POLICIES:
         raise FrameError(f"dark policy must be one of {DARK_POLICIES}, got {dark_policy!r}")
     raw = codes(raw, profile)
+    if mode == "best" and profile.defect_index.size:
+        # a defect is no valid neighbour: its code reads as clipped for the best-pixel choice
+        h, w = raw.shape
+        c = planes("validity.best_codes", (h, w), lambda: np.empty((h, w), np.uint16))
+        np.copyto(c, raw)
+        c.reshape(-1)[profile.defect_index] = profile.clip_code
+        raw = c
     if values is None:
         values = np.empty(raw.shape, np.float32)
     if state is None:

@@ -101,3 +101,16 @@ def test_defect_pixels_are_discarded_and_reconstructed():
     # the reconstruction fills them from the flat field around them
     out = reconstruction.reconstruct(v, V.known_mask(s))
     assert np.allclose(out[bad], 1500.0, rtol=0.02)
+
+
+def test_best_mode_does_not_drop_a_pixel_for_a_defective_neighbour():
+    m = np.zeros((3, 3), bool)
+    m[1, 1] = True                                    # one attenuated pixel, regular pixels around it
+    raw = np.full((3, 3), 2000, np.uint16)
+    raw[1, 1] = 400
+    d = np.zeros((3, 3), np.uint8)
+    _, s = V.classify(raw, profile.make(m), "best")
+    assert s[1, 1] == V.ATTENUATED | V.DISCARDED      # valid regular neighbours: dropped
+    d[~m] = profile.DEFECT_STUCK                      # all its regular neighbours are defective
+    _, s = V.classify(raw, profile.make(m, defects=d), "best")
+    assert s[1, 1] == V.ATTENUATED | V.VALID and ((s[~m] & V.REASON_MASK) == V.DISCARDED).all()
