@@ -33,8 +33,8 @@ from ._profiles import ALLOW_OUTSIDE_PROP
 
 PROPERTIES = PropertyTable("GstNrValidity", [
     Prop("profile", str, "", "Camera profile",
-         "Camera profile JSON (nrhdr_core.profile): ND mask, ND factor, clip code, black level, l_min. "
-         "Required; the stream's frame size must equal the mask's"),
+         "Camera profile JSON (nrhdr_core.profile): ND mask, ND factor, bit depth, white and black level, "
+         "alignment, packing, defect pixels, l_min. Required; the stream's frame size must equal the mask's"),
     ALLOW_OUTSIDE_PROP,
     Prop("mode", MODES, "threshold", "Selection mode",
          "Pixel selection (paper 2.3): 'all' = every pixel neither clipped nor below SNR 0 dB; 'best' = "
