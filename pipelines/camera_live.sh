@@ -21,7 +21,7 @@
 #   an earlier recording in OUT_DIR), VERBOSE=1 (gst-launch -m), NRHDR.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in
-  -h|--help|"") sed -n '2,24p' "$0"; [ -n "${1:-}" ]; exit $?;;
+  -h|--help|"") sed -n '2,21p' "$0"; [ -n "${1:-}" ]; exit $?;;
   preview|record) ACTION="$1";;
   *) echo "error: unknown mode '$1': use preview or record OUT_DIR" >&2; exit 2;;
 esac
@@ -63,8 +63,11 @@ else
 fi
 CAM+=(! "$CAPS")
 [ "$IN_FORMAT" = GRAY8 ] && CAM+=(! videoconvert ! "video/x-raw,format=GRAY16_LE")
-CHAIN=(nrvalidity "profile=$PROFILE" "mode=${MODE:-threshold}" ! nrcrosstalk "mode=${CROSSTALK:-lut}"
-       ! nrreconstruct "method=${METHOD:-auto}" "preset=${PRESET:-fast}")
+# record: qos=false, the recording never drops a frame because the preview sink is late (its QoS events
+# travel up through the tee); the preview's own branch drops instead (leaky queue, nrtonemap's QoS)
+QOS=$([ "$ACTION" = record ] && echo false || echo true)
+CHAIN=(nrvalidity "profile=$PROFILE" "mode=${MODE:-threshold}" "qos=$QOS" ! nrcrosstalk "mode=${CROSSTALK:-lut}"
+       "qos=$QOS" ! nrreconstruct "method=${METHOD:-auto}" "preset=${PRESET:-fast}" "qos=$QOS")
 if [ -n "${SINK:-}" ]; then
   read -r -a SINKV <<<"$SINK"
 elif [ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ]; then
