@@ -183,6 +183,18 @@ def test_stop_mid_recording_keeps_every_frame(fake_camera, gst, gst_subprocess_e
         check_exr_matches_raw(p, exr, raw)
 
 
+def test_a_late_preview_never_costs_the_recording_a_frame(fake_camera, gst_subprocess_env, tmp_path):
+    """The preview shares the chain: a preview sink that is always late (ts-offset -2 s: every frame 2 s behind)
+    sends QoS events up through the tee; the recording still gets every frame (with QoS on in the chain,
+    nrvalidity drops most of them)."""
+    prof = mono16_profile(tmp_path)
+    out = tmp_path / "rec"
+    r = recipe(gst_subprocess_env, "record", out, PROFILE=prof, FRAMES=12, PIXEL_FORMAT="Mono16",
+               SINK="fakesink sync=true qos=true max-lateness=1000000 ts-offset=-2000000000")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert len(list(out.glob("frame_*.exr"))) == 12, r.stdout + r.stderr
+
+
 def test_timestamps_survive_the_chain(fake_camera, gst, tmp_path):
     prof = mono16_profile(tmp_path)
     pipe = gst.parse_launch(
