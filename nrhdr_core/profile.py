@@ -231,9 +231,17 @@ def _validate_format(p: CameraProfile, bad) -> None:
     if not isinstance(d, np.ndarray) or d.dtype != np.uint8 or d.shape != p.mask.shape:
         what = f"{d.dtype} {d.shape}" if isinstance(d, np.ndarray) else type(d).__name__
         bad("defects", f"must be None or a uint8 array of the mask's shape {p.mask.shape}, got {what}")
-    if d.size and int(d.max()) > DEFECT_STUCK:
-        bad("defects", f"values must be 0 (good), {DEFECT_HOT} (hot), {DEFECT_DEAD} (dead) or {DEFECT_STUCK} "
-                       f"(stuck); {int(np.sum(d > DEFECT_STUCK))} pixels hold others (largest {int(d.max())})")
+    wrong = _defect_values_error(d)
+    if wrong:
+        bad("defects", wrong)
+
+
+def _defect_values_error(d: np.ndarray) -> str | None:
+    """What is wrong with the values of a defect map, or None."""
+    if not d.size or int(d.max()) <= DEFECT_STUCK:
+        return None
+    return (f"values must be 0 (good), {DEFECT_HOT} (hot), {DEFECT_DEAD} (dead) or {DEFECT_STUCK} (stuck); "
+            f"{int(np.sum(d > DEFECT_STUCK))} pixels hold others (largest {int(d.max())})")
 
 
 def make(mask: np.ndarray, defects: np.ndarray | None = None, **fields) -> CameraProfile:
@@ -256,7 +264,7 @@ def defect_counts(p: CameraProfile) -> dict[str, int]:
 
 _SCALARS = {"nd": float, "bit_depth": int, "clip_code": int, "black_level": float, "gain": float,
             "read_noise": float, "full_well": float, "l_min": float, "name": str}
-# version-2 scalars: written only when they differ from what a version-1 file means
+# version-2 scalars (a version-2 file always states white_level; the others when not their default)
 _V2_SCALARS = {"white_level": int, "alignment": str, "packing": str, "out_of_range": str}
 
 
@@ -418,10 +426,9 @@ def _read_defects(path: Path, name, shape, allow_outside: bool) -> np.ndarray:
     except io.ImageFileError as e:
         raise ProfileError(f"{path}: field 'defects': {e}") from None
     d = np.ascontiguousarray(px[:, :, 0], dtype=np.uint8)
-    if d.size and int(d.max()) > DEFECT_STUCK:
-        raise ProfileError(f"{path}: field 'defects': {dpath.name} must hold 0 (good), {DEFECT_HOT} (hot), "
-                           f"{DEFECT_DEAD} (dead) or {DEFECT_STUCK} (stuck); {int(np.sum(d > DEFECT_STUCK))} "
-                           f"pixels hold others (largest {int(d.max())})")
+    wrong = _defect_values_error(d)
+    if wrong:
+        raise ProfileError(f"{path}: field 'defects': {dpath.name}: {wrong}")
     return d
 
 

@@ -191,7 +191,7 @@ def test_defect_map_is_checked(tmp_path):
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "cam_mask.png").write_bytes((tmp_path / "cam_mask.png").read_bytes())
     for change, words in [({"defects": "small.png"}, "defects.*10x12, expected 16x12"),
-                          ({"defects": "nine.png"}, "defects.*nine.png must hold 0"),
+                          ({"defects": "nine.png"}, "defects.*nine.png: values must be 0"),
                           ({"defects": "wide.png"}, "defects.*8-bit"),
                           ({"defects": "../cam_defects.png"}, "defects.*leaves the folder"),
                           ({"defects": "gone.png"}, "defects.*no such file"),
