@@ -1,8 +1,10 @@
 """Camera profile: one versioned JSON file describing a non-regular ND sensor (docs/PROFILE.md).
 
-The JSON names the ND mask (an 8-bit PNG beside it, 255 = attenuated) and, once calibrated, the crosstalk
-calibration (an .npz beside it, see `crosstalk.py` / `calibration.py`). `load` validates everything and
-raises `ProfileError` naming the file and the field at fault.
+The JSON names the ND mask (an 8-bit PNG beside it, 255 = attenuated), optionally a defect-pixel map (an 8-bit
+PNG, 0 = good, `DEFECT_HOT` / `DEFECT_DEAD` / `DEFECT_STUCK`) and, once calibrated, the crosstalk calibration
+(an .npz beside it, see `crosstalk.py` / `calibration.py`). It says what the sensor's data are: bit depth,
+alignment in 16-bit words, packing, black and white level. `load` validates everything and raises
+`ProfileError` naming the file and the field at fault.
 """
 from __future__ import annotations
 
@@ -21,7 +23,23 @@ import numpy as np
 from . import io
 
 FORMAT = "nrhdr-camera-profile"
-VERSION = 1
+VERSION = 2                 # written when a version-2 field is used (V2_FIELDS); else the file is version 1
+VERSIONS = (1, 2)           # versions `load` reads
+# fields a version-1 file cannot hold: an older reader would ignore them and misread the data
+V2_FIELDS = ("white_level", "alignment", "packing", "out_of_range", "defects")
+
+# defect-pixel map values (`CameraProfile.defects`): 0 = good
+DEFECT_HOT = 1
+DEFECT_DEAD = 2
+DEFECT_STUCK = 3
+DEFECT_NAMES = {DEFECT_HOT: "hot", DEFECT_DEAD: "dead", DEFECT_STUCK: "stuck"}
+
+ALIGNMENTS = ("lsb", "msb")     # where a bit_depth-bit code sits in its 16-bit word
+# packed formats (GenICam PFNC / GigE Vision names): bits per pixel; lines are not padded
+PACKINGS = {"none": 16, "mono12packed": 12, "mono12p": 12, "mono10p": 10}
+OUT_OF_RANGE = ("clip", "error")  # codes above the bit depth's range: clipped pixels, or an error
+# the paper's ADC: 12 bit, white 4095, clip code DN_max = 4095 - 1 (section 2.3)
+DEFAULT_WHITE = 4095
 
 
 class ProfileError(ValueError):
@@ -51,14 +69,27 @@ def mask_sha256(mask: np.ndarray) -> str:
     return h.hexdigest()
 
 
+def implied_white_level(clip_code: int, bit_depth: int) -> int:
+    """The white level a profile without one has: clip_code + 1, at most the ADC's largest code."""
+    return min(int(clip_code) + 1, (1 << bit_depth) - 1)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class CameraProfile:
-    """A sensor with a non-regular ND mask (paper section 2.3). Codes are `bit_depth`-bit ADC values."""
+    """A sensor with a non-regular ND mask (paper section 2.3). Codes are `bit_depth`-bit ADC values.
+
+    `white_level` and `clip_code` follow each other when only one is given: clip_code = white_level - 1
+    (the paper's DN_max = 4095 - 1); neither given: the paper's 4095 / 4094."""
     mask: np.ndarray                  # bool (H, W), True = attenuated
     nd: float = 6.35                  # ND factor, Eq. 1 (paper's prototype: ~6.35)
     bit_depth: int = 12
-    clip_code: int = 4094             # codes >= clip_code are clipped (paper: DN_max = 4095 - 1)
+    clip_code: int | None = None      # codes >= clip_code are clipped (None: white_level - 1)
     black_level: float = 0.0          # code of zero light
+    white_level: int | None = None    # code a saturated pixel reads (None: clip_code + 1, at most the ADC's max)
+    alignment: str = "lsb"            # "lsb": code = word; "msb": code = word >> (16 - bit_depth)
+    packing: str = "none"             # PACKINGS: "none" = one 16-bit word per pixel
+    out_of_range: str = "clip"        # a code above the bit depth's range: "clip" (clipped pixel) or "error"
+    defects: np.ndarray | None = None  # uint8 (H, W): 0 good, DEFECT_HOT / DEFECT_DEAD / DEFECT_STUCK
     gain: float = 4400.0 / 8000.0     # DN per electron: the ADC clips before the full well, so saturated
                                       # pixels always read >= clip_code despite read noise
     read_noise: float = 2.0           # electrons rms
@@ -69,6 +100,20 @@ class CameraProfile:
     crosstalk_file: str | None = None
     extra: dict = dataclasses.field(default_factory=dict)
     path: Path | None = None
+
+    def __post_init__(self):
+        cc, wl = self.clip_code, self.white_level
+        ints = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (cc, wl) if v is not None)
+        if ints and cc is None:
+            cc = DEFAULT_WHITE - 1 if wl is None else int(wl) - 1
+        if ints and wl is None and isinstance(self.bit_depth, int) and 1 <= self.bit_depth <= 16:
+            wl = implied_white_level(cc, self.bit_depth)
+        object.__setattr__(self, "clip_code", cc)
+        object.__setattr__(self, "white_level", wl)
+        d = self.defects
+        # the defect pixels as flat indices: classify's defect pass visits only these (none: no cost)
+        idx = np.flatnonzero(d) if isinstance(d, np.ndarray) and d.ndim == 2 else np.zeros(0, np.int64)
+        object.__setattr__(self, "defect_index", idx.astype(np.int64))
 
     @property
     def height(self) -> int:
@@ -91,7 +136,23 @@ class CameraProfile:
     def regular_white(self) -> float:
         return float(self.clip_code - self.black_level)
 
+    @property
+    def packed_bits(self) -> int:
+        """Bits per pixel in the frame buffer: 16 unpacked, else the packing's."""
+        return PACKINGS.get(self.packing, 16)
+
+    def frame_bytes(self) -> int:
+        """Bytes of one frame as the source sends it: 2 per pixel unpacked, else the packing's bit stream
+        (lines not padded) rounded up to a whole byte."""
+        return (self.width * self.height * self.packed_bits + 7) // 8
+
     def replace(self, **changes) -> "CameraProfile":
+        """A copy with `changes`; a new clip code or bit depth re-derives the white level, a new white level
+        the clip code, unless given too."""
+        if "white_level" not in changes and ("clip_code" in changes or "bit_depth" in changes):
+            changes["white_level"] = None
+        if "white_level" in changes and "clip_code" not in changes:
+            changes["clip_code"] = None
         p = dataclasses.replace(self, **changes)
         validate(p)
         return p
@@ -114,6 +175,10 @@ def validate(p: CameraProfile, where: str = "profile") -> None:
         v = getattr(p, f)
         if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool)):
             bad(f, f"must be an integer, got {v!r}")
+    if not (isinstance(p.bit_depth, int) and 1 <= p.bit_depth <= 16):
+        bad("bit_depth", f"must be an integer 1..16, got {p.bit_depth!r}")
+    if not (isinstance(p.white_level, (int, np.integer)) and not isinstance(p.white_level, bool)):
+        bad("white_level", f"must be an integer, got {p.white_level!r}")
     if not (1 <= p.nd <= ND_MAX):
         bad("nd", f"must be in 1..{ND_MAX:g} (attenuation factor; above {ND_MAX:g} = 10 stops the regular "
                   f"pixels would tone-map to black), got {p.nd!r}")
@@ -124,10 +189,11 @@ def validate(p: CameraProfile, where: str = "profile") -> None:
                          f"got {p.full_well!r}")
     if p.read_noise > READ_NOISE_MAX:
         bad("read_noise", f"must be <= {READ_NOISE_MAX:g} electrons, got {p.read_noise!r}")
-    if not (isinstance(p.bit_depth, int) and 1 <= p.bit_depth <= 16):
-        bad("bit_depth", f"must be an integer 1..16, got {p.bit_depth!r}")
-    if not (0 < p.clip_code <= p.max_code):
-        bad("clip_code", f"must be in 1..{p.max_code} for {p.bit_depth}-bit data, got {p.clip_code}")
+    if not (0 < p.white_level <= p.max_code):
+        bad("white_level", f"must be in 1..{p.max_code} for {p.bit_depth}-bit data, got {p.white_level}")
+    if not (0 < p.clip_code <= p.white_level):
+        bad("clip_code", f"must be in 1..white_level ({p.white_level}) for {p.bit_depth}-bit data, "
+                         f"got {p.clip_code}")
     if not (0 <= p.black_level < p.clip_code):
         bad("black_level", f"must be in 0..clip_code-1, got {p.black_level}")
     if not (p.read_noise >= 0):
@@ -140,28 +206,91 @@ def validate(p: CameraProfile, where: str = "profile") -> None:
         bad("l_min", f"must be in 0..clip_code-black_level, got {p.l_min}")
     if not isinstance(p.name, str):
         bad("name", f"must be a string, got {p.name!r}")
+    _validate_format(p, bad)
     if not isinstance(p.extra, dict):
         bad("extra", f"must be an object, got {type(p.extra).__name__}")
 
 
-def make(mask: np.ndarray, **fields) -> CameraProfile:
-    p = CameraProfile(mask=np.asarray(mask, dtype=bool), **fields)
+def _validate_format(p: CameraProfile, bad) -> None:
+    """The data format fields: alignment, packing (its bit depth, LSB only), out_of_range, defects."""
+    if p.alignment not in ALIGNMENTS:
+        bad("alignment", f"must be one of {', '.join(ALIGNMENTS)}, got {p.alignment!r}")
+    if p.packing not in PACKINGS:
+        bad("packing", f"must be one of {', '.join(PACKINGS)}, got {p.packing!r}")
+    if p.packing != "none":
+        if p.bit_depth != PACKINGS[p.packing]:
+            bad("packing", f"{p.packing} holds {PACKINGS[p.packing]}-bit codes but bit_depth is {p.bit_depth}")
+        if p.alignment != "lsb":
+            bad("alignment", f"packed data ({p.packing}) are unpacked to LSB-aligned codes: alignment must be "
+                             f"'lsb', got {p.alignment!r}")
+    if p.out_of_range not in OUT_OF_RANGE:
+        bad("out_of_range", f"must be one of {', '.join(OUT_OF_RANGE)}, got {p.out_of_range!r}")
+    d = p.defects
+    if d is None:
+        return
+    if not isinstance(d, np.ndarray) or d.dtype != np.uint8 or d.shape != p.mask.shape:
+        what = f"{d.dtype} {d.shape}" if isinstance(d, np.ndarray) else type(d).__name__
+        bad("defects", f"must be None or a uint8 array of the mask's shape {p.mask.shape}, got {what}")
+    wrong = _defect_values_error(d)
+    if wrong:
+        bad("defects", wrong)
+
+
+def _defect_values_error(d: np.ndarray) -> str | None:
+    """What is wrong with the values of a defect map, or None."""
+    if not d.size or int(d.max()) <= DEFECT_STUCK:
+        return None
+    return (f"values must be 0 (good), {DEFECT_HOT} (hot), {DEFECT_DEAD} (dead) or {DEFECT_STUCK} (stuck); "
+            f"{int(np.sum(d > DEFECT_STUCK))} pixels hold others (largest {int(d.max())})")
+
+
+def make(mask: np.ndarray, defects: np.ndarray | None = None, **fields) -> CameraProfile:
+    """A validated profile for `mask` (bool (H, W), True = attenuated); `defects`: None or an integer
+    (H, W) map (0 good, DEFECT_HOT, DEFECT_DEAD, DEFECT_STUCK), stored as uint8."""
+    if defects is not None:
+        d = np.asarray(defects)
+        if d.dtype.kind in "biu" and d.size and 0 <= int(d.min()) and int(d.max()) <= 255:
+            defects = np.ascontiguousarray(d, dtype=np.uint8)
+    p = CameraProfile(mask=np.asarray(mask, dtype=bool), defects=defects, **fields)
     validate(p)
     return p
 
 
+def defect_counts(p: CameraProfile) -> dict[str, int]:
+    """Number of hot, dead and stuck pixels of the profile's defect map (zeros without one)."""
+    d = p.defects
+    return {name: (0 if d is None else int(np.count_nonzero(d == v))) for v, name in DEFECT_NAMES.items()}
+
+
 _SCALARS = {"nd": float, "bit_depth": int, "clip_code": int, "black_level": float, "gain": float,
             "read_noise": float, "full_well": float, "l_min": float, "name": str}
+# version-2 scalars (a version-2 file always states white_level; the others when not their default)
+_V2_SCALARS = {"white_level": int, "alignment": str, "packing": str, "out_of_range": str}
 
 
 def written_files(path) -> list[Path]:
-    """The files `save(p, path)` may write: the JSON, `<stem>_mask.png`, `<stem>_crosstalk.npz`."""
+    """The files `save(p, path)` may write: the JSON, `<stem>_mask.png`, `<stem>_crosstalk.npz`,
+    `<stem>_defects.png`."""
     path = Path(path)
-    return [path, path.with_name(f"{path.stem}_mask.png"), path.with_name(f"{path.stem}_crosstalk.npz")]
+    return [path, path.with_name(f"{path.stem}_mask.png"), path.with_name(f"{path.stem}_crosstalk.npz"),
+            path.with_name(f"{path.stem}_defects.png")]
+
+
+def _v2_values(p: CameraProfile) -> dict[str, Any]:
+    """The version-2 scalars whose value a version-1 file could not say (white level other than the clip
+    code's, MSB alignment, packing, out-of-range errors)."""
+    out = {}
+    if p.white_level != implied_white_level(p.clip_code, p.bit_depth):
+        out["white_level"] = int(p.white_level)
+    for k, default in (("alignment", "lsb"), ("packing", "none"), ("out_of_range", "clip")):
+        if getattr(p, k) != default:
+            out[k] = getattr(p, k)
+    return out
 
 
 def save(p: CameraProfile, path, overwrite: bool = True) -> Path:
-    """Write `path` (JSON), the mask PNG and the crosstalk calibration beside it, atomically. With
+    """Write `path` (JSON), the mask PNG, the defect map PNG and the crosstalk calibration beside it,
+    atomically; version 1 unless a version-2 field is needed (V2_FIELDS). With
     `overwrite=False` an existing file among them is refused (io.OutputExistsError) before anything is
     written (the `nrhdr` commands pass their `--force` here)."""
     validate(p)
@@ -171,10 +300,17 @@ def save(p: CameraProfile, path, overwrite: bool = True) -> Path:
     stem = path.stem
     mask_name = f"{stem}_mask.png"
     io.write_mask(path.parent / mask_name, p.mask)
-    doc: dict[str, Any] = {"format": FORMAT, "version": VERSION, "width": p.width, "height": p.height,
-                           "mask": mask_name}
+    v2 = _v2_values(p)
+    doc: dict[str, Any] = {"format": FORMAT, "version": VERSION if (v2 or p.defects is not None) else 1,
+                           "width": p.width, "height": p.height, "mask": mask_name}
     for k in _SCALARS:
         doc[k] = getattr(p, k)
+    if doc["version"] == VERSION:    # a version-2 file states its white level
+        doc["white_level"] = int(p.white_level)
+    doc.update(v2)
+    if p.defects is not None:
+        doc["defects"] = f"{stem}_defects.png"
+        io.write_image(path.parent / doc["defects"], p.defects, np.uint8)
     doc["crosstalk"] = None
     if p.crosstalk is not None:
         from . import crosstalk
@@ -207,8 +343,16 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
     if doc.get("format") != FORMAT:
         raise ProfileError(f"{path}: not an nrhdr camera profile (field 'format' must be '{FORMAT}')")
     ver = doc.get("version")
-    if ver != VERSION or isinstance(ver, bool):
-        raise ProfileError(f"{path}: field 'version': this nrhdr reads version {VERSION}, file has {ver!r}")
+    if ver not in VERSIONS or isinstance(ver, bool):
+        raise ProfileError(f"{path}: field 'version': this nrhdr reads versions "
+                           f"{', '.join(map(str, VERSIONS))}, file has {ver!r}")
+    if ver == 1:
+        late = [k for k in V2_FIELDS if k in doc]
+        if late:
+            names = ", ".join(f"'{k}'" for k in late)
+            raise ProfileError(f"{path}: field{'s' if len(late) > 1 else ''} {names} need{'' if len(late) > 1 else 's'}"
+                               f" version 2 (a version-1 reader would ignore them and misread the data); the "
+                               f"file says version 1")
     for k in ("mask", "nd", "width", "height"):
         if k not in doc:
             raise ProfileError(f"{path}: missing required field '{k}'")
@@ -225,7 +369,7 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
     except io.ImageFileError as e:
         raise ProfileError(f"{path}: field 'mask': {e}") from None
     fields = {}
-    for k, typ in _SCALARS.items():
+    for k, typ in {**_SCALARS, **_V2_SCALARS}.items():
         if k in doc:
             v = doc[k]
             if typ is int and not (isinstance(v, int) and not isinstance(v, bool)):
@@ -241,6 +385,8 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
     extra = doc.get("extra", {})
     if not isinstance(extra, dict):
         raise ProfileError(f"{path}: field 'extra' must be an object, got {type(extra).__name__}")
+    if doc.get("defects") is not None:
+        fields["defects"] = _read_defects(path, doc["defects"], mask.shape, allow_outside)
     # the sensor's own fields first: a calibration is checked against a valid sensor
     validate(CameraProfile(mask=mask, extra=extra, path=path, **fields), where=str(path))
     xt = None
@@ -261,6 +407,29 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
     p = CameraProfile(mask=mask, crosstalk=xt, crosstalk_file=xt_file, extra=extra, path=path, **fields)
     validate(p, where=str(path))
     return p
+
+
+def _read_defects(path: Path, name, shape, allow_outside: bool) -> np.ndarray:
+    """The defect map the profile names: an 8-bit one-channel PNG in the profile's folder, of the mask's size
+    (checked before decoding), values 0..DEFECT_STUCK."""
+    if not isinstance(name, str) or not name:
+        raise ProfileError(f"{path}: field 'defects' must be the name of a PNG file or null, got {name!r}")
+    dpath = io.resolve_named(path, "defects", name, ProfileError, allow_outside)
+    oiio = io._oiio()
+
+    def check(spec):
+        if int(spec.nchannels) != 1 or spec.format.basetype != oiio.UINT8:
+            raise io.ImageFileError(f"{dpath}: a defect map must be a one-channel 8-bit image, got "
+                                    f"{int(spec.nchannels)} channels of {spec.format}")
+    try:
+        px = io._read_pixels(dpath, lambda spec: oiio.UINT8, shape, check=check)[0]
+    except io.ImageFileError as e:
+        raise ProfileError(f"{path}: field 'defects': {e}") from None
+    d = np.ascontiguousarray(px[:, :, 0], dtype=np.uint8)
+    wrong = _defect_values_error(d)
+    if wrong:
+        raise ProfileError(f"{path}: field 'defects': {dpath.name}: {wrong}")
+    return d
 
 
 def _check_calibration_fits(path: Path, xt, fields: dict) -> None:

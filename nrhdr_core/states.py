@@ -10,7 +10,8 @@ from __future__ import annotations
 VALID = 0          # measured linear DN
 CLIPPED = 1        # code >= clip code: the value is a lower bound
 DARK = 2           # attenuated pixel below l_min: the value is an upper bound
-DISCARDED = 3      # valid, dropped by the "best pixel only" selection: the value is the measurement
+DISCARDED = 3      # dropped: by the "best pixel only" selection, or a defect pixel of the profile (hot,
+                   # dead, stuck); the value is the measurement
 UNCALIBRATED = 4   # outside the crosstalk calibration (or more spill than signal): the value is an estimate
 NOISY = 5          # attenuated pixel below l_min kept as a noisy measurement (dark_policy="weighted")
 

@@ -18,14 +18,21 @@ Dark policy (threshold mode; docs/FSE.md "Noise-aware dark pixels"): ``threshold
 ``weighted`` keeps attenuated pixels between SNR 0 dB and ``WEIGHTED_LEVEL x l_min`` as NOISY measurements
 that the reconstruction fuses by their noise (`reconstruction.fuse_noisy`).
 
-All of it is one numba pass (`_classify_kernel`); the pixel states are those of `states.py`.
+Sensor formats (docs/PROFILE.md "Sensor data"): packed frames (Mono12Packed, Mono12p, Mono10p) are unpacked
+and MSB-aligned codes shifted down to `bit_depth`-bit codes (`codes`, one numba pass, only for such profiles);
+the clip code comes from the profile's white level and the black level is subtracted before scaling and in
+the noise model (signal = code - black). Pixels of the profile's defect map (hot, dead, stuck) become
+DISCARDED, missing pixels that the reconstruction fills (`_mark_defects`, a pass over the defect list only).
+
+All of the classification is one numba pass (`_classify_kernel`); the pixel states are those of `states.py`.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
 
-from .profile import CameraProfile
+from .profile import PACKINGS, CameraProfile
+from .scratch import planes
 from .sensor import zero_db_signal_dn
 
 from .states import (ATTENUATED, CLIPPED, DARK, DISCARDED, NOISY, REASON_MASK,  # noqa: F401 (re-exported)
@@ -354,10 +361,120 @@ class FrameError(ValueError):
     """A raw frame (or argument) classify cannot use: wrong type, shape, mode or l_min; names what is wrong."""
 
 
+@njit(cache=True, nogil=True, parallel=True)
+def _unpack_lsb_kernel(data, bits, out):
+    """PFNC Mono10p / Mono12p: pixels as one LSB-first bit stream, lines not padded. Pixel i is bits
+    i*bits .. i*bits+bits-1; for 10 and 12 bits they lie within the two bytes at (i*bits) // 8."""
+    h, w = out.shape
+    m = (1 << bits) - 1
+    for y in prange(h):
+        for x in range(w):
+            off = (y * w + x) * bits
+            b = off >> 3
+            lo = np.uint32(data[b])
+            hi = np.uint32(data[b + 1]) if b + 1 < data.shape[0] else np.uint32(0)
+            out[y, x] = np.uint16(((lo | (hi << 8)) >> (off & 7)) & m)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _unpack_mono12packed_kernel(data, out):
+    """GigE Vision Mono12Packed: two pixels in three bytes, byte 0 = p0 bits 11..4, byte 1 = p0 bits 3..0
+    (low nibble) and p1 bits 3..0 (high nibble), byte 2 = p1 bits 11..4; lines not padded."""
+    h, w = out.shape
+    for y in prange(h):
+        for x in range(w):
+            i = y * w + x
+            b = (i >> 1) * 3
+            mid = np.uint16(data[b + 1])
+            if i & 1:
+                out[y, x] = (np.uint16(data[b + 2]) << 4) | (mid >> 4)
+            else:
+                out[y, x] = (np.uint16(data[b]) << 4) | (mid & np.uint16(0x0F))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _shift_kernel(raw, shift, out):
+    """MSB-aligned codes: out = raw >> shift."""
+    h, w = out.shape
+    for y in prange(h):
+        for x in range(w):
+            out[y, x] = raw[y, x] >> shift
+
+
+@njit(cache=True, nogil=True)
+def _count_above(raw, top):
+    """Number of codes above `top` and the largest code."""
+    n = 0
+    mx = np.uint16(0)
+    h, w = raw.shape
+    for y in range(h):
+        for x in range(w):
+            r = raw[y, x]
+            n += np.int64(r > top)
+            mx = r if r > mx else mx
+    return n, mx
+
+
+@njit(cache=True, nogil=True)
+def _mark_defects(index, state):
+    """Defect pixels (flat indices) become DISCARDED (missing; the ATTENUATED bit kept)."""
+    w = state.shape[1]
+    for k in range(index.shape[0]):
+        i = index[k]
+        y = i // w
+        x = i - y * w
+        state[y, x] = (state[y, x] & np.uint8(ATTENUATED)) | np.uint8(DISCARDED)
+
+
+def codes(raw: np.ndarray, profile: CameraProfile, out: np.ndarray | None = None) -> np.ndarray:
+    """The frame as LSB-aligned `bit_depth`-bit codes, uint16 (H, W): packed data (profile.packing; `raw`
+    holds the frame's bytes, exactly `profile.frame_bytes()` of them) are unpacked, MSB-aligned words
+    shifted down; `raw` itself when it already is such codes. `out`: where to write (else a per-thread
+    scratch plane that the next call overwrites). FrameError when `raw` does not fit the profile's format."""
+    raw = np.asarray(raw)
+    h, w = profile.mask.shape
+    src = profile.path.name if profile.path is not None else profile.name
+    if profile.packing != "none":
+        need = profile.frame_bytes()
+        if raw.dtype != np.uint8 or raw.size != need:
+            what = f"{raw.nbytes} bytes" if raw.dtype == np.uint8 else f"a {raw.dtype} {raw.shape} array"
+            hint = (" (2 bytes per pixel: unpacked 16-bit data; the source sends no "
+                    f"{profile.packing}, set the profile's packing to none)" if raw.nbytes == 2 * w * h else "")
+            raise FrameError(f"profile {src} says {profile.packing} ({PACKINGS[profile.packing]} bits per pixel): "
+                             f"a {w}x{h} frame is {need} bytes, got {what}{hint}")
+        data = raw.reshape(-1)
+        if out is None:
+            out = planes("validity.codes", (h, w), lambda: np.empty((h, w), np.uint16))
+        if profile.packing == "mono12packed":
+            _unpack_mono12packed_kernel(data, out)
+        else:
+            _unpack_lsb_kernel(data, PACKINGS[profile.packing], out)
+        return out
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise FrameError(f"raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")
+    if raw.shape != (h, w):
+        raise FrameError(f"raw frame is {raw.shape[1]}x{raw.shape[0]} but the profile's mask is "
+                         f"{profile.width}x{profile.height}")
+    if profile.alignment == "msb" and profile.bit_depth < 16:
+        if out is None:
+            out = planes("validity.codes", (h, w), lambda: np.empty((h, w), np.uint16))
+        _shift_kernel(raw, np.uint16(16 - profile.bit_depth), out)
+        return out
+    if profile.out_of_range == "error" and profile.bit_depth < 16:
+        n, mx = _count_above(raw, np.uint16(profile.max_code))
+        if n:
+            raise FrameError(f"{n} codes above the {profile.bit_depth}-bit range of profile {src} (largest "
+                             f"{int(mx)}, at most {profile.max_code}): the data are not {profile.bit_depth}-bit "
+                             f"LSB-aligned codes; set the profile's bit_depth, white_level, alignment or packing "
+                             f"to what the source sends")
+    return raw
+
+
 def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l_min: float | None = None,
              values: np.ndarray | None = None, state: np.ndarray | None = None,
              dark_policy: str = "threshold"):
-    """Classify a raw frame (uint16 (H, W)) into (values float32, state uint8), paper 2.3 Eq. 3. Output arrays
+    """Classify a raw frame (uint16 (H, W), or the frame's bytes for a packed profile: `codes`) into (values
+    float32, state uint8), paper 2.3 Eq. 3; defect pixels of the profile become DISCARDED. Output arrays
     may be passed in (e.g. mapped GStreamer memory) and are filled in place. `l_min` overrides the profile's.
     `dark_policy` (mode "threshold" only): "threshold" = the paper's hard l_min (DARK, value = upper
     bound); "weighted" = attenuated pixels between SNR 0 dB and WEIGHTED_LEVEL x l_min become NOISY
@@ -367,12 +484,14 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
         raise FrameError(f"selection mode must be one of {MODES}, got {mode!r}")
     if dark_policy not in DARK_POLICIES:
         raise FrameError(f"dark policy must be one of {DARK_POLICIES}, got {dark_policy!r}")
-    raw = np.asarray(raw)
-    if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise FrameError(f"raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")
-    if raw.shape != profile.mask.shape:
-        raise FrameError(f"raw frame is {raw.shape[1]}x{raw.shape[0]} but the profile's mask is "
-                         f"{profile.width}x{profile.height}")
+    raw = codes(raw, profile)
+    if mode == "best" and profile.defect_index.size:
+        # a defect is no valid neighbour: its code reads as clipped for the best-pixel choice
+        h, w = raw.shape
+        c = planes("validity.best_codes", (h, w), lambda: np.empty((h, w), np.uint16))
+        np.copyto(c, raw)
+        c.reshape(-1)[profile.defect_index] = profile.clip_code
+        raw = c
     if values is None:
         values = np.empty(raw.shape, np.float32)
     if state is None:
@@ -389,6 +508,8 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
     _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code), float(profile.nd),
                      float(dark_att), float(dark_reg), weighted, mode == "best", float(s0), float(lm), values,
                      state)
+    if profile.defect_index.size:
+        _mark_defects(profile.defect_index, state)
     return values, state
 
 

@@ -145,3 +145,58 @@ def test_profile_default_takes_new_patterns():
     assert np.array_equal(p.mask, mask.cell2_mask(32, 48, seed=3))
     with pytest.raises(ValueError, match="pattern"):
         profile.default(8, 8, pattern="hexagonal")
+
+
+def _defect_map(shape, seed=0):
+    rng = np.random.default_rng(seed)
+    d = np.zeros(shape, np.uint8)
+    idx = rng.choice(d.size, 12, replace=False)
+    d.flat[idx[:4]] = profile.DEFECT_HOT
+    d.flat[idx[4:8]] = profile.DEFECT_DEAD
+    d.flat[idx[8:]] = profile.DEFECT_STUCK
+    return d
+
+
+def test_defect_map_roundtrip_as_png_beside_the_json(tmp_path):
+    p = profile.default(12, 16, seed=3)
+    d = _defect_map(p.mask.shape)
+    q = profile.make(p.mask, defects=d)
+    assert q.defects.dtype == np.uint8 and profile.defect_counts(q) == {"hot": 4, "dead": 4, "stuck": 4}
+    path = profile.save(q, tmp_path / "cam.json")
+    doc = json.loads(path.read_text())
+    assert doc["defects"] == "cam_defects.png" and doc["version"] == 2
+    png = io.read_image(tmp_path / "cam_defects.png", np.uint8)
+    assert png.shape == (12, 16, 1)
+    r = profile.load(path)
+    assert np.array_equal(r.defects, d) and r.defects.dtype == np.uint8
+    # a profile without defects stays a version-1 file without the key
+    doc1 = json.loads(profile.save(p, tmp_path / "plain.json").read_text())
+    assert doc1["version"] == 1 and "defects" not in doc1 and profile.load(tmp_path / "plain.json").defects is None
+
+
+def test_defect_map_is_checked(tmp_path):
+    p = profile.default(12, 16, seed=3)
+    bad = np.zeros((12, 16), np.uint8)
+    bad[2, 2] = 7
+    with pytest.raises(profile.ProfileError, match="defects.*1 pixels hold others"):
+        profile.make(p.mask, defects=bad)
+    with pytest.raises(profile.ProfileError, match="defects.*shape"):
+        profile.make(p.mask, defects=np.zeros((12, 15), np.uint8))
+    path = profile.save(profile.make(p.mask, defects=_defect_map((12, 16))), tmp_path / "cam.json")
+    doc = json.loads(path.read_text())
+    # wrong size, wrong values, outside the folder, a version-1 file naming one
+    io.write_image(tmp_path / "small.png", np.zeros((12, 10), np.uint8), np.uint8)
+    io.write_image(tmp_path / "nine.png", np.full((12, 16), 9, np.uint8), np.uint8)
+    io.write_image(tmp_path / "wide.png", np.zeros((12, 16), np.uint16), np.uint16)
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "cam_mask.png").write_bytes((tmp_path / "cam_mask.png").read_bytes())
+    for change, words in [({"defects": "small.png"}, "defects.*10x12, expected 16x12"),
+                          ({"defects": "nine.png"}, "defects.*nine.png: values must be 0"),
+                          ({"defects": "wide.png"}, "defects.*8-bit"),
+                          ({"defects": "../cam_defects.png"}, "defects.*leaves the folder"),
+                          ({"defects": "gone.png"}, "defects.*no such file"),
+                          ({"version": 1}, "'defects' need version 2")]:
+        f = (tmp_path / "sub" / "edited.json") if "../" in change.get("defects", "") else tmp_path / "edited.json"
+        f.write_text(json.dumps(dict(doc, **change)))
+        with pytest.raises(profile.ProfileError, match=words):
+            profile.load(f)

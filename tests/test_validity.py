@@ -80,3 +80,37 @@ def test_in_place_outputs_and_errors():
         V.classify(np.zeros((2, 3), np.float32), p)
     with pytest.raises(ValueError, match="mode"):
         V.classify(raw, p, "median")
+
+
+def test_defect_pixels_are_discarded_and_reconstructed():
+    from nrhdr_core import reconstruction
+    base = profile.default(24, 32, seed=5)
+    d = np.zeros(base.mask.shape, np.uint8)
+    d[3, 4], d[10, 11], d[20, 30] = profile.DEFECT_HOT, profile.DEFECT_DEAD, profile.DEFECT_STUCK
+    p = profile.make(base.mask, defects=d)
+    raw = np.where(base.mask, np.round(1500 / base.nd), 1500).astype(np.uint16)   # a flat field
+    raw[3, 4], raw[10, 11], raw[20, 30] = 4095, 0, 777      # what such pixels read
+    v0, s0 = V.classify(raw, base)
+    v, s = V.classify(raw, p)
+    bad = d != 0
+    # defect pixels: DISCARDED (missing), their ND bit kept; every other pixel exactly as without the map
+    assert ((s[bad] & V.REASON_MASK) == V.DISCARDED).all()
+    assert np.array_equal(s[bad] & V.ATTENUATED, s0[bad] & V.ATTENUATED)
+    assert np.array_equal(s[~bad], s0[~bad]) and np.array_equal(v[~bad], v0[~bad])
+    assert not V.known_mask(s)[bad].any() and V.missing_mask(s)[bad].all()
+    # the reconstruction fills them from the flat field around them
+    out = reconstruction.reconstruct(v, V.known_mask(s))
+    assert np.allclose(out[bad], 1500.0, rtol=0.02)
+
+
+def test_best_mode_does_not_drop_a_pixel_for_a_defective_neighbour():
+    m = np.zeros((3, 3), bool)
+    m[1, 1] = True                                    # one attenuated pixel, regular pixels around it
+    raw = np.full((3, 3), 2000, np.uint16)
+    raw[1, 1] = 400
+    d = np.zeros((3, 3), np.uint8)
+    _, s = V.classify(raw, profile.make(m), "best")
+    assert s[1, 1] == V.ATTENUATED | V.DISCARDED      # valid regular neighbours: dropped
+    d[~m] = profile.DEFECT_STUCK                      # all its regular neighbours are defective
+    _, s = V.classify(raw, profile.make(m, defects=d), "best")
+    assert s[1, 1] == V.ATTENUATED | V.VALID and ((s[~m] & V.REASON_MASK) == V.DISCARDED).all()

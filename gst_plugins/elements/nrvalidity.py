@@ -8,25 +8,33 @@ into the mapped output frame, which comes from a buffer pool (allocated once per
 Caps follow the profile: once the profile is known, the sink pad advertises only the mask's width and
 height upstream (so `videotestsrc ! video/x-raw,format=GRAY16_LE ! nrvalidity profile=...` or `videoscale !
 nrvalidity` negotiate that size); pixel-aspect-ratio and interlace-mode pass through.
+
+The profile says what the GRAY16_LE words hold (docs/PROFILE.md "Sensor data"): `bit_depth`-bit codes, LSB- or
+MSB-aligned, or a packed bit stream (Mono12Packed, Mono12p, Mono10p: aravissrc labels Mono12Packed GRAY16_LE)
+whose buffers hold the packed bytes; a buffer whose size does not fit the profile's format, or codes beyond its
+bit depth with `out_of_range` "error", is an element error naming the profile.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 import urllib.parse
 
+import numpy as np
+
 from nrhdr_core.validity import DARK_POLICIES, MODES
 
-from ._common import (HDR_LAYOUT, HDR_MEDIA_TYPE, LATENCY_PROP, GstBase, GstVideo, Gst, HdrInfo, HdrPool,
-                      LiveTiming, NrElement, Prop, PropertyTable, check_video_buffer, copy_fields,
+from ._common import (HDR_LAYOUT, HDR_MEDIA_TYPE, LATENCY_PROP, FrameSizeError, GstBase, GstVideo, Gst, HdrInfo,
+                      HdrPool, LiveTiming, NrElement, Prop, PropertyTable, check_video_buffer, copy_fields,
                       copy_timestamps, debug_category, guarded, hdr_template_caps, load_profile, map_hdr,
                       map_video, raw_template_caps, starting, transform_caps_by_structure)
 from ._profiles import ALLOW_OUTSIDE_PROP
 
 PROPERTIES = PropertyTable("GstNrValidity", [
     Prop("profile", str, "", "Camera profile",
-         "Camera profile JSON (nrhdr_core.profile): ND mask, ND factor, clip code, black level, l_min. "
-         "Required; the stream's frame size must equal the mask's"),
+         "Camera profile JSON (nrhdr_core.profile): ND mask, ND factor, bit depth, white and black level, "
+         "alignment, packing, defect pixels, l_min. Required; the stream's frame size must equal the mask's"),
     ALLOW_OUTSIDE_PROP,
     Prop("mode", MODES, "threshold", "Selection mode",
          "Pixel selection (paper 2.3): 'all' = every pixel neither clipped nor below SNR 0 dB; 'best' = "
@@ -263,16 +271,57 @@ class NrValidity(NrElement, LiveTiming, GstBase.BaseTransform):
                         f"is truncated", kind="format")
         return False
 
+    def _check_unpacked(self, inbuf) -> None:
+        """One GRAY16_LE frame per buffer; a buffer of a packed frame's size says so (aravissrc labels
+        Mono12Packed GRAY16_LE)."""
+        try:
+            check_video_buffer(inbuf, self._in_info)
+        except FrameSizeError as e:
+            from nrhdr_core.profile import PACKINGS
+            n = self._in_info.width * self._in_info.height
+            size = inbuf.get_size()
+            packed = sorted({k for k, bits in PACKINGS.items() if bits < 16 and size == (n * bits + 7) // 8})
+            if not packed:
+                raise
+            bits = PACKINGS[packed[0]]
+            raise FrameSizeError(f"{e}. {size} bytes is a {bits}-bit packed {self._in_info.width}x"
+                                 f"{self._in_info.height} frame ({' or '.join(packed)}) labelled GRAY16_LE, "
+                                 f"but profile {self._profile_name()} says unpacked {self._profile.bit_depth}-bit "
+                                 f"data: set the profile's packing and bit_depth to the camera's pixel format, "
+                                 f"or set the camera to an unpacked format (Mono12, Mono16)") from None
+
+    def _profile_name(self) -> str:
+        prof = self._profile
+        return os.path.basename(str(prof.path)) if prof.path else self.settings.profile
+
+    @contextlib.contextmanager
+    def _map_raw(self, inbuf):
+        """The input frame as classify takes it: (H, W) GRAY16_LE words (checked by `_check_unpacked`), or
+        a packed frame's bytes (checked by `validity.codes`)."""
+        if self._profile.packing == "none":
+            with map_video(inbuf, self._in_info, "<u2", write=False) as raw:
+                yield raw
+            return
+        ok, mi = inbuf.map(Gst.MapFlags.READ)
+        if not ok:
+            raise RuntimeError("cannot map the input buffer")
+        try:
+            yield np.frombuffer(mi.data, np.uint8)
+        finally:
+            inbuf.unmap(mi)
+
     @guarded(lambda self: f"frame {self._frames}", Gst.FlowReturn.ERROR)
     def do_transform(self, inbuf, outbuf):
-        check_video_buffer(inbuf, self._in_info)
-        if not self._file_checked and not self._check_file(inbuf):
+        packed = self._profile.packing != "none"
+        if not packed:
+            self._check_unpacked(inbuf)
+        if not packed and not self._file_checked and not self._check_file(inbuf):
             return Gst.FlowReturn.ERROR
         from nrhdr_core import validity
         s = self.settings
         lm = None if s.l_min < 0 else s.l_min
         t0 = time.perf_counter()
-        with self.warnings_to_bus(), map_video(inbuf, self._in_info, "<u2", write=False) as raw, \
+        with self.warnings_to_bus(), self._map_raw(inbuf) as raw, \
                 map_hdr(outbuf, self._out_info, write=True) as (values, state):
             validity.classify(raw, self._profile, mode=s.mode, l_min=lm, values=values, state=state,
                               dark_policy=s.dark_policy)
