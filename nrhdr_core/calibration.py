@@ -969,10 +969,8 @@ def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_
 
 
 def _defect_field(defects) -> dict:
-    """{"defects": map} for profiles.make where the profile has that field and a map is given, else {}."""
-    if defects is None or "defects" not in {f.name for f in dataclasses.fields(profiles.CameraProfile)}:
-        return {}
-    return {"defects": defects}
+    """{"defects": map} for profiles.make when a map is given, else {}."""
+    return {} if defects is None else {"defects": defects}
 
 
 def _example_pixels(mask, refs, nd_eff_map):

@@ -38,11 +38,8 @@ from . import calibration, crosstalk
 from . import profile as profiles
 from .calibration import CalibrationError
 
-# defect-map codes (profile.DEFECT_* where the profile defines them)
-DEFECT_GOOD = 0
-DEFECT_HOT = int(getattr(profiles, "DEFECT_HOT", 1))
-DEFECT_DEAD = int(getattr(profiles, "DEFECT_DEAD", 2))
-DEFECT_STUCK = int(getattr(profiles, "DEFECT_STUCK", 3))
+DEFECT_GOOD = 0  # defect-map codes: the profile's (profile.DEFECT_HOT / DEAD / STUCK)
+DEFECT_HOT, DEFECT_DEAD, DEFECT_STUCK = profiles.DEFECT_HOT, profiles.DEFECT_DEAD, profiles.DEFECT_STUCK
 
 LINEAR_LIMIT = 0.7        # fit only exposures where 99 % of the pixels are below this share of the range
 REJECT_Z = 6.0            # a fit point this many noise sigmas off the line is rejected (one pass)
