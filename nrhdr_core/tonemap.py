@@ -318,7 +318,7 @@ def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
     if peak > 0:
         top = (eotf_inverse_ST2084(peak) if transfer == "pq"
                else oetf_HLG((min(peak, HLG_NOMINAL_PEAK) / HLG_NOMINAL_PEAK) ** (1 / HLG_SYSTEM_GAMMA)))
-        code_max = min(int(math.floor(64.0 + 876.0 * float(top) + 1e-9)), 940)
+        code_max = min(int(math.floor(64.0 + 876.0 * float(top) + 1e-4)), 940)
     if transfer == "pq":
         _hdr_kernel(v, gain * reference_white / L_P, 0, src_pq, ks, max_lum, code_max, out)
     else:
