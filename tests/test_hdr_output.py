@@ -216,3 +216,51 @@ def test_raw_hdr_recording_pipelines(gst_subprocess_env, tiny_clip, tmp_path):
     files = sorted((tmp_path / "png").glob("frame_*.png"))
     assert len(files) == len(raws)
     assert io.read_image(files[0], np.uint8).max() > 0
+
+
+@pytest.mark.gst
+@pytest.mark.parametrize("transfer,mux,ext", [("pq", "mp4mux", "mp4"), ("pq", "matroskamux", "mkv"),
+                                              ("hlg", "mp4mux", "mp4")])
+def test_nrhdrenc_from_gst_launch(gst_subprocess_env, tiny_clip, tmp_path, transfer, mux, ext):
+    """nrhdrenc in a gst-launch pipeline: the decoded codes are nrtonemap's (lossless x265), the signalling and
+    the estimated metadata are in the stream and, with matroska=true, the same in the Matroska container."""
+    import json
+    from fractions import Fraction
+    from nrhdr_core import chain, tonemap
+    _x265_and_ffprobe()
+    d, prof, raws = tiny_clip
+    out = tmp_path / f"e.{ext}"
+    opt = ["matroska=true"] if mux == "matroskamux" else []
+    rc, text = run(["gst-launch-1.0", "-e", "filesrc", f"location={d / 'clip.raw'}", "!", "rawvideoparse",
+                    "format=gray16-le", f"width={prof.width}", f"height={prof.height}", "framerate=5/1", "!",
+                    "nrvalidity", f"profile={d / 'camera.json'}", "!", "nrcrosstalk", "mode=lut", "!",
+                    "nrreconstruct", "method=nearest", "!", "nrhdrenc", f"transfer={transfer}",
+                    "x265-options=lossless=1", *opt, "!", mux, "!", "filesink", f"location={out}"],
+                   gst_subprocess_env)
+    assert rc == 0, text
+    raw = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-f", "rawvideo", "-pix_fmt", "yuv420p10le",
+                          "-"], capture_output=True, check=True).stdout
+    w, h = prof.width, prof.height
+    frames = np.frombuffer(raw, "<u2").reshape(len(raws), -1)[:, :w * h].reshape(-1, h, w)
+    diffuse, white = float(prof.regular_white), float(prof.white)
+    for i, r in enumerate(raws):
+        v, _ = chain.process_frame(r.copy(), prof, chain.ChainSettings(method="nearest", crosstalk="lut"))
+        exp = tonemap.hdr_encode(v, diffuse, transfer, peak=1000.0,
+                                 source_peak=tonemap.peak_luminance(white, diffuse, transfer)) >> 6
+        np.testing.assert_array_equal(frames[i], exp)
+    sig = _signalling(out)
+    assert sig["color_transfer"] == ("smpte2084" if transfer == "pq" else "arib-std-b67")
+    assert (sig["color_primaries"], sig["color_space"], sig["color_range"]) == ("bt2020", "bt2020nc", "tv")
+    p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-read_intervals", "%+#1", "-show_frames",
+                        "-show_streams", "-of", "json", str(out)], capture_output=True, text=True, check=True)
+    info = json.loads(p.stdout)
+    places = [info["frames"][0]] + ([info["streams"][0]] if ext == "mkv" else [])
+    for where in places:
+        kinds = {x["side_data_type"]: x for x in where.get("side_data_list", [])}
+        if transfer == "hlg":
+            assert "Mastering display metadata" not in kinds
+            continue
+        md = kinds["Mastering display metadata"]
+        assert Fraction(md["max_luminance"]) == 1000 and Fraction(md["min_luminance"]) == Fraction(1, 200)
+        cll = kinds["Content light level metadata"]
+        assert (cll["max_content"], cll["max_average"]) == (1000, 203)    # the estimate: peak, reference white
