@@ -166,3 +166,21 @@ def full_range16(codes: np.ndarray, shift: int = 6) -> np.ndarray:
     clamped to 0..65535: the code values of an HDR PNG (cICP full range)."""
     c = (np.asarray(codes) >> shift).astype(np.float64)
     return np.clip(np.floor((c - 64.0) * (65535.0 / 876.0) + 0.5), 0, 65535).astype(np.uint16)
+
+
+def display_reference(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
+                      reference_white: float = REFERENCE_WHITE_NITS, exposure_stops: float = 0.0,
+                      peak: float = 0.0, source_peak: float = 0.0) -> np.ndarray:
+    """The display light (cd/m^2, float64) `tonemap.hdr_encode` encodes, before 10-bit quantisation: pq:
+    display_luminance, hlg: the 1000 cd/m^2 reference display's L = 1000 E^1.2 (E <= 1); then the BT.2390
+    EETF to `peak` from `source_peak` (peak > 0). The reference for measuring an encode (`code_luminance` of
+    the decoded codes against it)."""
+    from .tonemap import display_luminance, eetf_BT2390, hlg_reference_E
+    if transfer == "pq":
+        L = np.minimum(display_luminance(values, diffuse_white, reference_white, exposure_stops), L_P)
+    else:
+        E = display_luminance(values, diffuse_white, hlg_reference_E(reference_white), exposure_stops)
+        L = HLG_NOMINAL_PEAK * E ** HLG_SYSTEM_GAMMA
+    if peak > 0:
+        L = eetf_BT2390(L, min(source_peak, L_P), peak)
+    return np.minimum(L, HLG_NOMINAL_PEAK) if transfer == "hlg" else L

@@ -9,9 +9,10 @@
 # Environment: TRANSFER (pq|hlg, default pq), REFERENCE_WHITE (cd/m2 of the diffuse white, default 203), PEAK
 # (mastering peak in cd/m2, default 1000: brighter light is rolled off by the BT.2390 EETF), EXPOSURE, CRF,
 # SPEED_PRESET, FORMAT (auto|mp4|mkv|png), METHOD, PRESET, MODE, CROSSTALK, NRHDR, OVERWRITE (true: replace OUT).
-# The video is written under a temporary name and renamed when complete; a stop (Ctrl-C) leaves no file.
+# The video is written as OUT.part and renamed when complete; a stop (Ctrl-C) while encoding ends it with EOS
+# (the file is closed and plays the frames encoded so far), a stop during the first pass leaves no file.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-case "${1:-}" in -h|--help) sed -n '2,13p' "$0"; exit 0;; esac
+case "${1:-}" in -h|--help) sed -n '2,14p' "$0"; exit 0;; esac
 CLIP="${1:-demo_out/clip}"
 nr_clip "$CLIP" "${3:-}"
 OUT="${2:-${CLIP%/}_hdr10}"
@@ -32,6 +33,10 @@ else
       || { echo "error: FORMAT=$FORMAT but OUT is $OUT" >&2; exit 2; } ;;
     *) TARGET="$OUT.${FORMAT/auto/mkv}" ;;
   esac
+fi
+if [ "${OVERWRITE:-false}" != "true" ] && [ -e "$TARGET" ] \
+    && { [ ! -d "$TARGET" ] || [ -n "$(ls -A "$TARGET")" ]; }; then
+  echo "error: $TARGET exists: choose another name or set OVERWRITE=true" >&2; exit 2
 fi
 ARGS=(--profile "$PROFILE" --transfer "${TRANSFER:-pq}" --reference-white "${REFERENCE_WHITE:-203}"
       --peak "${PEAK:-1000}" --exposure "${EXPOSURE:-0}" --method "${METHOD:-fse}" --preset "${PRESET:-fast}"

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from pathlib import Path
 
 from .args import add_allow_outside, number
@@ -70,6 +71,9 @@ def add_hdr10(sub) -> None:
     g = p.add_argument_group("output")
     g.add_argument("--force", action="store_true", help="replace an existing OUT (or its PNG frames)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.add_argument("--report", action="store_true",
+                   help="decode the video with ffmpeg and print its quality against the chain's linear frames "
+                        "(PU21-PSNR and log2 PSNR of the display light, beside the 10-bit codes' own)")
     add_allow_outside(p)
     p.set_defaults(func=cmd_hdr10)
 
@@ -87,9 +91,10 @@ def _need_elements(Gst, names) -> None:
                          f"(x265enc, h265parse) and gstreamer1.0-plugins-good (mp4mux, matroskamux, capssetter)")
 
 
-def first_pass(src, prof, settings, a, codes_path, progress, pngs=None):
+def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, reference=None):
     """Every frame through the chain and hdr_encode; codes appended to `codes_path` (uint16 << 6), or PNG
-    stills written into `pngs`; returns the measured LightLevels."""
+    stills written into `pngs`; returns the measured LightLevels. `reference`: a list that gets each frame's
+    display light before quantisation (hdr_output.display_reference, float32)."""
     import numpy as np
     from nrhdr_core import batch, chain, hdr_output, io, tonemap
     diffuse, white = float(prof.regular_white), float(prof.white)
@@ -104,6 +109,10 @@ def first_pass(src, prof, settings, a, codes_path, progress, pngs=None):
             tonemap.hdr_encode(values, diffuse, a.transfer, reference_white=a.reference_white,
                                exposure_stops=a.exposure, out=out, peak=a.peak, source_peak=source_peak)
             levels.update(out)
+            if reference is not None:
+                reference.append(hdr_output.display_reference(
+                    values, diffuse, a.transfer, a.reference_white, a.exposure, a.peak,
+                    source_peak).astype(np.float32))
             if pngs is not None:
                 io.write_hdr_png(Path(pngs) / f"frame_{i:05d}.png", hdr_output.full_range16(out), a.transfer)
             else:
@@ -143,8 +152,9 @@ def encoder_description(a, container: str, levels: tuple[int, int] | None, width
     return caps, enc
 
 
-def second_pass(codes_path, src, caps, enc, target, progress) -> None:
-    """Encode the codes file into `target` through appsrc ! <enc> ! filesink; raises on a pipeline error."""
+def second_pass(codes_path, src, caps, enc, target, progress):
+    """Encode the codes file into `target` through appsrc ! <enc> ! filesink; raises on a pipeline error.
+    A stop signal (outputs.Interrupted) ends the stream with EOS (the file is closed) and is returned."""
     import numpy as np
     import gi
     gi.require_version("Gst", "1.0")
@@ -177,18 +187,22 @@ def second_pass(codes_path, src, caps, enc, target, progress) -> None:
                 raise ValueError(f"{target}: {m.src.get_name()}: {err.message}")
             return True
 
+    stopped = None
     try:
         with _progress(src.frames, progress, "hdr10 pass 2 (x265)") as bar:
-            for i in range(src.frames):
-                hdr_output.i420_10_frame(codes[i], frame, vi.offset, vi.stride)
-                buf = Gst.Buffer.new_wrapped(frame.tobytes())
-                buf.pts = int(round(i * Gst.SECOND / fps))
-                buf.duration = int(round(Gst.SECOND / fps))
-                if appsrc.emit("push-buffer", buf) != Gst.FlowReturn.OK:
+            try:
+                for i in range(src.frames):
+                    hdr_output.i420_10_frame(codes[i], frame, vi.offset, vi.stride)
+                    buf = Gst.Buffer.new_wrapped(frame.tobytes())
+                    buf.pts = int(round(i * Gst.SECOND / fps))
+                    buf.duration = int(round(Gst.SECOND / fps))
+                    if appsrc.emit("push-buffer", buf) != Gst.FlowReturn.OK:
+                        check()
+                        raise ValueError(f"{target}: the encoder refused frame {i}")
                     check()
-                    raise ValueError(f"{target}: the encoder refused frame {i}")
-                check()
-                bar.update(1)
+                    bar.update(1)
+            except KeyboardInterrupt as e:      # a stop: end the stream, so the file is closed and plays
+                stopped = e
             appsrc.emit("end-of-stream")
             while True:
                 m = bus.timed_pop_filtered(Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
@@ -201,9 +215,11 @@ def second_pass(codes_path, src, caps, enc, target, progress) -> None:
     finally:
         pipeline.set_state(Gst.State.NULL)
         del codes
+    return stopped
 
 
 def cmd_hdr10(a) -> int:
+    import numpy as np
     from nrhdr_core import batch, chain, hdr_output, io, outputs, profile, simulate
     out = Path(a.output)
     container = hdr_output.container_of(out)
@@ -233,18 +249,27 @@ def cmd_hdr10(a) -> int:
             if os.path.lexists(out) and not a.force:
                 io.refuse_existing([out])
             codes = outputs.temp_path(out, ".codes")
+            part = Path(f"{out}.part")             # the video being encoded (the lock is ours)
             try:
-                levels = first_pass(src, prof, settings, a, codes, progress)
+                reference = [] if a.report else None
+                levels = first_pass(src, prof, settings, a, codes, progress, reference=reference)
+                if a.report:
+                    quantised = np.fromfile(codes, np.uint16).reshape(src.frames, src.height, src.width) >> 6
                 cll = levels.values()
                 if a.max_cll is not None or a.max_fall is not None:
                     cll = (a.max_cll if a.max_cll is not None else cll[0],
                            a.max_fall if a.max_fall is not None else cll[1])
                 meta = cll if a.transfer == "pq" else None
                 caps, enc = encoder_description(a, container, meta, src.width, src.height, fps)
-                with outputs.atomic_file(out) as video:
-                    second_pass(codes, src, caps, enc, video, progress)
+                t0, c0 = time.perf_counter(), time.process_time()
+                stopped = second_pass(codes, src, caps, enc, part, progress)
+                enc_s, enc_cpu = time.perf_counter() - t0, time.process_time() - c0
+                os.replace(part, out)           # complete, or closed by EOS after a stop: it plays
+                if stopped is not None:
+                    raise stopped
             finally:
                 Path(codes).unlink(missing_ok=True)
+                part.unlink(missing_ok=True)
     size = out.stat().st_size
     secs = src.frames / fps
     kbps = size * 8 / secs / 1000
@@ -253,8 +278,40 @@ def cmd_hdr10(a) -> int:
                  if a.transfer == "pq" else "HLG: no static metadata")
     print(f"nrhdr hdr10: {src.frames} frames {src.width}x{src.height} -> {out} (HEVC Main 10, "
           f"{a.transfer.upper()}, crf {a.crf:g}, {a.speed_preset}): {kbps:.0f} kbit/s, {bpp:.4f} bit/pixel; "
-          f"{meta_text}")
+          f"{meta_text}; encoded at {src.frames / enc_s:.2f} frames/s ({enc_cpu / src.frames:.3f} CPU s per frame)")
+    if a.report:
+        decoded = decode_codes(out, src.width, src.height)
+        q_codes, q_dec = report(reference, quantised, a.transfer), report(reference, decoded, a.transfer)
+        print(f"quality against the chain's display light (PU21-PSNR / log2 PSNR, dB): 10-bit codes "
+              f"{q_codes[0]:.2f} / {q_codes[1]:.2f}, decoded {q_dec[0]:.2f} / {q_dec[1]:.2f}")
     return 0
+
+
+def decode_codes(path, width: int, height: int):
+    """The Y planes of a 10-bit video decoded by ffmpeg (yuv420p10le: the codes as coded), (N, H, W)."""
+    import shutil
+    import subprocess
+    import numpy as np
+    if shutil.which("ffmpeg") is None:
+        raise ValueError("--report decodes with ffmpeg, which is not installed (Debian: ffmpeg)")
+    raw = subprocess.run(["ffmpeg", "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "yuv420p10le",
+                          "-"], capture_output=True, check=True).stdout
+    cw, ch = (width + 1) // 2, (height + 1) // 2
+    frames = np.frombuffer(raw, "<u2").reshape(-1, width * height + 2 * cw * ch)
+    return frames[:, :width * height].reshape(-1, height, width)
+
+
+def report(reference, codes, transfer: str) -> tuple[float, float]:
+    """(PU21-PSNR, log2 PSNR) in dB of the display light of `codes` against `reference` (cd/m^2) over all
+    frames; log2 with a 0.1 cd/m^2 floor."""
+    import numpy as np
+    from nrhdr_core import hdr_output, metrics
+    if len(codes) != len(reference):
+        raise ValueError(f"the decoded video has {len(codes)} frames, the clip {len(reference)}")
+    ref = np.stack(reference).astype(np.float64)
+    test = hdr_output.code_luminance(transfer)[codes]
+    return (metrics.pu21_psnr(ref, test, white=1.0, peak_nits=1.0),
+            metrics.log2_psnr(ref, test, floor=0.1))
 
 
 def tonemap_hlg_peak() -> float:
