@@ -284,7 +284,37 @@ def cmd_hdr10(a) -> int:
         q_codes, q_dec = report(reference, quantised, a.transfer), report(reference, decoded, a.transfer)
         print(f"quality against the chain's display light (PU21-PSNR / log2 PSNR, dB): 10-bit codes "
               f"{q_codes[0]:.2f} / {q_codes[1]:.2f}, decoded {q_dec[0]:.2f} / {q_dec[1]:.2f}")
+        truth = truth_reference(a, src, prof)
+        if truth is not None:
+            t_chain = report(truth, None, a.transfer, test=reference)
+            t_dec = report(truth, decoded, a.transfer)
+            print(f"against the simulator's truth (PU21-PSNR / log2 PSNR, dB): the chain {t_chain[0]:.2f} / "
+                  f"{t_chain[1]:.2f}, decoded {t_dec[0]:.2f} / {t_dec[1]:.2f}")
     return 0
+
+
+def truth_reference(a, src, prof):
+    """The display light of the simulator's truth frames (clip.json `truth`) through the same mapping, or
+    None when the input has none."""
+    import json
+    from nrhdr_core import hdr_output, io, tonemap
+    cj = Path(a.input) / "clip.json"
+    if not cj.is_file():
+        return None
+    pattern = json.loads(cj.read_text()).get("truth")
+    if not pattern:
+        return None
+    diffuse, white = float(prof.regular_white), float(prof.white)
+    source_peak = tonemap.peak_luminance(white, diffuse, a.transfer, a.reference_white, a.exposure)
+    out = []
+    for i in range(src.frames):
+        f = Path(a.input) / (pattern % i)
+        if not f.is_file():
+            return None
+        v, _ = io.read_exr(f, shape=(src.height, src.width))
+        out.append(hdr_output.display_reference(v, diffuse, a.transfer, a.reference_white, a.exposure, a.peak,
+                                                source_peak))
+    return out
 
 
 def decode_codes(path, width: int, height: int):
@@ -301,15 +331,16 @@ def decode_codes(path, width: int, height: int):
     return frames[:, :width * height].reshape(-1, height, width)
 
 
-def report(reference, codes, transfer: str) -> tuple[float, float]:
-    """(PU21-PSNR, log2 PSNR) in dB of the display light of `codes` against `reference` (cd/m^2) over all
-    frames; log2 with a 0.1 cd/m^2 floor."""
+def report(reference, codes, transfer: str, test=None) -> tuple[float, float]:
+    """(PU21-PSNR, log2 PSNR) in dB of the display light of `codes` (or `test`, cd/m^2) against `reference`
+    (cd/m^2) over all frames; log2 with a 0.1 cd/m^2 floor."""
     import numpy as np
     from nrhdr_core import hdr_output, metrics
-    if len(codes) != len(reference):
-        raise ValueError(f"the decoded video has {len(codes)} frames, the clip {len(reference)}")
+    n = len(codes) if test is None else len(test)
+    if n != len(reference):
+        raise ValueError(f"the decoded video has {n} frames, the clip {len(reference)}")
     ref = np.stack(reference).astype(np.float64)
-    test = hdr_output.code_luminance(transfer)[codes]
+    test = hdr_output.code_luminance(transfer)[codes] if test is None else np.stack(test).astype(np.float64)
     return (metrics.pu21_psnr(ref, test, white=1.0, peak_nits=1.0),
             metrics.log2_psnr(ref, test, floor=0.1))
 
