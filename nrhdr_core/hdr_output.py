@@ -184,3 +184,21 @@ def display_reference(values: np.ndarray, diffuse_white: float, transfer: str = 
     if peak > 0:
         L = eetf_BT2390(L, min(source_peak, L_P), peak)
     return np.minimum(L, HLG_NOMINAL_PEAK) if transfer == "hlg" else L
+
+
+def encoder_caps(transfer: str, mastering: MasteringDisplay | None = None,
+                 levels: tuple[int, int] | None = None) -> str:
+    """The video caps (text) x265enc is given: I420_10LE, colorimetry bt2100-pq / bt2100-hlg (BT.2020, PQ or
+    HLG, BT.2020 NCL, limited range in the VUI) and, with `mastering` and `levels` (MaxCLL, MaxFALL), the
+    fields from which it writes the ST 2086 and CTA-861.3 SEI."""
+    caps = f"video/x-raw,format=I420_10LE,colorimetry=bt2100-{transfer}"
+    if mastering is not None and levels is not None:
+        caps += (f",mastering-display-info=(string){mastering.caps_field()},"
+                 f"content-light-level=(string){content_light_caps_field(*levels)}")
+    return caps
+
+
+def matroska_caps(mastering: MasteringDisplay) -> str:
+    """The caps (text) that a capssetter before matroskamux sets so that its Colour element states the
+    mastering luminance the SEI states (MATROSKA_LUMINANCE_FACTOR)."""
+    return f"video/x-h265,mastering-display-info=(string){mastering.caps_field(MATROSKA_LUMINANCE_FACTOR)}"

@@ -198,7 +198,7 @@ def test_raw_to_hdr10_encoded(gst_subprocess_env, tiny_clip, tmp_path, out_name,
     assert sig == {"profile": "Main 10", "color_primaries": "bt2020", "color_space": "bt2020nc", "color_range": "tv",
                    "color_transfer": "smpte2084" if transfer == "pq" else "arib-std-b67"}
     rc, out = run(["bash", ROOT / "pipelines" / "raw_to_hdr10.sh", d, tmp_path / out_name], env)
-    assert rc == 2 and "already exists" in out                              # never overwritten unasked
+    assert rc == 2 and "exists" in out and "OVERWRITE=true" in out         # never overwritten unasked
 
 
 @pytest.mark.gst

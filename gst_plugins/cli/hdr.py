@@ -7,6 +7,7 @@ instead of OUT.mp4 / OUT.mkv gets 16-bit PNG frames with a cICP chunk."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -102,7 +103,7 @@ def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, referenc
     levels = hdr_output.LightLevels(a.transfer)
     out = np.empty((src.height, src.width), np.uint16)
     with _progress(src.frames, progress, "hdr10 pass 1 (chain)") as bar, \
-            (open(codes_path, "wb") if codes_path is not None else _NoFile()) as f:
+            (open(codes_path, "wb") if codes_path is not None else contextlib.nullcontext()) as f:
         for i in range(src.frames):
             raw = batch.read_frame(src.raw, src.width, src.height, i)
             values, _state = chain.process_frame(raw.copy(), prof, settings)
@@ -121,39 +122,27 @@ def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, referenc
     return levels
 
 
-class _NoFile:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
 def encoder_description(a, container: str, levels: tuple[int, int] | None, width: int, height: int,
                         fps: int) -> tuple[str, str]:
     """(appsrc caps, the encoder-to-muxer part of the pipeline) for `a`'s settings."""
     from nrhdr_core import hdr_output
-    caps = (f"video/x-raw,format=I420_10LE,width={width},height={height},framerate={fps}/1,"
-            f"colorimetry=bt2100-{a.transfer}")
     md = None
     if levels is not None:
         md = hdr_output.MasteringDisplay(a.primaries, a.peak if a.peak > 0 else 10000.0, a.min_luminance)
-        caps += (f",mastering-display-info=(string){md.caps_field()},"
-                 f"content-light-level=(string){hdr_output.content_light_caps_field(*levels)}")
-    opts = f"crf={a.crf:g}" + (f":{a.x265_options}" if a.x265_options else "")
-    enc = f'x265enc speed-preset={a.speed_preset} option-string="{opts}" ! h265parse'
+    caps = hdr_output.encoder_caps(a.transfer, md, levels) + f",width={width},height={height},framerate={fps}/1"
+    enc = f"x265enc name=enc speed-preset={a.speed_preset} ! h265parse"
     if container == "mkv":
         if md is not None:   # the muxer stores the luminance / 5: hand it 5x, the SEI keeps the true values
-            enc += (f' ! capssetter caps="video/x-h265,mastering-display-info=(string)'
-                    f'{md.caps_field(hdr_output.MATROSKA_LUMINANCE_FACTOR)}"')
+            enc += f' ! capssetter caps="{hdr_output.matroska_caps(md)}"'
         enc += " ! matroskamux"
     else:
         enc += " ! mp4mux"
     return caps, enc
 
 
-def second_pass(codes_path, src, caps, enc, target, progress):
-    """Encode the codes file into `target` through appsrc ! <enc> ! filesink; raises on a pipeline error.
+def second_pass(codes_path, src, caps, enc, options, target, progress):
+    """Encode the codes file into `target` through appsrc ! <enc> ! filesink (x265enc `options`); raises on a
+    pipeline error.
     A stop signal (outputs.Interrupted) ends the stream with EOS (the file is closed) and is returned."""
     import numpy as np
     import gi
@@ -165,6 +154,7 @@ def second_pass(codes_path, src, caps, enc, target, progress):
     _need_elements(Gst, ["x265enc", "h265parse", "capssetter", "mp4mux", "matroskamux", "appsrc"])
     pipeline = Gst.parse_launch(f"appsrc name=src format=time block=true ! {enc} ! filesink name=sink")
     pipeline.get_by_name("sink").set_property("location", str(target))
+    pipeline.get_by_name("enc").set_property("option-string", options)
     appsrc = pipeline.get_by_name("src")
     gcaps = Gst.Caps.from_string(caps)
     appsrc.set_property("caps", gcaps)
@@ -221,10 +211,11 @@ def second_pass(codes_path, src, caps, enc, target, progress):
 def cmd_hdr10(a) -> int:
     import numpy as np
     from nrhdr_core import batch, chain, hdr_output, io, outputs, profile, simulate
+    from nrhdr_core.tonemap import HLG_NOMINAL_PEAK
     out = Path(a.output)
     container = hdr_output.container_of(out)
-    if a.peak and a.transfer == "hlg" and a.peak > tonemap_hlg_peak():
-        raise ValueError(f"--peak {a.peak:g}: HLG's reference display peaks at {tonemap_hlg_peak():g} cd/m2")
+    if a.transfer == "hlg" and a.peak > HLG_NOMINAL_PEAK:
+        raise ValueError(f"--peak {a.peak:g}: HLG's reference display peaks at {HLG_NOMINAL_PEAK:g} cd/m2")
     src = batch.open_source(a.input, a.profile, frames=a.frames, allow_outside=a.allow_outside_paths)
     prof = profile.load(src.profile, allow_outside=a.allow_outside_paths)
     if (prof.width, prof.height) != (src.width, src.height):
@@ -262,7 +253,8 @@ def cmd_hdr10(a) -> int:
                 meta = cll if a.transfer == "pq" else None
                 caps, enc = encoder_description(a, container, meta, src.width, src.height, fps)
                 t0, c0 = time.perf_counter(), time.process_time()
-                stopped = second_pass(codes, src, caps, enc, part, progress)
+                options = f"crf={a.crf:g}" + (f":{a.x265_options}" if a.x265_options else "")
+                stopped = second_pass(codes, src, caps, enc, options, part, progress)
                 enc_s, enc_cpu = time.perf_counter() - t0, time.process_time() - c0
                 os.replace(part, out)           # complete, or closed by EOS after a stop: it plays
                 if stopped is not None:
@@ -343,9 +335,4 @@ def report(reference, codes, transfer: str, test=None) -> tuple[float, float]:
     test = hdr_output.code_luminance(transfer)[codes] if test is None else np.stack(test).astype(np.float64)
     return (metrics.pu21_psnr(ref, test, white=1.0, peak_nits=1.0),
             metrics.log2_psnr(ref, test, floor=0.1))
-
-
-def tonemap_hlg_peak() -> float:
-    from nrhdr_core.tonemap import HLG_NOMINAL_PEAK
-    return HLG_NOMINAL_PEAK
 

@@ -105,8 +105,7 @@ class NrHdrEnc(NrElement, Gst.Bin):
         self._enc.set_property("speed-preset", p.speed_preset)
         opts = f"crf={p.crf:g}" + (f":{p.x265_options}" if p.x265_options else "")
         self._enc.set_property("option-string", opts)
-        self._filter.set_property("caps", Gst.Caps.from_string(
-            f"video/x-raw,format=I420_10LE,colorimetry=bt2100-{p.transfer}"))
+        self._filter.set_property("caps", Gst.Caps.from_string(hdr_output.encoder_caps(p.transfer)))
         self._setter.set_property("caps", Gst.Caps.from_string("video/x-h265"))
 
     def _on_event(self, pad, info):
@@ -124,7 +123,7 @@ class NrHdrEnc(NrElement, Gst.Bin):
 
     def _set_metadata(self, info) -> None:
         p = self.settings
-        caps = f"video/x-raw,format=I420_10LE,colorimetry=bt2100-{p.transfer}"
+        md = levels = None
         if p.transfer == "pq":
             cll, fall = p.max_cll, p.max_fall
             if not (cll and fall):
@@ -133,16 +132,14 @@ class NrHdrEnc(NrElement, Gst.Bin):
                                      "diffuse-white (put nrvalidity upstream, or set max-cll and max-fall)")
                 est = hdr_output.estimate_light_levels(info.white, info.diffuse_white, "pq", p.reference_white,
                                                        p.exposure, p.peak)
-                cll, fall = cll or est[0], fall or min(est[1], cll or est[0])
+                cll = cll or est[0]
+                fall = fall or min(est[1], cll)
             md = hdr_output.MasteringDisplay(p.primaries, p.peak if p.peak > 0 else 10000.0, p.min_luminance)
-            caps += (f",mastering-display-info=(string){md.caps_field()},"
-                     f"content-light-level=(string){hdr_output.content_light_caps_field(cll, fall)}")
+            levels = (cll, fall)
             if p.matroska:
-                self._setter.set_property("caps", Gst.Caps.from_string(
-                    "video/x-h265,mastering-display-info=(string)"
-                    f"{md.caps_field(hdr_output.MATROSKA_LUMINANCE_FACTOR)}"))
+                self._setter.set_property("caps", Gst.Caps.from_string(hdr_output.matroska_caps(md)))
             self.gst_debug(f"metadata: mastering {md.caps_field()}, MaxCLL {cll}, MaxFALL {fall}")
-        self._filter.set_property("caps", Gst.Caps.from_string(caps))
+        self._filter.set_property("caps", Gst.Caps.from_string(hdr_output.encoder_caps(p.transfer, md, levels)))
 
     def do_change_state(self, transition):
         if transition == Gst.StateChange.NULL_TO_READY:
