@@ -130,6 +130,31 @@ def test_nrtonemap_pq_negotiates_10bit_yuv_through_videoconvert(gst):
 
 
 @pytest.mark.gst
+@pytest.mark.parametrize("transfer", ["pq", "hlg"])
+def test_nrtonemap_peak_rolls_off_from_the_caps_white(gst, transfer):
+    """peak=1000: the caps' white (ND x the diffuse white) lands on the peak's code through the BT.2390 EETF;
+    values below the knee keep their codes."""
+    from nrhdr_core.tonemap import hdr_encode, peak_luminance
+    h, w = 4, 50
+    diffuse, white = 4094.0, 4094.0 * 6.35
+    v = np.geomspace(1.0, white, h * w).astype(np.float32).reshape(h, w)
+    r = run_appsrc(f"nrtonemap transfer={transfer} peak=1000 ! video/x-raw,format=GRAY16_LE",
+                   hdr_caps(w, h, white, diffuse), [hdr_buffer(v, np.zeros((h, w), np.uint8), pts=0, duration=1)])
+    assert r.error is None, r.error_text
+    img = r.samples[0][3] >> 6
+    exp = hdr_encode(v, diffuse, transfer, peak=1000.0, source_peak=peak_luminance(white, diffuse, transfer)) >> 6
+    np.testing.assert_array_equal(img, exp)
+    top = narrow10(pq(1000.0) - 0.5 / 876) if transfer == "pq" else 940      # the last code at or below 1000
+    assert img.max() == top and img[0, 0] == narrow10(pq(1.0 / diffuse * 203.0) if transfer == "pq"
+                                                      else hlg(1.0 / diffuse * hlg_E()))
+
+
+def hlg_E():
+    from nrhdr_core.tonemap import hlg_reference_E
+    return hlg_reference_E(203.0)
+
+
+@pytest.mark.gst
 def test_reference_white_while_playing(gst):
     h, w = 2, 4
     v = np.full((h, w), 4094.0, np.float32)
