@@ -27,7 +27,7 @@ DEFAULT_MIN_LUMINANCE = 0.005    # cd/m^2: the mastering display's black
 CHROMA_UNIT = 50000              # ST 2086 / H.265 D.3.28: chromaticity in 0.00002
 LUMINANCE_UNIT = 10000           # ST 2086: luminance in 0.0001 cd/m^2
 # x265's constant quality (crf) chosen by measurement (docs/BENCHMARKS.md "HDR10 encoding") and its speed
-DEFAULT_CRF = 20
+DEFAULT_CRF = 16
 DEFAULT_SPEED_PRESET = "medium"
 SPEED_PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower",
                  "veryslow", "placebo")

@@ -20,7 +20,7 @@ examples:
   nrhdr hdr10 demo_out/clip demo.mp4                        # HDR10: PQ, 203 cd/m2 white, 1000 cd/m2 peak
   nrhdr hdr10 demo_out/clip demo.mkv --transfer hlg         # HLG (ARIB STD-B67) in Matroska
   nrhdr hdr10 demo_out/clip stills                          # 16-bit PNG frames with cICP (PQ)
-  nrhdr hdr10 demo_out/clip demo.mp4 --crf 16 --speed-preset slow   # better quality, slower
+  nrhdr hdr10 demo_out/clip demo.mp4 --crf 12 --speed-preset slow   # transparent, slower
 defaults of the chain are pipelines/raw_to_hdr10.sh's (METHOD=fse PRESET=fast MODE=threshold, nrcrosstalk
 mode=kernel)."""
 
