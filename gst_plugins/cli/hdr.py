@@ -216,6 +216,8 @@ def cmd_hdr10(a) -> int:
     container = hdr_output.container_of(out)
     if a.transfer == "hlg" and a.peak > HLG_NOMINAL_PEAK:
         raise ValueError(f"--peak {a.peak:g}: HLG's reference display peaks at {HLG_NOMINAL_PEAK:g} cd/m2")
+    if a.max_cll is not None and a.max_fall is not None:
+        hdr_output.content_light_caps_field(a.max_cll, a.max_fall)      # MaxFALL <= MaxCLL, before any work
     src = batch.open_source(a.input, a.profile, frames=a.frames, allow_outside=a.allow_outside_paths)
     prof = profile.load(src.profile, allow_outside=a.allow_outside_paths)
     if (prof.width, prof.height) != (src.width, src.height):
