@@ -284,6 +284,22 @@ def write_exr(path, values, state=None) -> Path:
     return write_image(path, both, np.float32, ["Y", "state"])
 
 
+# OpenImageIO colour spaces that write a PNG cICP chunk (ITU-T H.273: primaries 9 = BT.2020, transfer 16 = PQ
+# or 18 = HLG, matrix 0 = RGB, full range) and no sRGB/gAMA/cHRM chunks to contradict it
+HDR_PNG_COLORSPACES = {"pq": "pq_rec2020_display", "hlg": "hlg_rec2020_display"}
+
+
+def write_hdr_png(path, signal, transfer: str = "pq") -> Path:
+    """Write an HDR still: a 16-bit PNG of full-range BT.2100 signal words (uint16, 0..65535 = signal 0..1,
+    grey (H, W) or (H, W, C)) with a cICP chunk saying BT.2020 primaries and PQ or HLG (`transfer`)."""
+    if transfer not in HDR_PNG_COLORSPACES:
+        raise ValueError(f"HDR PNG transfer must be one of {', '.join(HDR_PNG_COLORSPACES)}, got {transfer!r}")
+    if Path(path).suffix.lower() != ".png":
+        raise ValueError(f"{path}: an HDR still with cICP must be a .png file")
+    return write_image(path, np.asarray(signal, np.uint16), np.uint16,
+                       attributes={"oiio:ColorSpace": HDR_PNG_COLORSPACES[transfer]})
+
+
 def read_exr(path, shape=None):
     """Read an EXR written by `write_exr`: returns (values float32 (H, W), state uint8 (H, W) or None).
     `shape` (H, W): the size it must have (checked before decoding). A truncated or corrupt file is an

@@ -600,57 +600,151 @@ def hlg_reference_E(reference_white: float = REFERENCE_WHITE_NITS) -> float:
     return float((reference_white / HLG_NOMINAL_PEAK) ** (1 / HLG_SYSTEM_GAMMA))
 
 
+def display_luminance(values, diffuse_white: float, reference_white: float = REFERENCE_WHITE_NITS,
+                      exposure_stops: float = 0.0):
+    """The chain's linear values -> display light in cd/m^2: L = v / diffuse_white * 2^exposure *
+    reference_white. The regular pixels' white (`diffuse_white`, the caps' diffuse-white) is the scene's
+    diffuse white and is shown at `reference_white` (ITU-R BT.2408: 203 cd/m^2); brighter values keep their
+    ratio (scene-referred, no OOTF). Negative and non-finite values give 0."""
+    v = np.nan_to_num(np.asarray(values, dtype=np.float64), nan=0.0, posinf=np.inf, neginf=0.0)
+    return np.maximum(v, 0.0) * (2.0 ** exposure_stops / diffuse_white * reference_white)
+
+
+def eetf_BT2390(L, source_peak: float, target_peak: float):
+    """ITU-R BT.2390 (section 5.4) EETF in the PQ domain, source and target black 0: luminance L (cd/m^2)
+    of a source graded up to `source_peak` -> luminance on a display of `target_peak`. With E1 = PQ(L) /
+    PQ(source_peak), maxLum = PQ(target_peak) / PQ(source_peak), KS = 1.5 maxLum - 0.5: E1 below KS is kept,
+    above it the Hermite spline P(E1) rolls off to maxLum at the source peak (beyond: maxLum). A source peak
+    at or below the target's is returned unchanged (clipped to the target peak)."""
+    L = np.asarray(L, dtype=np.float64)
+    if source_peak <= target_peak:
+        return np.minimum(np.maximum(L, 0.0), target_peak)
+    src = float(eotf_inverse_ST2084(source_peak))
+    max_lum = float(eotf_inverse_ST2084(target_peak)) / src
+    ks = max(1.5 * max_lum - 0.5, 0.0)
+    e1 = np.minimum(eotf_inverse_ST2084(L) / src, 1.0)
+    t = (e1 - ks) / (1.0 - ks)
+    p = (2 * t ** 3 - 3 * t ** 2 + 1) * ks + (t ** 3 - 2 * t ** 2 + t) * (1 - ks) + (-2 * t ** 3 + 3 * t ** 2) * max_lum
+    return eotf_ST2084(np.where(e1 > ks, p, e1) * src)
+
+
+def _eetf_params(source_peak: float, target_peak: float):
+    """(PQ(source_peak), KS, maxLum) of eetf_BT2390 for the kernel; PQ(source) = 0 switches the EETF off."""
+    if not (target_peak > 0) or source_peak <= target_peak:
+        return 0.0, 1.0, 1.0
+    src = float(eotf_inverse_ST2084(source_peak))
+    max_lum = float(eotf_inverse_ST2084(target_peak)) / src
+    return src, max(1.5 * max_lum - 0.5, 0.0), max_lum
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _hdr_kernel(values, scale, transfer, out):
+def _hdr_kernel(values, scale, transfer, src_pq, ks, max_lum, code_max, out):
     """values * scale -> PQ (transfer 0: scale gives cd/m^2 / L_p) or HLG (1: scale gives E) -> 10-bit
-    narrow-range code << 6. Same formulas as eotf_inverse_ST2084 / oetf_HLG, in float64."""
+    narrow-range code << 6. Same formulas as eotf_inverse_ST2084 / oetf_HLG / eetf_BT2390, in float64.
+    src_pq > 0: display light (HLG: of the 1000 cd/m^2 reference display, L = E^1.2) goes through the BT.2390
+    EETF (PQ of the source peak src_pq, knee ks, target maxLum) and HLG's E is taken back from it. Codes
+    are capped at code_max (940, or the last code at or below the target peak)."""
     h, w = values.shape
     for y in prange(h):
         for x in range(w):
             v = values[y, x] * scale
-            if not (v > 0.0):             # NaN and negatives -> black
-                v = 0.0
-            elif v > 1.0:
-                v = 1.0
-            if transfer == 0:
+            if src_pq > 0.0:
+                if not (v > 0.0):
+                    v = 0.0
+                if transfer == 1:
+                    v = v ** HLG_SYSTEM_GAMMA * (HLG_NOMINAL_PEAK / L_P)
+                if v > 1.0:
+                    v = 1.0
                 ym = v ** M_1
-                e = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2
-            elif v <= 1.0 / 12.0:
-                e = math.sqrt(3.0 * v)
+                e1 = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2 / src_pq
+                if e1 >= 1.0:
+                    e1 = max_lum
+                elif e1 > ks:
+                    t = (e1 - ks) / (1.0 - ks)
+                    t2 = t * t
+                    t3 = t2 * t
+                    e1 = ((2.0 * t3 - 3.0 * t2 + 1.0) * ks + (t3 - 2.0 * t2 + t) * (1.0 - ks)
+                          + (-2.0 * t3 + 3.0 * t2) * max_lum)
+                e = e1 * src_pq
+                if transfer == 1:
+                    vp = e ** (1.0 / M_2)
+                    n = vp - C_1
+                    if n < 0.0:
+                        n = 0.0
+                    v = ((n / (C_2 - C_3 * vp)) ** (1.0 / M_1) * (L_P / HLG_NOMINAL_PEAK)) ** (1.0 / HLG_SYSTEM_GAMMA)
+                    if v > 1.0:
+                        v = 1.0
+                    if v <= 1.0 / 12.0:
+                        e = math.sqrt(3.0 * v)
+                    else:
+                        e = HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
             else:
-                e = HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
+                if not (v > 0.0):             # NaN and negatives -> black
+                    v = 0.0
+                elif v > 1.0:
+                    v = 1.0
+                if transfer == 0:
+                    ym = v ** M_1
+                    e = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2
+                elif v <= 1.0 / 12.0:
+                    e = math.sqrt(3.0 * v)
+                else:
+                    e = HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
             code = int(64.0 + 876.0 * e + 0.5)
-            if code > 940:
-                code = 940
+            if code > code_max:
+                code = code_max
             out[y, x] = np.uint16(code << 6)
 
 
 TRANSFERS = ("pq", "hlg")
 
 
+def peak_luminance(white: float, diffuse_white: float, transfer: str = "pq",
+                   reference_white: float = REFERENCE_WHITE_NITS, exposure_stops: float = 0.0) -> float:
+    """Display light (cd/m^2) at which `hdr_encode` shows the linear value `white` (the sensor's largest,
+    the caps' white) before any roll-off: the source peak of the EETF. pq: the display_luminance mapping
+    (capped at 10000); hlg: the 1000 cd/m^2 reference display's L_W E^1.2."""
+    r = 2.0 ** exposure_stops * white / diffuse_white
+    if transfer == "pq":
+        return float(min(r * reference_white, L_P))
+    return float(HLG_NOMINAL_PEAK * (r * hlg_reference_E(reference_white)) ** HLG_SYSTEM_GAMMA)
+
+
 def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
                reference_white: float = REFERENCE_WHITE_NITS, exposure_stops: float = 0.0,
-               out: np.ndarray | None = None) -> np.ndarray:
+               out: np.ndarray | None = None, peak: float = 0.0, source_peak: float = 0.0) -> np.ndarray:
     """Linear frame (H, W) -> BT.2100 10-bit narrow-range codes (64..940) << 6 in uint16.
 
     The linear value `diffuse_white` (x 2^-exposure) is shown at `reference_white` cd/m^2 (BT.2408 diffuse
     white, 203 by default); brighter values keep their ratio up to PQ's 10000 cd/m^2 or HLG's E = 1.
     pq: C = v / diffuse_white * 2^exposure * reference_white, code of eotf_inverse_ST2084(C).
-    hlg: E = v / diffuse_white * 2^exposure * hlg_reference_E(reference_white), code of oetf_HLG(E)."""
+    hlg: E = v / diffuse_white * 2^exposure * hlg_reference_E(reference_white), code of oetf_HLG(E).
+    `peak` > 0 (cd/m^2, the mastering display's): display light from `source_peak` (`peak_luminance` of the
+    frame's white) down is rolled off to `peak` by the BT.2390 EETF (`eetf_BT2390`; HLG: on the 1000 cd/m^2
+    reference display's light) instead of being clipped, and no code exceeds the last one at or below `peak`."""
     if transfer not in TRANSFERS:
         raise ValueError(f"HDR transfer must be one of {', '.join(TRANSFERS)}, got {transfer!r}")
     if not (diffuse_white > 0 and math.isfinite(diffuse_white)):
         raise ValueError(f"HDR diffuse white must be a finite number > 0, got {diffuse_white}")
     if not (reference_white > 0 and math.isfinite(reference_white)):
         raise ValueError(f"reference white must be > 0 cd/m^2, got {reference_white}")
+    if not (0.0 <= peak <= L_P and 0.0 <= source_peak and math.isfinite(source_peak)):
+        raise ValueError(f"HDR peak must be in 0..{L_P:g} cd/m^2 and the source peak >= 0, got {peak}, "
+                         f"{source_peak}")
     v = np.asarray(values, dtype=np.float32)
     if out is None:
         out = np.empty(v.shape, np.uint16)
     if out.dtype != np.uint16:
         raise ValueError(f"HDR output must be uint16, got {out.dtype}")
     gain = 2.0 ** exposure_stops / diffuse_white
+    src_pq, ks, max_lum = _eetf_params(min(source_peak, L_P), peak)
+    code_max = 940
+    if peak > 0:
+        top = (eotf_inverse_ST2084(peak) if transfer == "pq"
+               else oetf_HLG((min(peak, HLG_NOMINAL_PEAK) / HLG_NOMINAL_PEAK) ** (1 / HLG_SYSTEM_GAMMA)))
+        code_max = min(int(math.floor(64.0 + 876.0 * float(top) + 1e-4)), 940)
     if transfer == "pq":
-        _hdr_kernel(v, gain * reference_white / L_P, 0, out)
+        _hdr_kernel(v, gain * reference_white / L_P, 0, src_pq, ks, max_lum, code_max, out)
     else:
-        _hdr_kernel(v, gain * hlg_reference_E(reference_white), 1, out)
+        _hdr_kernel(v, gain * hlg_reference_E(reference_white), 1, src_pq, ks, max_lum, code_max, out)
     return out

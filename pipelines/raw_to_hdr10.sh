@@ -1,43 +1,48 @@
 #!/usr/bin/env bash
-# Raw clip -> 10-bit HDR video for HDR displays (BT.2100 PQ or HLG, narrow range, colorimetry in the caps).
+# Raw clip -> HDR video for HDR televisions and players (docs/HDR-OUTPUT.md): HEVC Main 10 through x265enc,
+# BT.2020 / PQ (HDR10) or HLG / BT.2020 non-constant luminance / limited range, with the SMPTE ST 2086
+# mastering display and the CTA-861.3 MaxCLL / MaxFALL measured over the clip's frames (PQ).
 #   pipelines/raw_to_hdr10.sh [CLIP_DIR [OUT [PROFILE]]]
-# With a 10-bit encoder (vp9enc of gst-plugins-good, built with high bit depth; or x265enc): OUT.mkv, VP9
-# profile 2 / HEVC Main10 in Matroska. Without one, or with FORMAT=png: 16-bit PNG frames OUT/frame_%05d.png
-# (the 10-bit code << 6, gray). Defaults: CLIP_DIR=demo_out/clip, OUT=CLIP_DIR_hdr10.
-# Environment: TRANSFER (pq|hlg, default pq), REFERENCE_WHITE (cd/m2 of the diffuse white, default 203),
-# FORMAT (auto|mkv|png), METHOD, PRESET, MODE, EXPOSURE, NRHDR, OVERWRITE (true: replace an existing OUT.mkv
-# or PNG sequence; default: refuse). The video is written as OUT.mkv.part and renamed when the pipeline ends;
-# a stop (Ctrl-C, SIGTERM) ends it with EOS, so the file is closed and plays.
+# OUT.mp4 or OUT.mkv: that file (the container by the suffix); any other OUT: OUT.mkv. FORMAT=png (or no x265enc
+# installed): 16-bit PNG stills OUT/frame_%05d.png with a cICP chunk. Defaults: CLIP_DIR=demo_out/clip,
+# OUT=CLIP_DIR_hdr10. Two passes (`nrhdr hdr10`): the chain and the light levels, then the encode.
+# Environment: TRANSFER (pq|hlg, default pq), REFERENCE_WHITE (cd/m2 of the diffuse white, default 203), PEAK
+# (mastering peak in cd/m2, default 1000: brighter light is rolled off by the BT.2390 EETF), EXPOSURE, CRF,
+# SPEED_PRESET, FORMAT (auto|mp4|mkv|png), METHOD, PRESET, MODE, CROSSTALK, NRHDR, OVERWRITE (true: replace OUT).
+# The video is written as OUT.part and renamed when complete; a stop (Ctrl-C) while encoding ends it with EOS
+# (the file is closed and plays the frames encoded so far), a stop during the first pass leaves no file.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-case "${1:-}" in -h|--help) sed -n '2,11p' "$0"; exit 0;; esac
+case "${1:-}" in -h|--help) sed -n '2,14p' "$0"; exit 0;; esac
 CLIP="${1:-demo_out/clip}"
 nr_clip "$CLIP" "${3:-}"
 OUT="${2:-${CLIP%/}_hdr10}"
-TRANSFER="${TRANSFER:-pq}"
 FORMAT="${FORMAT:-auto}"
-ENC=()
-if [ "$FORMAT" != png ]; then
-  if gst-inspect-1.0 --exists x265enc; then
-    ENC=(x265enc ! h265parse)
-  elif gst-inspect-1.0 --exists vp9enc; then
-    ENC=(vp9enc deadline=1 lag-in-frames=0)
-  elif [ "$FORMAT" = mkv ]; then
-    echo "error: no 10-bit encoder (x265enc, vp9enc) installed" >&2; exit 2
+case "$FORMAT" in auto|mp4|mkv|png) ;; *) echo "error: FORMAT=$FORMAT: use auto, mp4, mkv or png" >&2; exit 2;; esac
+if [ "$FORMAT" != png ] && ! gst-inspect-1.0 --exists x265enc; then
+  if [ "$FORMAT" != auto ]; then
+    echo "error: x265enc is not installed (Debian: gstreamer1.0-plugins-bad)" >&2; exit 2
   fi
+  echo "raw_to_hdr10.sh: x265enc is not installed (gstreamer1.0-plugins-bad): writing 16-bit PNG stills" >&2
+  FORMAT=png
 fi
-HDR=(nrreconstruct "method=${METHOD:-fse}" "preset=${PRESET:-fast}"
-     ! nrtonemap "transfer=$TRANSFER" "reference-white=${REFERENCE_WHITE:-203}" "exposure=${EXPOSURE:-0}")
-if [ ${#ENC[@]} -gt 0 ]; then
-  nr_lock "$OUT.mkv"
-  nr_refuse "$OUT.mkv"
-  rc=0
-  nr_launch "${SRC[@]}" ! "${HDR[@]}" \
-    ! videoconvert ! "video/x-raw,format=I420_10LE,colorimetry=bt2100-$TRANSFER" \
-    ! "${ENC[@]}" ! matroskamux ! filesink "location=$OUT.mkv.part" || rc=$?
-  # EOS (also after a stop signal) closed the container: keep what was encoded
-  if [ -s "$OUT.mkv.part" ]; then mv -f "$OUT.mkv.part" "$OUT.mkv"; else rm -f "$OUT.mkv.part"; fi
-  exit "$rc"
+if [ "$FORMAT" = png ]; then
+  TARGET="$OUT"
+else
+  case "$OUT" in
+    *.mp4|*.mkv) TARGET="$OUT"; [ "$FORMAT" = auto ] || [ "${OUT##*.}" = "$FORMAT" ] \
+      || { echo "error: FORMAT=$FORMAT but OUT is $OUT" >&2; exit 2; } ;;
+    *) TARGET="$OUT.${FORMAT/auto/mkv}" ;;
+  esac
 fi
-nr_out "$OUT" png
-nr_launch "${SRC[@]}" ! "${HDR[@]}" ! video/x-raw,format=GRAY16_BE \
-  ! pngenc ! multifilesink "location=$OUT/frame_%05d.png"
+if [ "${OVERWRITE:-false}" != "true" ] && [ -e "$TARGET" ] \
+    && { [ ! -d "$TARGET" ] || [ -n "$(ls -A "$TARGET")" ]; }; then
+  echo "error: $TARGET exists: choose another name or set OVERWRITE=true" >&2; exit 2
+fi
+ARGS=(--profile "$PROFILE" --transfer "${TRANSFER:-pq}" --reference-white "${REFERENCE_WHITE:-203}"
+      --peak "${PEAK:-1000}" --exposure "${EXPOSURE:-0}" --method "${METHOD:-fse}" --preset "${PRESET:-fast}"
+      --mode "${MODE:-threshold}" --crosstalk "${CROSSTALK:-kernel}" --fps "$FPS")
+[ -z "${CRF:-}" ] || ARGS+=(--crf "$CRF")
+[ -z "${SPEED_PRESET:-}" ] || ARGS+=(--speed-preset "$SPEED_PRESET")
+[ "${OVERWRITE:-false}" != "true" ] || ARGS+=(--force)
+[ -t 2 ] || ARGS+=(--no-progress)
+exec "$NRHDR" hdr10 "$CLIP" "$TARGET" "${ARGS[@]}"

@@ -130,6 +130,31 @@ def test_nrtonemap_pq_negotiates_10bit_yuv_through_videoconvert(gst):
 
 
 @pytest.mark.gst
+@pytest.mark.parametrize("transfer", ["pq", "hlg"])
+def test_nrtonemap_peak_rolls_off_from_the_caps_white(gst, transfer):
+    """peak=1000: the caps' white (ND x the diffuse white) lands on the peak's code through the BT.2390 EETF;
+    values below the knee keep their codes."""
+    from nrhdr_core.tonemap import hdr_encode, peak_luminance
+    h, w = 4, 50
+    diffuse, white = 4094.0, 4094.0 * 6.35
+    v = np.geomspace(1.0, white, h * w).astype(np.float32).reshape(h, w)
+    r = run_appsrc(f"nrtonemap transfer={transfer} peak=1000 ! video/x-raw,format=GRAY16_LE",
+                   hdr_caps(w, h, white, diffuse), [hdr_buffer(v, np.zeros((h, w), np.uint8), pts=0, duration=1)])
+    assert r.error is None, r.error_text
+    img = r.samples[0][3] >> 6
+    exp = hdr_encode(v, diffuse, transfer, peak=1000.0, source_peak=peak_luminance(white, diffuse, transfer)) >> 6
+    np.testing.assert_array_equal(img, exp)
+    top = narrow10(pq(1000.0) - 0.5 / 876) if transfer == "pq" else 940      # the last code at or below 1000
+    assert img.max() == top and img[0, 0] == narrow10(pq(1.0 / diffuse * 203.0) if transfer == "pq"
+                                                      else hlg(1.0 / diffuse * hlg_E()))
+
+
+def hlg_E():
+    from nrhdr_core.tonemap import hlg_reference_E
+    return hlg_reference_E(203.0)
+
+
+@pytest.mark.gst
 def test_reference_white_while_playing(gst):
     h, w = 2, 4
     v = np.full((h, w), 4094.0, np.float32)
@@ -164,25 +189,41 @@ def test_raw_to_hdr10_png(gst_subprocess_env, tiny_clip, tmp_path):
     assert len(files) == len(raws)
     img = io.read_image(files[0], np.uint16)
     assert img.shape[:2] == (prof.height, prof.width)
-    assert (img % 64 == 0).all() and img.min() >= 64 << 6 and img.max() <= 940 << 6
     assert img.max() > img.min()
+    oiio = pytest.importorskip("OpenImageIO")
+    inp = oiio.ImageInput.open(str(files[0]))
+    assert tuple(inp.spec().getattribute("CICP")) == (9, 16, 0, 1)       # BT.2020, PQ, RGB, full range
+    inp.close()
+
+
+def _x265_and_ffprobe():
+    if shutil.which("ffprobe") is None or subprocess.run(["gst-inspect-1.0", "--exists", "x265enc"]).returncode:
+        pytest.skip("x265enc (gstreamer1.0-plugins-bad) or ffprobe (ffmpeg) not installed")
+
+
+def _signalling(path):
+    p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-show_entries",
+                        "stream=profile,color_primaries,color_transfer,color_space,color_range", "-of",
+                        "default=nw=1", str(path)], capture_output=True, text=True, check=True)
+    return dict(line.split("=", 1) for line in p.stdout.splitlines())
 
 
 @pytest.mark.gst
-def test_raw_to_hdr10_encoded(gst_subprocess_env, tiny_clip, tmp_path):
-    if shutil.which("gst-inspect-1.0") is None or subprocess.run(
-            ["gst-inspect-1.0", "--exists", "vp9enc"]).returncode != 0:
-        pytest.skip("no vp9enc: the pipeline writes PNG frames instead (test_raw_to_hdr10_png)")
+@pytest.mark.parametrize("out_name,transfer,written", [("hdr10.mkv", "hlg", "hdr10.mkv"),
+                                                       ("hdr10.mp4", "pq", "hdr10.mp4"),
+                                                       ("hdr10", "pq", "hdr10.mkv")])
+def test_raw_to_hdr10_encoded(gst_subprocess_env, tiny_clip, tmp_path, out_name, transfer, written):
+    _x265_and_ffprobe()
     d, prof, raws = tiny_clip
-    env = dict(gst_subprocess_env, METHOD="nearest", TRANSFER="hlg")
-    rc, out = run(["bash", ROOT / "pipelines" / "raw_to_hdr10.sh", d, tmp_path / "hdr10"], env)
+    env = dict(gst_subprocess_env, METHOD="nearest", TRANSFER=transfer)
+    rc, out = run(["bash", ROOT / "pipelines" / "raw_to_hdr10.sh", d, tmp_path / out_name], env)
     assert rc == 0, out
-    mkv = tmp_path / "hdr10.mkv"
-    assert mkv.stat().st_size > 0
-    rc, out = run(["gst-launch-1.0", "-v", "filesrc", f"location={mkv}", "!", "matroskademux", "!", "vp9dec",
-                   "!", "fakesink"], gst_subprocess_env)
-    assert rc == 0, out
-    assert "format=(string)I420_10LE" in out and "colorimetry=(string)bt2100-hlg" in out
+    assert [p.name for p in tmp_path.iterdir()] == [written]
+    sig = _signalling(tmp_path / written)
+    assert sig == {"profile": "Main 10", "color_primaries": "bt2020", "color_space": "bt2020nc", "color_range": "tv",
+                   "color_transfer": "smpte2084" if transfer == "pq" else "arib-std-b67"}
+    rc, out = run(["bash", ROOT / "pipelines" / "raw_to_hdr10.sh", d, tmp_path / out_name], env)
+    assert rc == 2 and "exists" in out and "OVERWRITE=true" in out         # never overwritten unasked
 
 
 @pytest.mark.gst
@@ -200,3 +241,51 @@ def test_raw_hdr_recording_pipelines(gst_subprocess_env, tiny_clip, tmp_path):
     files = sorted((tmp_path / "png").glob("frame_*.png"))
     assert len(files) == len(raws)
     assert io.read_image(files[0], np.uint8).max() > 0
+
+
+@pytest.mark.gst
+@pytest.mark.parametrize("transfer,mux,ext", [("pq", "mp4mux", "mp4"), ("pq", "matroskamux", "mkv"),
+                                              ("hlg", "mp4mux", "mp4")])
+def test_nrhdrenc_from_gst_launch(gst_subprocess_env, tiny_clip, tmp_path, transfer, mux, ext):
+    """nrhdrenc in a gst-launch pipeline: the decoded codes are nrtonemap's (lossless x265), the signalling and
+    the estimated metadata are in the stream and, with matroska=true, the same in the Matroska container."""
+    import json
+    from fractions import Fraction
+    from nrhdr_core import chain, tonemap
+    _x265_and_ffprobe()
+    d, prof, raws = tiny_clip
+    out = tmp_path / f"e.{ext}"
+    opt = ["matroska=true"] if mux == "matroskamux" else []
+    rc, text = run(["gst-launch-1.0", "-e", "filesrc", f"location={d / 'clip.raw'}", "!", "rawvideoparse",
+                    "format=gray16-le", f"width={prof.width}", f"height={prof.height}", "framerate=5/1", "!",
+                    "nrvalidity", f"profile={d / 'camera.json'}", "!", "nrcrosstalk", "mode=lut", "!",
+                    "nrreconstruct", "method=nearest", "!", "nrhdrenc", f"transfer={transfer}",
+                    "x265-options=lossless=1", *opt, "!", mux, "!", "filesink", f"location={out}"],
+                   gst_subprocess_env)
+    assert rc == 0, text
+    raw = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-f", "rawvideo", "-pix_fmt", "yuv420p10le",
+                          "-"], capture_output=True, check=True).stdout
+    w, h = prof.width, prof.height
+    frames = np.frombuffer(raw, "<u2").reshape(len(raws), -1)[:, :w * h].reshape(-1, h, w)
+    diffuse, white = float(prof.regular_white), float(prof.white)
+    for i, r in enumerate(raws):
+        v, _ = chain.process_frame(r.copy(), prof, chain.ChainSettings(method="nearest", crosstalk="lut"))
+        exp = tonemap.hdr_encode(v, diffuse, transfer, peak=1000.0,
+                                 source_peak=tonemap.peak_luminance(white, diffuse, transfer)) >> 6
+        np.testing.assert_array_equal(frames[i], exp)
+    sig = _signalling(out)
+    assert sig["color_transfer"] == ("smpte2084" if transfer == "pq" else "arib-std-b67")
+    assert (sig["color_primaries"], sig["color_space"], sig["color_range"]) == ("bt2020", "bt2020nc", "tv")
+    p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-read_intervals", "%+#1", "-show_frames",
+                        "-show_streams", "-of", "json", str(out)], capture_output=True, text=True, check=True)
+    info = json.loads(p.stdout)
+    places = [info["frames"][0]] + ([info["streams"][0]] if ext == "mkv" else [])
+    for where in places:
+        kinds = {x["side_data_type"]: x for x in where.get("side_data_list", [])}
+        if transfer == "hlg":
+            assert "Mastering display metadata" not in kinds
+            continue
+        md = kinds["Mastering display metadata"]
+        assert Fraction(md["max_luminance"]) == 1000 and Fraction(md["min_luminance"]) == Fraction(1, 200)
+        cll = kinds["Content light level metadata"]
+        assert (cll["max_content"], cll["max_average"]) == (1000, 203)    # the estimate: peak, reference white

@@ -24,6 +24,7 @@ COMMANDS = (
     ("calibrate", "calibrate"),       # crosstalk / ND calibration from flats (nrhdr_core.calibration)
     ("simulate-flats", "calibrate"),  # a simulated flat-field sweep for calibrate
     ("compare", "compare"),           # EXR frames against the simulator's truth, per region (nrhdr_core.metrics)
+    ("hdr10", "hdr"),                 # raw clip -> HDR10 / HLG video or HDR PNG stills (nrhdr_core.hdr_output)
 )
 
 

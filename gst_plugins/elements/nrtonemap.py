@@ -3,7 +3,8 @@ stock sink (format negotiated with downstream), by the paper's logarithmic curve
 the local base/detail operator (operator=local, docs/TONEMAP.md). transfer=pq / hlg (beyond the
 paper): 10-bit BT.2100 PQ (SMPTE ST 2084) or HLG (ARIB STD-B67) codes, narrow range, in GRAY16_LE/BE words
 (code << 6) with colorimetry=bt2100-pq / bt2100-hlg in the caps, for HDR monitors and 10-bit encoders
-(`videoconvert ! video/x-raw,format=I420_10LE ! vp9enc`).
+(`nrhdrenc`, or `videoconvert ! video/x-raw,format=I420_10LE ! x265enc`); `peak` rolls highlights off to the
+mastering display's peak (ITU-R BT.2390 EETF).
 
 The normaliser is fixed (the caps' `white` / `diffuse-white`, set by nrvalidity from the profile, or the
 `white` property) or smoothed over time (`nrhdr_core.tonemap.WhiteTracker`, or `AutoWhite` where the caps
@@ -55,6 +56,11 @@ PROPERTIES = PropertyTable("GstNrTonemap", [
          "transfer=pq/hlg: display luminance of the scene's diffuse white (the caps' diffuse-white = the "
          "regular pixels' white; with normalise=fixed/smoothed the white); brighter values keep their ratio "
          "(ITU-R BT.2408: 203)", minimum=1.0, maximum=10000.0, playing=True, controllable=True),
+    Prop("peak", float, 0.0, "Peak (cd/m2)",
+         "transfer=pq/hlg: the mastering display's peak: display light above it is rolled off by the ITU-R "
+         "BT.2390 EETF from the caps' white (the brightest the sensor gives) down to it, instead of clipped; "
+         "0 = no roll-off (PQ clips at 10000, HLG at E = 1)", minimum=0.0, maximum=10000.0, playing=True,
+         controllable=True),
     Prop("white", float, 0.0, "White",
          "Linear value mapped to full scale (log) or to reference-white (pq/hlg) with normalise=fixed; 0 = "
          "the caps' white", minimum=0.0, maximum=1e12, playing=True, controllable=True),
@@ -258,6 +264,18 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
                              "normalise=fixed white=... or normalise=smoothed)")
         return w
 
+    def _source_peak(self, p, white: float, transfer: str) -> float:
+        """Display light of the brightest value the sensor gives (the caps' white) at this mapping: where the
+        EETF starts from; 10000 cd/m2 when the caps do not say."""
+        from nrhdr_core import tonemap
+        if p.peak <= 0:
+            return 0.0
+        info = self._in_info
+        if info.white is None or info.diffuse_white is None:
+            return tonemap.L_P
+        top = white * info.white / info.diffuse_white
+        return tonemap.peak_luminance(top, white, transfer, p.reference_white, p.exposure)
+
     @guarded(lambda self: f"frame {self._frames}", Gst.FlowReturn.ERROR)
     def do_transform(self, inbuf, outbuf):
         p = self.settings  # one read per frame: a consistent parameter set
@@ -277,7 +295,8 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
                 self._sdr(p, values, white, out)
             else:
                 tonemap.hdr_encode(values, white, transfer, reference_white=p.reference_white,
-                                   exposure_stops=p.exposure, out=out)
+                                   exposure_stops=p.exposure, out=out, peak=p.peak,
+                                   source_peak=self._source_peak(p, white, transfer))
                 if self._byteswap:
                     out.byteswap(inplace=True)
         if self.gst_debug_enabled(Gst.DebugLevel.LOG):
