@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 
-FACTORIES = ("nrvalidity", "nrcrosstalk", "nrreconstruct", "nrtonemap", "nrexrsink", "nrcamsrc", "nrimagesrc")
+FACTORIES = ("nrvalidity", "nrcrosstalk", "nrreconstruct", "nrtonemap", "nrexrsink", "nrcamsrc", "nrimagesrc", "nrhdrenc")
 
 _lock = threading.Lock()
 _registered = False

@@ -67,7 +67,8 @@ def test_register_all_is_idempotent_and_documented(gst):
     assert gst_plugins.register_all() == names
     klass = {"nrvalidity": "Filter/Converter/Video", "nrcrosstalk": "Filter/Effect/Video",
              "nrreconstruct": "Filter/Effect/Video", "nrtonemap": "Filter/Converter/Video",
-             "nrexrsink": "Sink/Video", "nrcamsrc": "Source/Video", "nrimagesrc": "Source/Video"}
+             "nrexrsink": "Sink/Video", "nrcamsrc": "Source/Video", "nrimagesrc": "Source/Video",
+             "nrhdrenc": "Codec/Encoder/Video"}
     assert set(names) == set(klass)
     for name, k in klass.items():
         f = gst.ElementFactory.find(name)

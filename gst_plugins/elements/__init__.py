@@ -15,6 +15,7 @@ ELEMENTS = {
     "nrexrsink": ("nrexrsink", "NrExrSink"),
     "nrcamsrc": ("nrcamsrc", "NrCamSrc"),
     "nrimagesrc": ("nrimagesrc", "NrImageSrc"),
+    "nrhdrenc": ("nrhdrenc", "NrHdrEnc"),
 }
 
 

@@ -10,6 +10,8 @@ sensor's white reaches, at most `peak`; MaxFALL the reference white). `nrhdr hdr
 """
 from __future__ import annotations
 
+import weakref
+
 from nrhdr_core import hdr_output
 from nrhdr_core.tonemap import REFERENCE_WHITE_NITS, TRANSFERS
 
@@ -68,32 +70,41 @@ class NrHdrEnc(NrElement, Gst.Bin):
                                                  "byte-stream }, alignment=(string)au")),
     )
 
+    # The children are looked up by name, never kept as Python attributes, and the caps probe holds a weak
+    # reference: a Python reference from the bin to its children (or a bound method on a child's pad) is a
+    # cycle through C that keeps the bin alive after its pipeline is gone.
+    _tone = property(lambda self: self.get_by_name("tone"))
+    _conv = property(lambda self: self.get_by_name("conv"))
+    _filter = property(lambda self: self.get_by_name("filter"))
+    _enc = property(lambda self: self.get_by_name("enc"))
+    _parse = property(lambda self: self.get_by_name("parse"))
+    _setter = property(lambda self: self.get_by_name("setter"))
+
     def __init__(self):
         super().__init__()
         from .nrtonemap import NrTonemap
-        self._tone = NrTonemap()
-        self._conv = Gst.ElementFactory.make("videoconvert")
-        self._filter = Gst.ElementFactory.make("capsfilter")
-        self._enc = Gst.ElementFactory.make("x265enc")
-        self._parse = Gst.ElementFactory.make("h265parse")
-        self._setter = Gst.ElementFactory.make("capssetter")
-        self._missing = [n for n, e in (("videoconvert", self._conv), ("x265enc", self._enc),
-                                        ("h265parse", self._parse), ("capssetter", self._setter)) if e is None]
+        tone = NrTonemap()
+        tone.set_property("name", "tone")
+        made = [(n, f, Gst.ElementFactory.make(f, n)) for n, f in (
+            ("conv", "videoconvert"), ("filter", "capsfilter"), ("enc", "x265enc"), ("parse", "h265parse"),
+            ("setter", "capssetter"))]
+        self._missing = [f for _, f, e in made if e is None]
         sink = Gst.GhostPad.new_no_target_from_template("sink", self.get_pad_template("sink"))
         src = Gst.GhostPad.new_no_target_from_template("src", self.get_pad_template("src"))
         self.add_pad(sink)
         self.add_pad(src)
         if self._missing:
             return
-        self._conv.set_property("dither", 0)           # none: the 10-bit codes pass exactly
-        chain = [self._tone, self._conv, self._filter, self._enc, self._parse, self._setter]
+        chain = [tone] + [e for _, _, e in made]
+        chain[1].set_property("dither", 0)           # none: the 10-bit codes pass exactly
         for e in chain:
             self.add(e)
         for a, b in zip(chain, chain[1:]):
             a.link(b)
-        sink.set_target(self._tone.get_static_pad("sink"))
-        src.set_target(self._setter.get_static_pad("src"))
-        self._tone.get_static_pad("sink").add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM, self._on_event)
+        sink.set_target(tone.get_static_pad("sink"))
+        src.set_target(chain[-1].get_static_pad("src"))
+        tone.get_static_pad("sink").add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM, _caps_probe, weakref.ref(self))
+        del tone, chain, made
 
     def _configure(self) -> None:
         """Children's settings from this element's properties (before any caps)."""
@@ -159,3 +170,8 @@ class NrHdrEnc(NrElement, Gst.Bin):
                 self.post_exception("start", e)
                 return Gst.StateChangeReturn.FAILURE
         return Gst.Bin.do_change_state(self, transition)
+
+
+def _caps_probe(pad, info, ref):
+    el = ref()
+    return el._on_event(pad, info) if el is not None else Gst.PadProbeReturn.OK
