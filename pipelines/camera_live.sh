@@ -68,13 +68,7 @@ CAM+=(! "$CAPS")
 QOS=$([ "$ACTION" = record ] && echo false || echo true)
 CHAIN=(nrvalidity "profile=$PROFILE" "mode=${MODE:-threshold}" "qos=$QOS" ! nrcrosstalk "mode=${CROSSTALK:-lut}"
        "qos=$QOS" ! nrreconstruct "method=${METHOD:-auto}" "preset=${PRESET:-fast}" "qos=$QOS")
-if [ -n "${SINK:-}" ]; then
-  read -r -a SINKV <<<"$SINK"
-elif [ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ]; then
-  SINKV=(autovideosink sync=true)
-else  # a video sink's defaults: sync, QoS events upstream, frames more than 20 ms late dropped
-  SINKV=(fakesink sync=true qos=true max-lateness=20000000)
-fi
+nr_display_sink
 PREVIEW=(nrtonemap ! videoconvert ! "${SINKV[@]}")
 ARGS=()
 [ "${VERBOSE:-0}" = 1 ] && ARGS+=(-m)

@@ -28,13 +28,7 @@ fi
 if [ -e "$OUT/clip.raw" ] && [ "${FORCE:-0}" != 1 ]; then
   echo "error: $OUT/clip.raw exists (FORCE=1 replaces it)" >&2; exit 2
 fi
-if [ -n "${SINK:-}" ]; then
-  read -r -a SINKV <<<"$SINK"
-elif [ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ]; then
-  SINKV=(autovideosink sync=true)
-else  # a video sink's defaults: sync, QoS events upstream, frames more than 20 ms late dropped
-  SINKV=(fakesink sync=true qos=true max-lateness=20000000)
-fi
+nr_display_sink
 ARGS=()
 [ "${VERBOSE:-0}" = 1 ] && ARGS+=(-m)
 # what a recovery needs to finish the raw file (frame size, profile), written before the first frame

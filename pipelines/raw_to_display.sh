@@ -2,28 +2,18 @@
 # Raw clip -> live preview on the screen (autovideosink), played at the clip's frame rate.
 #   pipelines/raw_to_display.sh [CLIP_DIR [PROFILE]]
 # Defaults: CLIP_DIR=demo_out/clip, PROFILE=CLIP_DIR/camera.json.
-# Environment: CROSSTALK (nrcrosstalk mode, default lut), METHOD (default preview: fast enough for live video), PRESET, MODE, EXPOSURE, NRHDR.
+# Environment: CROSSTALK (nrcrosstalk mode, default lut), METHOD (default preview: fast enough for live video), PRESET, MODE, EXPOSURE, NRHDR,
+# SINK (a sink and its properties, replacing the choice below).
 # Without a display (no DISPLAY, no Wayland session with XDG_RUNTIME_DIR) the frames go to fakesink, said on
 # stderr; on X11 without a Wayland session an X sink is named (autovideosink would try waylandsink first, which
 # crashes when XDG_RUNTIME_DIR is unset). pipelines/raw_to_display_headless.sh measures the frame rate headless.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-case "${1:-}" in -h|--help) sed -n '2,9p' "$0"; exit 0;; esac
+case "${1:-}" in -h|--help) sed -n '2,10p' "$0"; exit 0;; esac
 CLIP="${1:-demo_out/clip}"
 CROSSTALK="${CROSSTALK:-lut}"   # live: the per-pixel LUT (the kernel takes ~10x longer)
 nr_clip "$CLIP" "${2:-}"
-SINK=(autovideosink)
-if [ -n "${WAYLAND_DISPLAY:-}" ] && [ -d "${XDG_RUNTIME_DIR:-/nonexistent}" ]; then
-  :
-elif [ -n "${DISPLAY:-}" ]; then
-  for s in xvimagesink ximagesink; do
-    if gst-inspect-1.0 --exists "$s"; then SINK=("$s"); break; fi
-  done
-else
-  echo "raw_to_display.sh: no display (DISPLAY unset, no Wayland session with XDG_RUNTIME_DIR): the frames go" \
-       "to fakesink" >&2
-  SINK=(fakesink sync=true)
-fi
+nr_display_sink
 exec "$NRHDR" launch "${SRC[@]}" \
   ! nrreconstruct "method=${METHOD:-preview}" "preset=${PRESET:-preview}" \
   ! queue max-size-buffers=2 ! nrtonemap "exposure=${EXPOSURE:-0}" \
-  ! videoconvert ! "${SINK[@]}"
+  ! videoconvert ! "${SINKV[@]}"
