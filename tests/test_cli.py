@@ -24,6 +24,21 @@ def test_profile_command_and_regular_pattern(tmp_path):
     assert p.nd == 8 and p.mask.sum() == 24 and json.loads((tmp_path / "cam.json").read_text())["nd"] == 8
 
 
+def test_profile_command_sensor_format(tmp_path, capsys):
+    """A 16-bit stream (the Aravis fake camera's Mono16): white level 65535, clip code one below (the paper's
+    DN_max margin), what the data are written in the profile; a white level the bit depth cannot hold exits 2."""
+    rc = cli.main(["profile", "-o", str(tmp_path / "cam.json"), "--width", "8", "--height", "6",
+                   "--bit-depth", "16", "--black-level", "64", "--alignment", "msb", "--out-of-range", "error",
+                   "--gain", "10"])
+    assert rc == 0
+    p = profile.load(tmp_path / "cam.json")
+    assert (p.bit_depth, p.white_level, p.clip_code, p.black_level) == (16, 65535, 65534, 64.0)
+    assert (p.alignment, p.out_of_range, p.gain) == ("msb", "error", 10.0)
+    rc = cli.main(["profile", "-o", str(tmp_path / "bad.json"), "--width", "8", "--height", "6",
+                   "--bit-depth", "10", "--white-level", "4000"])
+    assert rc == 2 and "white_level" in capsys.readouterr().err and not (tmp_path / "bad.json").exists()
+
+
 def test_bad_scene_file_exits_2(tmp_path, capsys):
     rc = cli.main(["simulate", str(tmp_path / "none.exr"), "-o", str(tmp_path / "c"), "--frames", "1"])
     assert rc == 2

@@ -18,14 +18,15 @@ def _scene(arg: str | None):
     return io.read_luminance(arg, nonfinite="error"), Path(arg).name
 
 
-def _profile_from_args(a):
+def _profile_from_args(a, **fields):
     from nrhdr_core import profile
     if getattr(a, "profile", None):
         return profile.load(a.profile, allow_outside=a.allow_outside_paths)
     if a.pattern == "none":    # the unmodified camera: no ND pixel, the same sensor and noise
         import numpy as np
-        return profile.make(np.zeros((a.height, a.width), bool), nd=a.nd, l_min=a.l_min)
-    return profile.default(a.height, a.width, seed=a.mask_seed, pattern=a.pattern, nd=a.nd, l_min=a.l_min)
+        return profile.make(np.zeros((a.height, a.width), bool), nd=a.nd, l_min=a.l_min, **fields)
+    return profile.default(a.height, a.width, seed=a.mask_seed, pattern=a.pattern, nd=a.nd, l_min=a.l_min,
+                           **fields)
 
 
 def cmd_simulate(a) -> int:
@@ -73,7 +74,15 @@ def launch_line(clip: dict, out: Path, sink: str = "autovideosink") -> str:
 
 def cmd_profile(a) -> int:
     from nrhdr_core import profile
-    p = _profile_from_args(a)
+    fmt = {"bit_depth": a.bit_depth, "black_level": a.black_level, "alignment": a.alignment,
+           "packing": a.packing, "out_of_range": a.out_of_range}
+    if a.white_level is not None:
+        fmt["white_level"] = a.white_level
+    elif a.bit_depth != 12:
+        fmt["white_level"] = (1 << a.bit_depth) - 1
+    if a.gain is not None:
+        fmt["gain"] = a.gain
+    p = _profile_from_args(a, **fmt)
     profile.save(p, a.output, overwrite=a.force)
     print(f"wrote {a.output} ({p.width}x{p.height}, {a.pattern} mask, ND {p.nd}, "
           f"{p.mask.mean() * 100:.1f} % attenuated)")
@@ -233,10 +242,27 @@ def add_simulate(sub) -> None:
 
 
 def add_profile(sub) -> None:
+    from nrhdr_core.profile import ALIGNMENTS, OUT_OF_RANGE, PACKINGS
     p = sub.add_parser("profile", help="write a camera profile (mask PNG + JSON)")
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--force", action="store_true", help="replace an existing profile (JSON and mask PNG)")
     _add_sensor_args(p, profile_opt=False)
+    g = p.add_argument_group("sensor data format (docs/PROFILE.md; defaults: the paper's 12-bit prototype)")
+    g.add_argument("--bit-depth", type=number(1, 16, integer=True), default=12, help="ADC bits per code, 1..16")
+    g.add_argument("--white-level", type=number(1, 65535, integer=True), default=None,
+                   help="code a saturated pixel reads (default: the largest code of the bit depth, 4095 at 12 "
+                        "bits); codes >= white level - 1 are clipped")
+    g.add_argument("--black-level", type=number(0, 65535), default=0.0, help="code of zero light")
+    g.add_argument("--gain", type=number(1e-4, 1e4), default=None, help="DN per electron (noise model)")
+    g.add_argument("--alignment", choices=ALIGNMENTS, default="lsb",
+                   help="where the code sits in its 16-bit word: lsb (code = word) or msb (code = word >> "
+                        "(16 - bit depth))")
+    g.add_argument("--packing", choices=tuple(PACKINGS), default="none",
+                   help="packed pixel formats arriving as GRAY16_LE bytes (Aravis labels Mono12Packed so), "
+                        "unpacked by nrvalidity")
+    g.add_argument("--out-of-range", choices=OUT_OF_RANGE, default="clip",
+                   help="a code above the bit depth's range: a clipped pixel, or an element error (a stream "
+                        "of another bit depth than the profile's)")
     p.set_defaults(func=cmd_profile)
 
 
