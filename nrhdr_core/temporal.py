@@ -53,12 +53,13 @@ DEFAULTS = dict(
     z_mean=2.5,        # a block is consistent when its mean clipped z is below this
     outliers=0.02,     # ... and at most this share (at least 1 pixel) of its measured pixels are outliers
     tol=0.02,          # relative model tolerance of the aligned past (interpolation, slow light changes)
-    shift_error=0.35,  # pixels: position error of a moving candidate (its variance x the squared gradient)
+    shift_error=0.25,  # pixels: position error of the global motion (x the squared gradient: a variance)
     cut_share=0.5,     # more untrusted blocks than this share (of blocks with evidence) = a scene cut
     max_frames=16,     # the recursive average of a measured pixel weighs its past at most this many frames
     reuse_frames=4,    # missing pixels whose past averages this many reconstructions are reused as known
     rec_noise=1.0,     # variance of a fresh reconstruction in units of a regular pixel's noise at its level
     rec_tol=0.03,      # ... plus (rec_tol x level)^2: the model error averaging does not remove
+    rec_texture=0.5,   # ... plus rec_texture x (half the 3 x 3 range)^2: larger at edges and in texture
     min_evidence=8,    # measured pixels a block needs to be judged
 )
 
@@ -82,17 +83,17 @@ class TemporalReconstructor:
         for k in ("block", "search", "max_frames", "reuse_frames", "min_evidence"):
             if not (isinstance(o[k], (int, np.integer)) and not isinstance(o[k], bool) and o[k] >= 1):
                 raise ValueError(f"temporal reconstruction: option {k} must be an integer >= 1, got {o[k]!r}")
-        for k in ("z_mean", "outliers", "tol", "shift_error", "cut_share", "rec_noise", "rec_tol"):
+        for k in ("z_mean", "outliers", "tol", "shift_error", "cut_share", "rec_noise", "rec_tol", "rec_texture"):
             if not (isinstance(o[k], (int, float)) and math.isfinite(o[k]) and o[k] >= 0):
                 raise ValueError(f"temporal reconstruction: option {k} must be a finite number >= 0, got {o[k]!r}")
         self.method, self.preset, self.use_bounds, self.fusion = method, preset, bool(use_bounds), fusion
         self.options = o
-        self._prev = self._var = self._sig = None
+        self._prev = self._var = self._cnt = self._sig = None
         self.frames = 0          # frames since the last reset
 
     def reset(self) -> None:
         """Forget the past: the next frame is reconstructed alone."""
-        self._prev = self._var = self._sig = None
+        self._prev = self._var = self._cnt = self._sig = None
         self.frames = 0
 
     # ---- one frame ------------------------------------------------------------------------------------
@@ -123,7 +124,7 @@ class TemporalReconstructor:
                   "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True}
         if self._prev is not None and self._prev.shape != values.shape:
             self.reset()
-        known, lower, upper, work, pv, pvar, dec, cand = _planes(h, w, nby, nbx)
+        known, lower, upper, work, pv, pvar, pc, dec, cand = _planes(h, w, nby, nbx)
         n_miss, n_unknown, known, lower, upper = validity._prepare(
             values, state, known, lower if self.use_bounds else None, upper if self.use_bounds else None,
             self.use_bounds)
@@ -141,11 +142,11 @@ class TemporalReconstructor:
         dy, dx = refine_motion(values, state, self._prev, *global_motion(sig, self._sig, int(o["search"])))
         # 3. per-block consistency
         lo_a = lower if lower is not None else _EMPTY
-        cy, cx = _candidates(dy, dx)
-        _judge_blocks(values, state, self._prev, self._var, cy, cx, bs, dec, cand,
+        cy, cx, cmis = _candidates(dy, dx, float(o["shift_error"]))
+        _judge_blocks(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
                       g, floor, nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]),
                       np.float32(Z_OUT), int(o["min_evidence"]), np.float32(o["rec_noise"]),
-                      np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]), np.float32(o["shift_error"]) ** 2)
+                      np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]), cmis, np.float32(o["rec_texture"]))
         counts = np.bincount(dec.ravel(), minlength=5)
         trusted = (dec == REFRESH) | (dec == REUSE) | (dec == NO_PRIOR)
         # the dominant motion: the candidate most trusted blocks took (the global estimate when none did)
@@ -158,9 +159,9 @@ class TemporalReconstructor:
             return self._alone(values, state, noise, method, preset, report, g, floor, nd, sig)
         # 4. measured pixels averaged, settled missing pixels reused, the rest marked for the reconstruction
         up_a = upper if upper is not None else _EMPTY
-        _prepare_work(values, state, self._prev, self._var, cy, cx, bs, dec, cand,
-                      known, lo_a, up_a, lower is not None, work, pv, pvar, g, floor, nd, np.float32(o["tol"]),
-                      np.float32(Z_OUT), np.float32(o["max_frames"]), np.float32(o["shift_error"]) ** 2)
+        _prepare_work(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
+                      known, lo_a, up_a, lower is not None, work, pv, pvar, pc, g, floor, nd, np.float32(o["tol"]),
+                      np.float32(Z_OUT), np.float32(o["max_frames"]), cmis)
         noisy = None
         if _any_noisy_missing(state, known):
             noisy = ((state & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~known
@@ -168,9 +169,10 @@ class TemporalReconstructor:
                                    out=work, noisy=noisy, noise=noise if noisy is not None else None,
                                    fusion=self.fusion)
         # 5. fused with the past, written back, kept as the next frame's past
-        n = _finish(values, state, work, pv, pvar, self._prev, self._var, lo_a, up_a, lower is not None,
+        n = _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, lo_a, up_a,
+                    lower is not None,
                     g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]),
-                    floor)
+                    floor, np.float32(o["rec_texture"]), nd, np.float32(Z_OUT))
         self.frames += 1
         self._sig = sig
         tot = float(dec.size)
@@ -188,9 +190,10 @@ class TemporalReconstructor:
         if self._prev is None or self._prev.shape != values.shape:
             self._prev = np.empty_like(values)
             self._var = np.empty_like(values)
+            self._cnt = np.empty(values.shape, np.uint8)
         o = self.options
-        _restart(values, state, self._prev, self._var, g, floor, nd, np.float32(o["rec_noise"]),
-                 np.float32(o["rec_tol"]))
+        _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
+                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]))
         self.frames = 1
         self._sig = sig
         return report
@@ -200,12 +203,12 @@ _EMPTY = np.full((1, 1), np.nan, np.float32)
 
 
 def _planes(h, w, nby, nbx):
-    """The calling thread's working planes: known, lower, upper, work, aligned past and its variance,
-    block decisions and candidates."""
+    """The calling thread's working planes: known, lower, upper, work, aligned past, its variance and its
+    count, block decisions and candidates."""
     return planes("temporal.work", (h, w, nby, nbx), lambda: (
         np.empty((h, w), np.bool_), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
         np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
-        np.empty((nby, nbx), np.uint8), np.empty((nby, nbx), np.uint8)))
+        np.empty((h, w), np.uint8), np.empty((nby, nbx), np.uint8), np.empty((nby, nbx), np.uint8)))
 
 
 # ---- noise model --------------------------------------------------------------------------------------
@@ -226,20 +229,36 @@ def _rec_var(level, g, floor, rec_noise, rec_tol):
     return rec_noise * (g * m + floor) + (rec_tol * m) * (rec_tol * m)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tex_var(img, y, x, h, w, rec_tex):
+    """rec_tex x (half the range of the 3 x 3 around (y, x))^2: a reconstruction's uncertainty grows with
+    the local contrast (edges, texture)."""
+    lo = img[y, x]
+    hi = lo
+    for yy in range(max(y - 1, 0), min(y + 2, h)):
+        for xx in range(max(x - 1, 0), min(x + 2, w)):
+            a = img[yy, xx]
+            lo = a if a < lo else lo
+            hi = a if a > hi else hi
+    r = np.float32(0.5) * (hi - lo)
+    return rec_tex * r * r
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _restart(values, state, prev, var, g, floor, nd, rec_noise, rec_tol):
+def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex):
     """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
-    the others with a fresh reconstruction's."""
+    the others with a fresh reconstruction's, each the average of 1 frame."""
     h, w = values.shape
     for y in prange(h):
         for x in range(w):
             v = values[y, x]
+            cnt[y, x] = 1
             st = state[y, x]
             prev[y, x] = v
             if (st & REASON_MASK) == VALID:
                 var[y, x] = _meas_var(v, (st & ATTENUATED) != 0, g, floor, nd)
             else:
-                var[y, x] = _rec_var(v, g, floor, rec_noise, rec_tol)
+                var[y, x] = _rec_var(v, g, floor, rec_noise, rec_tol) + _tex_var(values, y, x, h, w, rec_tex)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -273,6 +292,16 @@ def _any_noisy_kernel(state, known):
 
 def _any_noisy_missing(state, known) -> bool:
     return _any_noisy_kernel(state, known) > 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _count_at(cnt, y, x, sy, sx, h, w):
+    """Frames averaged in the past at the pixel nearest to (y - sy, x - sx) (0 outside the frame)."""
+    yy = int(math.floor(np.float32(y) - sy + np.float32(0.5)))
+    xx = int(math.floor(np.float32(x) - sx + np.float32(0.5)))
+    if yy < 0 or xx < 0 or yy >= h or xx >= w:
+        return 0
+    return np.int32(cnt[yy, xx])
 
 
 # ---- global motion: integral projections of log2 values -------------------------------------------------
@@ -427,29 +456,32 @@ def _snap(d: float) -> float:
     return float(r) if abs(d - r) < SNAP else float(d)
 
 
-def _candidates(dy: float, dx: float):
+def _candidates(dy: float, dx: float, err: float):
     """The motions a block may take, in the order of preference (float32 arrays cy, cx): none, the global
-    motion rounded to whole pixels (no interpolation), the global motion."""
+    motion rounded to whole pixels (no interpolation), the global motion; and the squared position error
+    each is given (cmis): 0 for none (a still block is exact), err^2 + its distance to the global motion
+    squared for the others."""
     out = [(0.0, 0.0)]
     for c in ((float(round(dy)), float(round(dx))), (dy, dx)):
         if c not in out:
             out.append(c)
     a = np.array(out, np.float32)
-    return np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1])
+    mis = np.array([0.0] + [err * err + (y - dy) ** 2 + (x - dx) ** 2 for y, x in out[1:]], np.float32)
+    return np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]), mis
 
 
 # ---- the aligned past ----------------------------------------------------------------------------------
 
 @njit(cache=True, nogil=True, inline="always")
 def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
-    """(value, variance) of the past at (y - sy, x - sx), bilinear; variance inf outside the frame. A
-    moving candidate adds the uncertainty of its alignment: mis2 (its position error squared, pixels^2)
-    x the squared local gradient; a sub-pixel position the interpolation's: (local range / 2)^2 x
+    """(value, variance, alignment variance) of the past at (y - sy, x - sx), bilinear; variance inf
+    outside the frame. The alignment variance: mis2 (the candidate's position error squared, pixels^2) x
+    the squared local gradient, plus at a sub-pixel position the interpolation's: (local range / 2)^2 x
     4 f (1 - f)."""
     fy = np.float32(y) - sy
     fx = np.float32(x) - sx
     if fy < 0 or fx < 0 or fy > h - 1 or fx > w - 1:
-        return np.float32(0.0), np.float32(np.inf)
+        return np.float32(0.0), np.float32(np.inf), np.float32(0.0)
     y0 = int(fy)
     x0 = int(fx)
     ty = fy - np.float32(y0)
@@ -463,7 +495,7 @@ def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
         gy = prev[y1, x0] - prev[max(y0 - 1, 0), x0]
         extra = mis2 * np.float32(0.25) * (gx * gx + gy * gy)
     if ty == 0 and tx == 0:
-        return a, var[y0, x0] + extra
+        return a, var[y0, x0], extra
     b, c, d = prev[y0, x1], prev[y1, x0], prev[y1, x1]
     wa = (1 - ty) * (1 - tx)
     wb = (1 - ty) * tx
@@ -475,12 +507,12 @@ def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
     hi = max(max(a, b), max(c, d))
     s = np.float32(4.0) * max(ty * (1 - ty), tx * (1 - tx))
     half = np.float32(0.5) * (hi - lo)
-    return p, vp + half * half * s + extra
+    return p, vp, half * half * s + extra
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _judge_blocks(values, state, prev, var, cy, cx, bs, dec, cand, g, floor, nd, z_mean, out_share, tol,
-                  z_out, min_ev, rec_noise, rec_tol, reuse_frames, mis):
+def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor, nd, z_mean, out_share, tol,
+                  z_out, min_ev, rec_noise, rec_tol, reuse_frames, cmis, rec_tex):
     """Per block: the candidate motion (`_candidates`: (cy[c], cx[c])) that explains the measured pixels
     (VALID and NOISY) best, and the decision (FRESH, REFRESH, REUSE, NO_PRIOR, NO_EVIDENCE)."""
     h, w = values.shape
@@ -493,12 +525,14 @@ def _judge_blocks(values, state, prev, var, cy, cx, bs, dec, cand, g, floor, nd,
             y1 = min(y0 + bs, h)
             x1 = min(x0 + bs, w)
             best_m = np.float32(np.inf)
+            best_r = np.float32(np.inf)
             best_o = 0
             best_n = 0
             best_c = 0
             for c in range(nc):
                 sy = cy[c]
                 sx = cx[c]
+                zr = np.float32(0.0)
                 zs = np.float32(0.0)
                 n = 0
                 no = 0
@@ -508,23 +542,27 @@ def _judge_blocks(values, state, prev, var, cy, cx, bs, dec, cand, g, floor, nd,
                         r = st & REASON_MASK
                         if r != VALID and r != NOISY:
                             continue
-                        p, vp = _aligned(prev, var, y, x, sy, sx, h, w, mis if c > 0 else np.float32(0.0))
+                        p, vp, va = _aligned(prev, var, y, x, sy, sx, h, w, cmis[c])
                         if not vp < np.inf:
                             continue
                         vm = _meas_var(p, (st & ATTENUATED) != 0 or r == NOISY, g, floor, nd)
                         d = values[y, x] - p
                         t = tol * p
-                        z = d * d / (vm + vp + t * t)
+                        base = vm + vp + t * t
+                        zr += min(d * d / base, z_out)         # the fit, for the choice of the candidate
+                        z = d * d / (base + va)                # with the alignment's uncertainty, for trust
                         zs += min(z, z_out)
                         n += 1
                         no += 1 if z > z_out else 0
+                mr = zr / n if n > 0 else np.float32(np.inf)
                 m = zs / n if n > 0 else np.float32(np.inf)
-                if c == 0 or m < best_m * np.float32(0.8):     # a later candidate must explain clearly better
+                if c == 0 or mr < best_r * np.float32(0.9):     # a later candidate must fit clearly better
+                    best_r = mr
                     best_m = m
                     best_o = no
                     best_n = n
                     best_c = c
-                if m < np.float32(0.6) * z_mean and no == 0:
+                if mr < np.float32(0.6) * z_mean and no == 0:
                     break          # explained well: the later candidates are not tried
             cand[by, bx] = best_c
             if best_n < min_ev:
@@ -538,18 +576,15 @@ def _judge_blocks(values, state, prev, var, cy, cx, bs, dec, cand, g, floor, nd,
                 # noisy measurements)
                 sy = cy[best_c]
                 sx = cx[best_c]
-                settled = True
+                # (only where nothing moved: a past moved by a whole-pixel estimate of a motion that is
+                # not would be copied with its position error, frame after frame)
+                settled = best_c == 0
                 for y in range(y0, y1):
                     for x in range(x0, x1):
                         r = state[y, x] & REASON_MASK
                         if r == VALID:
                             continue
-                        p, vp = _aligned(prev, var, y, x, sy, sx, h, w, mis if best_c > 0 else np.float32(0.0))
-                        ref = _rec_var(p, g, floor, rec_noise, rec_tol)
-                        if r == NOISY:     # a noisy measurement: settled as well once its average is
-                            vm = _meas_var(p, True, g, floor, nd)
-                            ref = vm if vm > ref else ref
-                        if not vp * reuse_frames <= np.float32(1.01) * ref:
+                        if _count_at(cnt, y, x, sy, sx, h, w) < reuse_frames:
                             settled = False
                             break
                     if not settled:
@@ -558,8 +593,8 @@ def _judge_blocks(values, state, prev, var, cy, cx, bs, dec, cand, g, floor, nd,
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _prepare_work(values, state, prev, var, cy, cx, bs, dec, cand, known, lower, upper, use_bounds, work, pv,
-                  pvar, g, floor, nd, tol, z_out, max_frames, mis):
+def _prepare_work(values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, lower, upper, use_bounds, work, pv,
+                  pvar, pc, g, floor, nd, tol, z_out, max_frames, cmis):
     """The reconstruction's input: `work` = the values with measured pixels of trusted blocks averaged with
     their aligned past (inverse variance; an outlier restarts its pixel), missing pixels of REUSE blocks =
     their past within their bounds and known (NOISY ones averaged with their measurement); pv / pvar =
@@ -577,6 +612,7 @@ def _prepare_work(values, state, prev, var, cy, cx, bs, dec, cand, known, lower,
             att = (st & ATTENUATED) != 0
             work[y, x] = v
             pv[y, x] = v
+            pc[y, x] = 0
             if r == VALID:
                 pvar[y, x] = _meas_var(v, att, g, floor, nd)
             else:
@@ -584,15 +620,17 @@ def _prepare_work(values, state, prev, var, cy, cx, bs, dec, cand, known, lower,
             if d == FRESH or d == NO_EVIDENCE:
                 continue
             c = cand[by, x // bs]
-            p, vp = _aligned(prev, var, y, x, cy[c], cx[c], h, w, mis if c > 0 else np.float32(0.0))
+            p, vp, va = _aligned(prev, var, y, x, cy[c], cx[c], h, w, cmis[c])
             if not vp < inf:
                 continue
+            vp += va
+            n_past = _count_at(cnt, y, x, cy[c], cx[c], h, w)
             if r == VALID or (d == REUSE and r == NOISY):
                 vm = _meas_var(p, att or r == NOISY, g, floor, nd)
                 dd = v - p
                 t = tol * p
                 if dd * dd > z_out * (vm + vp + t * t):
-                    pvar[y, x] = vm               # an outlier: the pixel restarts
+                    pvar[y, x] = _meas_var(v, att, g, floor, nd)   # an outlier: the pixel restarts
                     if r == NOISY:
                         pvar[y, x] = inf          # reconstructed alone
                     continue
@@ -603,6 +641,7 @@ def _prepare_work(values, state, prev, var, cy, cx, bs, dec, cand, known, lower,
                 pv[y, x] = a
                 nv = nv if nv > vm / max_frames else vm / max_frames
                 pvar[y, x] = nv if r == VALID else -nv    # negative: a reused pixel, as it is
+                pc[y, x] = n_past
                 known[y, x] = True
             elif d == REUSE:
                 if use_bounds:
@@ -613,18 +652,20 @@ def _prepare_work(values, state, prev, var, cy, cx, bs, dec, cand, known, lower,
                 work[y, x] = p
                 pv[y, x] = p
                 pvar[y, x] = -vp                  # negative: reused as it is
+                pc[y, x] = n_past - 1             # (`_finish` adds the frame)
                 known[y, x] = True
             elif d == REFRESH:
                 pv[y, x] = p
                 pvar[y, x] = vp
+                pc[y, x] = n_past
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _finish(values, state, work, pv, pvar, prev, var, lower, upper, use_bounds, g, rec_noise, rec_tol,
-            reuse_frames, floor):
+def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, lower, upper, use_bounds, g, rec_noise, rec_tol,
+            reuse_frames, floor, rec_tex, nd, z_out):
     """Write the frame and keep it as the past: measured pixels get their average, missing pixels the
-    reconstruction fused by inverse variance with their aligned past (where they have one), within their
-    bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
+    reconstruction fused by inverse variance with their aligned past (where they have one and it agrees
+    within Z_OUT), within their bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
     h, w = values.shape
     flag = np.uint8(RECONSTRUCTED)
     n = 0
@@ -634,6 +675,8 @@ def _finish(values, state, work, pv, pvar, prev, var, lower, upper, use_bounds, 
             st = state[y, x]
             r = st & REASON_MASK
             a = work[y, x]
+            n1 = np.int32(pc[y, x]) + 1
+            cnt[y, x] = np.uint8(n1 if n1 < 255 else 255)
             if r == VALID:
                 values[y, x] = a
                 prev[y, x] = a
@@ -641,20 +684,27 @@ def _finish(values, state, work, pv, pvar, prev, var, lower, upper, use_bounds, 
                 continue
             vp = pvar[y, x]
             p = pv[y, x]
-            vr = _rec_var(a, g, floor, rec_noise, rec_tol)
+            vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var(work, y, x, h, w, rec_tex)
+            if r == NOISY:          # fused with its own measurement: no less certain than that
+                vm = _meas_var(a, True, g, floor, nd)
+                vr = vm if vm < vr else vr
             nv = vr
             if vp < np.float32(0.0):
                 nv = -vp                                      # reused: the past as it is
             elif vp < np.float32(np.inf):
-                a = (a * vp + p * vr) / (vr + vp)
-                if use_bounds:
-                    lb = lower[y, x]
-                    ub = upper[y, x]
-                    a = lb if (r == CLIPPED) & (lb == lb) & (lb > a) else a
-                    a = ub if (r == DARK) & (ub == ub) & (ub < a) else a
-                nv = vr * vp / (vr + vp)
-                lim = _rec_var(a, g, floor, rec_noise, rec_tol) / reuse_frames   # at the value kept
-                nv = nv if nv > lim else lim
+                dd = a - p
+                if dd * dd > z_out * (vr + vp):
+                    cnt[y, x] = 1                             # the past disagrees: the reconstruction alone
+                else:
+                    a = (a * vp + p * vr) / (vr + vp)
+                    if use_bounds:
+                        lb = lower[y, x]
+                        ub = upper[y, x]
+                        a = lb if (r == CLIPPED) & (lb == lb) & (lb > a) else a
+                        a = ub if (r == DARK) & (ub == ub) & (ub < a) else a
+                    nv = vr * vp / (vr + vp)
+                    lim = vr / reuse_frames
+                    nv = nv if nv > lim else lim
             values[y, x] = a
             state[y, x] = st | flag
             prev[y, x] = a
