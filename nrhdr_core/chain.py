@@ -20,8 +20,8 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
 
 The settings' vocabularies are the stages' own (`validity.MODES`, `validity.DARK_POLICIES`, `crosstalk.MODES`,
 `crosstalk.LUT_FORMS`, `reconstruction.METHODS`, `reconstruction.FUSIONS`, `fse.FSE_PRESETS`,
-`tonemap.TRANSFERS`, TEMPORAL_MODES). `warmup` is the one entry point that compiles the chain's numba kernels (`nrhdr warmup`,
-the elements' start, `nrhdr batch`).
+`tonemap.TRANSFERS`, TEMPORAL_MODES). `warmup` is the one entry point that compiles the chain's numba kernels
+(`nrhdr warmup`, the elements' start, `nrhdr batch`).
 """
 from __future__ import annotations
 

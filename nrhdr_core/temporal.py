@@ -1,6 +1,6 @@
 """Temporal reconstruction: the previous output, aligned by a fast motion estimate, as a prior for the
 missing pixels and as extra measurements for the measured and noisy ones, where a per-block consistency
-check against the noise model trusts it (docs/TEMPORAL.md).
+check against the noise model trusts it (docs/FSE.md "Temporal reconstruction").
 
 Anchors: recursive multi-frame frequency selective reconstruction (Jonscher et al., PCS 2016) and
 consistency-checked multi-frame reconstruction for a fixed non-regular mask (arXiv 2203.09200); the
@@ -9,9 +9,9 @@ recursive, variance-weighted averaging is a motion-compensated recursive (Kalman
 Per frame (`TemporalReconstructor.process`):
 
 1. known mask and bounds (`validity.prepare`);
-2. global motion from integral projections of the log2 values of the measured pixels (rows and
-   columns, this frame's against the previous frame's), integer search and a parabolic sub-pixel fit,
-   then refined by 2-D matching of the measured pixels against the previous output nearby;
+2. global motion: phase correlation of 4 x 4 cell means of log2 values (the frame's measured pixels
+   against the previous output), refined by 2-D matching of the measured pixels against the previous
+   output nearby, sub-pixel by parabolic fits;
 3. per block (``block`` x ``block``) and candidate motion (none, the global shift) the consistency of
    the frame's measured pixels with the aligned previous output: z = (m - p)^2 / (var_m + var_p +
    (tol p)^2), var_m the measurement's noise (Eq. 4-7 as `validity.measurement_variance`), var_p the
@@ -65,7 +65,8 @@ DEFAULTS = dict(
 
 
 class TemporalReconstructor:
-    """`reconstruction.reconstruct_frame` with a temporal prior (module docstring; docs/TEMPORAL.md).
+    """`reconstruction.reconstruct_frame` with a temporal prior (module docstring; docs/FSE.md "Temporal
+    reconstruction").
 
     method, preset, use_bounds, fusion: as `reconstruct_frame` (method may be a callable
     f(missing_share) -> (method, preset), as `nrreconstruct method=auto` passes); options: DEFAULTS."""
@@ -88,12 +89,12 @@ class TemporalReconstructor:
                 raise ValueError(f"temporal reconstruction: option {k} must be a finite number >= 0, got {o[k]!r}")
         self.method, self.preset, self.use_bounds, self.fusion = method, preset, bool(use_bounds), fusion
         self.options = o
-        self._prev = self._var = self._cnt = self._sig = None
+        self._prev = self._var = self._cnt = None
         self.frames = 0          # frames since the last reset
 
     def reset(self) -> None:
         """Forget the past: the next frame is reconstructed alone."""
-        self._prev = self._var = self._cnt = self._sig = None
+        self._prev = self._var = self._cnt = None
         self.frames = 0
 
     # ---- one frame ------------------------------------------------------------------------------------
@@ -103,8 +104,8 @@ class TemporalReconstructor:
         their recursive average. `noise`: the noise model (gain, read_noise, nd: a CameraProfile; None =
         the default sensor's). Returns the work done: "missing" (pixels filled, as `reconstruct_frame`
         returns), "blocks", the shares "fresh", "refreshed", "reused", "no_prior", "no_evidence" of the
-        blocks, "motion" (dy, dx): the motion most trusted blocks took (the global estimate where none), "cut" and "reset" (True when the frame was
-        reconstructed alone)."""
+        blocks, "motion" (dy, dx): the motion most trusted blocks took (the global estimate where none),
+        "cut" and "reset" (True when the frame was reconstructed alone)."""
         from . import reconstruction, validity
         o = self.options
         if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
@@ -134,16 +135,15 @@ class TemporalReconstructor:
         g = np.float32(noise.gain)
         floor = np.float32(float(noise.gain) ** 2 * float(noise.read_noise) ** 2 + 1.0 / 12.0)
         nd = np.float32(noise.nd)
-        sig = projections(values, state)
         if self._prev is None or n_miss != n_unknown or not _finite(values):
             # first frame (or a frame the general path must judge: non-finite values, pixels filled upstream)
-            return self._alone(values, state, noise, method, preset, report, g, floor, nd, sig)
+            return self._alone(values, state, noise, method, preset, report, g, floor, nd)
         # 2. global motion
-        dy, dx = refine_motion(values, state, self._prev, *global_motion(sig, self._sig, int(o["search"])))
+        dy, dx = global_motion(values, state, self._prev, int(o["search"]))
         # 3. per-block consistency
         lo_a = lower if lower is not None else _EMPTY
         cy, cx, cmis = _candidates(dy, dx, float(o["shift_error"]))
-        _judge_blocks(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
+        n_kept = _judge_blocks(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
                       g, floor, nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]),
                       np.float32(Z_OUT), int(o["min_evidence"]), np.float32(o["rec_noise"]),
                       np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]), cmis, np.float32(o["rec_texture"]))
@@ -152,36 +152,63 @@ class TemporalReconstructor:
         # the dominant motion: the candidate most trusted blocks took (the global estimate when none did)
         top = int(np.argmax(np.bincount(cand[trusted], minlength=cy.size))) if trusted.any() else -1
         report["motion"] = (float(cy[top]), float(cx[top])) if top >= 0 else (float(dy), float(dx))
-        judged = dec.size - counts[NO_EVIDENCE]
+        judged = dec.size - counts[NO_EVIDENCE] - n_kept      # blocks with measurements to judge by
         untrusted = counts[FRESH]
         if judged and untrusted > float(o["cut_share"]) * judged:
             report["cut"] = True
-            return self._alone(values, state, noise, method, preset, report, g, floor, nd, sig)
+            return self._alone(values, state, noise, method, preset, report, g, floor, nd)
         # 4. measured pixels averaged, settled missing pixels reused, the rest marked for the reconstruction
         up_a = upper if upper is not None else _EMPTY
-        _prepare_work(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
+        left = _prepare_work(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
                       known, lo_a, up_a, lower is not None, work, pv, pvar, pc, g, floor, nd, np.float32(o["tol"]),
                       np.float32(Z_OUT), np.float32(o["max_frames"]), cmis)
-        noisy = None
-        if _any_noisy_missing(state, known):
-            noisy = ((state & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~known
-        reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
-                                   out=work, noisy=noisy, noise=noise if noisy is not None else None,
-                                   fusion=self.fusion)
+        if left:
+            self._reconstruct_left(work, known, lower, upper, state, noise, method, preset)
         # 5. fused with the past, written back, kept as the next frame's past
         n = _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, lo_a, up_a,
                     lower is not None,
                     g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]),
                     floor, np.float32(o["rec_texture"]), nd, np.float32(Z_OUT))
         self.frames += 1
-        self._sig = sig
         tot = float(dec.size)
         report.update(missing=int(n), reset=False, fresh=counts[FRESH] / tot, refreshed=counts[REFRESH] / tot,
                       reused=counts[REUSE] / tot, no_prior=counts[NO_PRIOR] / tot,
                       no_evidence=counts[NO_EVIDENCE] / tot)
         return report
 
-    def _alone(self, values, state, noise, method, preset, report, g, floor, nd, sig) -> dict:
+    def _reconstruct_left(self, work, known, lower, upper, state, noise, method, preset) -> None:
+        """`reconstruction.reconstruct` of the pixels left unknown, in place in `work`: on the whole frame,
+        or, when they lie in few TILE x TILE tiles, on each such tile with a MARGIN of context (cost
+        follows change: the FSE's per-frame preparation is paid on those tiles only)."""
+        from . import reconstruction
+        h, w = work.shape
+        counts = _tile_counts(known, TILE)
+        tiles = np.argwhere(counts > 0)
+        whole = len(tiles) > TILE_SHARE * counts.size
+        boxes = [(0, h, 0, w, 0, h, 0, w)] if whole else [
+            (ty * TILE, min((ty + 1) * TILE, h), tx * TILE, min((tx + 1) * TILE, w),
+             max(ty * TILE - MARGIN, 0), min((ty + 1) * TILE + MARGIN, h),
+             max(tx * TILE - MARGIN, 0), min((tx + 1) * TILE + MARGIN, w)) for ty, tx in tiles]
+        for y0, y1, x0, x1, cy0, cy1, cx0, cx1 in boxes:
+            crop = (slice(cy0, cy1), slice(cx0, cx1))
+            k = known if whole else np.ascontiguousarray(known[crop])
+            st = state if whole else state[crop]
+            noisy = None
+            if _any_noisy_missing(np.ascontiguousarray(st), k):
+                noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+            if whole:
+                reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
+                                           out=work, noisy=noisy, noise=noise if noisy is not None else None,
+                                           fusion=self.fusion)
+                continue
+            sub = np.ascontiguousarray(work[crop])
+            lo = None if lower is None else np.ascontiguousarray(lower[crop])
+            up = None if upper is None else np.ascontiguousarray(upper[crop])
+            reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
+                                       noisy=noisy, noise=noise if noisy is not None else None, fusion=self.fusion)
+            work[y0:y1, x0:x1] = sub[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
+
+    def _alone(self, values, state, noise, method, preset, report, g, floor, nd) -> dict:
         """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it."""
         from . import reconstruction
         report["missing"] = int(reconstruction.reconstruct_frame(
@@ -195,11 +222,27 @@ class TemporalReconstructor:
         _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
                  np.float32(o["rec_tol"]), np.float32(o["rec_texture"]))
         self.frames = 1
-        self._sig = sig
         return report
 
 
 _EMPTY = np.full((1, 1), np.nan, np.float32)
+TILE = 128          # pixels left to reconstruct in few tiles of this size are reconstructed tile by tile ...
+MARGIN = 32         # ... each with this much context around it (FSE's support window is 16 or 32)
+TILE_SHARE = 0.25   # ... unless more than this share of the tiles hold one: then the whole frame at once
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _tile_counts(known, tile):
+    """Pixels not known per tile x tile tile."""
+    h, w = known.shape
+    nty = (h + tile - 1) // tile
+    ntx = (w + tile - 1) // tile
+    out = np.zeros((nty, ntx), np.int64)
+    for ty in prange(nty):
+        for y in range(ty * tile, min((ty + 1) * tile, h)):
+            for x in range(w):
+                out[ty, x // tile] += 0 if known[y, x] else 1
+    return out
 
 
 def _planes(h, w, nby, nbx):
@@ -304,7 +347,7 @@ def _count_at(cnt, y, x, sy, sx, h, w):
     return np.int32(cnt[yy, xx])
 
 
-# ---- global motion: integral projections of log2 values -------------------------------------------------
+# ---- global motion: phase correlation and matching of log2 values -------------------------------------------------
 
 @njit(cache=True, nogil=True, inline="always")
 def _log2f(bits):
@@ -314,94 +357,87 @@ def _log2f(bits):
     return np.float32(b - one) * np.float32(1.0 / 8388608.0)
 
 
+CELL = 4              # pixels: the phase correlation works on CELL x CELL means of log2 values
+PEAKS = 3             # its strongest peaks are refined (and no motion), the best match is the estimate
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _projections(values, state, rs, rn, cs, cn):
-    """Row and column sums of log2 over the measured (VALID) pixels, and their counts: rows (rs, rn);
-    columns per chunk of rows (cs, cn: (chunks, W)), summed by the caller."""
-    h, w = values.shape
+def _cell_means(values, state, prev, cell, cur, past):
+    """cur = mean log2 of the measured (VALID) pixels of each cell (NaN where none), past = mean log2 of
+    all the previous output's pixels of the cell."""
+    hc, wc = cur.shape
     vi = values.view(np.int32)
-    nch = cs.shape[0]
-    for ch in prange(nch):
-        for x in range(w):
-            cs[ch, x] = 0.0
-            cn[ch, x] = 0.0
-        for y in range(ch * h // nch, (ch + 1) * h // nch):
-            sr = np.float32(0.0)
-            nr = np.float32(0.0)
-            for x in range(w):
-                kf = np.float32(1.0) if (state[y, x] & REASON_MASK) == VALID else np.float32(0.0)
-                lv = kf * _log2f(vi[y, x])
-                sr += lv
-                nr += kf
-                cs[ch, x] += lv
-                cn[ch, x] += kf
-            rs[y] = sr
-            rn[y] = nr
+    pi = prev.view(np.int32)
+    for cy in prange(hc):
+        for cx in range(wc):
+            sc = np.float32(0.0)
+            nc = np.float32(0.0)
+            sp = np.float32(0.0)
+            for y in range(cy * cell, cy * cell + cell):
+                for x in range(cx * cell, cx * cell + cell):
+                    kf = np.float32(1.0) if (state[y, x] & REASON_MASK) == VALID else np.float32(0.0)
+                    sc += kf * _log2f(vi[y, x])
+                    nc += kf
+                    sp += _log2f(pi[y, x])
+            cur[cy, cx] = sc / nc if nc > 0 else np.float32(np.nan)
+            past[cy, cx] = sp / np.float32(cell * cell)
 
 
-def projections(values, state):
-    """The frame's motion signature: mean log2 of the measured pixels per row and per column, and their
-    counts ((rows, row counts), (columns, column counts), float64). Each frame's own measured pixels:
-    the fixed mask samples both frames alike, so it does not bias the match."""
+def _peak_fit(r, i, j):
+    """Sub-cell offset of the peak r[i, j] along each axis (parabola through the neighbours, cyclic)."""
+    def fit(a, b, c):
+        den = a - 2.0 * b + c
+        return float(min(max(0.5 * (a - c) / den, -0.5), 0.5)) if den < 0 else 0.0
+    h, w = r.shape
+    return (fit(r[(i - 1) % h, j], r[i, j], r[(i + 1) % h, j]),
+            fit(r[i, (j - 1) % w], r[i, j], r[i, (j + 1) % w]))
+
+
+def global_motion(values, state, prev, search: int = 32):
+    """(dy, dx) of the frame against the previous output `prev`: content at (y, x) of the frame was at
+    (y - dy, x - dx). Phase correlation (Kuglin & Hines 1975) of CELL x CELL means of log2 values (the
+    frame's measured pixels, the past's all pixels; Hann window) within `search` pixels: its PEAKS strongest
+    peaks and no motion, each refined at full resolution (`refine_motion`); the best match wins."""
     h, w = values.shape
-    nch = max(1, min(h, 16))
-    rs, rn, cs, cn = planes("temporal.projections", (h, w, nch), lambda: (
-        np.empty(h, np.float32), np.empty(h, np.float32), np.empty((nch, w), np.float32),
-        np.empty((nch, w), np.float32)))
-    _projections(values, state, rs, rn, cs, cn)
-    rn64 = rn.astype(np.float64)
-    cn64 = cn.sum(axis=0, dtype=np.float64)
-    return ((rs / np.maximum(rn64, 1.0), rn64), (cs.sum(axis=0, dtype=np.float64) / np.maximum(cn64, 1.0), cn64))
+    hc, wc = h // CELL, w // CELL
+    if hc < 4 or wc < 4:
+        return refine_motion(values, state, prev, 0.0, 0.0)
+    cur, past = planes("temporal.cells", (hc, wc), lambda: (np.empty((hc, wc), np.float32),
+                                                           np.empty((hc, wc), np.float32)))
+    _cell_means(values, state, prev, CELL, cur, past)
+    ok = np.isfinite(cur)
+    if ok.sum() < 16:
+        return refine_motion(values, state, prev, 0.0, 0.0)
+    a = np.where(ok, cur, np.float32(cur[ok].mean())) - np.float32(cur[ok].mean())
+    b = past - past.mean()
+    win = np.outer(np.hanning(hc), np.hanning(wc)).astype(np.float32)
+    fa = np.fft.rfft2(a * win)
+    fb = np.fft.rfft2(b * win)
+    x = fa * np.conj(fb)
+    x /= np.maximum(np.abs(x), 1e-12)
+    r = np.fft.irfft2(x, s=(hc, wc))
+    lim_y = min(int(search) // CELL + 1, hc // 2)
+    lim_x = min(int(search) // CELL + 1, wc // 2)
+    sy = np.r_[0:lim_y + 1, hc - lim_y:hc]
+    sx = np.r_[0:lim_x + 1, wc - lim_x:wc]
+    sub = r[np.ix_(sy, sx)].copy()
+    best = None
+    for _ in range(PEAKS):             # the strongest peaks (and no motion), each refined; the best match wins
+        ii, jj = np.unravel_index(int(np.argmax(sub)), sub.shape)
+        i, j = int(sy[ii]), int(sx[jj])
+        fy, fx = _peak_fit(r, i, j)
+        sub[max(ii - 1, 0):ii + 2, max(jj - 1, 0):jj + 2] = -np.inf
+        dy = ((i + hc // 2) % hc - hc // 2 + fy) * CELL
+        dx = ((j + wc // 2) % wc - wc // 2 + fx) * CELL
+        cand = refine_motion(values, state, prev, dy, dx, with_cost=True)
+        best = cand if best is None or cand[2] < best[2] else best
+    still = refine_motion(values, state, prev, 0.0, 0.0, with_cost=True)
+    best = still if still[2] <= best[2] else best
+    return best[0], best[1]
 
 
-@njit(cache=True, nogil=True)
-def _shift_1d(a, na, b, nb, r):
-    """Shift d (|d| <= r, sub-pixel) with a[x] ~ b[x - d] (profiles of means, na / nb samples per line): the
-    mean absolute difference over the overlap where both lines hold at least a quarter of their median
-    count, minimised on integers, refined by a parabola. 0 when no shift leaves a third of the lines."""
-    n = a.shape[0]
-    r = min(r, n // 3)
-    lim = 0.25 * np.median(na)
-    cost = np.full(2 * r + 1, np.inf)
-    for i in range(2 * r + 1):
-        d = i - r
-        s = 0.0
-        c = 0
-        for x in range(max(0, d), min(n, n + d)):
-            if na[x] > lim and nb[x - d] > lim:
-                s += abs(a[x] - b[x - d])
-                c += 1
-        if c >= n // 3 and c > 0:
-            cost[i] = s / c
-    best = r
-    for i in range(2 * r + 1):
-        if cost[i] < cost[best]:
-            best = i
-    if not cost[best] < np.inf:
-        return 0.0
-    f = 0.0
-    if 0 < best < 2 * r:
-        cm, c0, cq = cost[best - 1], cost[best], cost[best + 1]
-        den = cm - 2.0 * c0 + cq
-        if den > 0 and cm < np.inf and cq < np.inf:
-            f = 0.5 * (cm - cq) / den
-            f = min(max(f, -0.5), 0.5)
-    return (best - r) + f
-
-
-def global_motion(cur, past, search: int = 32):
-    """(dy, dx) of the frame whose `projections` are `cur` against the one of `past`: content at (y, x)
-    of the frame was at (y - dy, x - dx); integer search within `search` pixels, parabolic sub-pixel fit
-    (`_shift_1d`), snapped to an integer within SNAP."""
-    (ra, rna), (ca, cna) = cur
-    (rb, rnb), (cb, cnb) = past
-    dy = _shift_1d(ra, rna, rb, rnb, int(search))
-    dx = _shift_1d(ca, cna, cb, cnb, int(search))
-    return _snap(dy), _snap(dx)
-
-
-REFINE_RADIUS = 2     # pixels: the 2-D refinement searches this far around the projections' estimate
-REFINE_STEP = 3       # ... on every REFINE_STEP-th row and column
+REFINE_RADIUS = CELL // 2 + 1   # pixels: the refinement searches this far around the cells' estimate ...
+REFINE_SAMPLES = 20000          # ... on about this many pixels (every n-th row and column)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -427,18 +463,19 @@ def _match_costs(values, state, prev, oy, ox, rad, step, cost):
         cost[k // n, k % n] = s / c if c > 16 else np.inf
 
 
-def refine_motion(values, state, prev, dy: float, dx: float):
+def refine_motion(values, state, prev, dy: float, dx: float, with_cost: bool = False):
     """(dy, dx) refined by 2-D matching of the frame's measured pixels against the past's log2 values
-    around the rounded estimate (`_match_costs`, REFINE_RADIUS, REFINE_STEP): the best whole-pixel shift and
-    a parabolic sub-pixel fit along each axis, snapped to an integer within SNAP. Integral projections
-    confuse the axes of a small or one-directional scene; this settles them."""
+    around the rounded estimate (`_match_costs`, REFINE_RADIUS, about REFINE_SAMPLES pixels): the best
+    whole-pixel shift and a parabolic sub-pixel fit along each axis, snapped to an integer within SNAP;
+    `with_cost`: and the match cost of that whole-pixel shift."""
     rad = REFINE_RADIUS
     n = 2 * rad + 1
     cost = planes("temporal.match", n, lambda: np.empty((n, n), np.float64))
     oy, ox = int(round(dy)), int(round(dx))
-    _match_costs(values, state, prev, oy, ox, rad, REFINE_STEP, cost)
+    step = max(2, int(math.sqrt(values.size / REFINE_SAMPLES)))
+    _match_costs(values, state, prev, oy, ox, rad, step, cost)
     if not np.isfinite(cost).any():
-        return dy, dx
+        return (dy, dx, np.inf) if with_cost else (dy, dx)
     i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
 
     def fit(a, b, c):
@@ -447,7 +484,8 @@ def refine_motion(values, state, prev, dy: float, dx: float):
 
     fy = fit(cost[i - 1, j], cost[i, j], cost[i + 1, j]) if 0 < i < n - 1 else 0.0
     fx = fit(cost[i, j - 1], cost[i, j], cost[i, j + 1]) if 0 < j < n - 1 else 0.0
-    return _snap(oy + i - rad + fy), _snap(ox + j - rad + fx)
+    out = (_snap(oy + i - rad + fy), _snap(ox + j - rad + fx))
+    return out + (float(cost[i, j]),) if with_cost else out
 
 
 def _snap(d: float) -> float:
@@ -518,6 +556,7 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
     h, w = values.shape
     nby, nbx = dec.shape
     nc = cy.shape[0]
+    n_kept = 0
     for by in prange(nby):
         for bx in range(nbx):
             y0 = by * bs
@@ -542,9 +581,14 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                         r = st & REASON_MASK
                         if r != VALID and r != NOISY:
                             continue
-                        p, vp, va = _aligned(prev, var, y, x, sy, sx, h, w, cmis[c])
-                        if not vp < np.inf:
-                            continue
+                        if c == 0:
+                            p = prev[y, x]
+                            vp = var[y, x]
+                            va = np.float32(0.0)
+                        else:
+                            p, vp, va = _aligned(prev, var, y, x, sy, sx, h, w, cmis[c])
+                            if not vp < np.inf:
+                                continue
                         vm = _meas_var(p, (st & ATTENUATED) != 0 or r == NOISY, g, floor, nd)
                         d = values[y, x] - p
                         t = tol * p
@@ -565,11 +609,21 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                 if mr < np.float32(0.6) * z_mean and no == 0:
                     break          # explained well: the later candidates are not tried
             cand[by, bx] = best_c
+            kept = False
             if best_n < min_ev:
-                dec[by, bx] = NO_EVIDENCE
-            elif best_m >= z_mean or best_o > max(np.float32(1.0), out_share * best_n):
+                # too few measurements (a saturated or black area): still, when the past keeps every
+                # bound of the block (clipped pixels at or above, dark ones at or below), it is trusted
+                if _bounds_kept(values, state, prev, y0, y1, x0, x1, tol):
+                    cand[by, bx] = 0
+                    best_c = 0
+                    kept = True
+                    n_kept += 1
+                else:
+                    dec[by, bx] = NO_EVIDENCE
+                    continue
+            if (not kept) and (best_m >= z_mean or best_o > max(np.float32(1.0), out_share * best_n)):
                 dec[by, bx] = FRESH
-            elif best_o > 0:
+            elif (not kept) and best_o > 0:
                 dec[by, bx] = NO_PRIOR
             else:
                 # reusable when the past of every missing pixel averages `reuse_frames` reconstructions (or
@@ -590,6 +644,29 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                     if not settled:
                         break
                 dec[by, bx] = REUSE if settled else REFRESH
+    return n_kept
+
+
+@njit(cache=True, nogil=True)
+def _bounds_kept(values, state, prev, y0, y1, x0, x1, tol):
+    """True when every pixel of the block is measured, CLIPPED with its past at or above its value or DARK
+    with its past at or below it (within `tol`)."""
+    lo = np.float32(1.0) - tol
+    hi = np.float32(1.0) + tol
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            r = state[y, x] & REASON_MASK
+            v = values[y, x]
+            p = prev[y, x]
+            if r == CLIPPED:
+                if not p >= v * lo:
+                    return False
+            elif r == DARK:
+                if not p <= v * hi:
+                    return False
+            elif r != VALID and r != NOISY:
+                return False
+    return True
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -599,12 +676,16 @@ def _prepare_work(values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, l
     their aligned past (inverse variance; an outlier restarts its pixel), missing pixels of REUSE blocks =
     their past within their bounds and known (NOISY ones averaged with their measurement); pv / pvar =
     the aligned past where a missing pixel is to be fused with it (pvar inf: no past) or, at measured and
-    reused pixels, the new value's variance."""
+    reused pixels, the new value's variance (negative: reused); pc = the frames the past averages. Returns
+    the number of pixels left to reconstruct."""
     h, w = values.shape
     inf = np.float32(np.inf)
+    left = 0
     for y in prange(h):
         by = y // bs
+        nl = 0
         for x in range(w):
+            nl += 0 if known[y, x] else 1      # left to reconstruct (less those marked known below)
             d = dec[by, x // bs]
             st = state[y, x]
             r = st & REASON_MASK
@@ -642,6 +723,7 @@ def _prepare_work(values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, l
                 nv = nv if nv > vm / max_frames else vm / max_frames
                 pvar[y, x] = nv if r == VALID else -nv    # negative: a reused pixel, as it is
                 pc[y, x] = n_past
+                nl -= 0 if known[y, x] else 1
                 known[y, x] = True
             elif d == REUSE:
                 if use_bounds:
@@ -653,11 +735,14 @@ def _prepare_work(values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, l
                 pv[y, x] = p
                 pvar[y, x] = -vp                  # negative: reused as it is
                 pc[y, x] = n_past - 1             # (`_finish` adds the frame)
+                nl -= 1
                 known[y, x] = True
             elif d == REFRESH:
                 pv[y, x] = p
                 pvar[y, x] = vp
                 pc[y, x] = n_past
+        left += nl
+    return left
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -684,14 +769,19 @@ def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, lower, upper, use
                 continue
             vp = pvar[y, x]
             p = pv[y, x]
+            if vp < np.float32(0.0):
+                values[y, x] = a                              # reused: the past as it is
+                state[y, x] = st | flag
+                prev[y, x] = a
+                var[y, x] = -vp
+                c += 1
+                continue
             vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var(work, y, x, h, w, rec_tex)
             if r == NOISY:          # fused with its own measurement: no less certain than that
                 vm = _meas_var(a, True, g, floor, nd)
                 vr = vm if vm < vr else vr
             nv = vr
-            if vp < np.float32(0.0):
-                nv = -vp                                      # reused: the past as it is
-            elif vp < np.float32(np.inf):
+            if vp < np.float32(np.inf):
                 dd = a - p
                 if dd * dd > z_out * (vr + vp):
                     cnt[y, x] = 1                             # the past disagrees: the reconstruction alone
