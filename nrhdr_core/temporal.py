@@ -135,8 +135,9 @@ class TemporalReconstructor:
         g = np.float32(noise.gain)
         floor = np.float32(float(noise.gain) ** 2 * float(noise.read_noise) ** 2 + 1.0 / 12.0)
         nd = np.float32(noise.nd)
-        if self._prev is None or n_miss != n_unknown or not _finite(values):
-            # first frame (or a frame the general path must judge: non-finite values, pixels filled upstream)
+        if self._prev is None or n_miss != n_unknown or reconstruction._nonfinite_known(values, known):
+            # first frame (or a frame the general path must judge: non-finite measurements, pixels filled
+            # upstream)
             return self._alone(values, state, noise, method, preset, report, g, floor, nd)
         # 2. global motion
         dy, dx = global_motion(values, state, self._prev, int(o["search"]))
@@ -193,9 +194,8 @@ class TemporalReconstructor:
             crop = (slice(cy0, cy1), slice(cx0, cx1))
             k = known if whole else np.ascontiguousarray(known[crop])
             st = state if whole else state[crop]
-            noisy = None
-            if _any_noisy_missing(np.ascontiguousarray(st), k):
-                noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+            noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+            noisy = noisy if noisy.any() else None
             if whole:
                 reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
                                            out=work, noisy=noisy, noise=noise if noisy is not None else None,
@@ -302,39 +302,6 @@ def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, re
                 var[y, x] = _meas_var(v, (st & ATTENUATED) != 0, g, floor, nd)
             else:
                 var[y, x] = _rec_var(v, g, floor, rec_noise, rec_tol) + _tex_var(values, y, x, h, w, rec_tex)
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _finite_kernel(values):
-    h, w = values.shape
-    bad = 0
-    for y in prange(h):
-        b = 0
-        for x in range(w):
-            a = values[y, x]
-            b += np.int64(not (a - a == np.float32(0.0)))
-        bad += b
-    return bad
-
-
-def _finite(values) -> bool:
-    return _finite_kernel(values) == 0
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _any_noisy_kernel(state, known):
-    h, w = state.shape
-    n = 0
-    for y in prange(h):
-        c = 0
-        for x in range(w):
-            c += np.int64(((state[y, x] & (REASON_MASK | RECONSTRUCTED)) == NOISY) & (not known[y, x]))
-        n += c
-    return n
-
-
-def _any_noisy_missing(state, known) -> bool:
-    return _any_noisy_kernel(state, known) > 0
 
 
 @njit(cache=True, nogil=True, inline="always")
