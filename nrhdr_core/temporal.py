@@ -399,7 +399,7 @@ def global_motion(values, state, prev, search: int = 32):
         cand = refine_motion(values, state, prev, dy, dx, with_cost=True)
         best = cand if best is None or cand[2] < best[2] else best
     still = refine_motion(values, state, prev, 0.0, 0.0, with_cost=True)
-    best = still if still[2] <= best[2] else best
+    best = still if still[2] < best[2] else best
     return best[0], best[1]
 
 
