@@ -179,34 +179,44 @@ class TemporalReconstructor:
 
     def _reconstruct_left(self, work, known, lower, upper, state, noise, method, preset) -> None:
         """`reconstruction.reconstruct` of the pixels left unknown, in place in `work`: on the whole frame,
-        or, when they lie in few TILE x TILE tiles, on each such tile with a MARGIN of context (cost
-        follows change: the FSE's per-frame preparation is paid on those tiles only)."""
+        or, when they lie in at most MOSAIC_SHARE of the blocks, on a mosaic of those blocks, each with
+        MARGIN pixels of context (cost follows change: the reconstruction's per-frame passes run over those
+        blocks only)."""
         from . import reconstruction
         h, w = work.shape
-        counts = _tile_counts(known, TILE)
-        tiles = np.argwhere(counts > 0)
-        whole = len(tiles) > TILE_SHARE * counts.size
-        boxes = [(0, h, 0, w, 0, h, 0, w)] if whole else [
-            (ty * TILE, min((ty + 1) * TILE, h), tx * TILE, min((tx + 1) * TILE, w),
-             max(ty * TILE - MARGIN, 0), min((ty + 1) * TILE + MARGIN, h),
-             max(tx * TILE - MARGIN, 0), min((tx + 1) * TILE + MARGIN, w)) for ty, tx in tiles]
-        for y0, y1, x0, x1, cy0, cy1, cx0, cx1 in boxes:
-            crop = (slice(cy0, cy1), slice(cx0, cx1))
-            k = known if whole else np.ascontiguousarray(known[crop])
-            st = state if whole else state[crop]
-            noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+        bs = int(self.options["block"])
+        counts = _tile_counts(known, bs)
+        blocks = np.argwhere(counts > 0)
+        side = bs + 2 * MARGIN
+        if len(blocks) > MOSAIC_SHARE * counts.size or h < side or w < side:
+            noisy = ((state & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~known
             noisy = noisy if noisy.any() else None
-            if whole:
-                reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
-                                           out=work, noisy=noisy, noise=noise if noisy is not None else None,
-                                           fusion=self.fusion)
-                continue
-            sub = np.ascontiguousarray(work[crop])
-            lo = None if lower is None else np.ascontiguousarray(lower[crop])
-            up = None if upper is None else np.ascontiguousarray(upper[crop])
-            reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
-                                       noisy=noisy, noise=noise if noisy is not None else None, fusion=self.fusion)
-            work[y0:y1, x0:x1] = sub[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
+            reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
+                                       out=work, noisy=noisy, noise=noise if noisy is not None else None,
+                                       fusion=self.fusion)
+            return
+        # each block's context window (side x side, moved inside the frame), stacked into one column
+        ys = np.clip(blocks[:, 0] * bs - MARGIN, 0, h - side)
+        xs = np.clip(blocks[:, 1] * bs - MARGIN, 0, w - side)
+        rows = (ys[:, None] + np.arange(side)[None, :])[:, :, None]
+        cols = (xs[:, None] + np.arange(side)[None, :])[:, None, :]
+        n = len(blocks)
+
+        def mosaic(a):
+            return None if a is None else np.ascontiguousarray(a[rows, cols].reshape(n * side, side))
+
+        sub, k, st = mosaic(work), mosaic(known), mosaic(state)
+        lo, up = mosaic(lower), mosaic(upper)
+        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+        noisy = noisy if noisy.any() else None
+        reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
+                                   noisy=noisy, noise=noise if noisy is not None else None, fusion=self.fusion)
+        sub = sub.reshape(n, side, side)
+        for i, (by, bx) in enumerate(blocks):
+            y0, x0 = by * bs, bx * bs
+            y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
+            oy, ox = y0 - ys[i], x0 - xs[i]
+            work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
 
     def _alone(self, values, state, noise, method, preset, report, g, floor, nd) -> dict:
         """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it."""
@@ -226,9 +236,8 @@ class TemporalReconstructor:
 
 
 _EMPTY = np.full((1, 1), np.nan, np.float32)
-TILE = 128          # pixels left to reconstruct in few tiles of this size are reconstructed tile by tile ...
-MARGIN = 32         # ... each with this much context around it (FSE's support window is 16 or 32)
-TILE_SHARE = 0.25   # ... unless more than this share of the tiles hold one: then the whole frame at once
+MARGIN = 16          # pixels of context around a block reconstructed in a mosaic (FSE's support: 16 or 32)
+MOSAIC_SHARE = 0.15  # at most this share of the blocks left to reconstruct: a mosaic of them, else the frame
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -364,17 +373,19 @@ def global_motion(values, state, prev, search: int = 32):
     """(dy, dx) of the frame against the previous output `prev`: content at (y, x) of the frame was at
     (y - dy, x - dx). Phase correlation (Kuglin & Hines 1975) of CELL x CELL means of log2 values (the
     frame's measured pixels, the past's all pixels; Hann window) within `search` pixels: its PEAKS strongest
-    peaks and no motion, each refined at full resolution (`refine_motion`); the best match wins."""
+    peaks and no motion, each refined at full resolution (`refine_motion`); the best match wins. When the
+    best match within a pixel of no motion is inside that pixel, that is the estimate (no search)."""
     h, w = values.shape
     hc, wc = h // CELL, w // CELL
-    if hc < 4 or wc < 4:
-        return refine_motion(values, state, prev, 0.0, 0.0)
+    still = refine_motion(values, state, prev, 0.0, 0.0, with_cost=True, rad=1)
+    if (abs(still[0]) < 1 and abs(still[1]) < 1) or hc < 4 or wc < 4:
+        return still[0], still[1]          # less than a pixel from still: no search needed
     cur, past = planes("temporal.cells", (hc, wc), lambda: (np.empty((hc, wc), np.float32),
                                                            np.empty((hc, wc), np.float32)))
     _cell_means(values, state, prev, CELL, cur, past)
     ok = np.isfinite(cur)
     if ok.sum() < 16:
-        return refine_motion(values, state, prev, 0.0, 0.0)
+        return still[0], still[1]
     a = np.where(ok, cur, np.float32(cur[ok].mean())) - np.float32(cur[ok].mean())
     b = past - past.mean()
     win = np.outer(np.hanning(hc), np.hanning(wc)).astype(np.float32)
@@ -398,13 +409,12 @@ def global_motion(values, state, prev, search: int = 32):
         dx = ((j + wc // 2) % wc - wc // 2 + fx) * CELL
         cand = refine_motion(values, state, prev, dy, dx, with_cost=True)
         best = cand if best is None or cand[2] < best[2] else best
-    still = refine_motion(values, state, prev, 0.0, 0.0, with_cost=True)
     best = still if still[2] < best[2] else best
     return best[0], best[1]
 
 
 REFINE_RADIUS = CELL // 2 + 1   # pixels: the refinement searches this far around the cells' estimate ...
-REFINE_SAMPLES = 20000          # ... on about this many pixels (every n-th row and column)
+REFINE_SAMPLES = 10000          # ... on about this many pixels (every n-th row and column)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -430,12 +440,11 @@ def _match_costs(values, state, prev, oy, ox, rad, step, cost):
         cost[k // n, k % n] = s / c if c > 16 else np.inf
 
 
-def refine_motion(values, state, prev, dy: float, dx: float, with_cost: bool = False):
+def refine_motion(values, state, prev, dy: float, dx: float, with_cost: bool = False, rad: int = REFINE_RADIUS):
     """(dy, dx) refined by 2-D matching of the frame's measured pixels against the past's log2 values
-    around the rounded estimate (`_match_costs`, REFINE_RADIUS, about REFINE_SAMPLES pixels): the best
+    within `rad` of the rounded estimate (`_match_costs`, about REFINE_SAMPLES pixels): the best
     whole-pixel shift and a parabolic sub-pixel fit along each axis, snapped to an integer within SNAP;
     `with_cost`: and the match cost of that whole-pixel shift."""
-    rad = REFINE_RADIUS
     n = 2 * rad + 1
     cost = planes("temporal.match", n, lambda: np.empty((n, n), np.float64))
     oy, ox = int(round(dy)), int(round(dx))
@@ -595,17 +604,15 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
             else:
                 # reusable when the past of every missing pixel averages `reuse_frames` reconstructions (or
                 # noisy measurements)
-                sy = cy[best_c]
-                sx = cx[best_c]
                 # (only where nothing moved: a past moved by a whole-pixel estimate of a motion that is
                 # not would be copied with its position error, frame after frame)
                 settled = best_c == 0
-                for y in range(y0, y1):
+                for y in range(y0, y1 if settled else y0):
                     for x in range(x0, x1):
                         r = state[y, x] & REASON_MASK
                         if r == VALID:
                             continue
-                        if _count_at(cnt, y, x, sy, sx, h, w) < reuse_frames:
+                        if cnt[y, x] < reuse_frames:     # (a still block: the same pixel)
                             settled = False
                             break
                     if not settled:
@@ -668,11 +675,16 @@ def _prepare_work(values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, l
             if d == FRESH or d == NO_EVIDENCE:
                 continue
             c = cand[by, x // bs]
-            p, vp, va = _aligned(prev, var, y, x, cy[c], cx[c], h, w, cmis[c])
-            if not vp < inf:
-                continue
-            vp += va
-            n_past = _count_at(cnt, y, x, cy[c], cx[c], h, w)
+            if c == 0:                          # still: the past at the same pixel
+                p = prev[y, x]
+                vp = var[y, x]
+                n_past = np.int32(cnt[y, x])
+            else:
+                p, vp, va = _aligned(prev, var, y, x, cy[c], cx[c], h, w, cmis[c])
+                if not vp < inf:
+                    continue
+                vp += va
+                n_past = _count_at(cnt, y, x, cy[c], cx[c], h, w)
             if r == VALID or (d == REUSE and r == NOISY):
                 vm = _meas_var(p, att or r == NOISY, g, floor, nd)
                 dd = v - p
