@@ -551,7 +551,11 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                 zs = np.float32(0.0)
                 n = 0
                 no = 0
-                for y in range(y0, y1):
+                if c == 0:
+                    # still: the past at the same pixel, branch-free (the mask is random)
+                    zr, n, no = _still_fit(values, state, prev, var, y0, y1, x0, x1, g, floor, nd, tol, z_out)
+                    zs = zr
+                for y in range(y0, y1 if c > 0 else y0):
                     for x in range(x0, x1):
                         st = state[y, x]
                         r = st & REASON_MASK
@@ -606,19 +610,39 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                 # noisy measurements)
                 # (only where nothing moved: a past moved by a whole-pixel estimate of a motion that is
                 # not would be copied with its position error, frame after frame)
-                settled = best_c == 0
-                for y in range(y0, y1 if settled else y0):
-                    for x in range(x0, x1):
-                        r = state[y, x] & REASON_MASK
-                        if r == VALID:
-                            continue
-                        if cnt[y, x] < reuse_frames:     # (a still block: the same pixel)
-                            settled = False
-                            break
-                    if not settled:
-                        break
-                dec[by, bx] = REUSE if settled else REFRESH
+                unsettled = 0
+                for y in range(y0, y1 if best_c == 0 else y0):
+                    for x in range(x0, x1):      # (a still block: the same pixel; branch-free)
+                        unsettled += np.int64(((state[y, x] & REASON_MASK) != VALID) & (cnt[y, x] < reuse_frames))
+                dec[by, bx] = REUSE if (best_c == 0) & (unsettled == 0) else REFRESH
     return n_kept
+
+
+@njit(cache=True, nogil=True)
+def _still_fit(values, state, prev, var, y0, y1, x0, x1, g, floor, nd, tol, z_out):
+    """(sum of min(z, z_out), count, outliers) of the block's measured pixels against the past at the
+    same pixels (`_judge_blocks`' still candidate), branch-free."""
+    zs = np.float32(0.0)
+    n = 0
+    no = 0
+    zero = np.float32(0.0)
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            st = state[y, x]
+            r = st & REASON_MASK
+            m = (r == VALID) | (r == NOISY)
+            p = prev[y, x]
+            att = ((st & ATTENUATED) != 0) | (r == NOISY)
+            lv = p if p > zero else zero
+            vm = (nd * g * lv + nd * nd * floor) if att else (g * lv + floor)
+            d = values[y, x] - p
+            t = tol * p
+            z = d * d / (vm + var[y, x] + t * t)
+            zc = z if z < z_out else z_out
+            zs += zc if m else zero
+            n += np.int64(m)
+            no += np.int64(m & (z > z_out))
+    return zs, n, no
 
 
 @njit(cache=True, nogil=True)
