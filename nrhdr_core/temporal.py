@@ -9,24 +9,26 @@ recursive, variance-weighted averaging is a motion-compensated recursive (Kalman
 Per frame (`TemporalReconstructor.process`):
 
 1. known mask and bounds (`validity.prepare`);
-2. global motion: phase correlation of 4 x 4 cell means of log2 values (the frame's measured pixels
-   against the previous output), refined by 2-D matching of the measured pixels against the previous
-   output nearby, sub-pixel by parabolic fits;
-3. per block (``block`` x ``block``) and candidate motion (none, the global shift) the consistency of
-   the frame's measured pixels with the aligned previous output: z = (m - p)^2 / (var_m + var_p +
-   (tol p)^2), var_m the measurement's noise (Eq. 4-7 as `validity.measurement_variance`), var_p the
-   previous output's variance; the block is trusted when the mean of min(z, Z_OUT) stays below
-   ``z_mean`` and few pixels are outliers (z > Z_OUT); most blocks untrusted = a scene cut: the state is
-   reset and the frame is reconstructed alone (`reconstruction.reconstruct_frame`, the same bits);
+2. global motion (`global_motion`): the best match within a pixel of still, else phase correlation of
+   4 x 4 cell means of log2 values (the frame's measured pixels against the previous output), its peaks
+   refined by 2-D matching at full resolution, sub-pixel by parabolic fits;
+3. per block (``block`` x ``block``) and candidate motion (none, the global motion rounded and as it is)
+   the consistency of the frame's measured pixels with the aligned previous output: z = (m - p)^2 /
+   (var_m + var_p + (tol p)^2 + alignment), var_m the measurement's noise (Eq. 4-7 as
+   `validity.measurement_variance`), var_p the previous output's variance; the block is trusted when the
+   mean of min(z, Z_OUT) stays below ``z_mean`` and few pixels are outliers (z > Z_OUT); most blocks
+   untrusted = a scene cut: the state is reset and the frame is reconstructed alone
+   (`reconstruction.reconstruct_frame`, the same bits);
 4. in trusted blocks measured pixels are averaged with their aligned past by inverse variance (per pixel:
-   an outlier restarts its pixel); missing pixels whose past is already averaged over ``reuse_frames``
-   reconstructions take it as a known value (the block costs nothing: FSE skips blocks with nothing
-   missing), the others are reconstructed from the averaged values and fused with their past;
+   an outlier restarts its pixel); in still blocks whose missing pixels' past already averages
+   ``reuse_frames`` frames the past is taken as known (the block costs nothing); the other missing pixels
+   are reconstructed from the averaged values (the blocks as one mosaic when they are few) and fused with
+   their past;
 5. untrusted blocks (motion the candidates do not explain, occlusion, a block with an outlier) are
    reconstructed alone.
 
-The state (the previous output and its per-pixel variance) belongs to the instance: one per stream;
-`reset` on a seek, flush or caps change.
+The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
+stream; `reset` on a seek, flush or caps change.
 """
 from __future__ import annotations
 
