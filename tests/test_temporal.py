@@ -226,3 +226,19 @@ def test_element_temporal_matches_core_and_restarts_on_flush(gst, prof, views):
         tr.process(v, s, noise=validity.default_noise())
         np.testing.assert_array_equal(r.samples[i][3][0], v)
         np.testing.assert_array_equal(r.samples[i][3][1], s)
+
+
+def test_element_temporal_with_method_auto_runs(gst, prof, views):
+    from conftest import hdr_buffer, run_appsrc
+    sec = gst.SECOND
+    rng = np.random.default_rng(8)
+    frames = [frame(prof, crop(views[0]), rng) for _ in range(3)]
+    bufs = [hdr_buffer(v, s, pts=i * sec // 30, duration=sec // 30) for i, (v, s) in enumerate(frames)]
+    r = run_appsrc("nrreconstruct method=auto temporal=on post-stats=true",
+                   f"other/x-nrhdr,width={W},height={H},framerate=30/1", bufs, lockstep=True)
+    assert r.error is None, r.error_text
+    st = r.element_messages("nrhdr-frame-stats")
+    assert len(st) == 3 and st[0].get_value("fresh") == 1.0 and st[2].get_value("fresh") < 0.3
+    for _c, _p, _d, (v, s) in r.samples:
+        miss = (s & REASON_MASK) != VALID
+        assert np.isfinite(v).all() and np.all(s[miss] & RECONSTRUCTED)
