@@ -117,7 +117,9 @@ def test_moving_object_leaves_no_ghost(prof, views):
 
     fluxes = [with_square(i) for i in range(6)]
     alone, _ = run(prof, fluxes, None)
-    temp, _ = run(prof, fluxes, TemporalReconstructor())
+    temp, reps = run(prof, fluxes, TemporalReconstructor())
+    assert not any(r["cut"] for r in reps) and reps[-1]["motion"] == (0.0, 0.0)
+    assert reps[-1]["reused"] > 0.5 and reps[-1]["fresh"] + reps[-1]["no_prior"] > 0   # the square's blocks
     for i in range(1, 6):
         old = np.zeros((H, W), bool)
         old[26:54, 6 + 12 * (i - 1):34 + 12 * (i - 1)] = True   # the square's last position and its rim
