@@ -1,0 +1,809 @@
+"""Temporal reconstruction: the previous output, aligned by a fast motion estimate, as a prior for the
+missing pixels and as extra measurements for the measured and noisy ones, where a per-block consistency
+check against the noise model trusts it (docs/FSE.md "Temporal reconstruction").
+
+Anchors: recursive multi-frame frequency selective reconstruction (Jonscher et al., PCS 2016) and
+consistency-checked multi-frame reconstruction for a fixed non-regular mask (arXiv 2203.09200); the
+recursive, variance-weighted averaging is a motion-compensated recursive (Kalman-type) temporal filter.
+
+Per frame (`TemporalReconstructor.process`):
+
+1. known mask and bounds (`validity.prepare`);
+2. global motion (`global_motion`): the best match within a pixel of still, else phase correlation of
+   4 x 4 cell means of log2 values (the frame's measured pixels against the previous output), its peaks
+   refined by 2-D matching at full resolution, sub-pixel by parabolic fits;
+3. per block (``block`` x ``block``) and candidate motion (none, the global motion rounded and as it is)
+   the consistency of the frame's measured pixels with the aligned previous output: z = (m - p)^2 /
+   (var_m + var_p + (tol p)^2 + alignment), var_m the measurement's noise (Eq. 4-7 as
+   `validity.measurement_variance`), var_p the previous output's variance; the block is trusted when the
+   mean of min(z, Z_OUT) stays below ``z_mean`` and few pixels are outliers (z > Z_OUT); most blocks
+   untrusted = a scene cut: the state is reset and the frame is reconstructed alone
+   (`reconstruction.reconstruct_frame`, the same bits);
+4. in trusted blocks measured pixels are averaged with their aligned past by inverse variance (per pixel:
+   an outlier restarts its pixel); in still blocks whose missing pixels' past already averages
+   ``reuse_frames`` frames the past is taken as known (the block costs nothing); the other missing pixels
+   are reconstructed from the averaged values (the blocks as one mosaic when they are few) and fused with
+   their past;
+5. untrusted blocks (motion the candidates do not explain, occlusion, a block with an outlier) are
+   reconstructed alone.
+
+The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
+stream; `reset` on a seek, flush or caps change.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from .scratch import planes
+from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
+
+# block decisions
+FRESH = 0      # no trusted past: reconstructed alone
+REFRESH = 1    # trusted: measured pixels averaged, missing ones reconstructed and fused with their past
+REUSE = 2      # trusted and the past of every missing pixel settled: missing pixels keep their past
+NO_PRIOR = 3   # trusted measurements but an outlier: measured pixels averaged per pixel, missing ones alone
+NO_EVIDENCE = 4  # too few measured pixels to judge: reconstructed alone, not counted for a cut
+
+SNAP = 0.1            # pixels: a global shift this close to an integer is taken as that integer
+Z_OUT = 16.0          # z beyond this (4 sigma) is an outlier: its pixel restarts, its block keeps no prior
+DEFAULTS = dict(
+    block=16,          # decision block (pixels)
+    search=32,         # global motion search range (pixels)
+    z_mean=2.5,        # a block is consistent when its mean clipped z is below this
+    outliers=0.02,     # ... and at most this share (at least 1 pixel) of its measured pixels are outliers
+    tol=0.02,          # relative model tolerance of the aligned past (interpolation, slow light changes)
+    shift_error=0.25,  # pixels: position error of the global motion (x the squared gradient: a variance)
+    cut_share=0.5,     # more untrusted blocks than this share (of blocks with evidence) = a scene cut
+    max_frames=16,     # the recursive average of a measured pixel weighs its past at most this many frames
+    reuse_frames=4,    # missing pixels whose past averages this many reconstructions are reused as known
+    rec_noise=1.0,     # variance of a fresh reconstruction in units of a regular pixel's noise at its level
+    rec_tol=0.03,      # ... plus (rec_tol x level)^2: the model error averaging does not remove
+    rec_texture=0.5,   # ... plus rec_texture x (half the 3 x 3 range)^2: larger at edges and in texture
+    min_evidence=8,    # measured pixels a block needs to be judged
+)
+
+
+class TemporalReconstructor:
+    """`reconstruction.reconstruct_frame` with a temporal prior (module docstring; docs/FSE.md "Temporal
+    reconstruction").
+
+    method, preset, use_bounds, fusion: as `reconstruct_frame` (method may be a callable
+    f(missing_share) -> (method, preset), as `nrreconstruct method=auto` passes); options: DEFAULTS."""
+
+    def __init__(self, method="fse", preset="fast", use_bounds=True, fusion="auto", **options):
+        from .reconstruction import FUSIONS, METHODS
+        if not callable(method) and method not in METHODS:
+            raise ValueError(f"temporal reconstruction: method must be one of {METHODS}, got {method!r}")
+        if fusion not in FUSIONS:
+            raise ValueError(f"temporal reconstruction: fusion must be one of {FUSIONS}, got {fusion!r}")
+        bad = sorted(set(options) - set(DEFAULTS))
+        if bad:
+            raise TypeError(f"temporal reconstruction: unknown option {bad[0]!r}; known: {sorted(DEFAULTS)}")
+        o = dict(DEFAULTS, **options)
+        for k in ("block", "search", "max_frames", "reuse_frames", "min_evidence"):
+            if not (isinstance(o[k], (int, np.integer)) and not isinstance(o[k], bool) and o[k] >= 1):
+                raise ValueError(f"temporal reconstruction: option {k} must be an integer >= 1, got {o[k]!r}")
+        for k in ("z_mean", "outliers", "tol", "shift_error", "cut_share", "rec_noise", "rec_tol", "rec_texture"):
+            if not (isinstance(o[k], (int, float)) and math.isfinite(o[k]) and o[k] >= 0):
+                raise ValueError(f"temporal reconstruction: option {k} must be a finite number >= 0, got {o[k]!r}")
+        self.method, self.preset, self.use_bounds, self.fusion = method, preset, bool(use_bounds), fusion
+        self.options = o
+        self._prev = self._var = self._cnt = None
+        self.frames = 0          # frames since the last reset
+
+    def reset(self) -> None:
+        """Forget the past: the next frame is reconstructed alone."""
+        self._prev = self._var = self._cnt = None
+        self.frames = 0
+
+    # ---- one frame ------------------------------------------------------------------------------------
+    def process(self, values: np.ndarray, state: np.ndarray, noise=None) -> dict:
+        """Reconstruct the frame in place (float32 values, uint8 states, C-contiguous, as
+        `reconstruct_frame`) with the temporal prior; measured pixels of trusted blocks are replaced by
+        their recursive average. `noise`: the noise model (gain, read_noise, nd: a CameraProfile; None =
+        the default sensor's). Returns the work done: "missing" (pixels filled, as `reconstruct_frame`
+        returns), "blocks", the shares "fresh", "refreshed", "reused", "no_prior", "no_evidence" of the
+        blocks, "motion" (dy, dx): the motion most trusted blocks took (the global estimate where none),
+        "cut" and "reset" (True when the frame was reconstructed alone)."""
+        from . import reconstruction, validity
+        o = self.options
+        if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
+                and values.flags.c_contiguous and values.flags.writeable):
+            raise ValueError("temporal reconstruction: values must be a writeable C-contiguous float32 (H, W) "
+                             "array")
+        if not (isinstance(state, np.ndarray) and state.dtype == np.uint8 and state.shape == values.shape
+                and state.flags.c_contiguous and state.flags.writeable):
+            raise ValueError(f"temporal reconstruction: state must be a writeable C-contiguous uint8 array of "
+                             f"shape {values.shape}")
+        if noise is None:
+            noise = validity.default_noise()
+        h, w = values.shape
+        bs = int(o["block"])
+        nby, nbx = (h + bs - 1) // bs, (w + bs - 1) // bs
+        report = {"missing": 0, "blocks": nby * nbx, "fresh": 1.0, "refreshed": 0.0, "reused": 0.0,
+                  "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True}
+        if self._prev is not None and self._prev.shape != values.shape:
+            self.reset()
+        known, lower, upper, work, pv, pvar, pc, dec, cand = _planes(h, w, nby, nbx)
+        n_miss, n_unknown, known, lower, upper = validity._prepare(
+            values, state, known, lower if self.use_bounds else None, upper if self.use_bounds else None,
+            self.use_bounds)
+        method, preset = self.method, self.preset
+        if callable(method):
+            method, preset = method(n_miss / float(h * w)) if n_miss else ("preview", preset)
+        g = np.float32(noise.gain)
+        floor = np.float32(float(noise.gain) ** 2 * float(noise.read_noise) ** 2 + 1.0 / 12.0)
+        nd = np.float32(noise.nd)
+        if self._prev is None or n_miss != n_unknown or reconstruction._nonfinite_known(values, known):
+            # first frame (or a frame the general path must judge: non-finite measurements, pixels filled
+            # upstream)
+            return self._alone(values, state, noise, method, preset, report, g, floor, nd)
+        # 2. global motion
+        dy, dx = global_motion(values, state, self._prev, int(o["search"]))
+        # 3. per-block consistency
+        lo_a = lower if lower is not None else _EMPTY
+        cy, cx, cmis = _candidates(dy, dx, float(o["shift_error"]))
+        n_kept = _judge_blocks(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
+                      g, floor, nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]),
+                      np.float32(Z_OUT), int(o["min_evidence"]), np.float32(o["rec_noise"]),
+                      np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]), cmis, np.float32(o["rec_texture"]))
+        counts = np.bincount(dec.ravel(), minlength=5)
+        trusted = (dec == REFRESH) | (dec == REUSE) | (dec == NO_PRIOR)
+        # the dominant motion: the candidate most trusted blocks took (the global estimate when none did)
+        top = int(np.argmax(np.bincount(cand[trusted], minlength=cy.size))) if trusted.any() else -1
+        report["motion"] = (float(cy[top]), float(cx[top])) if top >= 0 else (float(dy), float(dx))
+        judged = dec.size - counts[NO_EVIDENCE] - n_kept      # blocks with measurements to judge by
+        untrusted = counts[FRESH]
+        if judged and untrusted > float(o["cut_share"]) * judged:
+            report["cut"] = True
+            return self._alone(values, state, noise, method, preset, report, g, floor, nd)
+        # 4. measured pixels averaged, settled missing pixels reused, the rest marked for the reconstruction
+        up_a = upper if upper is not None else _EMPTY
+        left = _prepare_work(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
+                      known, lo_a, up_a, lower is not None, work, pv, pvar, pc, g, floor, nd, np.float32(o["tol"]),
+                      np.float32(Z_OUT), np.float32(o["max_frames"]), cmis)
+        if left:
+            self._reconstruct_left(work, known, lower, upper, state, noise, method, preset)
+        # 5. fused with the past, written back, kept as the next frame's past
+        n = _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, lo_a, up_a,
+                    lower is not None,
+                    g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]),
+                    floor, np.float32(o["rec_texture"]), nd, np.float32(Z_OUT))
+        self.frames += 1
+        tot = float(dec.size)
+        report.update(missing=int(n), reset=False, fresh=counts[FRESH] / tot, refreshed=counts[REFRESH] / tot,
+                      reused=counts[REUSE] / tot, no_prior=counts[NO_PRIOR] / tot,
+                      no_evidence=counts[NO_EVIDENCE] / tot)
+        return report
+
+    def _reconstruct_left(self, work, known, lower, upper, state, noise, method, preset) -> None:
+        """`reconstruction.reconstruct` of the pixels left unknown, in place in `work`: on the whole frame,
+        or, when they lie in at most MOSAIC_SHARE of the blocks, on a mosaic of those blocks, each with
+        MARGIN pixels of context (cost follows change: the reconstruction's per-frame passes run over those
+        blocks only)."""
+        from . import reconstruction
+        h, w = work.shape
+        bs = int(self.options["block"])
+        counts = _tile_counts(known, bs)
+        blocks = np.argwhere(counts > 0)
+        side = bs + 2 * MARGIN
+        if len(blocks) > MOSAIC_SHARE * counts.size or h < side or w < side:
+            noisy = ((state & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~known
+            noisy = noisy if noisy.any() else None
+            reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
+                                       out=work, noisy=noisy, noise=noise if noisy is not None else None,
+                                       fusion=self.fusion)
+            return
+        # each block's context window (side x side, moved inside the frame), stacked into one column
+        ys = np.clip(blocks[:, 0] * bs - MARGIN, 0, h - side)
+        xs = np.clip(blocks[:, 1] * bs - MARGIN, 0, w - side)
+        rows = (ys[:, None] + np.arange(side)[None, :])[:, :, None]
+        cols = (xs[:, None] + np.arange(side)[None, :])[:, None, :]
+        n = len(blocks)
+
+        def mosaic(a):
+            return None if a is None else np.ascontiguousarray(a[rows, cols].reshape(n * side, side))
+
+        sub, k, st = mosaic(work), mosaic(known), mosaic(state)
+        lo, up = mosaic(lower), mosaic(upper)
+        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+        noisy = noisy if noisy.any() else None
+        reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
+                                   noisy=noisy, noise=noise if noisy is not None else None, fusion=self.fusion)
+        sub = sub.reshape(n, side, side)
+        for i, (by, bx) in enumerate(blocks):
+            y0, x0 = by * bs, bx * bs
+            y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
+            oy, ox = y0 - ys[i], x0 - xs[i]
+            work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
+
+    def _alone(self, values, state, noise, method, preset, report, g, floor, nd) -> dict:
+        """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it."""
+        from . import reconstruction
+        report["missing"] = int(reconstruction.reconstruct_frame(
+            values, state, method=method, preset=preset, use_bounds=self.use_bounds, noise=noise,
+            fusion=self.fusion))
+        if self._prev is None or self._prev.shape != values.shape:
+            self._prev = np.empty_like(values)
+            self._var = np.empty_like(values)
+            self._cnt = np.empty(values.shape, np.uint8)
+        o = self.options
+        _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
+                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]))
+        self.frames = 1
+        return report
+
+
+_EMPTY = np.full((1, 1), np.nan, np.float32)
+MARGIN = 16          # pixels of context around a block reconstructed in a mosaic (FSE's support: 16 or 32)
+MOSAIC_SHARE = 0.15  # at most this share of the blocks left to reconstruct: a mosaic of them, else the frame
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _tile_counts(known, tile):
+    """Pixels not known per tile x tile tile."""
+    h, w = known.shape
+    nty = (h + tile - 1) // tile
+    ntx = (w + tile - 1) // tile
+    out = np.zeros((nty, ntx), np.int64)
+    for ty in prange(nty):
+        for y in range(ty * tile, min((ty + 1) * tile, h)):
+            for x in range(w):
+                out[ty, x // tile] += 0 if known[y, x] else 1
+    return out
+
+
+def _planes(h, w, nby, nbx):
+    """The calling thread's working planes: known, lower, upper, work, aligned past, its variance and its
+    count, block decisions and candidates."""
+    return planes("temporal.work", (h, w, nby, nbx), lambda: (
+        np.empty((h, w), np.bool_), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+        np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+        np.empty((h, w), np.uint8), np.empty((nby, nbx), np.uint8), np.empty((nby, nbx), np.uint8)))
+
+
+# ---- noise model --------------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True, inline="always")
+def _meas_var(level, attenuated, g, floor, nd):
+    """Noise variance of a measurement at `level` (ND-scaled DN), Eq. 4-7 (`validity.measurement_variance`)."""
+    m = level if level > 0 else np.float32(0.0)
+    if attenuated:
+        return nd * g * m + nd * nd * floor
+    return g * m + floor
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rec_var(level, g, floor, rec_noise, rec_tol):
+    """Variance assigned to a fresh reconstruction at `level`."""
+    m = level if level > 0 else np.float32(0.0)
+    return rec_noise * (g * m + floor) + (rec_tol * m) * (rec_tol * m)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _tex_var(img, y, x, h, w, rec_tex):
+    """rec_tex x (half the range of the 3 x 3 around (y, x))^2: a reconstruction's uncertainty grows with
+    the local contrast (edges, texture)."""
+    lo = img[y, x]
+    hi = lo
+    for yy in range(max(y - 1, 0), min(y + 2, h)):
+        for xx in range(max(x - 1, 0), min(x + 2, w)):
+            a = img[yy, xx]
+            lo = a if a < lo else lo
+            hi = a if a > hi else hi
+    r = np.float32(0.5) * (hi - lo)
+    return rec_tex * r * r
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex):
+    """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
+    the others with a fresh reconstruction's, each the average of 1 frame."""
+    h, w = values.shape
+    for y in prange(h):
+        for x in range(w):
+            v = values[y, x]
+            cnt[y, x] = 1
+            st = state[y, x]
+            prev[y, x] = v
+            if (st & REASON_MASK) == VALID:
+                var[y, x] = _meas_var(v, (st & ATTENUATED) != 0, g, floor, nd)
+            else:
+                var[y, x] = _rec_var(v, g, floor, rec_noise, rec_tol) + _tex_var(values, y, x, h, w, rec_tex)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _count_at(cnt, y, x, sy, sx, h, w):
+    """Frames averaged in the past at the pixel nearest to (y - sy, x - sx) (0 outside the frame)."""
+    yy = int(math.floor(np.float32(y) - sy + np.float32(0.5)))
+    xx = int(math.floor(np.float32(x) - sx + np.float32(0.5)))
+    if yy < 0 or xx < 0 or yy >= h or xx >= w:
+        return 0
+    return np.int32(cnt[yy, xx])
+
+
+# ---- global motion: phase correlation and matching of log2 values -------------------------------------------------
+
+@njit(cache=True, nogil=True, inline="always")
+def _log2f(bits):
+    """log2 of a float32 from its bits (exponent + linear mantissa; within 0.09 stops), values below 1 as 1."""
+    one = np.int32(0x3F800000)
+    b = bits if bits > one else one
+    return np.float32(b - one) * np.float32(1.0 / 8388608.0)
+
+
+CELL = 4              # pixels: the phase correlation works on CELL x CELL means of log2 values
+PEAKS = 3             # its strongest peaks are refined (and no motion), the best match is the estimate
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _cell_means(values, state, prev, cell, cur, past):
+    """cur = mean log2 of the measured (VALID) pixels of each cell (NaN where none), past = mean log2 of
+    all the previous output's pixels of the cell."""
+    hc, wc = cur.shape
+    vi = values.view(np.int32)
+    pi = prev.view(np.int32)
+    for cy in prange(hc):
+        for cx in range(wc):
+            sc = np.float32(0.0)
+            nc = np.float32(0.0)
+            sp = np.float32(0.0)
+            for y in range(cy * cell, cy * cell + cell):
+                for x in range(cx * cell, cx * cell + cell):
+                    kf = np.float32(1.0) if (state[y, x] & REASON_MASK) == VALID else np.float32(0.0)
+                    sc += kf * _log2f(vi[y, x])
+                    nc += kf
+                    sp += _log2f(pi[y, x])
+            cur[cy, cx] = sc / nc if nc > 0 else np.float32(np.nan)
+            past[cy, cx] = sp / np.float32(cell * cell)
+
+
+def _peak_fit(r, i, j):
+    """Sub-cell offset of the peak r[i, j] along each axis (parabola through the neighbours, cyclic)."""
+    def fit(a, b, c):
+        den = a - 2.0 * b + c
+        return float(min(max(0.5 * (a - c) / den, -0.5), 0.5)) if den < 0 else 0.0
+    h, w = r.shape
+    return (fit(r[(i - 1) % h, j], r[i, j], r[(i + 1) % h, j]),
+            fit(r[i, (j - 1) % w], r[i, j], r[i, (j + 1) % w]))
+
+
+def global_motion(values, state, prev, search: int = 32):
+    """(dy, dx) of the frame against the previous output `prev`: content at (y, x) of the frame was at
+    (y - dy, x - dx). Phase correlation (Kuglin & Hines 1975) of CELL x CELL means of log2 values (the
+    frame's measured pixels, the past's all pixels; Hann window) within `search` pixels: its PEAKS strongest
+    peaks and no motion, each refined at full resolution (`refine_motion`); the best match wins. When the
+    best match within a pixel of no motion is inside that pixel, that is the estimate (no search)."""
+    h, w = values.shape
+    hc, wc = h // CELL, w // CELL
+    still = refine_motion(values, state, prev, 0.0, 0.0, with_cost=True, rad=1)
+    if (abs(still[0]) < 1 and abs(still[1]) < 1) or hc < 4 or wc < 4:
+        return still[0], still[1]          # less than a pixel from still: no search needed
+    cur, past = planes("temporal.cells", (hc, wc), lambda: (np.empty((hc, wc), np.float32),
+                                                           np.empty((hc, wc), np.float32)))
+    _cell_means(values, state, prev, CELL, cur, past)
+    ok = np.isfinite(cur)
+    if ok.sum() < 16:
+        return still[0], still[1]
+    a = np.where(ok, cur, np.float32(cur[ok].mean())) - np.float32(cur[ok].mean())
+    b = past - past.mean()
+    win = np.outer(np.hanning(hc), np.hanning(wc)).astype(np.float32)
+    fa = np.fft.rfft2(a * win)
+    fb = np.fft.rfft2(b * win)
+    x = fa * np.conj(fb)
+    x /= np.maximum(np.abs(x), 1e-12)
+    r = np.fft.irfft2(x, s=(hc, wc))
+    lim_y = min(int(search) // CELL + 1, hc // 2)
+    lim_x = min(int(search) // CELL + 1, wc // 2)
+    sy = np.r_[0:lim_y + 1, hc - lim_y:hc]
+    sx = np.r_[0:lim_x + 1, wc - lim_x:wc]
+    sub = r[np.ix_(sy, sx)].copy()
+    best = None
+    for _ in range(PEAKS):             # the strongest peaks (and no motion), each refined; the best match wins
+        ii, jj = np.unravel_index(int(np.argmax(sub)), sub.shape)
+        i, j = int(sy[ii]), int(sx[jj])
+        fy, fx = _peak_fit(r, i, j)
+        sub[max(ii - 1, 0):ii + 2, max(jj - 1, 0):jj + 2] = -np.inf
+        dy = ((i + hc // 2) % hc - hc // 2 + fy) * CELL
+        dx = ((j + wc // 2) % wc - wc // 2 + fx) * CELL
+        cand = refine_motion(values, state, prev, dy, dx, with_cost=True)
+        best = cand if best is None or cand[2] < best[2] else best
+    best = still if still[2] < best[2] else best
+    return best[0], best[1]
+
+
+REFINE_RADIUS = CELL // 2 + 1   # pixels: the refinement searches this far around the cells' estimate ...
+REFINE_SAMPLES = 10000          # ... on about this many pixels (every n-th row and column)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _match_costs(values, state, prev, oy, ox, rad, step, cost):
+    """cost[i, j] = mean min(|log2 frame - log2 past|, 1) over the measured pixels of every step-th row
+    and column, the past shifted by (oy + i - rad, ox + j - rad) (pixels outside it not counted)."""
+    h, w = values.shape
+    vi = values.view(np.int32)
+    pi = prev.view(np.int32)
+    n = 2 * rad + 1
+    for k in prange(n * n):
+        sy = oy + k // n - rad
+        sx = ox + k % n - rad
+        s = 0.0
+        c = 0
+        for y in range(max(sy, 0), min(h, h + sy), step):
+            for x in range(max(sx, 0), min(w, w + sx), step):
+                if (state[y, x] & REASON_MASK) != VALID:
+                    continue
+                d = abs(_log2f(vi[y, x]) - _log2f(pi[y - sy, x - sx]))
+                s += d if d < 1.0 else 1.0
+                c += 1
+        cost[k // n, k % n] = s / c if c > 16 else np.inf
+
+
+def refine_motion(values, state, prev, dy: float, dx: float, with_cost: bool = False, rad: int = REFINE_RADIUS):
+    """(dy, dx) refined by 2-D matching of the frame's measured pixels against the past's log2 values
+    within `rad` of the rounded estimate (`_match_costs`, about REFINE_SAMPLES pixels): the best
+    whole-pixel shift and a parabolic sub-pixel fit along each axis, snapped to an integer within SNAP;
+    `with_cost`: and the match cost of that whole-pixel shift."""
+    n = 2 * rad + 1
+    cost = planes("temporal.match", n, lambda: np.empty((n, n), np.float64))
+    oy, ox = int(round(dy)), int(round(dx))
+    step = max(2, int(math.sqrt(values.size / REFINE_SAMPLES)))
+    _match_costs(values, state, prev, oy, ox, rad, step, cost)
+    if not np.isfinite(cost).any():
+        return (dy, dx, np.inf) if with_cost else (dy, dx)
+    i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+
+    def fit(a, b, c):
+        den = a - 2.0 * b + c
+        return float(min(max(0.5 * (a - c) / den, -0.5), 0.5)) if den > 0 and np.isfinite(a + c) else 0.0
+
+    fy = fit(cost[i - 1, j], cost[i, j], cost[i + 1, j]) if 0 < i < n - 1 else 0.0
+    fx = fit(cost[i, j - 1], cost[i, j], cost[i, j + 1]) if 0 < j < n - 1 else 0.0
+    out = (_snap(oy + i - rad + fy), _snap(ox + j - rad + fx))
+    return out + (float(cost[i, j]),) if with_cost else out
+
+
+def _snap(d: float) -> float:
+    """A shift within SNAP of an integer is that integer (no interpolation blur for a still camera)."""
+    r = round(d)
+    return float(r) if abs(d - r) < SNAP else float(d)
+
+
+def _candidates(dy: float, dx: float, err: float):
+    """The motions a block may take, in the order of preference (float32 arrays cy, cx): none, the global
+    motion rounded to whole pixels (no interpolation), the global motion; and the squared position error
+    each is given (cmis): 0 for none (a still block is exact), err^2 + its distance to the global motion
+    squared for the others."""
+    out = [(0.0, 0.0)]
+    for c in ((float(round(dy)), float(round(dx))), (dy, dx)):
+        if c not in out:
+            out.append(c)
+    a = np.array(out, np.float32)
+    mis = np.array([0.0] + [err * err + (y - dy) ** 2 + (x - dx) ** 2 for y, x in out[1:]], np.float32)
+    return np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]), mis
+
+
+# ---- the aligned past ----------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True, inline="always")
+def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
+    """(value, variance, alignment variance) of the past at (y - sy, x - sx), bilinear; variance inf
+    outside the frame. The alignment variance: mis2 (the candidate's position error squared, pixels^2) x
+    the squared local gradient, plus at a sub-pixel position the interpolation's: (local range / 2)^2 x
+    4 f (1 - f)."""
+    fy = np.float32(y) - sy
+    fx = np.float32(x) - sx
+    if fy < 0 or fx < 0 or fy > h - 1 or fx > w - 1:
+        return np.float32(0.0), np.float32(np.inf), np.float32(0.0)
+    y0 = int(fy)
+    x0 = int(fx)
+    ty = fy - np.float32(y0)
+    tx = fx - np.float32(x0)
+    y1 = min(y0 + 1, h - 1)
+    x1 = min(x0 + 1, w - 1)
+    a = prev[y0, x0]
+    extra = np.float32(0.0)
+    if mis2 > 0:
+        gx = prev[y0, x1] - prev[y0, max(x0 - 1, 0)]
+        gy = prev[y1, x0] - prev[max(y0 - 1, 0), x0]
+        extra = mis2 * np.float32(0.25) * (gx * gx + gy * gy)
+    if ty == 0 and tx == 0:
+        return a, var[y0, x0], extra
+    b, c, d = prev[y0, x1], prev[y1, x0], prev[y1, x1]
+    wa = (1 - ty) * (1 - tx)
+    wb = (1 - ty) * tx
+    wc = ty * (1 - tx)
+    wd = ty * tx
+    p = wa * a + wb * b + wc * c + wd * d
+    vp = wa * var[y0, x0] + wb * var[y0, x1] + wc * var[y1, x0] + wd * var[y1, x1]
+    lo = min(min(a, b), min(c, d))
+    hi = max(max(a, b), max(c, d))
+    s = np.float32(4.0) * max(ty * (1 - ty), tx * (1 - tx))
+    half = np.float32(0.5) * (hi - lo)
+    return p, vp, half * half * s + extra
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor, nd, z_mean, out_share, tol,
+                  z_out, min_ev, rec_noise, rec_tol, reuse_frames, cmis, rec_tex):
+    """Per block: the candidate motion (`_candidates`: (cy[c], cx[c])) that explains the measured pixels
+    (VALID and NOISY) best, and the decision (FRESH, REFRESH, REUSE, NO_PRIOR, NO_EVIDENCE)."""
+    h, w = values.shape
+    nby, nbx = dec.shape
+    nc = cy.shape[0]
+    n_kept = 0
+    for by in prange(nby):
+        for bx in range(nbx):
+            y0 = by * bs
+            x0 = bx * bs
+            y1 = min(y0 + bs, h)
+            x1 = min(x0 + bs, w)
+            best_m = np.float32(np.inf)
+            best_r = np.float32(np.inf)
+            best_o = 0
+            best_n = 0
+            best_c = 0
+            for c in range(nc):
+                sy = cy[c]
+                sx = cx[c]
+                zr = np.float32(0.0)
+                zs = np.float32(0.0)
+                n = 0
+                no = 0
+                if c == 0:
+                    # still: the past at the same pixel, branch-free (the mask is random)
+                    zr, n, no = _still_fit(values, state, prev, var, y0, y1, x0, x1, g, floor, nd, tol, z_out)
+                    zs = zr
+                for y in range(y0, y1 if c > 0 else y0):
+                    for x in range(x0, x1):
+                        st = state[y, x]
+                        r = st & REASON_MASK
+                        if r != VALID and r != NOISY:
+                            continue
+                        if c == 0:
+                            p = prev[y, x]
+                            vp = var[y, x]
+                            va = np.float32(0.0)
+                        else:
+                            p, vp, va = _aligned(prev, var, y, x, sy, sx, h, w, cmis[c])
+                            if not vp < np.inf:
+                                continue
+                        vm = _meas_var(p, (st & ATTENUATED) != 0 or r == NOISY, g, floor, nd)
+                        d = values[y, x] - p
+                        t = tol * p
+                        base = vm + vp + t * t
+                        zr += min(d * d / base, z_out)         # the fit, for the choice of the candidate
+                        z = d * d / (base + va)                # with the alignment's uncertainty, for trust
+                        zs += min(z, z_out)
+                        n += 1
+                        no += 1 if z > z_out else 0
+                mr = zr / n if n > 0 else np.float32(np.inf)
+                m = zs / n if n > 0 else np.float32(np.inf)
+                if c == 0 or mr < best_r * np.float32(0.9):     # a later candidate must fit clearly better
+                    best_r = mr
+                    best_m = m
+                    best_o = no
+                    best_n = n
+                    best_c = c
+                if mr < np.float32(0.6) * z_mean and no == 0:
+                    break          # explained well: the later candidates are not tried
+            cand[by, bx] = best_c
+            kept = False
+            if best_n < min_ev:
+                # too few measurements (a saturated or black area): still, when the past keeps every
+                # bound of the block (clipped pixels at or above, dark ones at or below), it is trusted
+                if _bounds_kept(values, state, prev, y0, y1, x0, x1, tol):
+                    cand[by, bx] = 0
+                    best_c = 0
+                    kept = True
+                    n_kept += 1
+                else:
+                    dec[by, bx] = NO_EVIDENCE
+                    continue
+            if (not kept) and (best_m >= z_mean or best_o > max(np.float32(1.0), out_share * best_n)):
+                dec[by, bx] = FRESH
+            elif (not kept) and best_o > 0:
+                dec[by, bx] = NO_PRIOR
+            else:
+                # reusable when the past of every missing pixel averages `reuse_frames` reconstructions (or
+                # noisy measurements)
+                # (only where nothing moved: a past moved by a whole-pixel estimate of a motion that is
+                # not would be copied with its position error, frame after frame)
+                unsettled = 0
+                for y in range(y0, y1 if best_c == 0 else y0):
+                    for x in range(x0, x1):      # (a still block: the same pixel; branch-free)
+                        unsettled += np.int64(((state[y, x] & REASON_MASK) != VALID) & (cnt[y, x] < reuse_frames))
+                dec[by, bx] = REUSE if (best_c == 0) & (unsettled == 0) else REFRESH
+    return n_kept
+
+
+@njit(cache=True, nogil=True)
+def _still_fit(values, state, prev, var, y0, y1, x0, x1, g, floor, nd, tol, z_out):
+    """(sum of min(z, z_out), count, outliers) of the block's measured pixels against the past at the
+    same pixels (`_judge_blocks`' still candidate), branch-free."""
+    zs = np.float32(0.0)
+    n = 0
+    no = 0
+    zero = np.float32(0.0)
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            st = state[y, x]
+            r = st & REASON_MASK
+            m = (r == VALID) | (r == NOISY)
+            p = prev[y, x]
+            att = ((st & ATTENUATED) != 0) | (r == NOISY)
+            lv = p if p > zero else zero
+            vm = (nd * g * lv + nd * nd * floor) if att else (g * lv + floor)
+            d = values[y, x] - p
+            t = tol * p
+            z = d * d / (vm + var[y, x] + t * t)
+            zc = z if z < z_out else z_out
+            zs += zc if m else zero
+            n += np.int64(m)
+            no += np.int64(m & (z > z_out))
+    return zs, n, no
+
+
+@njit(cache=True, nogil=True)
+def _bounds_kept(values, state, prev, y0, y1, x0, x1, tol):
+    """True when every pixel of the block is measured, CLIPPED with its past at or above its value or DARK
+    with its past at or below it (within `tol`)."""
+    lo = np.float32(1.0) - tol
+    hi = np.float32(1.0) + tol
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            r = state[y, x] & REASON_MASK
+            v = values[y, x]
+            p = prev[y, x]
+            if r == CLIPPED:
+                if not p >= v * lo:
+                    return False
+            elif r == DARK:
+                if not p <= v * hi:
+                    return False
+            elif r != VALID and r != NOISY:
+                return False
+    return True
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _prepare_work(values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, lower, upper, use_bounds, work, pv,
+                  pvar, pc, g, floor, nd, tol, z_out, max_frames, cmis):
+    """The reconstruction's input: `work` = the values with measured pixels of trusted blocks averaged with
+    their aligned past (inverse variance; an outlier restarts its pixel), missing pixels of REUSE blocks =
+    their past within their bounds and known (NOISY ones averaged with their measurement); pv / pvar =
+    the aligned past where a missing pixel is to be fused with it (pvar inf: no past) or, at measured and
+    reused pixels, the new value's variance (negative: reused); pc = the frames the past averages. Returns
+    the number of pixels left to reconstruct."""
+    h, w = values.shape
+    inf = np.float32(np.inf)
+    left = 0
+    for y in prange(h):
+        by = y // bs
+        nl = 0
+        for x in range(w):
+            nl += 0 if known[y, x] else 1      # left to reconstruct (less those marked known below)
+            d = dec[by, x // bs]
+            st = state[y, x]
+            r = st & REASON_MASK
+            v = values[y, x]
+            att = (st & ATTENUATED) != 0
+            work[y, x] = v
+            pv[y, x] = v
+            pc[y, x] = 0
+            if r == VALID:
+                pvar[y, x] = _meas_var(v, att, g, floor, nd)
+            else:
+                pvar[y, x] = inf
+            if d == FRESH or d == NO_EVIDENCE:
+                continue
+            c = cand[by, x // bs]
+            if c == 0:                          # still: the past at the same pixel
+                p = prev[y, x]
+                vp = var[y, x]
+                n_past = np.int32(cnt[y, x])
+            else:
+                p, vp, va = _aligned(prev, var, y, x, cy[c], cx[c], h, w, cmis[c])
+                if not vp < inf:
+                    continue
+                vp += va
+                n_past = _count_at(cnt, y, x, cy[c], cx[c], h, w)
+            if r == VALID or (d == REUSE and r == NOISY):
+                vm = _meas_var(p, att or r == NOISY, g, floor, nd)
+                dd = v - p
+                t = tol * p
+                if dd * dd > z_out * (vm + vp + t * t):
+                    pvar[y, x] = _meas_var(v, att, g, floor, nd)   # an outlier: the pixel restarts
+                    if r == NOISY:
+                        pvar[y, x] = inf          # reconstructed alone
+                    continue
+                vpp = vp if vp > vm / max_frames else vm / max_frames
+                a = (v * vpp + p * vm) / (vm + vpp)
+                nv = vm * vpp / (vm + vpp)
+                work[y, x] = a
+                pv[y, x] = a
+                nv = nv if nv > vm / max_frames else vm / max_frames
+                pvar[y, x] = nv if r == VALID else -nv    # negative: a reused pixel, as it is
+                pc[y, x] = n_past
+                nl -= 0 if known[y, x] else 1
+                known[y, x] = True
+            elif d == REUSE:
+                if use_bounds:
+                    lb = lower[y, x]
+                    ub = upper[y, x]
+                    p = lb if (r == CLIPPED) & (lb == lb) & (lb > p) else p
+                    p = ub if (r == DARK) & (ub == ub) & (ub < p) else p
+                work[y, x] = p
+                pv[y, x] = p
+                pvar[y, x] = -vp                  # negative: reused as it is
+                pc[y, x] = n_past - 1             # (`_finish` adds the frame)
+                nl -= 1
+                known[y, x] = True
+            elif d == REFRESH:
+                pv[y, x] = p
+                pvar[y, x] = vp
+                pc[y, x] = n_past
+        left += nl
+    return left
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, lower, upper, use_bounds, g, rec_noise, rec_tol,
+            reuse_frames, floor, rec_tex, nd, z_out):
+    """Write the frame and keep it as the past: measured pixels get their average, missing pixels the
+    reconstruction fused by inverse variance with their aligned past (where they have one and it agrees
+    within Z_OUT), within their bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
+    h, w = values.shape
+    flag = np.uint8(RECONSTRUCTED)
+    n = 0
+    for y in prange(h):
+        c = 0
+        for x in range(w):
+            st = state[y, x]
+            r = st & REASON_MASK
+            a = work[y, x]
+            n1 = np.int32(pc[y, x]) + 1
+            cnt[y, x] = np.uint8(n1 if n1 < 255 else 255)
+            if r == VALID:
+                values[y, x] = a
+                prev[y, x] = a
+                var[y, x] = pvar[y, x]
+                continue
+            vp = pvar[y, x]
+            p = pv[y, x]
+            if vp < np.float32(0.0):
+                values[y, x] = a                              # reused: the past as it is
+                state[y, x] = st | flag
+                prev[y, x] = a
+                var[y, x] = -vp
+                c += 1
+                continue
+            vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var(work, y, x, h, w, rec_tex)
+            if r == NOISY:          # fused with its own measurement: no less certain than that
+                vm = _meas_var(a, True, g, floor, nd)
+                vr = vm if vm < vr else vr
+            nv = vr
+            if vp < np.float32(np.inf):
+                dd = a - p
+                if dd * dd > z_out * (vr + vp):
+                    cnt[y, x] = 1                             # the past disagrees: the reconstruction alone
+                else:
+                    a = (a * vp + p * vr) / (vr + vp)
+                    if use_bounds:
+                        lb = lower[y, x]
+                        ub = upper[y, x]
+                        a = lb if (r == CLIPPED) & (lb == lb) & (lb > a) else a
+                        a = ub if (r == DARK) & (ub == ub) & (ub < a) else a
+                    nv = vr * vp / (vr + vp)
+                    lim = vr / reuse_frames
+                    nv = nv if nv > lim else lim
+            values[y, x] = a
+            state[y, x] = st | flag
+            prev[y, x] = a
+            var[y, x] = nv
+            c += 1
+        n += c
+    return n
