@@ -11,14 +11,16 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
   'off'
 - nrreconstruct: ``reconstruction.reconstruct_frame(values, state, method=, preset=, use_bounds=,
   noise=profile, fusion=noise_fusion)`` (known mask and bounds in one pass, reconstruction, NOISY pixels fused with the
-  profile's noise model, missing pixels written back with the RECONSTRUCTED bit)
+  profile's noise model, missing pixels written back with the RECONSTRUCTED bit); with ``temporal=on``
+  ``temporal.TemporalReconstructor(method=, preset=, use_bounds=, fusion=).process(values, state, profile)``,
+  one instance per stream, passed to `process_frame` (it holds the past frames)
 - nrexrsink:     ``io.write_exr(path, values, state)``
 - nrtonemap (normalise=caps/fixed): ``tonemap.log_tonemap(values, white, exposure_stops=, contrast=)``
   with white = the profile's white (the caps' field) unless given.
 
 The settings' vocabularies are the stages' own (`validity.MODES`, `validity.DARK_POLICIES`, `crosstalk.MODES`,
 `crosstalk.LUT_FORMS`, `reconstruction.METHODS`, `reconstruction.FUSIONS`, `fse.FSE_PRESETS`,
-`tonemap.TRANSFERS`). `warmup` is the one entry point that compiles the chain's numba kernels (`nrhdr warmup`,
+`tonemap.TRANSFERS`, TEMPORAL_MODES). `warmup` is the one entry point that compiles the chain's numba kernels (`nrhdr warmup`,
 the elements' start, `nrhdr batch`).
 """
 from __future__ import annotations
@@ -40,6 +42,7 @@ from .validity import MODES as VALIDITY_MODES
 PRESETS = tuple(FSE_PRESETS)
 TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
 STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
+TEMPORAL_MODES = ("off", "on")           # nrreconstruct temporal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +57,7 @@ class ChainSettings:
     preset: str = "fast"             # nrreconstruct preset
     use_bounds: bool = True          # nrreconstruct use-bounds
     noise_fusion: str = "auto"       # nrreconstruct noise-fusion (NOISY pixels: auto, accurate or fast)
+    temporal: str = "off"            # nrreconstruct temporal (on: `process_frame` needs a TemporalReconstructor)
     white: float | None = None       # nrtonemap white (None = the profile's white, as in the caps)
     exposure: float = 0.0            # nrtonemap exposure (stops)
     contrast: float = 1000.0         # nrtonemap contrast (= tonemap.DEFAULT_CONTRAST)
@@ -61,7 +65,7 @@ class ChainSettings:
     def __post_init__(self):
         for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES),
                               ("crosstalk", CROSSTALK_MODES), ("crosstalk_lut", LUT_FORMS), ("method", METHODS),
-                              ("preset", PRESETS), ("noise_fusion", NOISE_FUSIONS)):
+                              ("preset", PRESETS), ("noise_fusion", NOISE_FUSIONS), ("temporal", TEMPORAL_MODES)):
             v = getattr(self, name)
             if v not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {v!r}")
@@ -76,13 +80,20 @@ class ChainSettings:
         return dataclasses.asdict(self)
 
 
-def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSettings(), crosstalk_profile=None):
+def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSettings(), crosstalk_profile=None,
+                  temporal=None):
     """One raw frame (uint16 (H, W)) through validity, crosstalk and reconstruction, as the elements do it.
     `crosstalk_profile`: the profile whose calibration nrcrosstalk applies (its `profile` property);
-    None = `profile` (nrcrosstalk reads the one nrvalidity names in the caps). Returns (values float32,
-    state uint8), what nrexrsink writes."""
+    None = `profile` (nrcrosstalk reads the one nrvalidity names in the caps). `temporal`: a
+    `temporal.TemporalReconstructor` (`temporal_for(settings)`) that reconstructs instead of
+    `reconstruct_frame`, with the frames it was given before as its past (required with
+    settings.temporal "on"; frames in stream order). Returns (values float32, state uint8), what
+    nrexrsink writes."""
     from . import crosstalk, reconstruction, validity
     s = settings
+    if s.temporal == "on" and temporal is None:
+        raise ValueError("process_frame: settings.temporal 'on' needs the stream's TemporalReconstructor "
+                         "(temporal=chain.temporal_for(settings))")
     values, state = validity.classify(raw, profile, mode=s.mode, l_min=s.l_min, dark_policy=s.dark_policy)
     if s.crosstalk != "off":
         xt = profile if crosstalk_profile is None else crosstalk_profile
@@ -95,9 +106,19 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
         if s2 is not state:
             state[...] = s2
     # nrreconstruct's own frame path (one function, so batch and the element give the same bits)
-    reconstruction.reconstruct_frame(values, state, method=s.method, preset=s.preset,
-                                     use_bounds=s.use_bounds, noise=profile, fusion=s.noise_fusion)
+    if temporal is not None:
+        temporal.process(values, state, noise=profile)
+    else:
+        reconstruction.reconstruct_frame(values, state, method=s.method, preset=s.preset,
+                                         use_bounds=s.use_bounds, noise=profile, fusion=s.noise_fusion)
     return values, state
+
+
+def temporal_for(settings: ChainSettings):
+    """The `temporal.TemporalReconstructor` nrreconstruct temporal=on runs with `settings` (one per stream)."""
+    from .temporal import TemporalReconstructor
+    s = settings
+    return TemporalReconstructor(method=s.method, preset=s.preset, use_bounds=s.use_bounds, fusion=s.noise_fusion)
 
 
 def tonemap_frame(values: np.ndarray, profile, settings: ChainSettings = ChainSettings()) -> np.ndarray:
@@ -187,6 +208,15 @@ def _warm_method(method: str) -> None:
                                      noise=noise)
 
 
+def _warm_temporal(prof, s: ChainSettings, raw: np.ndarray) -> None:
+    """`temporal_for(s)` over a frame alone, a steady one (block judgement, averaging, the reconstruction
+    of what is left, the fusion with the past) and one moved by a pixel (the aligned past)."""
+    tr = temporal_for(s)
+    for shift in (0, 0, 1):
+        values, state = _warm_frame(prof, s, np.roll(raw, shift, axis=1))
+        tr.process(values, state, noise=prof)
+
+
 def _padded(a: np.ndarray, pad: int) -> np.ndarray:
     """`a` as a view with rows `pad` elements longer than its width (GStreamer pads video rows to 4 bytes)."""
     out = np.zeros((a.shape[0], a.shape[1] + pad), a.dtype)[:, :a.shape[1]]
@@ -254,6 +284,8 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
             values, state = _warm_frame(prof, s, raw)
             reconstruction.reconstruct_frame(values, state, method=s.method, preset=s.preset,
                                              use_bounds=s.use_bounds, noise=prof, fusion=s.noise_fusion)
+            if s.temporal == "on":
+                _warm_temporal(prof, s, raw)
 
     if "tonemap" in stages and transfers:
         values, _ = _warm_frame(prof, sets[0], raw)

@@ -6,6 +6,11 @@ RECONSTRUCTED bit (their reason is kept). `method` and `preset` can change while
 thread reads the settings snapshot once per frame. Posts an element message "nrhdr-frame-stats" per frame
 when `post-stats` is on.
 
+`temporal=on` (docs/TEMPORAL.md): `nrhdr_core.temporal.TemporalReconstructor` instead, the previous output
+aligned by a motion estimate as prior and extra measurements where a per-block consistency check trusts
+it; its state restarts on a flush, a new segment (seek), new caps, a change of the reconstruction settings
+and stop.
+
 Live (docs/ELEMENTS.md "Live operation"): QoS on by default and LATENCY answered with the processing time
 (`LiveTiming`); `method=auto` picks per frame the most accurate rung of `nrhdr_core.realtime.LADDER` that
 fits `budget-ms` (default 70 % of the frame period), with hysteresis (`nrhdr_core.realtime.AutoController`).
@@ -14,6 +19,7 @@ from __future__ import annotations
 
 import time
 
+from nrhdr_core.chain import TEMPORAL_MODES
 from nrhdr_core.fse import FSE_PRESETS
 from nrhdr_core.reconstruction import FUSIONS, METHODS
 
@@ -44,10 +50,16 @@ PROPERTIES = PropertyTable("GstNrReconstruct", [
          "the reconstruction and the pixel (about 25 % less time, about 0.3 dB lower in dark regions; "
          "docs/BENCHMARKS.md), 'auto' = fast for method=preview (live), accurate for the others",
          playing=True),
+    Prop("temporal", TEMPORAL_MODES, "off", "Temporal",
+         "'on' = the previous output, aligned by a motion estimate, is a prior for missing pixels and extra "
+         "measurements for measured and noisy ones where a per-block check against the noise model trusts "
+         "it; blocks that did not change reuse their result; measured pixels of trusted blocks become their "
+         "recursive average (docs/TEMPORAL.md). Restarts on flush, seek, caps change and stop", playing=True),
     Prop("post-stats", bool, False, "Post statistics",
          "Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing = fraction of pixels "
-         "reconstructed, method, seconds). Off by default: an application that never reads the bus would "
-         "keep every message", playing=True),
+         "reconstructed, method, seconds; with temporal=on also the blocks' shares reused, refreshed, fresh, "
+         "the global motion motion-x, motion-y and cut). Off by default: an application that never reads the "
+         "bus would keep every message", playing=True),
     LATENCY_PROP,
 ])
 
@@ -76,6 +88,7 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         self._info = None
         self._noise = None
         self._frames = 0
+        self._temporal = self._temporal_key = None
         self.set_in_place(True)
         self.set_passthrough(False)
 
@@ -87,23 +100,32 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         rungs = ([(r.method, r.preset or s.preset) for r in realtime.LADDER] if s.method == "auto"
                  else [(s.method, s.preset)])
         self.nr_warmup(chain.warmup, [chain.ChainSettings(method=m, preset=p, use_bounds=s.use_bounds,
-                                                          noise_fusion=s.noise_fusion, dark_policy=d)
+                                                          noise_fusion=s.noise_fusion, dark_policy=d,
+                                                          temporal=s.temporal)
                                       for m, p in rungs for d in chain.DARK_POLICIES],
                        stages=("reconstruction",), elements=True)
         self._auto = realtime.AutoController()
         self.nr_live_reset()
         self._last_pts, self._skipped = None, 0
         self._frames = 0
+        self._temporal = None
         return True
 
     def do_stop(self):
         self._info = None
+        self._temporal = None
         return True
+
+    def do_sink_event(self, event):
+        if event.type in (Gst.EventType.FLUSH_STOP, Gst.EventType.SEGMENT):
+            self._temporal = None       # a seek or a new segment: the past is not this stream's
+        return GstBase.BaseTransform.do_sink_event(self, event)
 
     @guarded("set_caps", False)
     def do_set_caps(self, incaps, outcaps):
         self._info = HdrInfo.from_caps(incaps)
         self._noise = None              # the profile may have changed with the caps
+        self._temporal = None
         self.gst_debug(f"caps {incaps.to_string()}")
         return True
 
@@ -126,13 +148,20 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
             picked.update(method=rung.method, preset=rung.preset or p.preset, rung=rung, budget=budget)
             return picked["method"], picked["preset"]
 
+        tr = self._temporal_for(p)
+        work = None
         with self.warnings_to_bus(), map_hdr(buf, self._info, write=True) as (values, state):
-            # one fused pass for known mask + bounds, in place, measured pixels untouched; NOISY pixels
-            # fused with the profile's noise model; a fixed method goes by name
-            n_miss = reconstruction.reconstruct_frame(values, state,
-                                                      method=choose if p.method == "auto" else p.method,
-                                                      preset=p.preset, use_bounds=p.use_bounds,
-                                                      noise=self._noise_model(), fusion=p.noise_fusion)
+            method = choose if p.method == "auto" else p.method
+            if tr is not None:
+                tr.method = method
+                work = tr.process(values, state, noise=self._noise_model())
+                n_miss = work["missing"]
+            else:
+                # one fused pass for known mask + bounds, in place, measured pixels untouched; NOISY pixels
+                # fused with the profile's noise model; a fixed method goes by name
+                n_miss = reconstruction.reconstruct_frame(values, state, method=method, preset=p.preset,
+                                                          use_bounds=p.use_bounds, noise=self._noise_model(),
+                                                          fusion=p.noise_fusion)
         method, preset, rung, budget = picked["method"], picked["preset"], picked["rung"], picked["budget"]
         share = n_miss / float(self._info.pixels)
         dt = time.perf_counter() - t0
@@ -144,9 +173,24 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
             self._auto.record(rung, dt, share, budget)
         if p.post_stats:
             chosen = "none" if not n_miss else (f"fse/{preset}" if method == "fse" else method)
-            self._post_frame_stats(share, method, dt, chosen, preset if method == "fse" else "")
+            self._post_frame_stats(share, method, dt, chosen, preset if method == "fse" else "", work)
         self._frames += 1
         return Gst.FlowReturn.OK
+
+    def _temporal_for(self, p):
+        """The stream's TemporalReconstructor with temporal=on (None off); a new one (no past) when the
+        settings it reconstructs with changed."""
+        if p.temporal != "on":
+            self._temporal = None
+            return None
+        key = (p.method, p.preset, p.use_bounds, p.noise_fusion)
+        if self._temporal is None or self._temporal_key != key:
+            from nrhdr_core.temporal import TemporalReconstructor
+            self._temporal = TemporalReconstructor(method="fse" if p.method == "auto" else p.method,
+                                                   preset=p.preset, use_bounds=p.use_bounds,
+                                                   fusion=p.noise_fusion)
+            self._temporal_key = key
+        return self._temporal
 
     def _count_gap(self, buf) -> None:
         """Frames skipped upstream (QoS drops in earlier elements, frames lost at a live source): PTS
@@ -181,9 +225,12 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         return self._noise
 
     def _post_frame_stats(self, missing: float, method: str, seconds: float, chosen: str = "",
-                          preset: str = "") -> None:
+                          preset: str = "", work: dict | None = None) -> None:
         """Fields: the method (and fse preset) used for this frame, late frames QoS dropped before it,
-        frames skipped upstream, and the processing latency answered to the LATENCY query."""
+        frames skipped upstream, and the processing latency answered to the LATENCY query; with temporal=on
+        the work of `TemporalReconstructor.process`: shares of blocks reused, refreshed (reconstructed and
+        fused with their past), fresh (reconstructed alone), the global motion and whether the frame was a
+        cut."""
         s = Gst.Structure.new_empty(STATS_MESSAGE)
         s.set_value("frame", GObject.Value(GObject.TYPE_UINT64, self._frames))
         s.set_value("missing", GObject.Value(GObject.TYPE_DOUBLE, float(missing)))
@@ -194,4 +241,11 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         s.set_value("qos-dropped", GObject.Value(GObject.TYPE_UINT64, self.nr_qos_skipped()))
         s.set_value("skipped", GObject.Value(GObject.TYPE_UINT64, self._skipped + self.nr_qos_skipped()))
         s.set_value("latency", GObject.Value(GObject.TYPE_DOUBLE, self.nr_processing_latency() / 1e9))
+        s.set_value("temporal", "off" if work is None else "on")
+        if work is not None:
+            alone = work["fresh"] + work["no_prior"] + work["no_evidence"]
+            for name, v in (("reused", work["reused"]), ("refreshed", work["refreshed"]), ("fresh", alone),
+                            ("motion-x", work["motion"][1]), ("motion-y", work["motion"][0])):
+                s.set_value(name, GObject.Value(GObject.TYPE_DOUBLE, float(v)))
+            s.set_value("cut", GObject.Value(GObject.TYPE_BOOLEAN, bool(work["cut"])))
         self.post_message(Gst.Message.new_element(self, s))
