@@ -102,8 +102,8 @@ def read_out(folder, n):
 def test_one_chunk_and_chunks_warmed_from_the_start_equal_the_sequential_run(steady, tmp_path):
     """One chunk over the clip (plain loop) = nrreconstruct temporal=on's core over the clip in order, bit
     for bit; chunks of 3 on 2 Dask workers whose overlap reaches frame 0 (6 >= the last chunk's start)
-    compute the same state, so the same bits; with overlap 1 a later chunk starts from another state:
-    its frames differ (the comparison is not vacuous)."""
+    compute the same state, so the same bits; with overlap 1 (and the raw frames sent by the client) a
+    chunk's frames are a stream's that starts at its warm-up, and differ from the sequential run's."""
     d, prof, raws = steady
     seq, reports = sequential(raws, prof)
     assert [r["reset"] for r in reports] == [True] + [False] * (len(raws) - 1)
@@ -117,10 +117,17 @@ def test_one_chunk_and_chunks_warmed_from_the_start_equal_the_sequential_run(ste
     assert rc == 0 and "in 3 chunks of 3 frames (overlap 6)" in log, log
     for i, f in enumerate(read_out(tmp_path / "dask", len(raws))):
         assert same(f, seq[i]), i
-    rc, log = nrhdr_batch(d, "-o", tmp_path / "short", "--workers", "0", "--temporal", "on", "--chunk", "3",
-                          "--overlap", "1")
+    # overlap 1, the workers sent the raw frames (--transfer data): a chunk's frames are those of a stream
+    # that starts at its warm-up's first frame; from frame 3 on they differ from the sequential run
+    rc, log = nrhdr_batch(d, "-o", tmp_path / "short", "--workers", "2", "--transfer", "data", "--temporal", "on",
+                          "--chunk", "3", "--overlap", "1")
     assert rc == 0, log
     short = read_out(tmp_path / "short", len(raws))
+    for c0 in (0, 3, 6):
+        w = max(0, c0 - 1)
+        stream, _ = sequential(raws, prof, start=w)
+        for i in range(c0, min(c0 + 3, len(raws))):
+            assert same(short[i], stream[i - w]), i
     assert all(same(short[i], seq[i]) for i in range(3))     # the first chunk starts where the clip does
     assert not same(short[3], seq[3]) and not same(short[6], seq[6])
 
