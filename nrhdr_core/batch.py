@@ -34,9 +34,9 @@ import numpy as np
 from . import chain, io, outputs
 
 MANIFEST = "batch.json"
-DEFAULT_CHUNK = 32                  # --temporal on: frames per chunk (a task)
-DEFAULT_OVERLAP = 8                 # ... and warm-up frames before each chunk
 MANIFEST_FORMAT = "nrhdr-batch"
+DEFAULT_CHUNK = 32                  # --temporal on: frames per chunk (one task; docs/BATCH.md)
+DEFAULT_OVERLAP = 8                 # ... and warm-up frames before each chunk
 EXR_NAME = "frame_{:05d}.exr"       # nrexrsink location=OUT/frame_%05d.exr
 PNG_NAME = "frame_{:05d}.png"       # pipelines/raw_to_png.sh names
 
@@ -264,7 +264,8 @@ class Job:
         if not self.temporal:
             return [Chunk(i, i + 1, i) for i in todo]
         n, c = self.source.frames, int(self.chunk)
-        return [Chunk(s, min(s + c, n), max(0, s - int(self.overlap))) for s in sorted({i - i % c for i in todo})]
+        starts = sorted({i - i % c for i in todo})
+        return [Chunk(s, min(s + c, n), max(0, s - int(self.overlap))) for s in starts]
 
     def outputs(self, index: int) -> list[Path]:
         names = [EXR_NAME.format(index)] + ([PNG_NAME.format(index)] if self.png else [])
@@ -324,8 +325,9 @@ def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
     holding `outputs.lock(job.out_dir)`.
 
     Empty/new folder: all frames. Our manifest with equal settings: the frames whose files are missing (with
-    `job.temporal`: every frame of a chunk that misses one, as a chunk is computed whole). Other settings, or a non-empty folder without our manifest: BatchError unless `force` (then this job's
-    frame files there are deleted first, so an interrupted forced run resumes correctly). Killed runs'
+    `job.temporal`: every frame of a chunk that misses one, as a chunk is computed whole). Other settings,
+    or a non-empty folder without our manifest: BatchError unless `force` (then this job's frame files
+    there are deleted first, so an interrupted forced run resumes correctly). Killed runs'
     stage folders are removed (`outputs.remove_leftovers`); other files are never touched."""
     out = job.out_dir
     if out.exists() and not out.is_dir():

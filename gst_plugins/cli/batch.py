@@ -32,9 +32,12 @@ def add_batch(sub) -> None:
     g = p.add_argument_group("input")
     g.add_argument("--profile", help="camera profile JSON (default: the clip's camera.json, or a still "
                                      "sequence folder's camera.json; required for a raw file)")
-    g.add_argument("--width", type=number(1, 1 << 16, integer=True), help="frame width of a raw file (default: the profile's mask)")
-    g.add_argument("--height", type=number(1, 1 << 16, integer=True), help="frame height of a raw file (default: the profile's mask)")
-    g.add_argument("--frames", type=number(1, 10_000_000, integer=True), help="number of frames (default: all the file holds)")
+    g.add_argument("--width", type=number(1, 1 << 16, integer=True),
+                   help="frame width of a raw file (default: the profile's mask)")
+    g.add_argument("--height", type=number(1, 1 << 16, integer=True),
+                   help="frame height of a raw file (default: the profile's mask)")
+    g.add_argument("--frames", type=number(1, 10_000_000, integer=True),
+                   help="number of frames (default: all the file holds)")
     g.add_argument("--start-index", type=number(0, 2147483647, integer=True), default=-1,
                    help="still pattern: index of the first file (default: the lowest present; nrimagesrc "
                         "start-index)")
@@ -62,7 +65,8 @@ def add_batch(sub) -> None:
     g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
     g.add_argument("--exposure", type=number(-30, 30), default=0.0, help="nrtonemap exposure in stops")
     g.add_argument("--contrast", type=number(1, 1e12, lo_open=True), default=1000.0, help="nrtonemap contrast")
-    g.add_argument("--white", type=number(0, 1e12, lo_open=True), default=None, help="nrtonemap white (default: the profile's)")
+    g.add_argument("--white", type=number(0, 1e12, lo_open=True), default=None,
+                   help="nrtonemap white (default: the profile's)")
     g = p.add_argument_group("temporal chunks (--temporal on)")
     g.add_argument("--chunk", type=number(1, 10_000_000, integer=True), default=None,
                    help=f"frames per chunk: a chunk is one task, computed and resumed whole (default "
