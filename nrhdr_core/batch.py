@@ -1,10 +1,13 @@
-"""Batch reprocessing of recorded raw clips and raw still sequences, frame-parallel on Dask
-(dask.distributed); docs/BATCH.md.
+"""Batch reprocessing of recorded raw clips and raw still sequences, parallel on Dask (dask.distributed);
+docs/BATCH.md.
 
 Every frame goes through `chain.process_frame` (the elements' own core calls, so the output equals the
 GStreamer chain's bit for bit) and is written with `io.write_exr(path, values, state)` (nrexrsink's writer)
 into the run's stage folder `OUT/.frames.nrtmp-<run id>` and renamed into OUT, so a file with its final name
-is complete. The output folder is locked for the run (`outputs.lock`: a second run into it is refused) and
+is complete. The unit of work (a Dask task) and of resume is a `Chunk`: one frame, or with the temporal
+reconstruction (settings.temporal "on") `Job.chunk` consecutive frames through one
+`temporal.TemporalReconstructor`, warmed up on the `Job.overlap` frames before the chunk (processed, not
+written). The output folder is locked for the run (`outputs.lock`: a second run into it is refused) and
 gets a manifest (`batch.json`) with the input's identity and the settings: a rerun with the same settings
 skips the frames whose files exist and removes the stage folders of killed runs (only `.nrtmp-` names), a
 rerun with other settings or into a folder written by something else refuses unless forced. A frame that
@@ -32,6 +35,8 @@ from . import chain, io, outputs
 
 MANIFEST = "batch.json"
 MANIFEST_FORMAT = "nrhdr-batch"
+DEFAULT_CHUNK = 32                  # --temporal on: frames per chunk (one task; docs/BATCH.md)
+DEFAULT_OVERLAP = 8                 # ... and warm-up frames before each chunk
 EXR_NAME = "frame_{:05d}.exr"       # nrexrsink location=OUT/frame_%05d.exr
 PNG_NAME = "frame_{:05d}.png"       # pipelines/raw_to_png.sh names
 
@@ -203,18 +208,36 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+@dataclasses.dataclass(frozen=True)
+class Chunk:
+    """The unit of work and of resume: frames start..stop-1 are computed in order through one chain and
+    written; frames warm..start-1 go through the same chain first, not written (they warm the temporal
+    state up). Without the temporal reconstruction a chunk is one frame (warm = start)."""
+    start: int
+    stop: int
+    warm: int
+
+
 @dataclasses.dataclass
 class Job:
-    """What to compute: source frames, settings, output folder; profiles loaded once here."""
+    """What to compute: source frames, settings, output folder; profiles loaded once here. `chunk`,
+    `overlap`: the temporal reconstruction's chunks (frames per chunk, warm-up frames before it); only
+    with settings.temporal "on"."""
     source: Source
     out_dir: Path
     settings: chain.ChainSettings = chain.ChainSettings()
     png: bool = False
     crosstalk_profile: Path | None = None
     allow_outside: bool = False      # profiles naming files outside their folder (profile.load)
+    chunk: int = DEFAULT_CHUNK
+    overlap: int = DEFAULT_OVERLAP
 
     def __post_init__(self):
         from . import profile as profile_mod
+        for name, lo in (("chunk", 1), ("overlap", 0)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= lo):
+                raise BatchError(f"batch {name} must be an integer >= {lo}, got {v!r}")
         self.out_dir = Path(self.out_dir)
         self.profile = profile_mod.load(self.source.profile, allow_outside=self.allow_outside)
         if (self.profile.width, self.profile.height) != (self.source.width, self.source.height):
@@ -228,6 +251,21 @@ class Job:
                 raise BatchError(f"crosstalk profile {self.crosstalk_profile} has a {self.xt_profile.width}x"
                                  f"{self.xt_profile.height} mask but the frames are {self.profile.width}x"
                                  f"{self.profile.height}")
+
+    @property
+    def temporal(self) -> bool:
+        """The temporal reconstruction (nrreconstruct temporal=on): frames in chunks."""
+        return self.settings.temporal == "on"
+
+    def chunks(self, todo) -> list[Chunk]:
+        """The chunks that compute the frames `todo`: one per frame; with `temporal`, the chunks of
+        `chunk` frames counted from frame 0 that hold them (every frame of such a chunk is computed and
+        written), each warmed up on the `overlap` frames before it (fewer at the clip's start)."""
+        if not self.temporal:
+            return [Chunk(i, i + 1, i) for i in todo]
+        n, c = self.source.frames, int(self.chunk)
+        starts = sorted({i - i % c for i in todo})
+        return [Chunk(s, min(s + c, n), max(0, s - int(self.overlap))) for s in starts]
 
     def outputs(self, index: int) -> list[Path]:
         names = [EXR_NAME.format(index)] + ([PNG_NAME.format(index)] if self.png else [])
@@ -256,11 +294,14 @@ class Job:
                 return None
             return {"path": str(path), "sha256": _sha256(path)}
 
-        return {"format": MANIFEST_FORMAT, "version": 1, "writer": "nrhdr batch",
-                "input": dict(ident, width=s.width, height=s.height, frames=s.frames),
-                "profile": prof(s.profile), "crosstalk_profile": prof(self.crosstalk_profile),
-                "settings": self.settings.as_dict(), "png": self.png,
-                "files": {"exr": "frame_%05d.exr", "png": "frame_%05d.png" if self.png else None}}
+        out = {"format": MANIFEST_FORMAT, "version": 1, "writer": "nrhdr batch",
+               "input": dict(ident, width=s.width, height=s.height, frames=s.frames),
+               "profile": prof(s.profile), "crosstalk_profile": prof(self.crosstalk_profile),
+               "settings": self.settings.as_dict(), "png": self.png,
+               "files": {"exr": "frame_%05d.exr", "png": "frame_%05d.png" if self.png else None}}
+        if self.temporal:     # a chunk's first frames depend on where it starts and on its warm-up
+            out["chunks"] = {"chunk": int(self.chunk), "overlap": int(self.overlap)}
+        return out
 
 
 def _diff(a, b, prefix=""):
@@ -283,9 +324,10 @@ def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
     """Check the output folder, write the manifest; returns (frames to compute, frames skipped). Call it
     holding `outputs.lock(job.out_dir)`.
 
-    Empty/new folder: all frames. Our manifest with equal settings: the frames whose files are missing.
-    Other settings, or a non-empty folder without our manifest: BatchError unless `force` (then this job's
-    frame files there are deleted first, so an interrupted forced run resumes correctly). Killed runs'
+    Empty/new folder: all frames. Our manifest with equal settings: the frames whose files are missing (with
+    `job.temporal`: every frame of a chunk that misses one, as a chunk is computed whole). Other settings,
+    or a non-empty folder without our manifest: BatchError unless `force` (then this job's frame files
+    there are deleted first, so an interrupted forced run resumes correctly). Killed runs'
     stage folders are removed (`outputs.remove_leftovers`); other files are never touched."""
     out = job.out_dir
     if out.exists() and not out.is_dir():
@@ -321,10 +363,11 @@ def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
         outputs.write_text(mpath, json.dumps(want, indent=2) + "\n")
         return list(frames), 0
     todo = [i for i in frames if not all(f.is_file() for f in job.outputs(i))]
+    todo = [i for c in job.chunks(todo) for i in range(c.start, c.stop)]
     return todo, job.source.frames - len(todo)
 
 
-# ---- the per-frame task (runs on the workers) ----------------------------------------------------------
+# ---- the chunk task (runs on the workers) --------------------------------------------------------------
 
 def write_frame_files(files, values, state, tone, stage=None) -> None:
     """nrexrsink's write (EXR: Y + state) and, with `tone`, the GRAY8 PNG; with `stage`, written there and
@@ -340,27 +383,66 @@ def write_frame_files(files, values, state, tone, stage=None) -> None:
             os.replace(t, f)
 
 
-def frame_task(index: int, src: Source, profile, xt_profile, settings: chain.ChainSettings, files,
-               raw: np.ndarray | None = None, return_files: bool = False, stage=None):
-    """Compute frame `index` and write its files through the stage folder `stage` (a shared file system),
-    or, with `return_files`, write them in a private temp folder and return their bytes for the client to
-    write. Returns (index, (wall seconds, CPU seconds of this process), {name: bytes} or None)."""
-    t0, c0 = time.perf_counter(), time.process_time()
-    if raw is None:
-        raw = src.read(index)
-    values, state = chain.process_frame(raw, profile, settings, xt_profile)
-    tone = chain.tonemap_frame(values, profile, settings) if len(files) > 1 else None
-    if not return_files:
-        write_frame_files(files, values, state, tone, stage)
-        return index, (time.perf_counter() - t0, time.process_time() - c0), None
-    tmp = Path(tempfile.mkdtemp(prefix="nrhdr-batch-"))
+def chunk_frames(read, chunk: Chunk, profile, xt_profile, settings: chain.ChainSettings):
+    """The frames of `chunk` through `chain.process_frame` in order, with settings.temporal "on" through
+    one `chain.temporal_for(settings)` (frames chunk.warm..start-1 warm it up and are not yielded), as
+    nrreconstruct temporal=on runs a stream that starts at frame chunk.warm. `read(i)`: raw frame i.
+    Yields (i, (values, state) or the exception that frame raised) for chunk.start..stop-1. A frame that
+    fails resets the temporal state: the next frame is reconstructed alone, as after a scene cut."""
+    tr = chain.temporal_for(settings) if settings.temporal == "on" else None
+    for i in range(chunk.warm, chunk.stop):
+        try:
+            out = chain.process_frame(read(i), profile, settings, xt_profile, temporal=tr)
+        except Exception as e:  # noqa: BLE001 - reported by frame, the others go on
+            if tr is not None:
+                tr.reset()
+            out = e
+        if i >= chunk.start:
+            yield i, out
+
+
+def chunk_task(chunk: Chunk, src: Source, profile, xt_profile, settings: chain.ChainSettings, files,
+               raws=None, return_files: bool = False, stage=None):
+    """Compute the frames of `chunk` (`chunk_frames`) and write frame i's files `files[i - chunk.start]`
+    through the stage folder `stage` (a shared file system), or, with `return_files`, in a private temp
+    folder and return their bytes for the client to write. `raws`: the raw frames chunk.warm..stop-1 sent
+    by the client (an error text for a frame it could not read); None: read here from `src`. Returns
+    [(index, (wall seconds, CPU seconds of this process), {name: bytes} or None, error text or None)] for
+    chunk.start..stop-1; the warm-up frames' time counts in the first frame's."""
+    def read(i):
+        if raws is None:
+            return src.read(i)
+        r = raws[i - chunk.warm]
+        if isinstance(r, str):
+            raise BatchError(r)
+        return r
+
+    out = []
+    tmp = Path(tempfile.mkdtemp(prefix="nrhdr-batch-")) if return_files else None
     try:
-        local = [tmp / Path(o).name for o in files]
-        write_frame_files(local, values, state, tone)
-        data = {Path(o).name: f.read_bytes() for o, f in zip(files, local)}
+        t0, c0 = time.perf_counter(), time.process_time()
+        for i, frame in chunk_frames(read, chunk, profile, xt_profile, settings):
+            names, data, err = files[i - chunk.start], None, None
+            try:
+                if isinstance(frame, BaseException):
+                    raise frame
+                values, state = frame
+                tone = chain.tonemap_frame(values, profile, settings) if len(names) > 1 else None
+                if return_files:
+                    local = [tmp / Path(o).name for o in names]
+                    write_frame_files(local, values, state, tone)
+                    data = {f.name: f.read_bytes() for f in local}
+                else:
+                    write_frame_files(names, values, state, tone, stage)
+            except Exception as e:  # noqa: BLE001 - reported by frame, the others go on
+                err = _error_text(e)
+            t1, c1 = time.perf_counter(), time.process_time()
+            out.append((i, (t1 - t0, c1 - c0), data, err))
+            t0, c0 = t1, c1
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return index, (time.perf_counter() - t0, time.process_time() - c0), data
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
 
 
 # ---- drivers -----------------------------------------------------------------------------------------
@@ -381,7 +463,7 @@ class Result:
     skipped: int = 0
     failures: list[Failure] = dataclasses.field(default_factory=list)
     seconds: float = 0.0          # wall time of the frame loop (after warm-up)
-    frame_seconds: float = 0.0    # sum of the per-frame compute (wall) times on the workers
+    frame_seconds: float = 0.0    # sum of the per-frame compute (wall) times on the workers (warm-up frames in)
     frame_cpu_seconds: float = 0.0  # sum of the workers' CPU time per frame (all their threads)
 
     @property
@@ -401,26 +483,41 @@ def _error_text(e: BaseException) -> str:
     return str(e) if isinstance(e, (ValueError, OSError)) and str(e) else f"{type(e).__name__}: {e}"
 
 
+class _Recorder:
+    """Adds a chunk's per-frame results (`chunk_task`) to a Result, reports failures as they come."""
+
+    def __init__(self, job: Job, res: Result, bar, on_failure):
+        self.job, self.res, self.bar, self.on_failure = job, res, bar, on_failure
+
+    def fail(self, i: int, text: str) -> None:
+        f = Failure(i, self.job.source.frame_file(i), text)
+        self.res.failures.append(f)
+        if self.on_failure:
+            self.on_failure(f, self.bar)
+
+    def frame(self, i: int, times, err) -> None:
+        if err is None:
+            self.res.done.append(i)
+        else:
+            self.fail(i, err)
+        self.res.frame_seconds += times[0]
+        self.res.frame_cpu_seconds += times[1]
+        self.bar.update(1)
+
+
 def run_loop(job: Job, todo, progress: bool = False, on_failure=None) -> Result:
-    """The same task in a plain loop in this process (no Dask): `--workers 0` and the scaling anchor."""
+    """The same tasks in a plain loop in this process (no Dask): `--workers 0` and the scaling anchor."""
     res = Result()
     warm_cache(job.settings, job.png)
     chain.warmup(job.settings, tone=job.png)
     t0 = time.perf_counter()
     with _progress(len(todo), progress) as bar:
-        for i in todo:
-            try:
-                _, (dt, cpu), _ = frame_task(i, job.source, job.profile, job.xt_profile, job.settings,
-                                             [str(p) for p in job.outputs(i)], stage=str(job.stage))
-                res.done.append(i)
-                res.frame_seconds += dt
-                res.frame_cpu_seconds += cpu
-            except Exception as e:  # noqa: BLE001 - reported by frame, the others go on
-                f = Failure(i, job.source.frame_file(i), _error_text(e))
-                res.failures.append(f)
-                if on_failure:
-                    on_failure(f, bar)
-            bar.update(1)
+        rec = _Recorder(job, res, bar, on_failure)
+        for c in job.chunks(todo):
+            files = [[str(p) for p in job.outputs(i)] for i in range(c.start, c.stop)]
+            for i, times, _, err in chunk_task(c, job.source, job.profile, job.xt_profile, job.settings, files,
+                                               stage=str(job.stage)):
+                rec.frame(i, times, err)
     res.seconds = time.perf_counter() - t0
     return res
 
@@ -488,46 +585,43 @@ def oversubscription_warnings(client) -> list[str]:
 
 def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool = False,
              window: int | None = None, on_failure=None, warm: bool = True) -> Result:
-    """Frame-parallel on a dask.distributed client. At most `window` frames are in flight (default
-    2 x worker threads + 1), so memory stays bounded and Ctrl-C has little to cancel. With `return_files`
-    the client reads the raw frames and writes the files the workers return (no shared file system);
-    else workers read the raw file and write the outputs themselves. KeyboardInterrupt cancels the
-    frames in flight and propagates."""
+    """Chunk-parallel (frame-parallel without the temporal reconstruction) on a dask.distributed client:
+    one task per `Job.chunks` entry. At most `window` tasks are in flight (default: 2 x worker threads + 1
+    single frames, or one chunk per worker thread), so memory stays bounded and Ctrl-C has little to
+    cancel. With `return_files` the client reads the raw frames and writes the files the workers return
+    (no shared file system); else workers read the raw file and write the outputs themselves.
+    KeyboardInterrupt cancels the tasks in flight and propagates."""
     from distributed import as_completed
     res = Result()
     nthreads = sum(client.nthreads().values()) or 1
-    window = window or 2 * nthreads + 1
+    window = window or (nthreads if job.temporal else 2 * nthreads + 1)
     prof_f = client.scatter(job.profile, broadcast=True, hash=False)
     xt_f = client.scatter(job.xt_profile, broadcast=True, hash=False) if job.xt_profile is not None else None
     src_f = client.scatter(job.source, broadcast=True, hash=False)   # a still sequence's file list: sent once
     if warm:
         warm_workers(client, job.settings, job.png)
-    pending = iter(todo)
+    pending = iter(job.chunks(todo))
     inflight: dict = {}
     ac = as_completed()
     src = job.source
 
-    def fail(i, text, bar):
-        f = Failure(i, src.frame_file(i), text)
-        res.failures.append(f)
-        if on_failure:
-            on_failure(f, bar)
+    def raws_of(c: Chunk):
+        out = []
+        for i in range(c.warm, c.stop):
+            try:
+                out.append(src.read(i))
+            except Exception as e:  # noqa: BLE001 - the task reports it as that frame's failure
+                out.append(_error_text(e))
+        return out
 
-    def submit_next(bar) -> bool:
-        for i in pending:
-            raw = None
-            if return_files:
-                try:
-                    raw = src.read(i)
-                except Exception as e:  # noqa: BLE001
-                    fail(i, _error_text(e), bar)
-                    bar.update(1)
-                    continue
-            outs = [str(p) for p in job.outputs(i)]
-            fut = client.submit(frame_task, i, src_f, prof_f, xt_f, job.settings, outs, raw, return_files,
-                                str(job.stage), key=f"nrhdr-frame-{i}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
+    def submit_next() -> bool:
+        for c in pending:
+            files = [[str(p) for p in job.outputs(i)] for i in range(c.start, c.stop)]
+            fut = client.submit(chunk_task, c, src_f, prof_f, xt_f, job.settings, files,
+                                raws_of(c) if return_files else None, return_files, str(job.stage),
+                                key=f"nrhdr-chunk-{c.start}-{os.getpid()}-{time.monotonic_ns()}", pure=False,
                                 retries=0)
-            inflight[fut] = i
+            inflight[fut] = c
             ac.add(fut)
             return True
         return False
@@ -535,32 +629,31 @@ def run_dask(job: Job, todo, client, progress: bool = False, return_files: bool 
     t0 = time.perf_counter()
     try:
         with _progress(len(todo), progress) as bar:
+            rec = _Recorder(job, res, bar, on_failure)
             for _ in range(window):
-                if not submit_next(bar):
+                if not submit_next():
                     break
             for fut in ac:
-                i = inflight.pop(fut)
+                c = inflight.pop(fut)
                 if fut.status == "finished":
-                    try:
-                        _, (dt, cpu), files = fut.result()
-                        if files:
-                            for name, data in sorted(files.items(), key=lambda kv: kv[0].endswith(".exr")):
-                                outputs.write_bytes(job.out_dir / name, data)
-                        res.done.append(i)
-                        res.frame_seconds += dt
-                        res.frame_cpu_seconds += cpu
-                    except Exception as e:  # noqa: BLE001 - e.g. a write on the client failed
-                        fail(i, _error_text(e), bar)
+                    for i, times, files, err in fut.result():
+                        if err is None and files:
+                            try:
+                                for name, data in sorted(files.items(), key=lambda kv: kv[0].endswith(".exr")):
+                                    outputs.write_bytes(job.out_dir / name, data)
+                            except Exception as e:  # noqa: BLE001 - e.g. a write on the client failed
+                                err = _error_text(e)
+                        rec.frame(i, times, err)
                 else:
                     try:
                         err = fut.exception()
                         text = _error_text(err) if err is not None else f"task {fut.status}"
                     except Exception as e:  # noqa: BLE001 - cancelled/lost
                         text = _error_text(e)
-                    fail(i, text, bar)
+                    for i in range(c.start, c.stop):
+                        rec.frame(i, (0.0, 0.0), text)
                 fut.release()
-                bar.update(1)
-                submit_next(bar)
+                submit_next()
     except BaseException:
         if inflight:
             client.cancel(list(inflight), force=True)

@@ -1,5 +1,6 @@
 """`nrhdr batch`: reprocess recorded raw clips or raw still sequences into an OpenEXR sequence (Y + state),
-frame-parallel on Dask (nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames
+frame-parallel on Dask, or in chunks of consecutive frames with the temporal reconstruction
+(nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames
 failed (each reported by number and file), 2 bad input or a refused output folder, 130 interrupted."""
 from __future__ import annotations
 
@@ -15,12 +16,13 @@ examples:
   nrhdr batch rec.raw --profile camera.json -o out --workers 0   # plain loop in this process
   nrhdr batch stills --profile camera.json -o out                # a folder of 16-bit gray TIFF/PNG stills
   nrhdr batch demo_out/clip -o out --scheduler tcp://host:8786   # an existing Dask cluster
+  nrhdr batch demo_out/clip -o out --temporal on --chunk 64 --overlap 8   # temporal, chunks of 64 frames
 defaults are pipelines/raw_to_exr.sh's (METHOD=fse PRESET=fast MODE=threshold, nrcrosstalk mode=kernel),
 so the files equal that pipeline's bit for bit."""
 
 
 def add_batch(sub) -> None:
-    from nrhdr_core import chain
+    from nrhdr_core import batch, chain
     p = sub.add_parser("batch", help="reprocess a raw clip into OpenEXR frames on a Dask cluster",
                        description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", help="clip folder (clip.json, clip.raw, camera.json), a GRAY16_LE raw file, or a "
@@ -30,9 +32,12 @@ def add_batch(sub) -> None:
     g = p.add_argument_group("input")
     g.add_argument("--profile", help="camera profile JSON (default: the clip's camera.json, or a still "
                                      "sequence folder's camera.json; required for a raw file)")
-    g.add_argument("--width", type=number(1, 1 << 16, integer=True), help="frame width of a raw file (default: the profile's mask)")
-    g.add_argument("--height", type=number(1, 1 << 16, integer=True), help="frame height of a raw file (default: the profile's mask)")
-    g.add_argument("--frames", type=number(1, 10_000_000, integer=True), help="number of frames (default: all the file holds)")
+    g.add_argument("--width", type=number(1, 1 << 16, integer=True),
+                   help="frame width of a raw file (default: the profile's mask)")
+    g.add_argument("--height", type=number(1, 1 << 16, integer=True),
+                   help="frame height of a raw file (default: the profile's mask)")
+    g.add_argument("--frames", type=number(1, 10_000_000, integer=True),
+                   help="number of frames (default: all the file holds)")
     g.add_argument("--start-index", type=number(0, 2147483647, integer=True), default=-1,
                    help="still pattern: index of the first file (default: the lowest present; nrimagesrc "
                         "start-index)")
@@ -54,10 +59,22 @@ def add_batch(sub) -> None:
                    help="nrreconstruct noise-fusion (NOISY pixels: auto = fast for preview, accurate for the "
                         "others; or accurate, fast)")
     g.add_argument("--no-bounds", action="store_true", help="nrreconstruct use-bounds=false")
+    g.add_argument("--temporal", choices=chain.TEMPORAL_MODES, default="off",
+                   help="nrreconstruct temporal (on: the previous frames as a prior; frames are computed in "
+                        "chunks of consecutive frames, see --chunk, --overlap)")
     g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
     g.add_argument("--exposure", type=number(-30, 30), default=0.0, help="nrtonemap exposure in stops")
     g.add_argument("--contrast", type=number(1, 1e12, lo_open=True), default=1000.0, help="nrtonemap contrast")
-    g.add_argument("--white", type=number(0, 1e12, lo_open=True), default=None, help="nrtonemap white (default: the profile's)")
+    g.add_argument("--white", type=number(0, 1e12, lo_open=True), default=None,
+                   help="nrtonemap white (default: the profile's)")
+    g = p.add_argument_group("temporal chunks (--temporal on)")
+    g.add_argument("--chunk", type=number(1, 10_000_000, integer=True), default=None,
+                   help=f"frames per chunk: a chunk is one task, computed and resumed whole (default "
+                        f"{batch.DEFAULT_CHUNK})")
+    g.add_argument("--overlap", type=number(0, 10_000_000, integer=True), default=None,
+                   help=f"frames before a chunk that warm its temporal state up, computed and not written "
+                        f"(default {batch.DEFAULT_OVERLAP}; docs/BATCH.md says how they change a chunk's first "
+                        f"frames)")
     g = p.add_argument_group("execution")
     g.add_argument("--workers", type=number(0, 4096, integer=True), default=None,
                    help="local worker processes (default: one per core); 0 = plain loop in this process")
@@ -79,15 +96,20 @@ def cmd_batch(a) -> int:
     from nrhdr_core import batch, outputs
     if a.scheduler and a.workers is not None:
         raise ValueError("--workers starts a local cluster; it cannot go with --scheduler")
+    if a.temporal != "on" and (a.chunk is not None or a.overlap is not None):
+        raise ValueError(f"{'--chunk' if a.chunk is not None else '--overlap'} is for the temporal "
+                         f"reconstruction's chunks: add --temporal on (without it every frame is computed alone)")
     from nrhdr_core import chain, profile
     settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk,
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
-                                   preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion, white=a.white,
-                                   exposure=a.exposure, contrast=a.contrast)
+                                   preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion,
+                                   temporal=a.temporal, white=a.white, exposure=a.exposure, contrast=a.contrast)
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames, allow_outside=a.allow_outside_paths,
                             start_index=a.start_index)
     job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile,
-                    allow_outside=a.allow_outside_paths)
+                    allow_outside=a.allow_outside_paths,
+                    chunk=batch.DEFAULT_CHUNK if a.chunk is None else a.chunk,
+                    overlap=batch.DEFAULT_OVERLAP if a.overlap is None else a.overlap)
     if job.xt_profile is not None:   # another sensor's calibration would correct the wrong pixels
         profile.check_same_sensor(job.xt_profile, job.profile)
     # the stop signals raise outputs.Interrupted once (later ones are ignored, so the clean-up is not
@@ -101,9 +123,11 @@ def _run(a, batch, job, settings) -> int:
     src = job.source
     todo, skipped = batch.prepare_output(job, force=a.force)
     progress = not a.no_progress
+    chunks = (f" in {len(job.chunks(todo))} chunks of {job.chunk} frames (overlap {job.overlap})"
+              if job.temporal else "")
     print(f"nrhdr batch: {src.frames} frames {src.width}x{src.height} from {src.raw}, {skipped} already done, "
-          f"{len(todo)} to compute; method={settings.method} preset={settings.preset} -> {job.out_dir}",
-          file=sys.stderr)
+          f"{len(todo)} to compute{chunks}; method={settings.method} preset={settings.preset} "
+          f"temporal={settings.temporal} -> {job.out_dir}", file=sys.stderr)
 
     def on_failure(f, bar):
         bar.write(f"nrhdr batch: error: {f}", file=sys.stderr)
