@@ -320,6 +320,11 @@ def remove_stage(job: Job) -> None:
     shutil.rmtree(job.stage, ignore_errors=True)
 
 
+# Settings a manifest may lack, with the behaviour such a manifest records: every frame reconstructed alone,
+# PNGs by the log curve.
+IMPLIED_SETTINGS = {"temporal": "off", "operator": "log"}
+
+
 def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
     """Check the output folder, write the manifest; returns (frames to compute, frames skipped). Call it
     holding `outputs.lock(job.out_dir)`.
@@ -341,6 +346,8 @@ def prepare_output(job: Job, force: bool = False) -> tuple[list[int], int]:
             ours = have.get("format") == MANIFEST_FORMAT
         except io.FileContentError:
             have, ours = None, False
+        if ours and isinstance(have.get("settings"), dict):
+            have = dict(have, settings={**IMPLIED_SETTINGS, **have["settings"]})
         if ours and have == want:
             resume = True
         elif not force:

@@ -35,6 +35,7 @@ from .crosstalk import MODES as CROSSTALK_MODES
 from .fse import FSE_PRESETS
 from .reconstruction import FUSIONS as NOISE_FUSIONS
 from .reconstruction import METHODS
+from .tonemap import SDR_OPERATORS
 from .tonemap import TRANSFERS as HDR_TRANSFERS
 from .validity import DARK_POLICIES
 from .validity import MODES as VALIDITY_MODES
@@ -58,6 +59,7 @@ class ChainSettings:
     use_bounds: bool = True          # nrreconstruct use-bounds
     noise_fusion: str = "auto"       # nrreconstruct noise-fusion (NOISY pixels: auto, accurate or fast)
     temporal: str = "off"            # nrreconstruct temporal (on: `process_frame` needs a TemporalReconstructor)
+    operator: str = "local"          # nrtonemap operator (tonemap.SDR_OPERATORS; docs/TONEMAP.md)
     white: float | None = None       # nrtonemap white (None = the profile's white, as in the caps)
     exposure: float = 0.0            # nrtonemap exposure (stops)
     contrast: float = 1000.0         # nrtonemap contrast (= tonemap.DEFAULT_CONTRAST)
@@ -65,7 +67,8 @@ class ChainSettings:
     def __post_init__(self):
         for name, allowed in (("mode", VALIDITY_MODES), ("dark_policy", DARK_POLICIES),
                               ("crosstalk", CROSSTALK_MODES), ("crosstalk_lut", LUT_FORMS), ("method", METHODS),
-                              ("preset", PRESETS), ("noise_fusion", NOISE_FUSIONS), ("temporal", TEMPORAL_MODES)):
+                              ("preset", PRESETS), ("noise_fusion", NOISE_FUSIONS), ("temporal", TEMPORAL_MODES),
+                              ("operator", SDR_OPERATORS)):
             v = getattr(self, name)
             if v not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {v!r}")
@@ -121,10 +124,16 @@ def temporal_for(settings: ChainSettings):
     return TemporalReconstructor(method=s.method, preset=s.preset, use_bounds=s.use_bounds, fusion=s.noise_fusion)
 
 
-def tonemap_frame(values: np.ndarray, profile, settings: ChainSettings = ChainSettings()) -> np.ndarray:
-    """nrtonemap (normalise=caps, or fixed with `white`) to GRAY8: uint8 (H, W)."""
+def tonemap_frame(values: np.ndarray, profile, settings: ChainSettings = ChainSettings(),
+                  local=None) -> np.ndarray:
+    """nrtonemap (normalise=caps, or fixed with `white`; `settings.operator`) to GRAY8: uint8 (H, W).
+    operator "local": `local` is the stream's `tonemap.LocalTonemap` (its statistics smoothed over the frames
+    it saw, as in the element); None = one for this frame alone (the element's first frame)."""
     from . import tonemap
     white = float(settings.white) if settings.white is not None else float(profile.white)
+    if settings.operator == "local":
+        local = tonemap.LocalTonemap() if local is None else local
+        return local(values, white, exposure_stops=settings.exposure, contrast=settings.contrast)
     return tonemap.log_tonemap(values, white, exposure_stops=settings.exposure, contrast=settings.contrast)
 
 
@@ -242,7 +251,8 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
       then `reconstruction.reconstruct_frame` with the settings' preset, bounds and noise fusion),
       ``tonemap`` (the `transfers`). Each stage's input frame is made in numpy, so a stage compiles its own
       kernels only.
-    - `tone`: the log tone map of `tonemap_frame` (the same as "log" in `transfers`).
+    - `tone`: the tone map of `tonemap_frame` (the same as "log" in `transfers`; the local operator too when a
+      setting's `operator` is "local").
     - `transfers` (of TRANSFERS): nrtonemap's outputs: "log" (GRAY8, and GRAY16 with `elements`), "pq",
       "hlg" (`tonemap.hdr_encode`).
     - `calibrated`: the profile has a crosstalk calibration (an identity one here), as nrcrosstalk applies it.
@@ -301,3 +311,5 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
                             tonemap.log_tonemap(v, white, out=out)
                         else:
                             tonemap.hdr_encode(v, white, transfer, out=out)
+        if "log" in transfers and any(s.operator == "local" for s in sets):
+            tonemap.warmup_local(elements=elements)

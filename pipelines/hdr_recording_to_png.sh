@@ -4,7 +4,7 @@
 #   pipelines/hdr_recording_to_png.sh REC [OUT_DIR]
 # REC.caps holds the caps; filesrc's blocksize must be one frame (5*W*H bytes), else nrtonemap refuses the
 # buffers. An existing PNG sequence in OUT_DIR is refused unless OVERWRITE=true. Environment: EXPOSURE
-# (stops), NRHDR, OVERWRITE.
+# (stops), OPERATOR (local|log, default local), NRHDR, OVERWRITE.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in -h|--help|"") sed -n '2,6p' "$0"; exit 0;; esac
 REC="$1"
@@ -17,5 +17,5 @@ W="$(sed -n 's/.*width=(int)\([0-9]*\).*/\1/p' <<<"$CAPS")"
 H="$(sed -n 's/.*height=(int)\([0-9]*\).*/\1/p' <<<"$CAPS")"
 nr_out "$OUT" png
 nr_launch filesrc "location=$REC" "blocksize=$((5 * W * H))" ! "$CAPS" \
-  ! nrtonemap "exposure=${EXPOSURE:-0}" ! video/x-raw,format=GRAY8 \
+  ! nrtonemap "exposure=${EXPOSURE:-0}" "operator=${OPERATOR:-local}" ! video/x-raw,format=GRAY8 \
   ! pngenc ! multifilesink "location=$OUT/frame_%05d.png"

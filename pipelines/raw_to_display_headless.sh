@@ -2,7 +2,7 @@
 # Live-preview chain without a display: as raw_to_display.sh, but the frames end in fakesink (through
 # fpsdisplaysink when gst-plugins-bad provides it, which then reports the frame rate with -v).
 #   pipelines/raw_to_display_headless.sh [CLIP_DIR [PROFILE]]
-# Environment: CROSSTALK (nrcrosstalk mode, default lut), METHOD (default preview), PRESET, MODE, EXPOSURE, SYNC (true = play at the clip's frame
+# Environment: CROSSTALK (nrcrosstalk mode, default lut), METHOD (default preview), PRESET, MODE, EXPOSURE, OPERATOR (local|log), SYNC (true = play at the clip's frame
 # rate, default; false = as fast as possible), NRHDR.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in -h|--help) sed -n '2,7p' "$0"; exit 0;; esac
@@ -17,5 +17,5 @@ else
 fi
 exec "$NRHDR" launch "${SRC[@]}" \
   ! nrreconstruct "method=${METHOD:-preview}" "preset=${PRESET:-preview}" \
-  ! queue max-size-buffers=2 ! nrtonemap "exposure=${EXPOSURE:-0}" \
+  ! queue max-size-buffers=2 ! nrtonemap "exposure=${EXPOSURE:-0}" "operator=${OPERATOR:-local}" \
   ! videoconvert ! "${SINK[@]}"

@@ -85,10 +85,11 @@ def test_bit_identical_to_gstreamer_chain_on_two_local_workers(clip6, tmp_path, 
 def test_bit_identical_with_other_settings_in_a_plain_loop(clip6, tmp_path, gst_subprocess_env):
     """Other element settings (validity mode 'all', method preview) through the same core function in the
     no-Dask loop (--workers 0) equal the pipeline with MODE=all METHOD=preview; the tone-mapped PNGs
-    (--png, --exposure) equal pipelines/raw_to_png.sh's pixels."""
+    (--png, --exposure, --operator log) equal pipelines/raw_to_png.sh's pixels. With the local operator the
+    first frame's too (the element smooths the operator's statistics over the frames after it)."""
     d, _, raws = clip6
     rc, out = nrhdr_batch(d, "-o", tmp_path / "batch", "--workers", "0", "--mode", "all", "--method",
-                          "preview", "--png", "--exposure", "1.5", env=gst_subprocess_env)
+                          "preview", "--png", "--exposure", "1.5", "--operator", "log", env=gst_subprocess_env)
     assert rc == 0, out
     env = dict(gst_subprocess_env, METHOD="preview", MODE="all")
     p = subprocess.run(["bash", str(PIPELINES / "raw_to_exr.sh"), str(d), str(tmp_path / "gst")], env=env,
@@ -99,16 +100,23 @@ def test_bit_identical_with_other_settings_in_a_plain_loop(clip6, tmp_path, gst_
     for fa, fb in zip(a, b):
         assert_same_exr(fa, fb)
     env["EXPOSURE"] = "1.5"
-    p = subprocess.run(["bash", str(PIPELINES / "raw_to_png.sh"), str(d), str(tmp_path / "png")], env=env,
-                       capture_output=True, text=True, timeout=180)
-    assert p.returncode == 0, p.stdout + p.stderr
     from nrhdr_core import io
-    pngs = sorted((tmp_path / "png").glob("frame_*.png"))
-    assert len(pngs) == len(raws)
-    for f in pngs:
-        ours = io.read_image(tmp_path / "batch" / f.name, np.uint8)
-        assert np.array_equal(ours, io.read_image(f, np.uint8)), f.name
-        assert ours.max() > ours.min()
+    for operator, frames in (("log", len(raws)), ("local", 1)):
+        png = tmp_path / f"png_{operator}"
+        p = subprocess.run(["bash", str(PIPELINES / "raw_to_png.sh"), str(d), str(png)],
+                           env=dict(env, OPERATOR=operator), capture_output=True, text=True, timeout=180)
+        assert p.returncode == 0, p.stdout + p.stderr
+        pngs = sorted(png.glob("frame_*.png"))
+        assert len(pngs) == len(raws)
+        if operator == "local":
+            rc, out = nrhdr_batch(d, "-o", tmp_path / "batch_local", "--workers", "0", "--mode", "all",
+                                  "--method", "preview", "--png", "--exposure", "1.5", "--frames", "1",
+                                  env=gst_subprocess_env)
+            assert rc == 0, out
+        for f in pngs[:frames]:
+            ours = io.read_image(tmp_path / ("batch" if operator == "log" else "batch_local") / f.name, np.uint8)
+            assert np.array_equal(ours, io.read_image(f, np.uint8)), (operator, f.name)
+            assert ours.max() > ours.min()
 
 
 def test_resume_skips_complete_frames_and_refuses_other_settings(clip6, tmp_path):

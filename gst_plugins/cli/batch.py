@@ -63,6 +63,9 @@ def add_batch(sub) -> None:
                    help="nrreconstruct temporal (on: the previous frames as a prior; frames are computed in "
                         "chunks of consecutive frames, see --chunk, --overlap)")
     g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
+    g.add_argument("--operator", choices=chain.SDR_OPERATORS, default="local",
+                   help="nrtonemap operator of the PNGs (docs/TONEMAP.md); local: each frame's own statistics "
+                        "(the element smooths them over the stream)")
     g.add_argument("--exposure", type=number(-30, 30), default=0.0, help="nrtonemap exposure in stops")
     g.add_argument("--contrast", type=number(1, 1e12, lo_open=True), default=1000.0, help="nrtonemap contrast")
     g.add_argument("--white", type=number(0, 1e12, lo_open=True), default=None,
@@ -103,7 +106,7 @@ def cmd_batch(a) -> int:
     settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk,
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion,
-                                   temporal=a.temporal, white=a.white, exposure=a.exposure, contrast=a.contrast)
+                                   temporal=a.temporal, operator=a.operator, white=a.white, exposure=a.exposure, contrast=a.contrast)
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames, allow_outside=a.allow_outside_paths,
                             start_index=a.start_index)
     job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile,
