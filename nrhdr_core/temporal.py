@@ -1,6 +1,6 @@
 """Temporal reconstruction: the previous output, aligned by a fast motion estimate, as a prior for the
 missing pixels and as extra measurements for the measured and noisy ones, where a per-block consistency
-check against the noise model trusts it (docs/FSE.md "Temporal reconstruction").
+check against the noise model trusts it (docs/TEMPORAL.md).
 
 Anchors: recursive multi-frame frequency selective reconstruction (Jonscher et al., PCS 2016) and
 consistency-checked multi-frame reconstruction for a fixed non-regular mask (arXiv 2203.09200); the
@@ -67,8 +67,7 @@ DEFAULTS = dict(
 
 
 class TemporalReconstructor:
-    """`reconstruction.reconstruct_frame` with a temporal prior (module docstring; docs/FSE.md "Temporal
-    reconstruction").
+    """`reconstruction.reconstruct_frame` with a temporal prior (module docstring; docs/TEMPORAL.md).
 
     method, preset, use_bounds, fusion: as `reconstruct_frame` (method may be a callable
     f(missing_share) -> (method, preset), as `nrreconstruct method=auto` passes); options: DEFAULTS."""

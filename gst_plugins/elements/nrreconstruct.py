@@ -6,7 +6,7 @@ RECONSTRUCTED bit (their reason is kept). `method` and `preset` can change while
 thread reads the settings snapshot once per frame. Posts an element message "nrhdr-frame-stats" per frame
 when `post-stats` is on.
 
-`temporal=on` (docs/FSE.md "Temporal reconstruction"): `nrhdr_core.temporal.TemporalReconstructor`
+`temporal=on` (docs/TEMPORAL.md): `nrhdr_core.temporal.TemporalReconstructor`
 instead, the previous output aligned by a motion estimate as prior and extra measurements where a per-block
 consistency check trusts it; its state restarts on a flush, a new segment (seek), new caps, a change of
 the reconstruction settings and stop.
@@ -54,7 +54,7 @@ PROPERTIES = PropertyTable("GstNrReconstruct", [
          "'on' = the previous output, aligned by a motion estimate, is a prior for missing pixels and extra "
          "measurements for measured and noisy ones where a per-block check against the noise model trusts "
          "it; blocks that did not change reuse their result; measured pixels of trusted blocks become their "
-         "recursive average (docs/FSE.md 'Temporal reconstruction'). Restarts on flush, seek, caps change and "
+         "recursive average (docs/TEMPORAL.md). Restarts on flush, seek, caps change and "
          "stop", playing=True),
     Prop("post-stats", bool, False, "Post statistics",
          "Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing = fraction of pixels "
