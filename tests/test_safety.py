@@ -246,13 +246,15 @@ def test_launch_status_when_child_is_killed(gst_subprocess_env):
 
 @pytest.mark.gst
 def test_shipped_pipeline_stops_on_sigterm(gst_subprocess_env, tmp_path):
-    """pipelines/*.sh exec `nrhdr launch`, so a SIGTERM to the script's PID stops the whole pipeline."""
+    """pipelines/*.sh exec `nrhdr launch` (or an nrhdr command that runs the pipelines itself, `nrhdr hdr10`), so
+    a SIGTERM to the script's PID stops the whole pipeline."""
     from conftest import make_test_clip
     d, _, _ = make_test_clip(tmp_path / "clip", frames=300, fps=30)     # 10 s played in real time
     for sh in PIPELINES.glob("*.sh"):
         text = sh.read_text()
         if sh.name != "common.sh":
-            assert 'exec "$NRHDR" launch' in text or ("nr_launch " in text and '"$NRHDR" launch' not in text), \
+            assert re.search(r'exec "\$NRHDR" (launch|hdr10) ', text) or (
+                "nr_launch " in text and '"$NRHDR" launch' not in text), \
                 f"{sh.name} must 'exec \"$NRHDR\" launch' (or use nr_launch) so that signals reach nrhdr"
     env = dict(gst_subprocess_env, SYNC="true")
     p = subprocess.Popen(["bash", str(PIPELINES / "raw_to_display_headless.sh"), str(d)], env=env,
