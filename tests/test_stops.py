@@ -102,8 +102,11 @@ def test_live_recording_killed_is_recovered(gst_subprocess_env, clip, tmp_path):
     _wait_size(out / ".clip.raw.part", 8 * raws[0].nbytes, p)
     _stop(p, signal.SIGKILL, True)
     part = out / ".clip.raw.part"
-    with open(part, "ab") as f:            # power loss in the middle of a frame (the kill may have cut one too)
-        f.write(b"\x07" * 333)
+    # power loss in the middle of a frame: 333 bytes more, or (when the kill cut a frame near its end) as many
+    # as keep the last frame partial, so that no frame of garbage is completed
+    r = part.stat().st_size % raws[0].nbytes
+    with open(part, "ab") as f:
+        f.write(b"\x07" * (333 if r + 333 < raws[0].nbytes else raws[0].nbytes - r - 1))
     cut = part.stat().st_size % raws[0].nbytes
     rc = subprocess.run([sys.executable, "-m", "gst_plugins.cli", "recover", out], env=gst_subprocess_env,
                         capture_output=True, text=True)
