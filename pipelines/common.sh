@@ -129,7 +129,7 @@ nr_refuse() {
 }
 
 # The preview sink into the array SINKV: $SINK when set (its words), else the display's sink (autovideosink in a
-# Wayland session; under X11 alone an X sink, since autovideosink tries waylandsink first, which crashes without
+# Wayland display; under X11 alone an X sink, since autovideosink tries waylandsink first, which crashes without
 # XDG_RUNTIME_DIR), else a fakesink with a video sink's defaults (sync, QoS events upstream, frames more than
 # 20 ms late dropped), said on stderr.
 nr_display_sink() {
@@ -144,7 +144,7 @@ nr_display_sink() {
       if gst-inspect-1.0 --exists "$s"; then SINKV=("$s" sync=true); break; fi
     done
   else
-    echo "$(basename "$0"): no display (DISPLAY unset, no Wayland session with XDG_RUNTIME_DIR): the frames go" \
+    echo "$(basename "$0"): no display (DISPLAY unset, no Wayland display with XDG_RUNTIME_DIR): the frames go" \
          "to fakesink" >&2
     SINKV=(fakesink sync=true qos=true max-lateness=20000000)
   fi

@@ -4,8 +4,8 @@
 # Defaults: CLIP_DIR=demo_out/clip, PROFILE=CLIP_DIR/camera.json.
 # Environment: CROSSTALK (nrcrosstalk mode, default lut), METHOD (default preview: fast enough for live video), PRESET, MODE, EXPOSURE, OPERATOR (local|log), NRHDR,
 # SINK (a sink and its properties, replacing the choice below).
-# Without a display (no DISPLAY, no Wayland session with XDG_RUNTIME_DIR) the frames go to fakesink, said on
-# stderr; on X11 without a Wayland session an X sink is named (autovideosink would try waylandsink first, which
+# Without a display (no DISPLAY, no Wayland display with XDG_RUNTIME_DIR) the frames go to fakesink, said on
+# stderr; on X11 without a Wayland display an X sink is named (autovideosink would try waylandsink first, which
 # crashes when XDG_RUNTIME_DIR is unset). pipelines/raw_to_display_headless.sh measures the frame rate headless.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in -h|--help) sed -n '2,10p' "$0"; exit 0;; esac

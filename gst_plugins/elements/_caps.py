@@ -38,6 +38,13 @@ def raw_template_caps(formats: str, extra: str = "") -> Gst.Caps:
                                 f"height={INT_RANGE}, framerate={FPS_RANGE}" + (f", {extra}" if extra else ""))
 
 
+def source_caps(srcpad: Gst.Pad, caps: Gst.Caps | None, filt: Gst.Caps | None) -> Gst.Caps:
+    """A source's do_get_caps: its fixed caps once started (`caps`), else its pad template, with the
+    filter's order first."""
+    caps = srcpad.get_pad_template_caps() if caps is None else caps
+    return caps if filt is None else filt.intersect_full(caps, Gst.CapsIntersectMode.FIRST)
+
+
 def copy_fields(src: Gst.Structure, dst: Gst.Structure, fields=STREAM_FIELDS) -> None:
     for f in fields:
         if src.has_field(f):

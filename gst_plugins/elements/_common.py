@@ -7,7 +7,7 @@ from ._base import NrElement, guarded, starting
 from ._buffers import (FrameSizeError, HdrPool, alloc_hdr_buffer, check_hdr_buffer, check_video_buffer,
                        copy_timestamps, gray16_buffer, map_hdr, map_sample, map_video)
 from ._caps import (HDR_LAYOUT, HDR_MEDIA_TYPE, HdrInfo, copy_fields, hdr_template_caps, hdr_transform_templates,
-                    raw_template_caps, transform_caps_by_structure)
+                    raw_template_caps, source_caps, transform_caps_by_structure)
 from ._gst import GLib, GObject, Gst, GstBase, GstVideo, np
 from ._live import LATENCY_PROP, LiveTiming
 from ._log import debug_category
@@ -19,4 +19,4 @@ __all__ = ["ALLOW_OUTSIDE_PROP", "CONTROLLABLE", "FrameSizeError", "GLib", "GObj
            "MUTABLE_READY", "NrElement", "Prop", "PropertyTable", "alloc_hdr_buffer", "check_hdr_buffer",
            "check_video_buffer", "copy_fields", "copy_timestamps", "debug_category", "gray16_buffer", "guarded",
            "hdr_template_caps", "hdr_transform_templates", "load_profile", "map_hdr", "map_sample", "map_video", "np",
-           "raw_template_caps", "starting", "transform_caps_by_structure"]
+           "raw_template_caps", "source_caps", "starting", "transform_caps_by_structure"]

@@ -24,7 +24,7 @@ import os
 import threading
 
 from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, gray16_buffer, guarded,
-                      load_profile, raw_template_caps, starting)
+                      load_profile, raw_template_caps, source_caps, starting)
 from ._profiles import ALLOW_OUTSIDE_PROP
 
 RING = 4  # frames a camera driver buffers (v4l2src's default); reported as the maximum latency
@@ -207,12 +207,7 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
         return True
 
     def do_get_caps(self, filt):
-        caps = getattr(self, "_caps", None) if self._cam is not None else None
-        if caps is None:
-            caps = self.srcpad.get_pad_template_caps()
-        if filt is not None:
-            caps = filt.intersect_full(caps, Gst.CapsIntersectMode.FIRST)
-        return caps
+        return source_caps(self.srcpad, getattr(self, "_caps", None) if self._cam is not None else None, filt)
 
     def do_is_seekable(self):
         return False

@@ -17,7 +17,7 @@ from __future__ import annotations
 import re
 
 from ._common import (Gst, GstBase, GstVideo, NrElement, Prop, PropertyTable, gray16_buffer, guarded,
-                      raw_template_caps, starting)
+                      raw_template_caps, source_caps, starting)
 
 MAX_FPS = 100000
 _FRACTION = re.compile(r"\s*(\d{1,10})\s*(?:/\s*(\d{1,10})\s*)?")
@@ -116,10 +116,7 @@ class NrImageSrc(NrElement, GstBase.BaseSrc):
         return True
 
     def do_get_caps(self, filt):
-        caps = self._caps if self._seq is not None else self.srcpad.get_pad_template_caps()
-        if filt is not None:
-            caps = filt.intersect_full(caps, Gst.CapsIntersectMode.FIRST)
-        return caps
+        return source_caps(self.srcpad, self._caps if self._seq is not None else None, filt)
 
     def do_is_seekable(self):
         return False
