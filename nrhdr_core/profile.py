@@ -20,13 +20,16 @@ from typing import Any
 
 import numpy as np
 
+from . import cfa as cfas
 from . import io
 
 FORMAT = "nrhdr-camera-profile"
-VERSION = 2                 # written when a version-2 field is used (V2_FIELDS); else the file is version 1
-VERSIONS = (1, 2)           # versions `load` reads
+VERSION = 3                 # the newest version `save` writes: the lowest version that holds the profile's fields
+VERSIONS = (1, 2, 3)        # versions `load` reads
 # fields a version-1 file cannot hold: an older reader would ignore them and misread the data
 V2_FIELDS = ("white_level", "alignment", "packing", "out_of_range", "defects")
+# fields of a colour sensor (docs/COLOUR.md): a version-1 or -2 reader would read a Bayer mosaic as grey
+V3_FIELDS = ("cfa", "white_balance")
 
 # defect-pixel map values (`CameraProfile.defects`): 0 = good
 DEFECT_HOT = 1
@@ -90,6 +93,8 @@ class CameraProfile:
     packing: str = "none"             # PACKINGS: "none" = one 16-bit word per pixel
     out_of_range: str = "clip"        # a code above the bit depth's range: "clip" (clipped pixel) or "error"
     defects: np.ndarray | None = None  # uint8 (H, W): 0 good, DEFECT_HOT / DEFECT_DEAD / DEFECT_STUCK
+    cfa: str = "none"                 # colour filter array: "none" (monochrome) or a Bayer phase (cfa.PATTERNS)
+    white_balance: tuple = (1.0, 1.0, 1.0)  # R, G, B gains that make a grey object grey (colour sensors)
     gain: float = 4400.0 / 8000.0     # DN per electron: the ADC clips before the full well, so saturated
                                       # pixels always read >= clip_code despite read noise
     read_noise: float = 2.0           # electrons rms
@@ -225,6 +230,16 @@ def _validate_format(p: CameraProfile, bad) -> None:
                              f"'lsb', got {p.alignment!r}")
     if p.out_of_range not in OUT_OF_RANGE:
         bad("out_of_range", f"must be one of {', '.join(OUT_OF_RANGE)}, got {p.out_of_range!r}")
+    if p.cfa not in cfas.CFAS:
+        bad("cfa", f"must be one of {', '.join(cfas.CFAS)}, got {p.cfa!r}")
+    wb = p.white_balance
+    if not (isinstance(wb, tuple) and len(wb) == 3 and all(
+            isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and 1e-3 <= v <= 1e3
+            for v in wb)):
+        bad("white_balance", f"must be three finite gains (R, G, B) in 0.001..1000, got {wb!r}")
+    if p.cfa != cfas.NONE and (p.height % 2 or p.width % 2):
+        bad("cfa", f"a Bayer sensor has an even width and height (whole 2 x 2 blocks), the mask is "
+                   f"{p.width}x{p.height}")
     d = p.defects
     if d is None:
         return
@@ -288,6 +303,16 @@ def _v2_values(p: CameraProfile) -> dict[str, Any]:
     return out
 
 
+def _v3_values(p: CameraProfile) -> dict[str, Any]:
+    """The colour fields, when the sensor has a CFA or a white balance other than 1, 1, 1."""
+    out: dict[str, Any] = {}
+    if p.cfa != cfas.NONE:
+        out["cfa"] = p.cfa
+    if tuple(p.white_balance) != (1.0, 1.0, 1.0):
+        out["white_balance"] = [float(v) for v in p.white_balance]
+    return out
+
+
 def save(p: CameraProfile, path, overwrite: bool = True) -> Path:
     """Write `path` (JSON), the mask PNG, the defect map PNG and the crosstalk calibration beside it,
     atomically; version 1 unless a version-2 field is needed (V2_FIELDS). With
@@ -301,13 +326,16 @@ def save(p: CameraProfile, path, overwrite: bool = True) -> Path:
     mask_name = f"{stem}_mask.png"
     io.write_mask(path.parent / mask_name, p.mask)
     v2 = _v2_values(p)
-    doc: dict[str, Any] = {"format": FORMAT, "version": VERSION if (v2 or p.defects is not None) else 1,
+    v3 = _v3_values(p)
+    version = 3 if v3 else 2 if (v2 or p.defects is not None) else 1
+    doc: dict[str, Any] = {"format": FORMAT, "version": version,
                            "width": p.width, "height": p.height, "mask": mask_name}
     for k in _SCALARS:
         doc[k] = getattr(p, k)
-    if doc["version"] == VERSION:    # a version-2 file states its white level
+    if version >= 2:    # a version-2 or -3 file states its white level
         doc["white_level"] = int(p.white_level)
     doc.update(v2)
+    doc.update(v3)
     if p.defects is not None:
         doc["defects"] = f"{stem}_defects.png"
         io.write_image(path.parent / doc["defects"], p.defects, np.uint8)
@@ -346,13 +374,13 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
     if ver not in VERSIONS or isinstance(ver, bool):
         raise ProfileError(f"{path}: field 'version': this nrhdr reads versions "
                            f"{', '.join(map(str, VERSIONS))}, file has {ver!r}")
-    if ver == 1:
-        late = [k for k in V2_FIELDS if k in doc]
-        if late:
+    for need, late_fields in ((2, V2_FIELDS), (3, V3_FIELDS)):
+        late = [k for k in late_fields if k in doc]
+        if ver < need and late:
             names = ", ".join(f"'{k}'" for k in late)
             raise ProfileError(f"{path}: field{'s' if len(late) > 1 else ''} {names} need{'' if len(late) > 1 else 's'}"
-                               f" version 2 (a version-1 reader would ignore them and misread the data); the "
-                               f"file says version 1")
+                               f" version {need} (a version-{ver} reader would ignore them and misread the data); "
+                               f"the file says version {ver}")
     for k in ("mask", "nd", "width", "height"):
         if k not in doc:
             raise ProfileError(f"{path}: missing required field '{k}'")
@@ -382,6 +410,17 @@ def load(path, allow_outside: bool = False) -> CameraProfile:
                 fields[k] = typ(v)
             except OverflowError:
                 raise ProfileError(f"{path}: field '{k}' is out of range: {v!r}") from None
+    if "cfa" in doc:
+        if not isinstance(doc["cfa"], str):
+            raise ProfileError(f"{path}: field 'cfa' must be a string, got {doc['cfa']!r}")
+        fields["cfa"] = doc["cfa"]
+    if "white_balance" in doc:
+        wb = doc["white_balance"]
+        if not (isinstance(wb, list) and len(wb) == 3
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in wb)):
+            raise ProfileError(f"{path}: field 'white_balance' must be a list of three numbers (R, G, B gains), "
+                               f"got {wb!r}")
+        fields["white_balance"] = tuple(float(v) for v in wb)
     extra = doc.get("extra", {})
     if not isinstance(extra, dict):
         raise ProfileError(f"{path}: field 'extra' must be an object, got {type(extra).__name__}")
