@@ -307,3 +307,154 @@ def tmqi(hdr, ldr) -> tuple[float, float, float]:
     N = float(pb * pc)
     Q = TMQI_A * S ** TMQI_ALPHA + (1 - TMQI_A) * N ** TMQI_BETA
     return float(Q), S, N
+
+
+# ---- colour: CIELAB, CIEDE2000, false colour ---------------------------------------------------------------
+
+# Linear RGB with BT.709 / sRGB primaries and a D65 white to CIE XYZ (IEC 61966-2-1, ITU-R BT.709); the white
+# (Xn, Yn, Zn) is the image of RGB (1, 1, 1), so equal R, G and B are exactly achromatic (a* = b* = 0).
+RGB709_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805],
+                          [0.2126, 0.7152, 0.0722],
+                          [0.0193, 0.1192, 0.9505]])
+D65_WHITE = RGB709_TO_XYZ.sum(axis=1)              # (0.9505, 1.0, 1.089)
+LUMA_709 = RGB709_TO_XYZ[1]                        # relative luminance Y of linear BT.709 RGB
+
+
+def _channels_first(a, axis: int, what: str) -> np.ndarray:
+    a = np.asarray(a, np.float64)
+    if a.ndim < 1 or a.shape[axis] != 3:
+        raise ValueError(f"{what}: need 3 channels on axis {axis}, got shape {a.shape}")
+    return np.moveaxis(a, axis, 0)
+
+
+def luminance(rgb, axis: int = 0) -> np.ndarray:
+    """Relative luminance Y (BT.709 weights) of linear RGB; channels on `axis` (planar (3, H, W) by default)."""
+    c = _channels_first(rgb, axis, "luminance")
+    return LUMA_709[0] * c[0] + LUMA_709[1] * c[1] + LUMA_709[2] * c[2]
+
+
+def linear_rgb_to_xyz(rgb, axis: int = 0) -> np.ndarray:
+    """CIE XYZ (channels first, float64) of linear BT.709 RGB (channels on `axis`)."""
+    c = _channels_first(rgb, axis, "linear_rgb_to_xyz")
+    return np.tensordot(RGB709_TO_XYZ, c, axes=1)
+
+
+def xyz_to_lab(xyz, white=D65_WHITE) -> np.ndarray:
+    """CIELAB (CIE 15:2004 Eq. 8.1-8.3; L*, a*, b* first) of XYZ (channels first) relative to `white`."""
+    xyz = np.asarray(xyz, np.float64)
+    d = 6.0 / 29.0
+
+    def f(t):
+        return np.where(t > d ** 3, np.cbrt(t), t / (3 * d * d) + 4.0 / 29.0)
+    fx, fy, fz = (f(xyz[i] / float(white[i])) for i in range(3))
+    return np.stack([116.0 * fy - 16.0, 500.0 * (fx - fy), 200.0 * (fy - fz)])
+
+
+def linear_rgb_to_lab(rgb, white: float = 1.0, axis: int = 0) -> np.ndarray:
+    """CIELAB (channels first) of linear BT.709 RGB whose diffuse white is `white` (R = G = B = white gives
+    L* = 100, a* = b* = 0; HDR values above it give L* > 100). Channels on `axis`."""
+    if not (float(white) > 0 and np.isfinite(white)):
+        raise ValueError(f"linear_rgb_to_lab: white must be a finite number > 0, got {white}")
+    return xyz_to_lab(linear_rgb_to_xyz(rgb, axis) / float(white))
+
+
+def srgb_decode(codes) -> np.ndarray:
+    """Linear values of sRGB-encoded values (IEC 61966-2-1 EOTF): uint8 codes are divided by 255, float
+    values are taken as 0..1."""
+    a = np.asarray(codes)
+    v = a / 255.0 if a.dtype == np.uint8 else a.astype(np.float64)
+    return np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def srgb_to_lab(codes, axis: int = -1) -> np.ndarray:
+    """CIELAB (channels first) of an sRGB display image: uint8 codes or floats 0..1, channels on `axis`
+    (interleaved (H, W, 3) by default, what `tonemap` writes for a display)."""
+    return linear_rgb_to_lab(srgb_decode(codes), 1.0, axis)
+
+
+def ciede2000(lab1, lab2, kl: float = 1.0, kc: float = 1.0, kh: float = 1.0) -> np.ndarray:
+    """CIEDE2000 colour difference of CIELAB values (channels first: L*, a*, b*), element-wise, after
+    Sharma, Wu and Dalal, 'The CIEDE2000 color-difference formula: implementation notes, supplementary
+    test data, and mathematical observations', Color Res. Appl. 30(1) 2005, Eq. 1-22 (hue angles in
+    degrees, mean hue and hue difference by their notes (i)-(iv))."""
+    l1, a1, b1 = np.asarray(lab1, np.float64)
+    l2, a2, b2 = np.asarray(lab2, np.float64)
+    c1, c2 = np.hypot(a1, b1), np.hypot(a2, b2)
+    cm7 = ((c1 + c2) / 2.0) ** 7
+    g = 0.5 * (1.0 - np.sqrt(cm7 / (cm7 + 25.0 ** 7)))                       # Eq. 4
+    a1p, a2p = (1.0 + g) * a1, (1.0 + g) * a2                                # Eq. 5
+    c1p, c2p = np.hypot(a1p, b1), np.hypot(a2p, b2)                         # Eq. 6
+    h1p = np.where((a1p == 0) & (b1 == 0), 0.0, np.degrees(np.arctan2(b1, a1p)) % 360.0)   # Eq. 7
+    h2p = np.where((a2p == 0) & (b2 == 0), 0.0, np.degrees(np.arctan2(b2, a2p)) % 360.0)
+    dlp = l2 - l1                                                            # Eq. 8
+    dcp = c2p - c1p                                                          # Eq. 9
+    zero = (c1p * c2p) == 0
+    dh = h2p - h1p
+    dhp = np.where(zero, 0.0, np.where(dh > 180.0, dh - 360.0, np.where(dh < -180.0, dh + 360.0, dh)))  # Eq. 10
+    dHp = 2.0 * np.sqrt(c1p * c2p) * np.sin(np.radians(dhp / 2.0))          # Eq. 11
+    lpm = (l1 + l2) / 2.0                                                    # Eq. 12
+    cpm = (c1p + c2p) / 2.0                                                  # Eq. 13
+    hs = h1p + h2p
+    hpm = np.where(zero, hs, np.where(np.abs(h1p - h2p) <= 180.0, hs / 2.0,
+                                      np.where(hs < 360.0, (hs + 360.0) / 2.0, (hs - 360.0) / 2.0)))   # Eq. 14
+    t = (1.0 - 0.17 * np.cos(np.radians(hpm - 30.0)) + 0.24 * np.cos(np.radians(2.0 * hpm))
+         + 0.32 * np.cos(np.radians(3.0 * hpm + 6.0)) - 0.20 * np.cos(np.radians(4.0 * hpm - 63.0)))  # Eq. 15
+    dtheta = 30.0 * np.exp(-(((hpm - 275.0) / 25.0) ** 2))                   # Eq. 16
+    cpm7 = cpm ** 7
+    rc = 2.0 * np.sqrt(cpm7 / (cpm7 + 25.0 ** 7))                            # Eq. 17
+    l50 = (lpm - 50.0) ** 2
+    sl = 1.0 + 0.015 * l50 / np.sqrt(20.0 + l50)                             # Eq. 18
+    sc = 1.0 + 0.045 * cpm                                                   # Eq. 19
+    sh = 1.0 + 0.015 * cpm * t                                               # Eq. 20
+    rt = -np.sin(np.radians(2.0 * dtheta)) * rc                              # Eq. 21
+    x, y, z = dlp / (kl * sl), dcp / (kc * sc), dHp / (kh * sh)
+    return np.sqrt(x * x + y * y + z * z + rt * y * z)                       # Eq. 22
+
+
+def mean_ciede2000_srgb(ref_codes, test_codes, mask=None, axis: int = -1) -> float:
+    """Mean CIEDE2000 between two sRGB display images (uint8 codes, channels on `axis`), over `mask`
+    (bool (H, W)) or every pixel."""
+    d = ciede2000(srgb_to_lab(ref_codes, axis), srgb_to_lab(test_codes, axis))
+    if mask is not None:
+        d = d[np.asarray(mask, bool)]
+    return float(d.mean()) if d.size else float("nan")
+
+
+def chroma_error(truth, test, floor: float = 1.0, axis: int = 0) -> np.ndarray:
+    """Per pixel (Delta a*)^2 + (Delta b*)^2 between linear RGB `test` and `truth` (channels on `axis`), both
+    scaled by the same factor so that the truth's luminance is the CIELAB white (Y = Yn; the truth's Y
+    floored at `floor`). The scaling makes the measure independent of the pixel's level (a fringe counts the
+    same in a shadow and in a highlight, as it would under local adaptation) and of the test's luminance
+    error: any achromatic test (R = G = B) on an achromatic truth scores 0."""
+    t = _channels_first(truth, axis, "chroma_error truth")
+    x = _channels_first(test, axis, "chroma_error test")
+    if t.shape != x.shape:
+        raise ValueError(f"chroma_error: truth {t.shape} and test {x.shape} differ in shape")
+    k = 1.0 / np.maximum(luminance(t), floor)
+    lt = linear_rgb_to_lab(t * k)
+    lx = linear_rgb_to_lab(np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0).clip(0.0) * k)
+    return (lx[1] - lt[1]) ** 2 + (lx[2] - lt[2]) ** 2
+
+
+def false_colour(truth, test, mask=None, floor: float = 1.0, axis: int = 0) -> float:
+    """False colour of a reconstructed colour image: the mean over `mask` (default every pixel) of
+    `chroma_error`, the squared CIELAB chroma difference (Delta a*^2 + Delta b*^2; CIE 15:2004 section 8.2.1)
+    against the truth at the truth's luminance. 0 for a perfect result. On an achromatic zone plate it is the
+    mean squared chroma of the result, the colour aliasing a demosaicker makes of pure luminance detail;
+    `false_colour_db` gives it in dB, so '3 dB less' is half the chroma error power."""
+    e = chroma_error(truth, test, floor, axis)
+    if mask is not None:
+        e = e[np.asarray(mask, bool)]
+    return float(e.mean()) if e.size else float("nan")
+
+
+def false_colour_db(truth, test, mask=None, floor: float = 1.0, axis: int = 0) -> float:
+    """10 log10(`false_colour`) in dB (-inf for a perfect result)."""
+    fc = false_colour(truth, test, mask, floor, axis)
+    return float("-inf") if fc == 0 else 10.0 * float(np.log10(fc))
+
+
+def rgb_clip_report(pairs, dark_level: float, bright_level: float, white: float) -> dict:
+    """`clip_report` on the luminance (BT.709 weights, `luminance`) of linear camera RGB frames: `pairs`
+    yields (truth, test) planar (3, H, W); regions by the truth's luminance."""
+    return clip_report(((luminance(t), luminance(x)) for t, x in pairs), dark_level, bright_level, white)

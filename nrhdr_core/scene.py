@@ -103,3 +103,51 @@ def cached_synthetic_hdr_scene(height: int = 1200, width: int = 1600, seed: int 
     except OSError:
         pass                        # a read-only cache: synthesise each time
     return a
+
+
+ZONE_PLATE_PANELS = ("mid", "bright", "colour")
+
+
+def colour_zone_plate(size: int = 256, mid: float = 0.25, bright: float = 3.0, stops: float = 1.0,
+                      saturation: float = 0.5) -> tuple[np.ndarray, dict]:
+    """A colour zone plate test scene in HDR: linear RGB (float32 (3, size, 3 * size)) and its panels.
+
+    Three square panels side by side, each a circular zone plate whose local frequency grows linearly from
+    0 at the centre to 0.5 cycles/pixel (the full grid's Nyquist limit) at the inscribed circle (phase
+    pi r^2 / size; flat at the mean level outside it), modulated +-`stops` around a mean level in
+    log2 (the rings span 2 x `stops` stops):
+
+    - 'mid': achromatic (R = G = B) around `mid`;
+    - 'bright': achromatic around `bright` (in units of the regular pixels' clip: at 3 with 1 stop every
+      regular pixel of the rings clips and only ND pixels measure them);
+    - 'colour': the same rings around `mid`, R and B in antiphase (R x (1 + s c), B x (1 - s c), c the
+      ring signal, s = `saturation`): chromatic detail.
+
+    A Bayer CFA samples R and B at half the grid's rate in each direction (Nyquist 0.25 cycles/pixel), an ND
+    layout thins the samples of each colour further; rings beyond the rate a layout keeps alias, and aliased
+    luminance detail comes back as colour that is not in the scene: false colour (`metrics.false_colour`,
+    zero on the achromatic truth). Values are relative: multiply by the regular pixels' white (DN) for
+    flux. Returns (rgb, {panel: bool (size, 3 * size) mask of its rings})."""
+    if size < 8:
+        raise ValueError(f"colour_zone_plate: size must be >= 8, got {size}")
+    if not (mid > 0 and bright > 0 and stops >= 0 and 0 <= saturation < 1):
+        raise ValueError("colour_zone_plate: mid and bright must be > 0, stops >= 0, saturation in [0, 1)")
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    c = (size - 1) / 2.0
+    r2 = (yy - c) ** 2 + (xx - c) ** 2
+    rings = r2 <= (size / 2.0) ** 2
+    wave = np.where(rings, np.cos(np.pi * r2 / size), 0.0)       # d(phase)/dr / 2 pi = r / size
+    level = 2.0 ** (stops * wave)
+    rgb = np.empty((3, size, 3 * size), np.float64)
+    rgb[:, :, :size] = mid * level
+    rgb[:, :, size:2 * size] = bright * level
+    col = mid * level
+    rgb[0, :, 2 * size:] = col * (1.0 + saturation * wave)
+    rgb[1, :, 2 * size:] = col
+    rgb[2, :, 2 * size:] = col * (1.0 - saturation * wave)
+    masks = {}
+    for i, name in enumerate(ZONE_PLATE_PANELS):
+        m = np.zeros((size, 3 * size), bool)
+        m[:, i * size:(i + 1) * size] = rings
+        masks[name] = m
+    return rgb.astype(np.float32), masks
