@@ -1,0 +1,447 @@
+"""Colour chain quality and speed: a Bayer sensor under the non-regular ND mask against the regular SVE layout and
+an unmodified Bayer camera (docs/COLOUR.md, "Measured").
+
+    python benchmarks/colour.py             # 384 x 256 views, 5 HDR scenes, 4 Kodak images, zone plate 256;
+                                            # frames/s at 1920 x 1080
+    python benchmarks/colour.py --quick     # smoke run: 96 x 64, 2 + 2 images, zone plate 64; frames/s at 320 x 180
+
+Cameras (CFA `rggb`, `profile.default`'s sensor: 12 bit, ND 6.35, half the photosites attenuated):
+- `nr-independent`: the non-regular ND mask laid over the CFA without regard to it;
+- `nr-balanced`: non-regular, exactly half of each colour's photosites attenuated;
+- `sve`: the regular spatially varying exposure layout of Assorted Pixels (Nayar and Mitsunaga, TPAMI 2005): ND
+  on every other 2 x 2 Bayer block in a checkerboard, so each colour plane carries a checkerboard of exposures;
+- `bayer`: the unmodified Bayer camera (no ND), its codes those of the regular photosites of the others (the
+  same shot and read noise), its clipped photosites filled from their bound, as for the monochrome anchor.
+The layouts come from the simulator (`simulate.nd_layout`) where the tree has it, else from `nd_mask` below.
+
+Scenes: the shared HDR scenes (linear RGB, $NRHDR_SHARED_DATA/hdr) and Kodak images (sRGB decoded to linear
+light, $NRHDR_SHARED_DATA/kodak), viewed at the frame size (`simulate.view` per channel, anti-aliased) and
+exposed with `simulate.exposure_scale` on their luminance (median at 18 % of the regular pixels' range); photosite
+flux = the scene channel of its CFA colour (unit channel sensitivities); shot and read noise, no crosstalk.
+Chain: `validity.classify` (defaults: weighted dark policy) -> `demosaic.reconstruct_cfa` (method `preview` and
+`fse` preset fast). Colour zone plate (`scene.colour_zone_plate`: achromatic rings around 0.25 and 3 x the
+regular clip, and chromatic rings around 0.25), noise-free, so that what is measured is aliasing.
+
+Metrics: log2 PSNR of luminance per region (`metrics.rgb_clip_report`: dark < l_min x ND, bright >= the regular
+clip, by the truth's luminance; both capped at the ND camera's white); mean CIEDE2000 of the tone-mapped result
+against the tone-mapped truth (`tonemap.tonemap_rgb`, the profile's white, truth capped at it); false colour on
+the zone plate (`metrics.false_colour_db`: 10 log10 of the mean squared CIELAB chroma error at the truth's
+luminance, on the rings). Frames/s at 1920 x 1080 on the first HDR scene, in the same run: the colour preview
+chain (`validity.classify -> crosstalk.correct` (compact LUT of a synthetic calibration) `-> reconstruct_cfa
+(preview) -> tonemap_rgb`) against the monochrome preview chain of the same sensor (`chain.process_frame`
+with `method=preview`, `crosstalk=lut` -> `chain.tonemap_frame`), passes interleaved, best of `--repeat`.
+Where the tree lacks `demosaic.reconstruct_cfa` or `tonemap.tonemap_rgb`, documented stand-ins run and the
+output says so: per-plane `reconstruction.reconstruct` of each colour's own photosites, and the monochrome tone
+map of the luminance with the RGB ratios kept.
+Writes bench_out/colour/results.json and results.md.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from nrhdr_core import (cfa, chain, crosstalk, io, mask, metrics, profile, reconstruction, scene,  # noqa: E402
+                        sensor, simulate, tonemap, validity)
+
+if importlib.util.find_spec("nrhdr_core.demosaic") is not None:
+    from nrhdr_core import demosaic
+else:                                     # a tree without the joint reconstruction: per-plane stand-in
+    demosaic = None
+
+DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
+OUT = ROOT / "bench_out" / "colour"
+PATTERN = "rggb"
+CAMERAS = ("nr-independent", "nr-balanced", "sve", "bayer")
+ND_CAMERAS = CAMERAS[:3]
+LABELS = {"nr-independent": "non-regular ND, independent of the CFA", "nr-balanced": "non-regular ND, balanced per "
+          "colour", "sve": "regular SVE (Assorted Pixels)", "bayer": "anchor: unmodified Bayer camera"}
+METHODS = {"preview": ("preview", "fast"), "fse": ("fse", "fast")}
+HDR_SCENES = ("Desk", "KernerEnvLatLong", "MtTamWest", "StillLife", "Tree")
+GOALS = {"bright_gain_db": 12.0, "false_colour_db": 3.0, "fps_ratio": 0.70}
+
+
+# ---- cameras ------------------------------------------------------------------------------------------------
+
+def nd_mask(layout: str, h: int, w: int, pattern: str = PATTERN, seed: int = 3) -> np.ndarray:
+    """bool (h, w) ND mask of a layout (`simulate.nd_layout` where the tree has it): 'independent' (the monochrome
+    non-regular mask), 'balanced' (a random exact half of each colour's photosites), 'sve' (every other 2 x 2
+    Bayer block, checkerboard), 'none'."""
+    sim = getattr(simulate, "nd_layout", None)
+    if sim is not None:
+        return np.asarray(sim(layout, h, w, pattern, seed=seed), bool)
+    if layout == "none":
+        return np.zeros((h, w), bool)
+    if layout == "independent":
+        return mask.make_mask("nonregular", h, w, seed=seed)
+    if layout == "sve":
+        yy, xx = np.mgrid[0:h, 0:w]
+        return ((yy // 2 + xx // 2) % 2) == 1
+    if layout == "balanced":
+        rng = np.random.default_rng(seed)
+        out = np.zeros(h * w, bool)
+        for m in cfa.channel_masks(pattern, h, w):
+            idx = rng.permutation(np.flatnonzero(m))
+            out[idx[: idx.size // 2]] = True
+        return out.reshape(h, w)
+    raise ValueError(f"nd_mask: layout must be independent, balanced, sve or none, got {layout!r}")
+
+
+LAYOUT_OF = {"nr-independent": "independent", "nr-balanced": "balanced", "sve": "sve", "bayer": "none"}
+
+
+def cameras(h, w, **fields) -> dict:
+    """{camera: CameraProfile with the CFA} at h x w."""
+    return {c: profile.make(nd_mask(LAYOUT_OF[c], h, w), cfa=PATTERN, **fields) for c in CAMERAS}
+
+
+def capture_all(truth_rgb, profs, seed, shot_noise=True) -> dict:
+    """Raw frames of every camera from one truth (3, H, W); the regular photosites share the Bayer camera's
+    codes (the same noise), the attenuated ones are drawn once per layout."""
+    flux = cfa.mosaic(truth_rgb, PATTERN)
+    base = sensor.capture(flux, profs["bayer"], np.random.default_rng((seed, 0)), shot_noise=shot_noise)
+    out = {"bayer": base}
+    for i, c in enumerate(ND_CAMERAS):
+        p = profs[c]
+        nd = sensor.capture(flux, p, np.random.default_rng((seed, i + 1)), shot_noise=shot_noise)
+        out[c] = np.where(p.mask, nd, base).astype(np.uint16)
+    return out
+
+
+# ---- reconstruction and tone mapping (the contract's APIs, with stand-ins) -------------------------------------
+
+def _per_plane(values, state, pattern, method, preset, noise=None):
+    """Stand-in for `demosaic.reconstruct_cfa`: each colour plane reconstructed from its own valid photosites
+    (`reconstruction.reconstruct`, the photosites' bounds), no joint use of the channels."""
+    known = validity.known_mask(state)
+    lo, hi = validity.bounds(values, state)
+    idx = cfa.channel_index(pattern, *values.shape)
+    out = np.empty((3,) + values.shape, np.float32)
+    for c in range(3):
+        own = idx == c
+        out[c] = reconstruction.reconstruct(values, known & own, method=method, preset=preset,
+                                            lower=np.where(own, lo, np.nan), upper=np.where(own, hi, np.nan))
+    return out
+
+
+def reconstruct_rgb(raw, prof, method, preset):
+    """classify -> reconstruct_cfa: linear camera RGB (3, H, W)."""
+    values, state = validity.classify(raw, prof)
+    if demosaic is not None:
+        return demosaic.reconstruct_cfa(values, state, prof.cfa, method=method, preset=preset, noise=prof)
+    return _per_plane(values, state, prof.cfa, method, preset, noise=prof)
+
+
+def _tonemap_stand_in(rgb, white, operator="local"):
+    """Stand-in for `tonemap.tonemap_rgb`: the monochrome tone map of the luminance taken as the display's
+    sRGB code, the RGB ratios kept, sRGB encoded: uint8 (H, W, 3)."""
+    y = metrics.luminance(rgb).astype(np.float32)
+    code = chain.tonemap_frame(y, None, chain.ChainSettings(operator=operator, white=float(white)))
+    d = metrics.srgb_decode(code)
+    lin = np.clip(np.asarray(rgb, np.float64) * (d / np.maximum(y, 1e-6)), 0.0, 1.0)
+    enc = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+    return np.moveaxis(np.rint(enc * 255.0), 0, -1).astype(np.uint8)
+
+
+def tonemap_rgb(rgb, white, operator="local"):
+    f = getattr(tonemap, "tonemap_rgb", None)
+    if f is not None:
+        return f(np.ascontiguousarray(rgb, dtype=np.float32), float(white), operator=operator)
+    return _tonemap_stand_in(rgb, white, operator)
+
+
+def stand_ins() -> list[str]:
+    s = []
+    if demosaic is None:
+        s.append("nrhdr_core.demosaic is not in this tree: per-plane reconstruction stands in for reconstruct_cfa")
+    if getattr(tonemap, "tonemap_rgb", None) is None:
+        s.append("tonemap.tonemap_rgb is not in this tree: the luminance tone map with RGB ratios stands in")
+    if getattr(simulate, "nd_layout", None) is None:
+        s.append("simulate.nd_layout is not in this tree: the layouts of benchmarks/colour.py nd_mask")
+    return s
+
+
+# ---- scenes -------------------------------------------------------------------------------------------------
+
+def view_rgb(rgb, h, w):
+    """The centred view (fov 0.8) of a planar RGB scene at h x w, per channel (`simulate.view`, anti-aliased)."""
+    mo = simulate.Motion(pan=0.0, tilt=0.0, zoom=1.0, fov=0.8)
+    return np.stack([simulate.view(c, h, w, 0.5, mo, simulate.prefilter(c, w, mo)) for c in rgb])
+
+
+def load_scenes(paths, kodak, h, w, regular_white):
+    """[(name, kind, truth flux (3, h, w) float32)]: HDR files as linear RGB, Kodak PNGs sRGB-decoded."""
+    out = []
+    for p in list(paths) + list(kodak):
+        rgb = io.read_rgb(p)
+        kind = "kodak" if p in kodak else "hdr"
+        if kind == "kodak":
+            rgb = metrics.srgb_decode(rgb).astype(np.float32)
+        v = view_rgb(rgb, h, w)
+        y = metrics.luminance(v)
+        k = 0.18 * regular_white / simulate.scene_median(y)
+        out.append((Path(p).stem, kind, (v * np.float32(k)).astype(np.float32)))
+    return out
+
+
+# ---- quality -----------------------------------------------------------------------------------------------
+
+def quality(scenes, h, w, methods, seed, operator, log=print):
+    """{method: {kind: {camera: {'report': rgb_clip_report, 'de00': mean CIEDE2000}}}}."""
+    profs = cameras(h, w)
+    p = profs["nr-independent"]
+    dark, bright, white = p.l_min * p.nd, float(p.regular_white), float(p.white)
+    res = {m: {} for m in methods}
+    for kind in ("hdr", "kodak"):
+        sel = [(n, t) for n, k, t in scenes if k == kind]
+        if not sel:
+            continue
+        pairs = {m: {c: [] for c in CAMERAS} for m in methods}
+        de = {m: {c: [] for c in CAMERAS} for m in methods}
+        for j, (name, truth) in enumerate(sel):
+            t0 = time.perf_counter()
+            raws = capture_all(truth, profs, seed + 100 * j)
+            capped = np.minimum(truth, white)
+            tm_truth = tonemap_rgb(capped, white, operator)
+            for m in methods:
+                meth, preset = METHODS[m]
+                for c in CAMERAS:
+                    rgb = reconstruct_rgb(raws[c], profs[c], meth, preset)
+                    pairs[m][c].append((truth, rgb))
+                    de[m][c].append(metrics.mean_ciede2000_srgb(tm_truth, tonemap_rgb(np.minimum(rgb, white),
+                                                                                      white, operator)))
+            log(f"  {kind} {name}: {time.perf_counter() - t0:.1f} s")
+        for m in methods:
+            res[m][kind] = {c: {"report": metrics.rgb_clip_report(pairs[m][c], dark, bright, white),
+                                "de00": float(np.mean(de[m][c]))} for c in CAMERAS}
+    return res
+
+
+def zone_plate(size, methods, seed):
+    """{method: {camera: {panel or 'all': false colour dB}}}, noise-free captures of `scene.colour_zone_plate`."""
+    rel, panels = scene.colour_zone_plate(size)
+    profs = cameras(size, 3 * size, read_noise=0.0)
+    truth = rel * np.float32(profs["bayer"].regular_white)
+    raws = capture_all(truth, profs, seed, shot_noise=False)
+    rings = np.logical_or.reduce(list(panels.values()))
+    res = {}
+    for m in methods:
+        meth, preset = METHODS[m]
+        res[m] = {}
+        for c in CAMERAS:
+            rgb = reconstruct_rgb(raws[c], profs[c], meth, preset)
+            r = {k: metrics.false_colour_db(truth, rgb, pm) for k, pm in panels.items()}
+            r["all"] = metrics.false_colour_db(truth, rgb, rings)
+            res[m][c] = r
+    return res
+
+
+# ---- speed -------------------------------------------------------------------------------------------------
+
+def _stages():
+    spec = importlib.util.spec_from_file_location("bench_stages", ROOT / "benchmarks" / "stages.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def speed(scene_path, h, w, frames, repeat, operator, seed):
+    """{'mono': frames/s, 'colour': frames/s} of the preview chains at h x w, passes interleaved, best of
+    `repeat` after an untimed one."""
+    base = profile.default(h, w, seed=3)
+    base = base.replace(crosstalk=_stages().synthetic_calibration(base, 40))
+    mono, col = base, base.replace(cfa=PATTERN)
+    if scene_path is None:
+        y = scene.cached_synthetic_hdr_scene(max(120, 2 * h), max(120, 2 * h) * 4 // 3)
+        rgb = view_rgb(np.stack([y, y, y]), h, w)
+    else:
+        rgb = view_rgb(io.read_rgb(scene_path), h, w)
+    truth = rgb * np.float32(0.18 * base.regular_white / simulate.scene_median(metrics.luminance(rgb)))
+    rng = np.random.default_rng(seed)
+    raws_m = [sensor.capture(metrics.luminance(truth).astype(np.float32), mono, rng) for _ in range(frames)]
+    raws_c = [sensor.capture(cfa.mosaic(truth, PATTERN), col, rng) for _ in range(frames)]
+    crosstalk.compact_for(base)
+    sm = chain.ChainSettings(method="preview", crosstalk="lut", operator=operator)
+
+    def run_mono():
+        for r in raws_m:
+            v, _ = chain.process_frame(r, mono, sm)
+            chain.tonemap_frame(v, mono, sm)
+
+    def run_colour():
+        for r in raws_c:
+            v, s = validity.classify(r, col)
+            v2, s2 = crosstalk.correct(v, s, col, "lut", lut="compact")
+            if demosaic is not None:
+                rgb = demosaic.reconstruct_cfa(v2, s2, col.cfa, method="preview", noise=col)
+            else:
+                rgb = _per_plane(v2, s2, col.cfa, "preview", "fast", noise=col)
+            tonemap_rgb(rgb, col.white, operator)
+
+    best = {"mono": float("inf"), "colour": float("inf")}
+    run_mono()
+    run_colour()
+    for _ in range(repeat):
+        for k, f in (("mono", run_mono), ("colour", run_colour)):
+            t0 = time.perf_counter()
+            f()
+            best[k] = min(best[k], time.perf_counter() - t0)
+    return {k: frames / v for k, v in best.items()}
+
+
+# ---- report ------------------------------------------------------------------------------------------------
+
+def _f(x, d=2):
+    return "-" if x is None else f"{x:.{d}f}"
+
+
+def quality_table(res_kind) -> str:
+    lines = ["| camera | log2 PSNR of luminance, all / dark / mid / bright dB | mean CIEDE2000 |", "|---|---|---|"]
+    for c in CAMERAS:
+        r = res_kind[c]
+        cells = " / ".join(_f(r["report"][k]["log2_psnr"]) for k in metrics.REGIONS)
+        lines.append(f"| {LABELS[c]} | {cells} | {_f(r['de00'])} |")
+    return "\n".join(lines)
+
+
+def zone_table(res_m) -> str:
+    cols = ("all",) + scene.ZONE_PLATE_PANELS
+    lines = ["| camera | false colour dB: " + " / ".join(cols) + " |", "|---|---|"]
+    for c in CAMERAS:
+        lines.append(f"| {LABELS[c]} | " + " / ".join(_f(res_m[c][k]) for k in cols) + " |")
+    return "\n".join(lines)
+
+
+def goals(q, z, fps) -> list[dict]:
+    """The issue's goals per method and non-regular layout: measured value, threshold, met."""
+    out = []
+    for m in q:
+        hdr, kodak = q[m].get("hdr"), q[m].get("kodak")
+        for c in ("nr-independent", "nr-balanced"):
+            if hdr:
+                gain = hdr[c]["report"]["bright"]["log2_psnr"] - hdr["bayer"]["report"]["bright"]["log2_psnr"]
+                out.append({"goal": f"{m}, {c}: bright log2 PSNR >= +12 dB over the unmodified Bayer camera",
+                            "value": f"{gain:+.2f} dB", "met": gain >= GOALS["bright_gain_db"]})
+            if m in z:
+                less = z[m]["sve"]["all"] - z[m][c]["all"]
+                out.append({"goal": f"{m}, {c}: false colour on the zone plate >= 3 dB below SVE",
+                            "value": f"{less:+.2f} dB", "met": less >= GOALS["false_colour_db"]})
+            for kind, r in (("HDR scenes", hdr), ("Kodak", kodak)):
+                if r:
+                    dp = r[c]["report"]["all"]["log2_psnr"] - r["sve"]["report"]["all"]["log2_psnr"]
+                    dd = r[c]["de00"] - r["sve"]["de00"]
+                    out.append({"goal": f"{m}, {c}: {kind} no worse than SVE (log2 PSNR all, CIEDE2000)",
+                                "value": f"{dp:+.2f} dB, {dd:+.2f} dE00", "met": dp >= 0 and dd <= 0})
+    if fps:
+        ratio = fps["colour"] / fps["mono"]
+        out.append({"goal": "colour preview >= 70 % of the monochrome preview's frames/s",
+                    "value": f"{100 * ratio:.0f} % ({fps['colour']:.1f} / {fps['mono']:.1f})",
+                    "met": ratio >= GOALS["fps_ratio"]})
+    return out
+
+
+def size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192 and w % 2 == 0 and h % 2 == 0):
+        raise argparse.ArgumentTypeError(f"{text}: width and height must be even, in 16..8192")
+    return w, h
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smoke run: 96 x 64, 2 HDR scenes, 2 Kodak images, zone "
+                                                         "plate 64, preview only, frames/s at 320 x 180")
+    ap.add_argument("--size", type=size, default=None, help="views WIDTHxHEIGHT (default 384x256)")
+    ap.add_argument("--scenes", nargs="*", default=None, help="HDR scene files (default: the shared ones)")
+    ap.add_argument("--kodak", nargs="*", default=None, help="Kodak PNG files (default: kodim01-04 of the shared "
+                                                             "data)")
+    ap.add_argument("--methods", default=None, help="comma-separated: preview, fse (default both; quick: preview)")
+    ap.add_argument("--zone-size", type=int, default=None, help="zone plate panel side (default 256)")
+    ap.add_argument("--operator", default="local", choices=tonemap.SDR_OPERATORS, help="tone map operator")
+    ap.add_argument("--fps-size", type=size, default=None, help="frames/s at WIDTHxHEIGHT (default 1920x1080)")
+    ap.add_argument("--fps-frames", type=int, default=None, help="frames per timed pass (default 4)")
+    ap.add_argument("--repeat", type=int, default=3, help="timed passes per chain (best counts)")
+    ap.add_argument("--no-fps", action="store_true", help="quality only")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--out", default=str(OUT))
+    a = ap.parse_args(argv)
+    w, h = a.size or ((96, 64) if a.quick else (384, 256))
+    zsize = a.zone_size or (64 if a.quick else 256)
+    fw, fh = a.fps_size or ((320, 180) if a.quick else (1920, 1080))
+    fframes = a.fps_frames or (2 if a.quick else 4)
+    methods = (a.methods or ("preview" if a.quick else "preview,fse")).split(",")
+    bad = [m for m in methods if m not in METHODS]
+    if bad or zsize < 8 or min(fframes, a.repeat) < 1:
+        ap.error(f"--methods takes {', '.join(METHODS)} (got {a.methods!r}); --zone-size >= 8; --fps-frames and "
+                 "--repeat >= 1")
+    if a.scenes is None:
+        paths = [str(p) for n in HDR_SCENES for p in [DATA / "hdr" / f"{n}.exr"] if p.is_file()]
+        paths = paths[:2] if a.quick else paths
+    else:
+        paths = a.scenes
+    if a.kodak is None:
+        kodak = [str(p) for i in range(1, 5) for p in [DATA / "kodak" / f"kodim0{i}.png"] if p.is_file()]
+        kodak = kodak[:2] if a.quick else kodak
+    else:
+        kodak = a.kodak
+    missing = [p for p in paths + kodak if not Path(p).is_file()]
+    if missing or not (paths or kodak):
+        print(f"colour: file(s) not found: {', '.join(missing) or DATA} (set NRHDR_SHARED_DATA or pass --scenes/--kodak)",
+              file=sys.stderr)
+        return 2
+    notes = stand_ins()
+    for n in notes:
+        print("note: " + n, flush=True)
+    t_start = time.perf_counter()
+    prof = profile.default(h, w)
+    scenes = load_scenes(paths, kodak, h, w, prof.regular_white)
+    print(f"quality: {w} x {h}, {len(paths)} HDR scenes, {len(kodak)} Kodak images, methods {', '.join(methods)}",
+          flush=True)
+    q = quality(scenes, h, w, methods, a.seed, a.operator, log=lambda s: print(s, flush=True))
+    print(f"zone plate: {zsize} x {3 * zsize}", flush=True)
+    z = zone_plate(zsize, methods, a.seed)
+    fps = None
+    if not a.no_fps:
+        print(f"frames/s: {fw} x {fh}, {fframes} frames per pass", flush=True)
+        fps = speed(paths[0] if paths else None, fh, fw, fframes, a.repeat, a.operator, a.seed)
+    g = goals(q, z, fps)
+    text = "".join(f"note: {n}\n" for n in notes)
+    text += (f"{w} x {h} views, CFA {PATTERN}, shot and read noise; tone map `{a.operator}`; HDR: "
+             f"{', '.join(Path(p).stem for p in paths) or '-'}; Kodak: {', '.join(Path(p).stem for p in kodak) or '-'}\n")
+    for m in methods:
+        for kind, title in (("hdr", "HDR scenes"), ("kodak", "Kodak")):
+            if kind in q[m]:
+                text += f"\n**{title}, `{m}`**\n\n" + quality_table(q[m][kind]) + "\n"
+        text += f"\n**Colour zone plate {zsize} x {3 * zsize}, noise-free, `{m}`**\n\n" + zone_table(z[m]) + "\n"
+    if fps:
+        text += (f"\nframes/s at {fw} x {fh}, best of {a.repeat} (passes of {fframes} frames, interleaved): "
+                 f"monochrome preview chain (anchor) {fps['mono']:.1f}, colour preview chain {fps['colour']:.1f}\n")
+    text += "\n| goal | measured | met |\n|---|---|---|\n" + "".join(
+        f"| {x['goal']} | {x['value']} | {'yes' if x['met'] else 'no'} |\n" for x in g)
+    total = time.perf_counter() - t_start
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    info = {"quick": a.quick, "size": [w, h], "methods": methods, "hdr": [Path(p).stem for p in paths],
+            "kodak": [Path(p).stem for p in kodak], "operator": a.operator, "zone_size": zsize, "seed": a.seed,
+            "stand_ins": notes, "quality": q, "zone_plate": z, "fps_size": [fw, fh], "fps": fps, "goals": g,
+            "seconds": total}
+    (out / "results.json").write_text(json.dumps(info, indent=1, default=float) + "\n")
+    (out / "results.md").write_text(text)
+    print("\n" + text + f"\n({total:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
