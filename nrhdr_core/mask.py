@@ -34,13 +34,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import cfa as cfas
+from .cfa import DEFAULT_ND_LAYOUT, ND_LAYOUTS, NO_ND  # noqa: F401  (named here too: the layouts' module)
+
 PATTERNS = ("nonregular", "random", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster")
 VOIDCLUSTER_SIGMA = 0.8  # Gaussian width of `voidcluster` (benchmarks/masks.py: matches the checkerboard on Kodak)
 VOIDCLUSTER_TILE = 128
 BLUENOISE_JITTER = 0.4   # threshold randomisation of `bluenoise` (benchmarks/masks.py: the measured trade-off)
-ND_LAYOUTS = ("independent", "balanced", "regular")
-DEFAULT_ND_LAYOUT = "balanced"
-NO_ND = "none"           # `nd_layout_of` a mask without attenuated pixels (the unmodified camera)
 
 
 def make_mask(pattern: str, height: int, width: int, seed: int = 0, **kw) -> np.ndarray:
@@ -278,7 +278,6 @@ def nd_layout_of(mask: np.ndarray, cfa_name: str) -> str:
     `block_checkerboard` or its complement, `balanced` when each 2 x 2 sub-lattice holds half its photosites
     attenuated (round(n / 2) or, n odd, the other rounding), else `independent`; a monochrome sensor
     (`cfa_name` none) is `independent` whenever it has ND pixels."""
-    from . import cfa as cfas
     m = np.asarray(mask, bool)
     if not m.any():
         return NO_ND

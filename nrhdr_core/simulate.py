@@ -456,7 +456,7 @@ def simulate_clip(scene: np.ndarray, out_dir, profile=None, frames: int = 60, fp
     is refused (io.OutputExistsError) unless `overwrite`, which replaces only the files a clip consists of
     (CLIP_OUTPUTS) and keeps any other file there."""
     check_args(frames, fps, exposure_stops, motion, sequence, objects, cut_frame, cfa, nd_layout, sensitivity)
-    prof, layout = _clip_profile(profile, cfa, nd_layout)
+    prof, layout = clip_profile(profile, cfa, nd_layout)
     colour = cfas.is_colour(prof.cfa)
     sens = check_sensitivity(sensitivity) if sensitivity is not None else (1.0, 1.0, 1.0)
     if not colour and sens != (1.0, 1.0, 1.0):
@@ -480,9 +480,9 @@ def simulate_clip(scene: np.ndarray, out_dir, profile=None, frames: int = 60, fp
     return info
 
 
-def _clip_profile(profile, cfa, nd_layout):
-    """(profile, its ND layout name) for `simulate_clip`: the given profile checked against `cfa` and
-    `nd_layout`, or `profiles.default` in them."""
+def clip_profile(profile, cfa, nd_layout):
+    """(profile, its ND layout name) as `simulate_clip` uses them: the given `profile` checked against `cfa`
+    and `nd_layout` (ValueError naming the argument), or `profiles.default` in them."""
     if profile is None:
         name = cfas.check(cfa) if cfa is not None else cfas.NONE
         fields = {"cfa": name} if cfas.is_colour(name) else {}
@@ -648,7 +648,10 @@ def _truth_file(f: Path, info: dict, i: int, allow_outside: bool = False) -> Pat
 
 
 def _check_truth_channels(f: Path, info: dict, path: Path) -> None:
-    n = io.exr_channels(path)
+    try:
+        n = io.exr_channels(path)
+    except io.ImageFileError as e:
+        raise ClipError(f"{e} (a truth frame named by field 'truth' of {f})") from None
     if n != info["channels"]:
         raise ClipError(f"{path}: a truth frame of {n} channel(s), but {f} field 'cfa' is {info['cfa']!r} "
                         f"({info['channels']} channel(s): {'R, G, B' if info['channels'] == 3 else 'Y'})")
