@@ -198,34 +198,63 @@ def read_image(path, dtype=np.float32, shape=None) -> np.ndarray:
     return _read_pixels(path, lambda spec: fmt, shape)[0]
 
 
+def _nonfinite_policy(nonfinite: str) -> None:
+    if nonfinite not in ("repair", "error"):
+        raise ValueError(f"nonfinite must be 'repair' or 'error', got {nonfinite!r}")
+
+
+def _clean(a: np.ndarray, path, nonfinite: str, unit: str) -> np.ndarray:
+    """`a` (float64) with NaN/Inf handled by `nonfinite` ("repair": NaN, -Inf -> 0, +Inf -> the largest
+    finite value; "error": ImageFileError counting them) and negative values clamped to 0, as float32;
+    nothing finite is always an error."""
+    finite = np.isfinite(a)
+    if not finite.any():
+        raise ImageFileError(f"{path}: no finite pixel values")
+    if not finite.all():
+        if nonfinite == "error":
+            raise ImageFileError(f"{path}: {int(np.sum(~finite))} of {a.size} {unit} are NaN or infinite")
+        big = float(np.max(a[finite]))
+        a = np.where(np.isnan(a), 0.0, a)
+        a = np.where(np.isposinf(a), big, a)
+        a = np.where(np.isneginf(a), 0.0, a)
+    return np.maximum(a, 0.0).astype(np.float32)
+
+
+def _read_float(path) -> np.ndarray:
+    """The first (at most four) channels of an image as float64 (H, W, C)."""
+    oiio = _oiio()
+    px = _read_pixels(path, lambda spec: oiio.FLOAT, channels=lambda spec: (0, min(int(spec.nchannels), 4)))[0]
+    return px.astype(np.float64)
+
+
 def read_luminance(path, nonfinite: str = "repair") -> np.ndarray:
     """Read an HDR (or LDR) image as linear luminance float32 (H, W).
 
     RGB(A) is converted with Rec. 709 weights; negative values (present in some EXR scenes) are clamped
     to 0. NaN/Inf: `nonfinite="repair"` replaces them by 0 (NaN, -Inf) or the largest finite value (+Inf),
     "error" raises ImageFileError counting them; nothing finite left is always an error."""
-    if nonfinite not in ("repair", "error"):
-        raise ValueError(f"nonfinite must be 'repair' or 'error', got {nonfinite!r}")
-    oiio = _oiio()
-    px = _read_pixels(path, lambda spec: oiio.FLOAT, channels=lambda spec: (0, min(int(spec.nchannels), 4)))[0]
-    px = px.astype(np.float64)
+    _nonfinite_policy(nonfinite)
+    px = _read_float(path)
     c = px.shape[2]
     with np.errstate(over="ignore", invalid="ignore"):
         if c >= 3:
             lum = px[:, :, :3] @ LUMA_709
         else:
             lum = px[:, :, 0]
-    finite = np.isfinite(lum)
-    if not finite.any():
-        raise ImageFileError(f"{path}: no finite pixel values")
-    if not finite.all():
-        if nonfinite == "error":
-            raise ImageFileError(f"{path}: {int(np.sum(~finite))} of {lum.size} pixels are NaN or infinite")
-        big = float(np.max(lum[finite]))
-        lum = np.where(np.isnan(lum), 0.0, lum)
-        lum = np.where(np.isposinf(lum), big, lum)
-        lum = np.where(np.isneginf(lum), 0.0, lum)
-    return np.maximum(lum, 0.0).astype(np.float32)
+    return _clean(lum, path, nonfinite, "pixels")
+
+
+def read_rgb(path, nonfinite: str = "repair") -> np.ndarray:
+    """Read an HDR (or LDR) image as linear RGB, planar float32 (3, H, W), channels R, G, B (docs/COLOUR.md).
+
+    Values as stored (float files) or 0..1 (integer files), as `read_luminance` reads them, so that the
+    Rec. 709 luminance of the result is `read_luminance`'s; a file of one or two channels (gray, gray +
+    alpha) gives three equal planes, alpha is ignored. Negative values are clamped to 0; NaN/Inf follow
+    `nonfinite` as in `read_luminance` (the largest finite value over all three channels for +Inf)."""
+    _nonfinite_policy(nonfinite)
+    px = _read_float(path)
+    rgb = px[:, :, :3] if px.shape[2] >= 3 else np.repeat(px[:, :, :1], 3, axis=2)
+    return np.ascontiguousarray(np.moveaxis(_clean(rgb, path, nonfinite, "values"), 2, 0))
 
 
 def _atomic_target(path):
@@ -274,14 +303,31 @@ def write_image(path, array, dtype=None, channel_names=None, attributes=None) ->
     return path
 
 
+EXR_RGB = ("R", "G", "B")
+
+
 def write_exr(path, values, state=None) -> Path:
-    """Write a linear HDR frame as OpenEXR (float32 channel "Y"); with `state`, a second channel "state"
-    keeps the per-pixel validity state (docs/ARCHITECTURE.md) so a recording loses nothing."""
+    """Write a linear HDR frame as OpenEXR: float32 (H, W) `values` as channel "Y", planar (3, H, W) colour
+    values as channels "R", "G", "B"; with `state` (H, W), one more channel "state" keeps the per-pixel
+    validity state (docs/ARCHITECTURE.md; of the mosaic for colour, docs/COLOUR.md) so a recording loses
+    nothing."""
     v = np.asarray(values, dtype=np.float32)
-    if state is None:
-        return write_image(path, v, np.float32, ["Y"])
-    both = np.stack([v, np.asarray(state, dtype=np.float32)], axis=-1)
-    return write_image(path, both, np.float32, ["Y", "state"])
+    if v.ndim == 3:
+        if v.shape[0] != 3:
+            raise ValueError(f"{path}: colour values must be planar (3, H, W), got shape {v.shape}")
+        planes, names = list(v), list(EXR_RGB)
+    elif v.ndim == 2:
+        if state is None:
+            return write_image(path, v, np.float32, ["Y"])
+        planes, names = [v], ["Y"]
+    else:
+        raise ValueError(f"{path}: values must be (H, W) or (3, H, W), got shape {v.shape}")
+    if state is not None:
+        st = np.asarray(state)
+        if st.shape != v.shape[-2:]:
+            raise ValueError(f"{path}: state must be {v.shape[-2:]} like the values, got shape {st.shape}")
+        planes, names = planes + [st.astype(np.float32)], names + ["state"]
+    return write_image(path, np.stack(planes, axis=-1), np.float32, names)
 
 
 # OpenImageIO colour spaces that write a PNG cICP chunk (ITU-T H.273: primaries 9 = BT.2020, transfer 16 = PQ
@@ -301,19 +347,29 @@ def write_hdr_png(path, signal, transfer: str = "pq") -> Path:
 
 
 def read_exr(path, shape=None):
-    """Read an EXR written by `write_exr`: returns (values float32 (H, W), state uint8 (H, W) or None).
-    `shape` (H, W): the size it must have (checked before decoding). A truncated or corrupt file is an
-    ImageFileError naming it."""
+    """Read an EXR written by `write_exr`: returns (values, state uint8 (H, W) or None); values float32
+    (H, W) from channel "Y" (else the first channel), or planar (3, H, W) from channels "R", "G", "B" when
+    the file has them and no "Y". `shape` (H, W): the size it must have (checked before decoding). A
+    truncated or corrupt file is an ImageFileError naming it."""
     oiio = _oiio()
     px, spec, names = _read_pixels(path, lambda spec: oiio.FLOAT, shape)
-    vi = names.index("Y") if "Y" in names else 0
     state = None
     if "state" in names:
         sv = px[:, :, names.index("state")]
         if not (np.isfinite(sv).all() and sv.min(initial=0) >= 0 and sv.max(initial=0) <= 255):
             raise ImageFileError(f"{path}: channel 'state' must hold pixel states 0..255")
         state = sv.astype(np.uint8)
+    if "Y" not in names and all(n in names for n in EXR_RGB):
+        return np.stack([px[:, :, names.index(n)] for n in EXR_RGB]), state
+    vi = names.index("Y") if "Y" in names else 0
     return px[:, :, vi].copy(), state
+
+
+def exr_channels(path) -> int:
+    """How many colour channels `read_exr` returns for the EXR `path`: 3 (channels R, G, B, no Y) or 1,
+    from its header alone (with every header check of `read_exr`)."""
+    names = _read_pixels(path, None, decode=False)[2]
+    return 3 if "Y" not in names and all(n in names for n in EXR_RGB) else 1
 
 
 def write_mask(path, mask) -> Path:

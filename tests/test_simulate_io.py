@@ -131,3 +131,78 @@ def test_real_hdr_scene_to_raw(tmp_path, name):
     simulate.simulate_clip(scene, tmp_path / "c", p, frames=2, progress=False)
     raw = io.read_raw_video(tmp_path / "c" / "clip.raw", 80, 60)
     assert raw.shape == (2, 60, 80) and raw.max() <= 4095
+
+
+def test_rgb_exr_roundtrip_channels_and_state(tmp_path, rng):
+    v = (rng.random((3, 9, 11)) * 1e5).astype(np.float32)
+    s = rng.integers(0, 255, (9, 11)).astype(np.uint8)
+    io.write_exr(tmp_path / "c.exr", v, s)
+    io.write_exr(tmp_path / "n.exr", v)
+    v2, s2 = io.read_exr(tmp_path / "c.exr")
+    v3, s3 = io.read_exr(tmp_path / "n.exr", shape=(9, 11))
+    assert v2.shape == (3, 9, 11) and v2.dtype == np.float32
+    assert np.array_equal(v2, v) and np.array_equal(s2, s) and np.array_equal(v3, v) and s3 is None
+    # the file holds named channels R, G, B (+ state): any EXR reader sees the colour by name
+    px = io.read_image(tmp_path / "c.exr")
+    assert px.shape == (9, 11, 4)
+    assert np.array_equal(px[:, :, 0], v[0]) and np.array_equal(px[:, :, 2], v[2])
+    assert np.array_equal(px[:, :, 3], s.astype(np.float32))
+    assert io.exr_channels(tmp_path / "c.exr") == 3 and io.exr_channels(tmp_path / "n.exr") == 3
+
+
+def test_monochrome_exr_is_one_y_channel_as_before(tmp_path, rng):
+    """A (H, W) frame is the file `write_image` makes of channel Y (+ state): the monochrome files are
+    unchanged by the colour layout."""
+    v = (rng.random((7, 5)) * 1e3).astype(np.float32)
+    s = rng.integers(0, 255, (7, 5)).astype(np.uint8)
+    io.write_exr(tmp_path / "a.exr", v)
+    io.write_image(tmp_path / "b.exr", v, np.float32, ["Y"])
+    io.write_exr(tmp_path / "c.exr", v, s)
+    io.write_image(tmp_path / "d.exr", np.stack([v, s.astype(np.float32)], -1), np.float32, ["Y", "state"])
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+    assert (tmp_path / "c.exr").read_bytes() == (tmp_path / "d.exr").read_bytes()
+    assert io.read_exr(tmp_path / "c.exr")[0].shape == (7, 5) and io.exr_channels(tmp_path / "c.exr") == 1
+
+
+def test_write_exr_refuses_bad_shapes(tmp_path):
+    with pytest.raises(ValueError, match=r"x.exr.*\(3, H, W\)"):
+        io.write_exr(tmp_path / "x.exr", np.zeros((4, 5, 6), np.float32))
+    with pytest.raises(ValueError, match="x.exr.*state"):
+        io.write_exr(tmp_path / "x.exr", np.zeros((3, 5, 6), np.float32), np.zeros((5, 5), np.uint8))
+    assert not list(tmp_path.iterdir())
+
+
+def test_read_rgb_planes_luminance_and_cleaning(tmp_path):
+    px = np.zeros((4, 5, 4), np.float32)
+    px[..., 3] = 0.5                                 # alpha: ignored
+    px[0, 0, :3] = [-1.0, 2.0, 3.0]
+    px[1, 1, 1] = np.nan
+    px[2, 2, 2] = np.inf
+    px[3, 3, :3] = [1.0, 2.0, 7.0]
+    io.write_image(tmp_path / "s.exr", px, np.float32, ["R", "G", "B", "A"])
+    rgb = io.read_rgb(tmp_path / "s.exr")
+    assert rgb.shape == (3, 4, 5) and rgb.dtype == np.float32 and rgb.flags.c_contiguous
+    assert rgb[:, 3, 3].tolist() == [1.0, 2.0, 7.0]
+    assert rgb[:, 0, 0].tolist() == [0.0, 2.0, 3.0]                 # negative clamped
+    assert rgb[1, 1, 1] == 0.0 and rgb[2, 2, 2] == 7.0              # NaN -> 0, +Inf -> largest finite value
+    with pytest.raises(io.ImageFileError, match=r"s.exr: 2 of 60 values are NaN or infinite"):
+        io.read_rgb(tmp_path / "s.exr", nonfinite="error")
+    # without non-finite values, its Rec. 709 luminance is read_luminance's
+    px[1, 1, 1] = px[2, 2, 2] = 0.25
+    px[0, 0, 0] = 0.0
+    io.write_image(tmp_path / "t.exr", px, np.float32, ["R", "G", "B", "A"])
+    lum = np.tensordot(io.LUMA_709, io.read_rgb(tmp_path / "t.exr").astype(np.float64), 1)
+    assert np.allclose(lum, io.read_luminance(tmp_path / "t.exr"), rtol=1e-6)
+
+
+def test_read_rgb_of_a_gray_file_is_three_equal_planes(tmp_path, rng):
+    g = rng.integers(0, 65535, (6, 7)).astype(np.uint16)
+    io.write_image(tmp_path / "g.png", g, np.uint16)
+    rgb = io.read_rgb(tmp_path / "g.png")
+    assert rgb.shape == (3, 6, 7)
+    assert np.allclose(rgb[0], g / 65535.0, atol=1e-7)
+    assert np.array_equal(rgb[0], rgb[1]) and np.array_equal(rgb[0], rgb[2])
+    with pytest.raises(io.ImageFileError, match="nothere.png"):
+        io.read_rgb(tmp_path / "nothere.png")
+    with pytest.raises(ValueError, match="nonfinite"):
+        io.read_rgb(tmp_path / "g.png", nonfinite="ignore")
