@@ -1,0 +1,243 @@
+"""Colour output (docs/COLOUR.md "Colour output", docs/TONEMAP.md, docs/HDR-OUTPUT.md): the hue-keeping tone map,
+grey-world white balance, BT.709 -> BT.2020 and PQ / HLG in colour, Y'CbCr for HEVC, the elements and the
+colour EXR, against expectations computed here (sRGB, ST 2084 and the primaries' matrix written out in the
+test)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nrhdr_core import hdr_output, tonemap
+
+H, W = 24, 32
+
+
+# ---- independent references -------------------------------------------------------------------------------
+def srgb_decode(code8):
+    """IEC 61966-2-1: 8-bit code -> linear light."""
+    v = np.asarray(code8, np.float64) / 255.0
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def pq_signal(nits):
+    """SMPTE ST 2084 inverse EOTF, constants as published."""
+    m1, m2 = 2610 / 16384, 2523 / 4096 * 128
+    c1, c2, c3 = 3424 / 4096, 2413 / 4096 * 32, 2392 / 4096 * 32
+    y = np.clip(np.asarray(nits, np.float64) / 10000.0, 0, 1) ** m1
+    return ((c1 + c2 * y) / (1 + c3 * y)) ** m2
+
+
+def code10(signal):
+    return np.floor(64 + 876 * np.asarray(signal) + 0.5).astype(int)
+
+
+def npm(primaries, white=(0.3127, 0.3290)):
+    """RGB -> XYZ from the chromaticities (SMPTE RP 177 section 3.3), written out."""
+    (xr, yr), (xg, yg), (xb, yb) = primaries
+    cols = np.array([[x / y, 1.0, (1 - x - y) / y] for x, y in ((xr, yr), (xg, yg), (xb, yb))]).T
+    xw, yw = white
+    wxyz = np.array([xw / yw, 1.0, (1 - xw - yw) / yw])
+    s = np.linalg.inv(cols) @ wxyz
+    return cols * s
+
+
+BT709 = ((0.64, 0.33), (0.30, 0.60), (0.15, 0.06))
+BT2020 = ((0.708, 0.292), (0.170, 0.797), (0.131, 0.046))
+
+
+def ramp(lo=1.0, hi=2e4):
+    return np.geomspace(lo, hi, H * W).astype(np.float32).reshape(H, W)
+
+
+# ---- SDR tone map -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("operator", tonemap.SDR_OPERATORS)
+def test_grey_stays_grey_and_matches_monochrome(operator):
+    g = ramp()
+    out = tonemap.tonemap_rgb(np.stack([g, g, g]), 2e4, operator)
+    assert out.shape == (H, W, 3) and out.dtype == np.uint8
+    assert (out[..., 0] == out[..., 1]).all() and (out[..., 1] == out[..., 2]).all()
+    mono = tonemap.log_tonemap(g, 2e4) if operator == "log" else tonemap.local_tonemap(g, 2e4)
+    assert np.abs(out[..., 1].astype(int) - mono).max() <= 1
+
+
+@pytest.mark.parametrize("operator", tonemap.SDR_OPERATORS)
+def test_hue_and_saturation_kept_in_gamut(operator):
+    """In-gamut colours: the displayed linear channels keep the scene's channel ratios (within the 8-bit
+    quantisation), and the displayed luminance is the grey tone map's."""
+    g = ramp(10.0, 2e3)
+    ratio = np.array([1.0, 0.55, 0.3])
+    rgb = (g[None] * ratio[:, None, None]).astype(np.float32)
+    out = tonemap.tonemap_rgb(rgb, 2e4, operator)
+    lin = srgb_decode(out)
+    ok = out[..., 2] >= 40                   # quantisation of a dark channel would dominate
+    assert ok.sum() > 100
+    got = lin[ok] / lin[ok][:, :1]
+    assert np.allclose(got[:, 1], 0.55, rtol=0.03) and np.allclose(got[:, 2], 0.3, rtol=0.05)
+
+
+def test_saturation_exponent():
+    g = ramp(10.0, 2e3)
+    rgb = np.stack([g, 0.5 * g, 0.25 * g]).astype(np.float32)
+    out = tonemap.tonemap_rgb(rgb, 2e4, "log", saturation=0.5)
+    lin = srgb_decode(out)
+    ok = (out[..., 2] >= 60) & (out[..., 0] < 255)        # half a code: < 2 % of the light; not out of gamut
+    assert ok.sum() > 100
+    assert np.allclose(lin[ok][:, 1] / lin[ok][:, 0], 0.5 ** 0.5, rtol=0.04)
+    assert np.allclose(lin[ok][:, 2] / lin[ok][:, 0], 0.25 ** 0.5, rtol=0.04)
+
+
+def test_out_of_gamut_keeps_hue_and_luminance():
+    """A saturated colour brighter than the display can show: mixed with its grey, never clipped per channel:
+    the largest channel at full scale, the channel differences keep their proportions (hue), the luminance is
+    the grey tone map's."""
+    v = np.full((H, W), 1e4, np.float32)
+    rgb = np.stack([v, 0.2 * v, 0.05 * v])
+    out = tonemap.tonemap_rgb(rgb, 1e4, "log")
+    lin = srgb_decode(out[0, 0])
+    assert out[0, 0, 0] == 255 and out[0, 0, 2] > 0
+    lum = tonemap.LUMA_BT709[0] * rgb[0] + (1 - sum(tonemap.LUMA_BT709)) * rgb[1] + tonemap.LUMA_BT709[1] * rgb[2]
+    y = srgb_decode(tonemap.log_tonemap(lum.astype(np.float32), 1e4)[0, 0])
+    got = 0.2126 * lin[0] + 0.7152 * lin[1] + 0.0722 * lin[2]
+    assert abs(got - y) < 0.02
+    assert abs((lin[0] - lin[1]) / (lin[0] - lin[2]) - (1 - 0.2) / (1 - 0.05)) < 0.03
+
+
+def test_white_balance_gains_and_bad_input():
+    g = ramp()
+    tinted = np.stack([1.25 * g, g, 0.8 * g]).astype(np.float32)
+    out = tonemap.tonemap_rgb(tinted, 2e4, "log", white_balance=(0.8, 1.0, 1.25))
+    assert np.abs(out[..., 0].astype(int) - out[..., 1]).max() <= 1
+    assert np.abs(out[..., 2].astype(int) - out[..., 1]).max() <= 1
+    with pytest.raises(ValueError, match="white balance"):
+        tonemap.tonemap_rgb(tinted, 2e4, "log", white_balance=(1, 0, 1))
+    with pytest.raises(ValueError, match=r"\(3, H, W\)"):
+        tonemap.tonemap_rgb(g, 2e4, "log")
+    nasty = tinted.copy()
+    nasty[0, 0, 0], nasty[1, 0, 1], nasty[2, 0, 2] = np.nan, np.inf, -5.0
+    out = tonemap.tonemap_rgb(nasty, 2e4, "local")
+    assert out.dtype == np.uint8
+
+
+def test_local_rgb_statistics_follow_the_luminance():
+    """LocalTonemap.rgb keeps the operator's temporal statistics: the same parameters as the grey operator
+    given the luminance."""
+    g = ramp()
+    rgb = np.stack([g, 0.7 * g, 0.4 * g]).astype(np.float32)
+    lum = (0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]).astype(np.float32)
+    a, b = tonemap.LocalTonemap(0.5), tonemap.LocalTonemap(0.5)
+    for k in (1.0, 4.0):
+        a.rgb(rgb * np.float32(k), 2e4)
+        b(lum * np.float32(k), 2e4)
+        assert np.allclose(a.params, b.params, rtol=1e-4, atol=1e-5)
+
+
+def test_grey_world_on_a_tinted_grey_scene():
+    rng = np.random.default_rng(1)
+    grey = rng.uniform(50, 3000, (H * 4, W * 4)).astype(np.float32)
+    tint = np.array([1.3, 1.0, 0.6], np.float32)
+    rgb = grey[None] * tint[:, None, None]
+    rgb[:, :8, :] = 4000.0                    # clipped: grey at the top, whatever the light's colour
+    rgb[:, 8:16, :] *= 1e-5                   # near black: noise
+    gains = tonemap.grey_world(rgb, white=4000.0)
+    assert np.allclose(gains, 1 / tint, rtol=0.01)
+    assert tonemap.grey_world(np.zeros((3, 8, 8), np.float32)) == (1.0, 1.0, 1.0)
+    gw = tonemap.GreyWorld(speed=1.0, white=4000.0)
+    assert np.allclose(gw.update(rgb), 1 / tint, rtol=0.01)
+
+
+# ---- HDR ---------------------------------------------------------------------------------------------------
+def test_bt709_to_bt2020_matrix_from_the_primaries():
+    m = np.linalg.inv(npm(BT2020)) @ npm(BT709)
+    assert np.allclose(tonemap.primaries_matrix("bt709", "bt2020"), m, atol=1e-12)
+    bt2087 = [[0.6274, 0.3293, 0.0433], [0.0691, 0.9195, 0.0114], [0.0164, 0.0880, 0.8956]]
+    assert np.allclose(m, bt2087, atol=1e-4)
+    # the encoder: a pure BT.709 red / green / blue patch at the diffuse white -> the matrix's column in PQ
+    dw = 1000.0
+    for k in range(3):
+        rgb = np.zeros((3, 4, 4), np.float32)
+        rgb[k] = dw
+        codes = tonemap.hdr_encode_rgb(rgb, dw, "pq") >> 6
+        want = code10(pq_signal(m[:, k] * 203.0))
+        assert (codes[:, 0, 0] == want).all(), (k, codes[:, 0, 0], want)
+    same = tonemap.hdr_encode_rgb(rgb, dw, "pq", primaries="bt709") >> 6
+    assert (same[:, 0, 0] == code10(pq_signal(np.array([0.0, 0.0, 203.0])))).all()
+
+
+def test_pq_of_known_values():
+    """ST 2084: 100 cd/m2 -> 0.5081, 1000 -> 0.7518, 10000 -> 1 (10-bit narrow 509, 723, 940); 0 -> 64."""
+    dw = 203.0     # value = cd/m2 at the default reference white
+    rgb = np.zeros((3, 1, 4), np.float32)
+    rgb[:, 0] = np.array([0.0, 100.0, 1000.0, 10000.0], np.float32)
+    codes = tonemap.hdr_encode_rgb(rgb, dw, "pq") >> 6
+    assert (codes == np.array([64, 509, 723, 940])).all()
+    assert abs(float(pq_signal(100)) - 0.5081) < 1e-4 and abs(float(pq_signal(1000)) - 0.7518) < 1e-4
+
+
+@pytest.mark.parametrize("transfer", tonemap.TRANSFERS)
+@pytest.mark.parametrize("peak", [0.0, 1000.0])
+def test_grey_hdr_equals_monochrome(transfer, peak):
+    g = ramp(1e-3, 2e4)
+    g[0, :3] = 0.0, -1.0, np.nan
+    src = tonemap.peak_luminance(2e4, 1000.0, transfer) if peak else 0.0
+    c = tonemap.hdr_encode_rgb(np.stack([g, g, g]), 1000.0, transfer, peak=peak, source_peak=src)
+    m = tonemap.hdr_encode(g, 1000.0, transfer, peak=peak, source_peak=src)
+    assert (c == m[None]).all()
+
+
+def test_hdr_roll_off_keeps_hue():
+    """With the BT.2390 roll-off, a colour's largest channel gets the EETF's light and the others keep their
+    ratio to it (linear BT.2020 light)."""
+    v = np.full((2, 2), 4000.0, np.float32)
+    rgb = np.stack([v, 0.5 * v, 0.25 * v])
+    src = tonemap.peak_luminance(6350.0, 1000.0)
+    codes = (tonemap.hdr_encode_rgb(rgb, 1000.0, "pq", primaries="bt709", peak=1000, source_peak=src) >> 6)[:, 0, 0]
+    light = np.array([tonemap.eotf_ST2084((c - 64) / 876) for c in codes])
+    want_top = tonemap.eetf_BT2390(4000 / 1000 * 203, src, 1000)
+    assert abs(light[0] - want_top) / want_top < 0.01
+    assert np.allclose(light[1:] / light[0], [0.5, 0.25], rtol=0.02)
+
+
+def test_light_levels_in_colour():
+    """CTA-861.3: a pixel's light is max(R, G, B)."""
+    codes = np.zeros((3, 2, 2), np.uint16)
+    codes[:] = 64 << 6
+    codes[2, 0, 0] = 723 << 6           # a blue pixel at about 1000 cd/m2
+    ll = hdr_output.LightLevels("pq")
+    ll.update(codes)
+    nits = tonemap.eotf_ST2084((723 - 64) / 876)
+    assert ll.max_cll == int(np.ceil(nits - 1e-9))
+    assert ll.max_fall_int == int(np.ceil(nits / 4 - 1e-9))
+
+
+def ycbcr_back(y, cb, cr):
+    """BT.2020 NCL Y'CbCr (10-bit narrow) -> R'G'B' signal, inverted here."""
+    kr, kb = 0.2627, 0.0593
+    yp, pb, pr = (y - 64) / 876, (cb - 512) / 896, (cr - 512) / 896
+    r = yp + (2 - 2 * kr) * pr
+    b = yp + (2 - 2 * kb) * pb
+    g = (yp - kr * r - kb * b) / (1 - kr - kb)
+    return np.stack([r, g, b])
+
+
+@pytest.mark.parametrize("subsample", [False, True])
+def test_ycbcr_frame_bt2020_ncl(subsample):
+    h, w = 6, 8
+    rgb = np.zeros((3, h, w), np.float32)
+    rgb[:, :, :4] = 500.0                                   # grey left half
+    rgb[:, :, 4:] = np.array([800.0, 300.0, 100.0], np.float32)[:, None, None]    # a colour right half
+    codes = tonemap.hdr_encode_rgb(rgb, 1000.0, "pq")
+    ch, cw = ((h + 1) // 2, (w + 1) // 2) if subsample else (h, w)
+    sizes = [h * w * 2, ch * cw * 2, ch * cw * 2]
+    offsets = [0, sizes[0], sizes[0] + sizes[1]]
+    strides = [w * 2, cw * 2, cw * 2]
+    frame = np.zeros(sum(sizes), np.uint8)
+    hdr_output.ycbcr_frame(codes, frame, offsets, strides, subsample=subsample)
+    y = frame[:sizes[0]].view("<u2").reshape(h, w).astype(float)
+    cb = frame[offsets[1]:offsets[2]].view("<u2").reshape(ch, cw).astype(float)
+    cr = frame[offsets[2]:].view("<u2").reshape(ch, cw).astype(float)
+    assert (y[:, :4] == codes[1, :, :4] >> 6).all()                         # grey: Y' is the code
+    grey_c = (slice(None), slice(0, 1)) if subsample else (slice(None), slice(0, 4))
+    assert (cb[grey_c] == 512).all() and (cr[grey_c] == 512).all()
+    cx = 3 if subsample else 6                                               # inside the colour half
+    back = ycbcr_back(y[0, 6], cb[0, cx], cr[0, cx])
+    assert np.abs(64 + 876 * back - (codes[:, 0, 6] >> 6)).max() <= 1.0
