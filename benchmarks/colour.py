@@ -12,7 +12,7 @@ Cameras (CFA `rggb`, `profile.default`'s sensor: 12 bit, ND 6.35, half the photo
   on every other 2 x 2 Bayer block in a checkerboard, so each colour plane carries a checkerboard of exposures;
 - `bayer`: the unmodified Bayer camera (no ND), its codes those of the regular photosites of the others (the
   same shot and read noise), its clipped photosites filled from their bound, as for the monochrome anchor.
-The layouts come from the simulator (`simulate.nd_layout`) where the tree has it, else from `nd_mask` below.
+The layouts are the simulator's (`mask.cfa_mask`, docs/SIMULATOR.md), over the paper's non-regular mask.
 
 Scenes: the shared HDR scenes (linear RGB, $NRHDR_SHARED_DATA/hdr) and Kodak images (sRGB decoded to linear
 light, $NRHDR_SHARED_DATA/kodak), viewed at the frame size (`simulate.view` per channel, anti-aliased) and
@@ -30,9 +30,6 @@ luminance, on the rings). Frames/s at 1920 x 1080 on the first HDR scene, in the
 chain (`validity.classify -> crosstalk.correct` (compact LUT of a synthetic calibration) `-> reconstruct_cfa
 (preview) -> tonemap_rgb`) against the monochrome preview chain of the same sensor (`chain.process_frame`
 with `method=preview`, `crosstalk=lut` -> `chain.tonemap_frame`), passes interleaved, best of `--repeat`.
-Where the tree lacks `demosaic.reconstruct_cfa` or `tonemap.tonemap_rgb`, documented stand-ins run and the
-output says so: per-plane `reconstruction.reconstruct` of each colour's own photosites, and the monochrome tone
-map of the luminance with the RGB ratios kept.
 Writes bench_out/colour/results.json and results.md.
 """
 from __future__ import annotations
@@ -50,13 +47,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nrhdr_core import (cfa, chain, crosstalk, io, mask, metrics, profile, reconstruction, scene,  # noqa: E402
-                        sensor, simulate, tonemap, validity)
-
-if importlib.util.find_spec("nrhdr_core.demosaic") is not None:
-    from nrhdr_core import demosaic
-else:                                     # a tree without the joint reconstruction: per-plane stand-in
-    demosaic = None
+from nrhdr_core import (cfa, chain, crosstalk, demosaic, io, mask, metrics, profile, scene, sensor,  # noqa: E402
+                        simulate, tonemap, validity)
 
 DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
 OUT = ROOT / "bench_out" / "colour"
@@ -72,36 +64,20 @@ GOALS = {"bright_gain_db": 12.0, "false_colour_db": 3.0, "fps_ratio": 0.70}
 
 # ---- cameras ------------------------------------------------------------------------------------------------
 
-def nd_mask(layout: str, h: int, w: int, pattern: str = PATTERN, seed: int = 3) -> np.ndarray:
-    """bool (h, w) ND mask of a layout (`simulate.nd_layout` where the tree has it): 'independent' (the monochrome
-    non-regular mask), 'balanced' (a random exact half of each colour's photosites), 'sve' (every other 2 x 2
-    Bayer block, checkerboard), 'none'."""
-    sim = getattr(simulate, "nd_layout", None)
-    if sim is not None:
-        return np.asarray(sim(layout, h, w, pattern, seed=seed), bool)
-    if layout == "none":
+LAYOUT_OF = {"nr-independent": "independent", "nr-balanced": "balanced", "sve": "regular", "bayer": mask.NO_ND}
+
+
+def nd_mask(camera: str, h: int, w: int, seed: int = 3) -> np.ndarray:
+    """bool (h, w): the camera's ND mask over the CFA (`mask.cfa_mask`; none for the unmodified camera)."""
+    layout = LAYOUT_OF[camera]
+    if layout == mask.NO_ND:
         return np.zeros((h, w), bool)
-    if layout == "independent":
-        return mask.make_mask("nonregular", h, w, seed=seed)
-    if layout == "sve":
-        yy, xx = np.mgrid[0:h, 0:w]
-        return ((yy // 2 + xx // 2) % 2) == 1
-    if layout == "balanced":
-        rng = np.random.default_rng(seed)
-        out = np.zeros(h * w, bool)
-        for m in cfa.channel_masks(pattern, h, w):
-            idx = rng.permutation(np.flatnonzero(m))
-            out[idx[: idx.size // 2]] = True
-        return out.reshape(h, w)
-    raise ValueError(f"nd_mask: layout must be independent, balanced, sve or none, got {layout!r}")
-
-
-LAYOUT_OF = {"nr-independent": "independent", "nr-balanced": "balanced", "sve": "sve", "bayer": "none"}
+    return mask.cfa_mask("nonregular", h, w, layout, seed=seed)
 
 
 def cameras(h, w, **fields) -> dict:
     """{camera: CameraProfile with the CFA} at h x w."""
-    return {c: profile.make(nd_mask(LAYOUT_OF[c], h, w), cfa=PATTERN, **fields) for c in CAMERAS}
+    return {c: profile.make(nd_mask(c, h, w), cfa=PATTERN, **fields) for c in CAMERAS}
 
 
 def capture_all(truth_rgb, profs, seed, shot_noise=True) -> dict:
@@ -117,57 +93,16 @@ def capture_all(truth_rgb, profs, seed, shot_noise=True) -> dict:
     return out
 
 
-# ---- reconstruction and tone mapping (the contract's APIs, with stand-ins) -------------------------------------
-
-def _per_plane(values, state, pattern, method, preset, noise=None):
-    """Stand-in for `demosaic.reconstruct_cfa`: each colour plane reconstructed from its own valid photosites
-    (`reconstruction.reconstruct`, the photosites' bounds), no joint use of the channels."""
-    known = validity.known_mask(state)
-    lo, hi = validity.bounds(values, state)
-    idx = cfa.channel_index(pattern, *values.shape)
-    out = np.empty((3,) + values.shape, np.float32)
-    for c in range(3):
-        own = idx == c
-        out[c] = reconstruction.reconstruct(values, known & own, method=method, preset=preset,
-                                            lower=np.where(own, lo, np.nan), upper=np.where(own, hi, np.nan))
-    return out
-
+# ---- reconstruction and tone mapping ---------------------------------------------------------------------------
 
 def reconstruct_rgb(raw, prof, method, preset):
-    """classify -> reconstruct_cfa: linear camera RGB (3, H, W)."""
-    values, state = validity.classify(raw, prof)
-    if demosaic is not None:
-        return demosaic.reconstruct_cfa(values, state, prof.cfa, method=method, preset=preset, noise=prof)
-    return _per_plane(values, state, prof.cfa, method, preset, noise=prof)
+    """classify (weighted dark policy, the chain's default) -> reconstruct_cfa: linear camera RGB (3, H, W)."""
+    values, state = validity.classify(raw, prof, dark_policy="weighted")
+    return demosaic.reconstruct_cfa(values, state, prof.cfa, method=method, preset=preset, noise=prof)
 
 
-def _tonemap_stand_in(rgb, white, operator="local"):
-    """Stand-in for `tonemap.tonemap_rgb`: the monochrome tone map of the luminance taken as the display's
-    sRGB code, the RGB ratios kept, sRGB encoded: uint8 (H, W, 3)."""
-    y = metrics.luminance(rgb).astype(np.float32)
-    code = chain.tonemap_frame(y, None, chain.ChainSettings(operator=operator, white=float(white)))
-    d = metrics.srgb_decode(code)
-    lin = np.clip(np.asarray(rgb, np.float64) * (d / np.maximum(y, 1e-6)), 0.0, 1.0)
-    enc = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
-    return np.moveaxis(np.rint(enc * 255.0), 0, -1).astype(np.uint8)
-
-
-def tonemap_rgb(rgb, white, operator="local"):
-    f = getattr(tonemap, "tonemap_rgb", None)
-    if f is not None:
-        return f(np.ascontiguousarray(rgb, dtype=np.float32), float(white), operator=operator)
-    return _tonemap_stand_in(rgb, white, operator)
-
-
-def stand_ins() -> list[str]:
-    s = []
-    if demosaic is None:
-        s.append("nrhdr_core.demosaic is not in this tree: per-plane reconstruction stands in for reconstruct_cfa")
-    if getattr(tonemap, "tonemap_rgb", None) is None:
-        s.append("tonemap.tonemap_rgb is not in this tree: the luminance tone map with RGB ratios stands in")
-    if getattr(simulate, "nd_layout", None) is None:
-        s.append("simulate.nd_layout is not in this tree: the layouts of benchmarks/colour.py nd_mask")
-    return s
+def tonemap_rgb(rgb, white, operator):
+    return tonemap.tonemap_rgb(np.ascontiguousarray(rgb, dtype=np.float32), float(white), operator=operator)
 
 
 # ---- scenes -------------------------------------------------------------------------------------------------
@@ -279,13 +214,9 @@ def speed(scene_path, h, w, frames, repeat, operator, seed):
 
     def run_colour():
         for r in raws_c:
-            v, s = validity.classify(r, col)
+            v, s = validity.classify(r, col, dark_policy=sm.dark_policy)
             v2, s2 = crosstalk.correct(v, s, col, "lut", lut="compact")
-            if demosaic is not None:
-                rgb = demosaic.reconstruct_cfa(v2, s2, col.cfa, method="preview", noise=col)
-            else:
-                rgb = _per_plane(v2, s2, col.cfa, "preview", "fast", noise=col)
-            tonemap_rgb(rgb, col.white, operator)
+            tonemap_rgb(demosaic.reconstruct_cfa(v2, s2, col.cfa, method="preview", noise=col), col.white, operator)
 
     best = {"mono": float("inf"), "colour": float("inf")}
     run_mono()
@@ -401,9 +332,6 @@ def main(argv=None) -> int:
         print(f"colour: file(s) not found: {', '.join(missing) or DATA} (set NRHDR_SHARED_DATA or pass --scenes/--kodak)",
               file=sys.stderr)
         return 2
-    notes = stand_ins()
-    for n in notes:
-        print("note: " + n, flush=True)
     t_start = time.perf_counter()
     prof = profile.default(h, w)
     scenes = load_scenes(paths, kodak, h, w, prof.regular_white)
@@ -417,8 +345,7 @@ def main(argv=None) -> int:
         print(f"frames/s: {fw} x {fh}, {fframes} frames per pass", flush=True)
         fps = speed(paths[0] if paths else None, fh, fw, fframes, a.repeat, a.operator, a.seed)
     g = goals(q, z, fps)
-    text = "".join(f"note: {n}\n" for n in notes)
-    text += (f"{w} x {h} views, CFA {PATTERN}, shot and read noise; tone map `{a.operator}`; HDR: "
+    text = (f"{w} x {h} views, CFA {PATTERN}, shot and read noise; tone map `{a.operator}`; HDR: "
              f"{', '.join(Path(p).stem for p in paths) or '-'}; Kodak: {', '.join(Path(p).stem for p in kodak) or '-'}\n")
     for m in methods:
         for kind, title in (("hdr", "HDR scenes"), ("kodak", "Kodak")):
@@ -435,7 +362,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     info = {"quick": a.quick, "size": [w, h], "methods": methods, "hdr": [Path(p).stem for p in paths],
             "kodak": [Path(p).stem for p in kodak], "operator": a.operator, "zone_size": zsize, "seed": a.seed,
-            "stand_ins": notes, "quality": q, "zone_plate": z, "fps_size": [fw, fh], "fps": fps, "goals": g,
+            "quality": q, "zone_plate": z, "fps_size": [fw, fh], "fps": fps, "goals": g,
             "seconds": total}
     (out / "results.json").write_text(json.dumps(info, indent=1, default=float) + "\n")
     (out / "results.md").write_text(text)
