@@ -7,7 +7,7 @@ an unmodified Bayer camera (docs/COLOUR.md, "Measured").
 
 Cameras (CFA `rggb`, `profile.default`'s sensor: 12 bit, ND 6.35, half the photosites attenuated):
 - `nr-independent`: the non-regular ND mask laid over the CFA without regard to it;
-- `nr-balanced`: non-regular, exactly half of each colour's photosites attenuated;
+- `nr-balanced`: non-regular on each of the four photosites of the 2 x 2 Bayer block, half of each attenuated;
 - `sve`: the regular spatially varying exposure layout of Assorted Pixels (Nayar and Mitsunaga, TPAMI 2005): ND
   on every other 2 x 2 Bayer block in a checkerboard, so each colour plane carries a checkerboard of exposures;
 - `bayer`: the unmodified Bayer camera (no ND), its codes those of the regular photosites of the others (the
@@ -28,8 +28,9 @@ against the tone-mapped truth (`tonemap.tonemap_rgb`, the profile's white, truth
 the zone plate (`metrics.false_colour_db`: 10 log10 of the mean squared CIELAB chroma error at the truth's
 luminance, on the rings). Frames/s at 1920 x 1080 on the first HDR scene, in the same run: the colour preview
 chain (`validity.classify -> crosstalk.correct` (compact LUT of a synthetic calibration) `-> reconstruct_cfa
-(preview) -> tonemap_rgb`) against the monochrome preview chain of the same sensor (`chain.process_frame`
-with `method=preview`, `crosstalk=lut` -> `chain.tonemap_frame`), passes interleaved, best of `--repeat`.
+(preview) -> tonemap_rgb`) against the monochrome preview chain of the same sensor (the same stages with
+`reconstruction.reconstruct_frame` (preview) and `chain.tonemap_frame`), ms per stage; tone map `--operator`
+(default `local`, nrtonemap's); passes interleaved, best of `--repeat`.
 Writes bench_out/colour/results.json and results.md.
 """
 from __future__ import annotations
@@ -47,8 +48,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nrhdr_core import (cfa, chain, crosstalk, demosaic, io, mask, metrics, profile, scene, sensor,  # noqa: E402
-                        simulate, tonemap, validity)
+from nrhdr_core import (cfa, chain, crosstalk, demosaic, io, mask, metrics, profile,  # noqa: E402
+                        reconstruction, scene, sensor, simulate, tonemap, validity)
 
 DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
 OUT = ROOT / "bench_out" / "colour"
@@ -182,18 +183,29 @@ def zone_plate(size, methods, seed):
 
 # ---- speed -------------------------------------------------------------------------------------------------
 
-def _stages():
-    spec = importlib.util.spec_from_file_location("bench_stages", ROOT / "benchmarks" / "stages.py")
+def _sibling(name):
+    """benchmarks/<name>.py as a module (its synthetic calibration, its size parser)."""
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
 
 
+SPEED_STAGES = ("classify", "crosstalk", "reconstruction", "tone map")
+
+
+def _timed(acc, i, f, *args, **kw):
+    t0 = time.perf_counter()
+    r = f(*args, **kw)
+    acc[i] += time.perf_counter() - t0
+    return r
+
+
 def speed(scene_path, h, w, frames, repeat, operator, seed):
-    """{'mono': frames/s, 'colour': frames/s} of the preview chains at h x w, passes interleaved, best of
-    `repeat` after an untimed one."""
+    """{'mono' | 'colour': {'fps': frames/s, 'ms': {stage: ms per frame}}} of the preview chains at h x w (the
+    stages called as the elements call them), passes interleaved, the best of `repeat` after an untimed frame."""
     base = profile.default(h, w, seed=3)
-    base = base.replace(crosstalk=_stages().synthetic_calibration(base, 40))
+    base = base.replace(crosstalk=_sibling("stages").synthetic_calibration(base, 40))
     mono, col = base, base.replace(cfa=PATTERN)
     if scene_path is None:
         y = scene.cached_synthetic_hdr_scene(max(120, 2 * h), max(120, 2 * h) * 4 // 3)
@@ -207,26 +219,35 @@ def speed(scene_path, h, w, frames, repeat, operator, seed):
     crosstalk.compact_for(base)
     sm = chain.ChainSettings(method="preview", crosstalk="lut", operator=operator)
 
-    def run_mono():
-        for r in raws_m:
-            v, _ = chain.process_frame(r, mono, sm)
-            chain.tonemap_frame(v, mono, sm)
+    def mono_frame(raw, t):
+        v, s = _timed(t, 0, validity.classify, raw, mono, dark_policy=sm.dark_policy)
+        v, s = _timed(t, 1, crosstalk.correct, v, s, mono, sm.crosstalk, lut=sm.crosstalk_lut)
+        _timed(t, 2, reconstruction.reconstruct_frame, v, s, method=sm.method, preset=sm.preset, noise=mono,
+               fusion=sm.noise_fusion)
+        _timed(t, 3, chain.tonemap_frame, v, mono, sm)
 
-    def run_colour():
-        for r in raws_c:
-            v, s = validity.classify(r, col, dark_policy=sm.dark_policy)
-            v2, s2 = crosstalk.correct(v, s, col, "lut", lut="compact")
-            tonemap_rgb(demosaic.reconstruct_cfa(v2, s2, col.cfa, method="preview", noise=col), col.white, operator)
+    def colour_frame(raw, t):
+        v, s = _timed(t, 0, validity.classify, raw, col, dark_policy=sm.dark_policy)
+        v, s = _timed(t, 1, crosstalk.correct, v, s, col, sm.crosstalk, lut=sm.crosstalk_lut)
+        rgb = _timed(t, 2, demosaic.reconstruct_cfa, v, s, col.cfa, method=sm.method, preset=sm.preset, noise=col,
+                     fusion=sm.noise_fusion)
+        _timed(t, 3, tonemap_rgb, rgb, col.white, operator)
 
-    best = {"mono": float("inf"), "colour": float("inf")}
-    run_mono()
-    run_colour()
+    chains = {"mono": (mono_frame, raws_m), "colour": (colour_frame, raws_c)}
+    best = {k: (float("inf"), None) for k in chains}
+    for k, (f, raws) in chains.items():               # untimed: compiles, fills caches
+        f(raws[0], [0.0] * len(SPEED_STAGES))
     for _ in range(repeat):
-        for k, f in (("mono", run_mono), ("colour", run_colour)):
+        for k, (f, raws) in chains.items():
+            t = [0.0] * len(SPEED_STAGES)
             t0 = time.perf_counter()
-            f()
-            best[k] = min(best[k], time.perf_counter() - t0)
-    return {k: frames / v for k, v in best.items()}
+            for r in raws:
+                f(r, t)
+            dt = time.perf_counter() - t0
+            if dt < best[k][0]:
+                best[k] = (dt, t)
+    return {k: {"fps": frames / dt, "ms": {n: 1000 * x / frames for n, x in zip(SPEED_STAGES, t)}}
+            for k, (dt, t) in best.items()}
 
 
 # ---- report ------------------------------------------------------------------------------------------------
@@ -252,6 +273,15 @@ def zone_table(res_m) -> str:
     return "\n".join(lines)
 
 
+def speed_table(fps) -> str:
+    lines = ["| chain | frames/s | " + " | ".join(f"{n} ms" for n in SPEED_STAGES) + " |",
+             "|---" * (len(SPEED_STAGES) + 2) + "|"]
+    for k, label in (("mono", "monochrome preview (anchor)"), ("colour", "colour preview")):
+        ms = " | ".join(f"{fps[k]['ms'][n]:.1f}" for n in SPEED_STAGES)
+        lines.append(f"| {label} | {fps[k]['fps']:.1f} | {ms} |")
+    return "\n".join(lines)
+
+
 def goals(q, z, fps) -> list[dict]:
     """The issue's goals per method and non-regular layout: measured value, threshold, met."""
     out = []
@@ -273,20 +303,18 @@ def goals(q, z, fps) -> list[dict]:
                     out.append({"goal": f"{m}, {c}: {kind} no worse than SVE (log2 PSNR all, CIEDE2000)",
                                 "value": f"{dp:+.2f} dB, {dd:+.2f} dE00", "met": dp >= 0 and dd <= 0})
     if fps:
-        ratio = fps["colour"] / fps["mono"]
+        fc, fm = fps["colour"]["fps"], fps["mono"]["fps"]
         out.append({"goal": "colour preview >= 70 % of the monochrome preview's frames/s",
-                    "value": f"{100 * ratio:.0f} % ({fps['colour']:.1f} / {fps['mono']:.1f})",
-                    "met": ratio >= GOALS["fps_ratio"]})
+                    "value": f"{100 * fc / fm:.0f} % ({fc:.1f} / {fm:.1f})",
+                    "met": fc / fm >= GOALS["fps_ratio"]})
     return out
 
 
 def size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT") from None
-    if not (16 <= w <= 8192 and 16 <= h <= 8192 and w % 2 == 0 and h % 2 == 0):
-        raise argparse.ArgumentTypeError(f"{text}: width and height must be even, in 16..8192")
+    """WIDTHxHEIGHT (benchmarks/temporal.py's parser), both even: whole 2 x 2 Bayer blocks."""
+    w, h = _sibling("temporal").size(text)
+    if w % 2 or h % 2 or min(w, h) < 16:
+        raise argparse.ArgumentTypeError(f"{text}: a Bayer frame has an even width and height, at least 16")
     return w, h
 
 
@@ -353,8 +381,8 @@ def main(argv=None) -> int:
                 text += f"\n**{title}, `{m}`**\n\n" + quality_table(q[m][kind]) + "\n"
         text += f"\n**Colour zone plate {zsize} x {3 * zsize}, noise-free, `{m}`**\n\n" + zone_table(z[m]) + "\n"
     if fps:
-        text += (f"\nframes/s at {fw} x {fh}, best of {a.repeat} (passes of {fframes} frames, interleaved): "
-                 f"monochrome preview chain (anchor) {fps['mono']:.1f}, colour preview chain {fps['colour']:.1f}\n")
+        text += (f"\n**Preview chain at {fw} x {fh}**, best of {a.repeat} passes of {fframes} frames, interleaved\n\n"
+                 + speed_table(fps) + "\n")
     text += "\n| goal | measured | met |\n|---|---|---|\n" + "".join(
         f"| {x['goal']} | {x['value']} | {'yes' if x['met'] else 'no'} |\n" for x in g)
     total = time.perf_counter() - t_start
