@@ -242,7 +242,8 @@ def colour_clip(tmp_path_factory):
 
 
 @pytest.mark.parametrize("changes, field", [
-    ({"cfa": "rgb"}, "'cfa'"), ({"cfa": 7}, "'cfa'"), ({"cfa": "none"}, "'nd_layout'"),
+    ({"cfa": "rgb"}, "'cfa'"), ({"cfa": 7}, "'cfa'"), ({"cfa": "none"}, "'version'"),
+    ({"cfa": "none", "version": 1}, "'nd_layout'"),
     ({"version": 1}, "'version'"), ({"nd_layout": "random"}, "'nd_layout'"), ({"nd_layout": None}, "'nd_layout'"),
     ({"sensitivity": [1, 2]}, "'sensitivity'"), ({"sensitivity": [1, -1, 1]}, "'sensitivity'"),
     ({"sensitivity": "1,1,1"}, "'sensitivity'"), ({"width": 15}, "'width'"), ({"cfa": "bggr"}, "'cfa'"),
