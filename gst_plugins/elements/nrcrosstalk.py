@@ -83,7 +83,7 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
 
     @guarded("set_caps", False)
     def do_set_caps(self, incaps, outcaps):
-        info = HdrInfo.from_caps(incaps)
+        info = HdrInfo.from_caps(incaps, element="nrcrosstalk")
         if not self.settings.profile:
             if not info.profile:
                 self.post_error("no camera profile: set the 'profile' property or put nrvalidity "

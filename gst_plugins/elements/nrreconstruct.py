@@ -124,7 +124,7 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
 
     @guarded("set_caps", False)
     def do_set_caps(self, incaps, outcaps):
-        self._info = HdrInfo.from_caps(incaps)
+        self._info = HdrInfo.from_caps(incaps, element="nrreconstruct")
         self._noise = None              # the profile may have changed with the caps
         self._temporal = None
         self.gst_debug(f"caps {incaps.to_string()}")

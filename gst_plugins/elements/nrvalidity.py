@@ -136,6 +136,8 @@ class NrValidity(NrElement, LiveTiming, GstBase.BaseTransform):
                 n.set_value("diffuse-white", float(prof.regular_white))
                 if prof.path is not None:
                     n.set_value("profile", str(prof.path))
+                if prof.cfa != "none":
+                    n.set_value("cfa", prof.cfa)
             return [n]
 
         def to_raw(s):
