@@ -4,6 +4,8 @@ colour EXR, against expectations computed here (sRGB, ST 2084 and the primaries'
 test)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -241,3 +243,132 @@ def test_ycbcr_frame_bt2020_ncl(subsample):
     cx = 3 if subsample else 6                                               # inside the colour half
     back = ycbcr_back(y[0, 6], cb[0, cx], cr[0, cx])
     assert np.abs(64 + 876 * back - (codes[:, 0, 6] >> 6)).max() <= 1.0
+
+
+# ---- elements ----------------------------------------------------------------------------------------------
+FPS, DUR = 10, 100_000_000
+
+
+def colour_caps(w, h, white=None, diffuse=None, profile=None):
+    c = f"other/x-nrhdr,layout=(string)rgb-f32-u8-planar,width={w},height={h},framerate={FPS}/1"
+    if white is not None:
+        c += f",white=(double){white}"
+    if diffuse is not None:
+        c += f",diffuse-white=(double){diffuse}"
+    if profile is not None:
+        c += f",profile=(string)\"{profile}\""
+    return c
+
+
+def colour_buffer(rgb, state, i):
+    """The rgb-f32-u8-planar layout written out here: float32 R, G, B planes then the uint8 state plane."""
+    from gi.repository import Gst
+    buf = Gst.Buffer.new_wrapped(np.ascontiguousarray(rgb, "<f4").tobytes() + np.ascontiguousarray(state, np.uint8).tobytes())
+    buf.pts, buf.duration = i * DUR, DUR
+    return buf
+
+
+def run_frames(desc, caps, buffers):
+    """appsrc ! desc ! appsink: [(caps string, bytes of each frame)] and the first error."""
+    from gi.repository import Gst, GstApp  # noqa: F401
+    pipeline = Gst.parse_launch(f"appsrc name=src format=time ! {desc} ! appsink name=sink sync=false")
+    src, sink = pipeline.get_by_name("src"), pipeline.get_by_name("sink")
+    src.set_property("caps", Gst.Caps.from_string(caps))
+    out, error = [], None
+    bus = pipeline.get_bus()
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        for b in buffers:
+            src.push_buffer(b)
+        src.end_of_stream()
+        while True:
+            m = bus.pop_filtered(Gst.MessageType.ERROR)
+            if m is not None:
+                error = f"{m.src.get_name()}: {m.parse_error()[0].message}"
+                break
+            smp = sink.try_pull_sample(120 * Gst.SECOND)   # None at EOS
+            if smp is None:
+                m = bus.pop_filtered(Gst.MessageType.ERROR)
+                if m is not None:
+                    error = f"{m.src.get_name()}: {m.parse_error()[0].message}"
+                break
+            buf = smp.get_buffer()
+            ok, mi = buf.map(Gst.MapFlags.READ)
+            out.append((smp.get_caps().to_string(), bytes(mi.data)))
+            buf.unmap(mi)
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    return out, error
+
+
+def rgb_scene(h=H, w=W, seed=3):
+    rng = np.random.default_rng(seed)
+    g = ramp(5.0, 3e4)[:h, :w]
+    tint = rng.uniform(0.2, 1.0, (3, h, w)).astype(np.float32)
+    rgb = (g[None] * tint).astype(np.float32)
+    rgb[:, :2, :2] = 800.0                   # a grey patch
+    return rgb
+
+
+@pytest.mark.parametrize("operator", tonemap.SDR_OPERATORS)
+def test_nrtonemap_colour_equals_core(gst, operator):
+    """Colour frames to RGB: the element's bytes are tonemap_rgb's (the local operator's statistics smoothed
+    over the frames as LocalTonemap.rgb does), rows padded to 4 bytes (w = 30: 90-byte rows, stride 92)."""
+    h, w = 10, 30
+    frames = [rgb_scene(h, w) * np.float32(k) for k in (1.0, 2.0, 0.5)]
+    state = np.zeros((h, w), np.uint8)
+    white = 4094 * 6.35
+    out, err = run_frames(f"nrtonemap operator={operator} white-balance=none smoothing=0.5 ! video/x-raw,format=RGB",
+                          colour_caps(w, h, white), [colour_buffer(f, state, i) for i, f in enumerate(frames)])
+    assert err is None, err
+    assert len(out) == 3 and "format=(string)RGB" in out[0][0]
+    local = tonemap.LocalTonemap(0.5)
+    for f, (_, data) in zip(frames, out):
+        want = local.rgb(f, white) if operator == "local" else tonemap.tonemap_rgb(f, white, "log")
+        got = np.ndarray((h, w, 3), np.uint8, data, 0, (92, 3, 1))
+        assert (got == want).all()
+        assert got[0, 0, 0] == got[0, 0, 1] == got[0, 0, 2]
+
+
+def test_nrtonemap_white_balance_from_profile_and_grey_world(gst, tmp_path):
+    from nrhdr_core import profile
+    h, w = 8, 12
+    prof = profile.default(h, w, cfa="rggb")
+    prof = dataclasses.replace(prof, white_balance=(0.5, 1.0, 2.0))
+    path = tmp_path / "camera.json"
+    profile.save(prof, path)
+    grey = ramp(50.0, 3000.0)[:h, :w]
+    tinted = np.stack([2.0 * grey, grey, 0.5 * grey]).astype(np.float32)
+    state = np.zeros((h, w), np.uint8)
+    for wb in ("profile", "grey-world"):
+        out, err = run_frames(f"nrtonemap operator=log white-balance={wb} ! video/x-raw,format=RGB",
+                              colour_caps(w, h, 26000.0, profile=path), [colour_buffer(tinted, state, 0)])
+        assert err is None, err
+        img = np.ndarray((h, w, 3), np.uint8, out[0][1], 0, (w * 3, 3, 1)).astype(int)
+        assert np.abs(img[..., 0] - img[..., 1]).max() <= 1 and np.abs(img[..., 2] - img[..., 1]).max() <= 1, wb
+    out, err = run_frames("nrtonemap operator=log white-balance=profile ! video/x-raw,format=RGB",
+                          colour_caps(w, h, 26000.0), [colour_buffer(tinted, state, 0)])
+    assert err is None, err                   # no profile in the caps: no gains
+    img = np.ndarray((h, w, 3), np.uint8, out[0][1], 0, (w * 3, 3, 1)).astype(int)
+    assert (img[..., 0] >= img[..., 1]).all() and (img[..., 0] > img[..., 1]).any()
+
+
+@pytest.mark.parametrize("fmt", ["I420_10LE", "Y444_10LE"])
+def test_nrtonemap_colour_pq_equals_core(gst, fmt):
+    h, w = 6, 10
+    rgb = rgb_scene(h, w)
+    state = np.zeros((h, w), np.uint8)
+    white, diffuse = 4094 * 6.35, 4094.0
+    out, err = run_frames(f"nrtonemap transfer=pq peak=1000 white-balance=none ! video/x-raw,format={fmt}",
+                          colour_caps(w, h, white, diffuse), [colour_buffer(rgb, state, 0)])
+    assert err is None, err
+    assert "colorimetry=(string)bt2100-pq" in out[0][0]
+    src = tonemap.peak_luminance(white, diffuse)
+    codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000, source_peak=src)
+    from gi.repository import Gst, GstVideo
+    vi = GstVideo.VideoInfo.new_from_caps(Gst.Caps.from_string(out[0][0]))
+    want = np.zeros(vi.size, np.uint8)
+    hdr_output.ycbcr_frame(codes, want, vi.offset, vi.stride, subsample=fmt == "I420_10LE")
+    assert np.frombuffer(out[0][1], np.uint8).tobytes() == want.tobytes()
+    y = np.ndarray((h, w), "<u2", out[0][1], vi.offset[0], (vi.stride[0], 2))
+    assert y[0, 0] == codes[1, 0, 0] >> 6            # the grey patch: Y' = its code
