@@ -372,3 +372,34 @@ def test_nrtonemap_colour_pq_equals_core(gst, fmt):
     assert np.frombuffer(out[0][1], np.uint8).tobytes() == want.tobytes()
     y = np.ndarray((h, w), "<u2", out[0][1], vi.offset[0], (vi.stride[0], 2))
     assert y[0, 0] == codes[1, 0, 0] >> 6            # the grey patch: Y' = its code
+
+
+def test_nrexrsink_colour_round_trip(gst, tmp_path):
+    """Colour frames recorded as EXR channels R, G, B (+ state) and read back exactly."""
+    from nrhdr_core import io
+    h, w = 6, 9
+    frames = [rgb_scene(h, w, seed=k) for k in range(2)]
+    frames[1][0, 0, 0] = 1e9
+    states = [np.full((h, w), k * 0x40, np.uint8) for k in range(2)]
+    from gi.repository import Gst
+    pipeline = Gst.parse_launch(f"appsrc name=src format=time caps=\"{colour_caps(w, h, 26000.0)}\" ! nrexrsink "
+                                f"location={tmp_path}/f_%02d.exr write-state=true")
+    src = pipeline.get_by_name("src")
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        for i, (f, s) in enumerate(zip(frames, states)):
+            src.push_buffer(colour_buffer(f, s, i))
+        src.end_of_stream()
+        m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
+        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    for i, (f, s) in enumerate(zip(frames, states)):
+        path = tmp_path / f"f_{i:02d}.exr"
+        import OpenImageIO as oiio
+        inp = oiio.ImageInput.open(str(path))
+        names = list(inp.spec().channelnames)
+        inp.close()
+        assert sorted(names) == ["B", "G", "R", "state"] and io.exr_channels(path) == 3
+        v, st = io.read_exr(path)
+        assert v.shape == (3, h, w) and (v == f).all() and (st == s).all()
