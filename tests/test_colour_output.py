@@ -403,3 +403,85 @@ def test_nrexrsink_colour_round_trip(gst, tmp_path):
         assert sorted(names) == ["B", "G", "R", "state"] and io.exr_channels(path) == 3
         v, st = io.read_exr(path)
         assert v.shape == (3, h, w) and (v == f).all() and (st == s).all()
+
+
+def patches(h=32, w=64):
+    """Flat 16 x 16 patches (linear camera RGB, diffuse white 4094): grey, orange, green, blue, at
+    several levels."""
+    cols = [(1.0, 1.0, 1.0), (1.0, 0.45, 0.1), (0.2, 0.9, 0.3), (0.15, 0.25, 1.0)]
+    rgb = np.zeros((3, h, w), np.float32)
+    for j, c in enumerate(cols):
+        for i, level in enumerate((800.0, 3000.0)):
+            rgb[:, i * 16:(i + 1) * 16, j * 16:(j + 1) * 16] = np.array(c, np.float32)[:, None, None] * level
+    return rgb
+
+
+@pytest.mark.gst
+def test_nrhdrenc_colour_decoded_by_ffmpeg(gst, tmp_path):
+    """HDR10 in colour through nrhdrenc (lossless x265), decoded by ffmpeg: BT.2020 / PQ / BT.2020 NCL in the
+    stream; the decoded Y'CbCr equals ycbcr_frame's; ffmpeg's own conversion back to R'G'B' gives each patch's
+    PQ codes (BT.709 -> BT.2020, from hdr_encode_rgb) within the Y'CbCr rounding (1.5 codes), and grey stays
+    grey."""
+    import json
+    import shutil
+    import subprocess
+    if shutil.which("ffmpeg") is None or gst.ElementFactory.find("x265enc") is None:
+        pytest.skip("needs x265enc and ffmpeg")
+    from gi.repository import Gst
+    h, w = 32, 64
+    rgb = patches(h, w)
+    state = np.zeros((h, w), np.uint8)
+    white, diffuse = 4094 * 6.35, 4094.0
+    out = tmp_path / "c.mp4"
+    pipeline = Gst.parse_launch(
+        f"appsrc name=src format=time caps=\"{colour_caps(w, h, white, diffuse)}\" ! nrhdrenc "
+        f"white-balance=none x265-options=lossless=1 ! mp4mux ! filesink location={out}")
+    src = pipeline.get_by_name("src")
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        for i in range(2):
+            src.push_buffer(colour_buffer(rgb, state, i))
+        src.end_of_stream()
+        m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
+        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-show_entries",
+                        "stream=profile,pix_fmt,color_primaries,color_transfer,color_space,color_range", "-of", "json",
+                        str(out)], capture_output=True, text=True, check=True)
+    st = json.loads(p.stdout)["streams"][0]
+    assert (st["profile"], st["pix_fmt"], st["color_primaries"], st["color_transfer"], st["color_space"],
+            st["color_range"]) == ("Main 10", "yuv420p10le", "bt2020", "smpte2084", "bt2020nc", "tv")
+    codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000.0,
+                                   source_peak=tonemap.peak_luminance(white, diffuse))
+    yuv = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-frames:v", "1", "-f", "rawvideo", "-pix_fmt",
+                          "yuv420p10le", "-"], capture_output=True, check=True).stdout
+    want = np.zeros(w * h * 2 * 3 // 2, np.uint8)
+    hdr_output.ycbcr_frame(codes, want, (0, w * h * 2, w * h * 2 * 5 // 4), (w * 2, w, w))
+    assert yuv == want.tobytes()
+    # ffmpeg's conversion (its BT.2020 NCL matrix, limited to full range) back to R'G'B', 16-bit
+    rgb16 = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-frames:v", "1", "-vf",
+                            "scale=in_color_matrix=bt2020:in_range=limited:out_range=full:flags=accurate_rnd+full_chroma_int",
+                            "-pix_fmt", "gbrp16le", "-f", "rawvideo", "-"], capture_output=True, check=True).stdout
+    g_, b_, r_ = np.frombuffer(rgb16, "<u2").reshape(3, h, w).astype(float)
+    dec = np.stack([r_, g_, b_]) / 65535 * 876 + 64               # back to 10-bit narrow-range code units
+    # swscale's limited -> full range scaling is off by about 255/256: calibrated on the two grey patches
+    # (R' = G' = B'), so that what is checked is the colour conversion
+    grey_dec = np.array([dec[1, 8, 8], dec[1, 24, 8]])
+    grey_want = np.array([codes[1, 8, 8], codes[1, 24, 8]], float) / 64
+    a, b = np.polyfit(grey_want, grey_dec, 1)
+    assert abs(a - 1) < 0.01
+    dec = (dec - b) / a
+    for i in range(2):
+        for j in range(4):
+            y0, x0 = i * 16 + 8, j * 16 + 8                       # the patch centre: flat chroma around it
+            want_codes = codes[:, y0, x0] >> 6
+            # Y', Cb, Cr each rounded to 10 bits: B' = Y' + 1.8814 Cb is within 0.5 + 0.94 x 876 / 896 codes
+            assert np.abs(dec[:, y0, x0] - want_codes).max() <= 1.5, (i, j, dec[:, y0, x0], want_codes)
+            if j == 0:
+                assert np.ptp(dec[:, y0, x0]) <= 0.5                # grey stays grey
+    # the BT.709 -> BT.2020 conversion happened: the orange patch is less saturated in BT.2020 codes than
+    # the same light would be in BT.709
+    bt709 = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", primaries="bt709", peak=1000.0,
+                                   source_peak=tonemap.peak_luminance(white, diffuse)) >> 6
+    assert (codes[2, 8, 24] >> 6) > bt709[2, 8, 24]
