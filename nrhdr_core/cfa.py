@@ -14,6 +14,12 @@ CFAS = (NONE,) + PATTERNS
 R, G, B = 0, 1, 2
 CHANNEL_NAMES = ("R", "G", "B")
 _INDEX = {"r": R, "g": G, "b": B}
+# ND layouts over a Bayer CFA (mask.cfa_mask, docs/SIMULATOR.md): independent of it, balanced per 2 x 2
+# sub-lattice, or the regular Assorted-Pixels block checkerboard; `mask.nd_layout_of` names a mask without ND
+# pixels NO_ND
+ND_LAYOUTS = ("independent", "balanced", "regular")
+DEFAULT_ND_LAYOUT = "balanced"
+NO_ND = "none"
 
 
 def check(cfa, what: str = "cfa") -> str:

@@ -18,11 +18,24 @@ Patterns (`PATTERNS`, `make_mask`); every one has exactly round(H*W/2) attenuate
   into the largest void under a Gaussian filter of width ``sigma`` until stable) on a 128 x 128 toroidal tile,
   tiled with a seeded offset. A narrow filter (sigma 0.8) matches the checkerboard on natural images while
   keeping most of the non-regular advantage on high frequencies (docs/PAPER.md).
+
+ND layouts over a Bayer CFA (`ND_LAYOUTS`, `cfa_mask`; docs/COLOUR.md, docs/SIMULATOR.md):
+- ``independent``: the chosen pattern over the whole sensor as is, ignoring the CFA.
+- ``balanced`` (the default, `DEFAULT_ND_LAYOUT`): the chosen pattern drawn on each of the four 2 x 2 CFA
+  sub-lattices (R, the two greens, B) separately, so every colour plane has exactly half its photosites
+  attenuated, placed as the pattern places them (non-regular within each plane for ``nonregular``).
+- ``regular``: the Assorted-Pixels / spatially-varying-exposure layout (Nayar and Mitsunaga, "Assorted
+  Pixels: Multi-sampled imaging with structural models", TPAMI 2005): whole 2 x 2 Bayer blocks alternate
+  clear / ND in a checkerboard of blocks, so every colour plane is a regular checkerboard (the pattern is
+  not used).
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from . import cfa as cfas
+from .cfa import DEFAULT_ND_LAYOUT, ND_LAYOUTS, NO_ND  # noqa: F401  (named here too: the layouts' module)
 
 PATTERNS = ("nonregular", "random", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster")
 VOIDCLUSTER_SIGMA = 0.8  # Gaussian width of `voidcluster` (benchmarks/masks.py: matches the checkerboard on Kodak)
@@ -217,6 +230,65 @@ def spectrum_stats(mask: np.ndarray, low: float = 0.125) -> dict:
     return {"peak_ratio": float(np.sqrt(P.max() / dc)) if dc > 0 else float("nan"),
             "low_freq_power_share": float(P[r < low].sum() / tot) if tot > 0 else 0.0,
             "low_freq_area_share": float(np.mean(r < low))}
+
+
+def check_nd_layout(layout, what: str = "nd_layout") -> str:
+    """`layout` if it is one of ND_LAYOUTS; ValueError naming `what` otherwise."""
+    if layout not in ND_LAYOUTS:
+        raise ValueError(f"{what}: must be one of {', '.join(ND_LAYOUTS)}, got {layout!r}")
+    return layout
+
+
+SUBLATTICES = ((0, 0), (0, 1), (1, 0), (1, 1))   # the four 2 x 2 CFA sub-lattices: (row, column) offsets
+
+
+def block_checkerboard(height: int, width: int) -> np.ndarray:
+    """The `regular` ND layout over a CFA (Nayar and Mitsunaga, Assorted Pixels, TPAMI 2005): 2 x 2 blocks
+    attenuated where (block row + block column) is odd, the top-left block clear; every colour plane is a
+    regular checkerboard."""
+    _check_size(height, width)
+    yy, xx = np.mgrid[0:height, 0:width]
+    return ((yy // 2 + xx // 2) % 2) == 1
+
+
+def cfa_mask(pattern: str, height: int, width: int, layout: str = DEFAULT_ND_LAYOUT, seed: int = 0,
+             **kw) -> np.ndarray:
+    """The ND mask of a Bayer sensor (even `height` and `width`) in ND layout `layout` (ND_LAYOUTS, see the
+    module docstring): `independent` is `make_mask(pattern, ...)`; `balanced` draws `make_mask(pattern, ...)`
+    on each 2 x 2 sub-lattice with its own seed (`seed`, k), k = 0..3 in row-major order of the block, so each
+    holds round(n / 2) attenuated photosites of its n; `regular` is `block_checkerboard` (`pattern` unused).
+    Deterministic per seed."""
+    check_nd_layout(layout)
+    _check_size(height, width)
+    if height % 2 or width % 2:
+        raise ValueError(f"a Bayer sensor has an even width and height (whole 2 x 2 blocks), got {width} x "
+                         f"{height}")
+    if layout == "independent":
+        return make_mask(pattern, height, width, seed=seed, **kw)
+    if layout == "regular":
+        return block_checkerboard(height, width)
+    m = np.empty((height, width), bool)
+    for k, (dy, dx) in enumerate(SUBLATTICES):
+        m[dy::2, dx::2] = make_mask(pattern, height // 2, width // 2, seed=[int(seed), k], **kw)
+    return m
+
+
+def nd_layout_of(mask: np.ndarray, cfa_name: str) -> str:
+    """The ND layout a mask has over a Bayer CFA: NO_ND without attenuated photosites, `regular` for
+    `block_checkerboard` or its complement, `balanced` when each 2 x 2 sub-lattice holds half its photosites
+    attenuated (round(n / 2) or, n odd, the other rounding), else `independent`; a monochrome sensor
+    (`cfa_name` none) is `independent` whenever it has ND pixels."""
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return NO_ND
+    if not cfas.is_colour(cfa_name) or m.shape[0] % 2 or m.shape[1] % 2:
+        return "independent"
+    reg = block_checkerboard(*m.shape)
+    if np.array_equal(m, reg) or np.array_equal(m, ~reg):
+        return "regular"
+    half = all(abs(2 * int(m[dy::2, dx::2].sum()) - m[dy::2, dx::2].size) <= 1
+               for dy, dx in SUBLATTICES)
+    return "balanced" if half else "independent"
 
 
 def _check_size(height: int, width: int) -> None:

@@ -533,7 +533,16 @@ def check_same_sensor(calibrated: CameraProfile, stream: CameraProfile) -> None:
 
 
 def default(height: int = 480, width: int = 640, seed: int = 0, pattern: str = "nonregular",
-            **fields) -> CameraProfile:
-    """A profile like the paper's prototype: 12 bit, clip at 4094, ND 6.35, half the pixels attenuated."""
+            nd_layout: str | None = None, **fields) -> CameraProfile:
+    """A profile like the paper's prototype: 12 bit, clip at 4094, ND 6.35, half the pixels attenuated. With a
+    Bayer `cfa` (in `fields`) the mask is `mask.cfa_mask(pattern, ..., nd_layout)` (default
+    `mask.DEFAULT_ND_LAYOUT`); a monochrome sensor takes no `nd_layout` but `independent`."""
     from . import mask as masks
+    if cfas.is_colour(fields.get("cfa", cfas.NONE)):
+        m = masks.cfa_mask(pattern, height, width, nd_layout or masks.DEFAULT_ND_LAYOUT, seed=seed)
+        return make(m, **fields)
+    if nd_layout not in (None, "independent"):
+        masks.check_nd_layout(nd_layout)
+        raise ValueError(f"nd_layout: {nd_layout!r} places the ND filter over a colour filter array; a "
+                         f"monochrome sensor (cfa none) has the layout 'independent'")
     return make(masks.make_mask(pattern, height, width, seed=seed), **fields)

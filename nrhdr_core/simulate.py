@@ -1,10 +1,11 @@
 """Scene to raw sensor video: camera motion across an HDR scene, objects moving over it and a scene cut,
-captured by the sensor model.
+captured by the sensor model, monochrome or through a Bayer colour filter array (docs/COLOUR.md).
 
-Writes a clip folder (docs/SIMULATOR.md): `clip.raw` (GRAY16_LE, for `filesrc ! rawvideoparse`),
-`camera.json` + `camera_mask.png` (the profile), `clip.json` (size, rate, frames), `truth/frame_%05d.exr`
-(noise-free, unclipped linear DN: what a perfect chain would output) and, on request,
-`raw_png/frame_%05d.png` or `raw_tiff/frame_%05d.tif` (16-bit). Seeded and deterministic.
+Writes a clip folder (docs/SIMULATOR.md): `clip.raw` (GRAY16_LE, for `filesrc ! rawvideoparse`; a Bayer
+mosaic for a colour sensor), `camera.json` + `camera_mask.png` (the profile), `clip.json` (size, rate, frames;
+CFA, ND layout and channel sensitivity of a colour sensor), `truth/frame_%05d.exr` (noise-free, unclipped
+linear DN: what a perfect chain would output; channels R, G, B in camera RGB for a colour sensor) and, on
+request, `raw_png/frame_%05d.png` or `raw_tiff/frame_%05d.tif` (16-bit). Seeded and deterministic.
 """
 from __future__ import annotations
 
@@ -16,9 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from . import cfa as cfas
 from . import io, outputs, profile as profiles, sensor
+from . import mask as masks
 
 CLIP_FORMAT = "nrhdr-clip"
+CLIP_VERSIONS = (1, 2)      # 1: monochrome; 2: a colour sensor (fields cfa, nd_layout, sensitivity)
+SENSITIVITY_RANGE = (1e-3, 1e3)   # a colour channel's sensitivity (relative; white balance = its inverse)
 
 
 @dataclass(frozen=True)
@@ -187,8 +192,42 @@ def patch_texture(prefiltered: np.ndarray, obj: MovingObject, scale: float) -> n
 EXPOSURE_STOPS_MAX = 30.0   # |exposure| beyond 30 stops is all black or all clipped on any sensor
 
 
+def check_sensitivity(sensitivity, what: str = "sensitivity") -> tuple[float, float, float]:
+    """`sensitivity` as three floats (R, G, B), each finite in SENSITIVITY_RANGE; ValueError naming `what`."""
+    lo, hi = SENSITIVITY_RANGE
+    ok = isinstance(sensitivity, (tuple, list, np.ndarray)) and len(sensitivity) == 3 and all(
+        _finite(v) and lo <= v <= hi for v in sensitivity)
+    if not ok:
+        raise ValueError(f"{what}: must be three finite numbers (R, G, B) in {lo:g}..{hi:g}, got {sensitivity!r}")
+    return tuple(float(v) for v in sensitivity)
+
+
+def white_balance_of(sensitivity) -> tuple[float, float, float]:
+    """The white balance (R, G, B gains) of a camera whose channels have `sensitivity`: 1 / sensitivity,
+    normalised to green (a grey object then reads grey)."""
+    r, g, b = check_sensitivity(sensitivity)
+    return (g / r, 1.0, g / b)
+
+
+def check_colour_args(cfa=None, nd_layout=None, sensitivity=None) -> None:
+    """ValueError naming the argument: `cfa` one of cfa.CFAS, `nd_layout` one of mask.ND_LAYOUTS (a colour
+    sensor's only), `sensitivity` three numbers (`check_sensitivity`; other than 1, 1, 1 a colour sensor's
+    only). None: not given."""
+    colour = cfa is not None and cfas.is_colour(cfas.check(cfa))
+    if nd_layout is not None:
+        masks.check_nd_layout(nd_layout)
+        if cfa is not None and not colour and nd_layout != "independent":
+            raise ValueError(f"nd_layout: {nd_layout!r} places the ND filter over a colour filter array; a "
+                             f"monochrome sensor (cfa none) has the layout 'independent'")
+    if sensitivity is not None:
+        sens = check_sensitivity(sensitivity)
+        if cfa is not None and not colour and sens != (1.0, 1.0, 1.0):
+            raise ValueError(f"sensitivity: {sensitivity!r} weighs colour channels; a monochrome sensor (cfa "
+                             f"none) has none")
+
+
 def check_args(frames: int, fps: int, exposure_stops: float, motion: Motion, sequence=None, objects=(),
-               cut_frame=None) -> None:
+               cut_frame=None, cfa=None, nd_layout=None, sensitivity=None) -> None:
     """Validate simulate_clip's arguments up front (before anything is written); ValueError names them."""
     if not (isinstance(frames, (int, np.integer)) and not isinstance(frames, bool) and frames >= 1):
         raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
@@ -212,6 +251,7 @@ def check_args(frames: int, fps: int, exposure_stops: float, motion: Motion, seq
                                       and 1 <= cut_frame < frames):
         raise ValueError(f"cut_frame must be an integer in 1..{frames - 1} (the first frame of the second shot, "
                          f"inside the clip's {frames} frames), got {cut_frame!r}")
+    check_colour_args(cfa, nd_layout, sensitivity)
 
 
 # What simulate_clip writes into a clip folder (outputs.staged_folder: with overwrite, only these are replaced).
@@ -235,21 +275,38 @@ def scene_median(scene: np.ndarray) -> float:
 FLUX_MAX = 1e30   # DN: far beyond any full well, far below float32's overflow (3.4e38)
 
 
-def check_scene(scene: np.ndarray, profile, stops: float, name: str = "scene") -> float:
-    """ValueError naming `name` unless `scene` can be exposed: a 2-D array (at least 2 x 2) of finite
-    values whose exposure (`exposure_scale`) is a positive float32 factor that keeps its brightest pixel a
-    finite float32 flux (<= FLUX_MAX); returns that factor."""
-    if scene.ndim != 2 or min(scene.shape) < 2:
-        raise ValueError(f"{name}: scene must be a 2-D luminance image of at least 2x2, got shape {scene.shape}")
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """Rec. 709 luminance (float32 (H, W)) of planar linear RGB (3, H, W), as `io.read_luminance` weighs it."""
+    a = np.asarray(rgb, np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.tensordot(io.LUMA_709, a, axes=1).astype(np.float32)
+
+
+def is_rgb_scene(scene) -> bool:
+    """True for a planar colour scene (3, H, W), False for a luminance scene (H, W)."""
+    return np.ndim(scene) == 3 and np.shape(scene)[0] == 3
+
+
+def check_scene(scene: np.ndarray, profile, stops: float, name: str = "scene", sensitivity=(1.0, 1.0, 1.0)) -> float:
+    """ValueError naming `name` unless `scene` can be exposed: a 2-D luminance array or planar RGB (3, H, W)
+    (at least 2 x 2) of finite values whose exposure (`exposure_scale` of its luminance) is a positive
+    float32 factor that keeps its brightest value (times the largest channel `sensitivity`, for RGB) a finite
+    float32 flux (<= FLUX_MAX); returns that factor."""
+    scene = np.asarray(scene)
+    rgb = is_rgb_scene(scene)
+    if not (scene.ndim == 2 or rgb) or min(scene.shape[-2:]) < 2:
+        raise ValueError(f"{name}: scene must be a 2-D luminance image or planar RGB (3, H, W) of at least 2x2, "
+                         f"got shape {scene.shape}")
     finite = np.isfinite(scene)
     if not finite.all():
         raise ValueError(f"{name}: {int(np.sum(~finite))} scene values are NaN or infinite")
+    lum = luminance(scene) if rgb else scene
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        k = exposure_scale(scene, profile, stops)
-    peak = float(np.max(scene)) * k
+        k = exposure_scale(lum, profile, stops)
+    peak = float(np.max(scene)) * k * (max(check_sensitivity(sensitivity)) if rgb else 1.0)
     if not (math.isfinite(k) and 0 < k <= float(np.finfo(np.float32).max) and math.isfinite(peak)
             and peak <= FLUX_MAX):
-        lit = scene[scene > 0]
+        lit = lum[lum > 0]
         rng = f"{float(lit.min()):.3g}..{float(lit.max()):.3g}" if lit.size else "none"
         raise ValueError(f"{name}: the scene cannot be exposed: its positive values ({rng}) at exposure "
                          f"{stops:+g} stops give a scale factor {k:.3g} (must be in (0, 3.4e38]) and a peak flux "
@@ -289,78 +346,166 @@ class ClipRenderer:
     writes as its truth: the view of `scene` along `motion` at t = i / (frames - 1) times the exposure
     factor (`exposure_scale`), with `objects` (MovingObject) drawn over it (`composite`); from frame
     `cut_frame` on, the second shot: the view of `cut_scene` (default: `scene` turned by 180 degrees, a
-    far region upside down) along the same path, exposed for that scene, without the objects."""
+    far region upside down) along the same path, exposed for that scene, without the objects.
+
+    A colour sensor (`profile.cfa` a Bayer phase, docs/COLOUR.md): `scene` is planar linear RGB (3, H, W) (a
+    luminance scene is grey); each channel is viewed along the same path, objects and cut alike (a disc is
+    grey at its level), the exposure factor comes from the luminance, and channel c's flux is its view x the
+    exposure factor x `sensitivity[c]` (camera RGB, not white balanced). A monochrome sensor views the
+    luminance of an RGB scene."""
 
     def __init__(self, scene: np.ndarray, profile, frames: int, exposure_stops: float = 0.0,
                  motion: Motion = Motion(), objects=(), cut_frame: int | None = None, cut_scene=None,
-                 cut_scene_name: str | None = None):
+                 cut_scene_name: str | None = None, sensitivity=(1.0, 1.0, 1.0)):
         self.h, self.w = profile.height, profile.width
         self.frames, self.motion = frames, motion
         self.objects = tuple(objects)
-        self.scene = scene
-        self.scale = exposure_scale(scene, profile, exposure_stops)
-        self._pre = prefilter(scene, self.w, motion)
+        self.cfa = profile.cfa
+        self.colour = cfas.is_colour(profile.cfa)
+        self.sensitivity = check_sensitivity(sensitivity)
+        if not self.colour and self.sensitivity != (1.0, 1.0, 1.0):
+            raise ValueError(f"sensitivity: {sensitivity!r} weighs colour channels; the profile's sensor is "
+                             f"monochrome (cfa none)")
+        self.scene = self._planes(scene)
+        lum = luminance(self.scene) if self.colour else self.scene
+        self.scale = exposure_scale(lum, profile, exposure_stops)
+        self._pre = self._prefilter(self.scene)
         self.cut_frame = cut_frame
         if cut_frame is not None:
-            self.cut_scene = (np.ascontiguousarray(np.rot90(scene, 2)) if cut_scene is None
-                              else np.asarray(cut_scene, np.float32))
-            self.cut_scale = exposure_scale(self.cut_scene, profile, exposure_stops)
+            self.cut_scene = (np.ascontiguousarray(np.rot90(self.scene, 2, axes=(-2, -1))) if cut_scene is None
+                              else self._planes(cut_scene))
+            self.cut_scale = exposure_scale(luminance(self.cut_scene) if self.colour else self.cut_scene,
+                                            profile, exposure_stops)
             self.cut_name = cut_scene_name or ("the scene turned by 180 degrees" if cut_scene is None
                                                else "cut scene")
-            self._cut_pre = prefilter(self.cut_scene, self.w, motion)
+            self._cut_pre = self._prefilter(self.cut_scene)
         if self.objects:
-            self.median = scene_median(scene)
-            H, W = scene.shape
+            self.median = scene_median(lum)
+            H, W = self.scene.shape[-2:]
             px = min(W, H * self.w / self.h) * motion.fov / self.w     # scene pixels per output pixel at t = 0
-            self._tex = [patch_texture(self._pre, o, px) if o.kind == "patch" else None for o in self.objects]
+            planes = self._pre if self.colour else [self._pre]
+            self._tex = [[patch_texture(pre, o, px) if o.kind == "patch" else None for o in self.objects]
+                         for pre in planes]
+
+    def _planes(self, scene) -> np.ndarray:
+        """The scene as this sensor sees it: (3, H, W) for colour (a luminance scene grey), (H, W) else."""
+        a = np.asarray(scene, np.float32)
+        if self.colour:
+            return np.ascontiguousarray(a if is_rgb_scene(a) else np.broadcast_to(a, (3,) + a.shape))
+        return luminance(a) if is_rgb_scene(a) else a
+
+    def _prefilter(self, scene):
+        return [prefilter(c, self.w, self.motion) for c in scene] if self.colour else \
+            prefilter(scene, self.w, self.motion)
+
+    def _view(self, scene, pre, t, objects_at=None):
+        if not self.colour:
+            v = view(scene, self.h, self.w, t, self.motion, prefiltered=pre)
+            if objects_at is not None:
+                composite(v, self.objects, objects_at, self.median, self._tex[0])
+            return v
+        out = np.empty((3, self.h, self.w), np.float32)
+        for c in range(3):
+            out[c] = view(scene[c], self.h, self.w, t, self.motion, prefiltered=pre[c])
+            if objects_at is not None:
+                composite(out[c], self.objects, objects_at, self.median, self._tex[c])
+        return out
+
+    def _expose(self, v: np.ndarray, scale: float) -> np.ndarray:
+        if not self.colour:
+            return v * np.float32(scale)
+        return v * np.array([scale * s for s in self.sensitivity], np.float32)[:, None, None]
 
     def flux(self, i: int) -> np.ndarray:
-        """Frame i's noise-free flux (float32 H x W, DN)."""
+        """Frame i's noise-free flux (float32 DN): (H, W), or camera RGB (3, H, W) for a colour sensor."""
         t = i / max(self.frames - 1, 1)
         if self.cut_frame is not None and i >= self.cut_frame:
-            return view(self.cut_scene, self.h, self.w, t, self.motion, prefiltered=self._cut_pre) \
-                * np.float32(self.cut_scale)
-        v = view(self.scene, self.h, self.w, t, self.motion, prefiltered=self._pre)
-        if self.objects:
-            composite(v, self.objects, i, self.median, self._tex)
-        return v * np.float32(self.scale)
+            return self._expose(self._view(self.cut_scene, self._cut_pre, t), self.cut_scale)
+        return self._expose(self._view(self.scene, self._pre, t, i if self.objects else None), self.scale)
+
+    def photosite_flux(self, flux: np.ndarray) -> np.ndarray:
+        """The flux each photosite receives (float32 (H, W), `sensor.capture`'s input) of a frame's `flux`:
+        itself for a monochrome sensor, the CFA mosaic (`cfa.mosaic`) of the camera RGB for a colour one."""
+        return cfas.mosaic(flux, self.cfa) if self.colour else flux
 
 
 def simulate_clip(scene: np.ndarray, out_dir, profile=None, frames: int = 60, fps: int = 30,
                   exposure_stops: float = 0.0, motion: Motion = Motion(), seed: int = 0,
                   sensor_model=None, sequence: str | None = None, scene_name: str = "scene",
                   progress: bool = True, overwrite: bool = False, objects=(), cut_frame: int | None = None,
-                  cut_scene=None, cut_scene_name: str | None = None) -> dict:
-    """Simulate `frames` raw frames of `scene` (linear luminance) and write the clip folder; returns the
-    clip description also written to clip.json. `sequence`: None, "png" or "tiff" (16-bit raw frames).
-    `objects` (MovingObject, e.g. from `random_objects`) move over the view; `cut_frame` starts a second
-    shot of `cut_scene` (None: `scene` turned by 180 degrees), see `ClipRenderer`. Without objects and
-    cut the frames do not depend on these arguments.
+                  cut_scene=None, cut_scene_name: str | None = None, cfa: str | None = None,
+                  nd_layout: str | None = None, sensitivity=None) -> dict:
+    """Simulate `frames` raw frames of `scene` (linear luminance (H, W) or planar linear RGB (3, H, W)) and
+    write the clip folder; returns the clip description also written to clip.json. `sequence`: None, "png"
+    or "tiff" (16-bit raw frames). `objects` (MovingObject, e.g. from `random_objects`) move over the view;
+    `cut_frame` starts a second shot of `cut_scene` (None: `scene` turned by 180 degrees), see
+    `ClipRenderer`. Without objects and cut the frames do not depend on these arguments.
+
+    Colour (docs/COLOUR.md): `cfa` (cfa.CFAS; None: the profile's, or none without a profile) a Bayer phase
+    simulates a colour sensor: each photosite's flux is its CFA channel of the camera RGB flux (`ClipRenderer`,
+    `sensitivity` (R, G, B), default 1, 1, 1), captured by `sensor.capture` unchanged; the truth is the camera
+    RGB flux (3-channel EXR). Without `profile`, `profiles.default` makes one in ND layout `nd_layout`
+    (mask.ND_LAYOUTS, default mask.DEFAULT_ND_LAYOUT); with one, its mask must fit `nd_layout` when given
+    (`mask.nd_layout_of`) and its cfa must be `cfa`. The profile written has white_balance =
+    `white_balance_of(sensitivity)`; clip.json (version 2) records cfa, nd_layout and sensitivity. A
+    monochrome clip is written as without these arguments.
 
     The folder is written as a whole (outputs.staged_folder): a stopped run (SIGINT, SIGTERM, SIGHUP)
     removes its temporary folder and leaves an existing clip untouched, a killed run's is removed by the
     next run, a second writer of the folder is refused (outputs.OutputLockedError); a non-empty `out_dir`
     is refused (io.OutputExistsError) unless `overwrite`, which replaces only the files a clip consists of
     (CLIP_OUTPUTS) and keeps any other file there."""
-    check_args(frames, fps, exposure_stops, motion, sequence, objects, cut_frame)
-    prof = profile if profile is not None else profiles.default()
+    check_args(frames, fps, exposure_stops, motion, sequence, objects, cut_frame, cfa, nd_layout, sensitivity)
+    prof, layout = clip_profile(profile, cfa, nd_layout)
+    colour = cfas.is_colour(prof.cfa)
+    sens = check_sensitivity(sensitivity) if sensitivity is not None else (1.0, 1.0, 1.0)
+    if not colour and sens != (1.0, 1.0, 1.0):
+        raise ValueError(f"sensitivity: {sensitivity!r} weighs colour channels; the sensor is monochrome (cfa none)")
     scene = np.asarray(scene, np.float32)
-    check_scene(scene, prof, exposure_stops, scene_name)
+    check_scene(scene, prof, exposure_stops, scene_name, sens)
     if cut_scene is not None:
         if cut_frame is None:
             raise ValueError("cut_scene is given but cut_frame is not: say at which frame the second shot starts")
         cut_scene = np.asarray(cut_scene, np.float32)
-        check_scene(cut_scene, prof, exposure_stops, cut_scene_name or "cut scene")
+        check_scene(cut_scene, prof, exposure_stops, cut_scene_name or "cut scene", sens)
     render = ClipRenderer(scene, prof, frames, exposure_stops, motion, objects, cut_frame, cut_scene,
-                          cut_scene_name)
+                          cut_scene_name, sensitivity=sens)
+    colour_info = None
+    if colour:
+        prof = prof.replace(white_balance=white_balance_of(sens))
+        colour_info = {"cfa": prof.cfa, "nd_layout": layout, "sensitivity": list(sens)}
     with outputs.staged_folder(out_dir, force=overwrite, owned=CLIP_OUTPUTS) as tmp:
         info = _write_clip(render, tmp, prof, fps, exposure_stops, seed, sensor_model, sequence, scene_name,
-                           progress)
+                           progress, colour_info)
     return info
 
 
+def clip_profile(profile, cfa, nd_layout):
+    """(profile, its ND layout name) as `simulate_clip` uses them: the given `profile` checked against `cfa`
+    and `nd_layout` (ValueError naming the argument), or `profiles.default` in them."""
+    if profile is None:
+        name = cfas.check(cfa) if cfa is not None else cfas.NONE
+        fields = {"cfa": name} if cfas.is_colour(name) else {}
+        prof = profiles.default(nd_layout=nd_layout, **fields)
+        if cfas.is_colour(name):
+            return prof, nd_layout or masks.DEFAULT_ND_LAYOUT
+        return prof, "independent"
+    if cfa is not None and cfas.check(cfa) != profile.cfa:
+        raise ValueError(f"cfa: the profile's sensor has the CFA {profile.cfa!r}, got cfa={cfa!r}")
+    found = masks.nd_layout_of(profile.mask, profile.cfa)
+    if nd_layout is not None:
+        fits = (found in (nd_layout, masks.NO_ND) or nd_layout == "independent"
+                or (nd_layout == "balanced" and found == "regular"))
+        if not fits:
+            raise ValueError(f"nd_layout: the profile's mask is not in the {nd_layout!r} layout (it is "
+                             f"{found!r}, mask.nd_layout_of)")
+        if found != masks.NO_ND:
+            found = nd_layout
+    return profile, found
+
+
 def _write_clip(render: ClipRenderer, out: Path, prof, fps, exposure_stops, seed, sensor_model, sequence,
-                scene_name, progress) -> dict:
+                scene_name, progress, colour_info=None) -> dict:
     h, w, frames, motion = prof.height, prof.width, render.frames, render.motion
     (out / "truth").mkdir(exist_ok=True)
     profiles.save(prof, out / "camera.json")
@@ -377,16 +522,16 @@ def _write_clip(render: ClipRenderer, out: Path, prof, fps, exposure_stops, seed
     with io.RawVideoWriter(out / "clip.raw", w, h) as writer:
         for i in it:
             flux = render.flux(i)
-            raw = sensor.capture(flux, prof, rng, sensor_model=sensor_model)
+            raw = sensor.capture(render.photosite_flux(flux), prof, rng, sensor_model=sensor_model)
             writer.write(raw)
             io.write_exr(out / "truth" / f"frame_{i:05d}.exr", flux)
             if seq_dir is not None:
                 ext = "png" if sequence == "png" else "tif"
                 io.write_image(seq_dir / f"frame_{i:05d}.{ext}", raw, np.uint16)
-    info = {"format": CLIP_FORMAT, "version": 1, "width": w, "height": h, "fps": fps, "frames": frames,
-            "raw": "clip.raw", "pixel_format": "GRAY16_LE", "profile": "camera.json",
-            "truth": "truth/frame_%05d.exr", "scene": scene_name, "exposure_stops": exposure_stops,
-            "exposure_scale": k, "seed": seed,
+    info = {"format": CLIP_FORMAT, "version": 2 if colour_info else 1, "width": w, "height": h, "fps": fps,
+            "frames": frames, "raw": "clip.raw", "pixel_format": "GRAY16_LE", "profile": "camera.json",
+            "truth": "truth/frame_%05d.exr", **(colour_info or {}), "scene": scene_name,
+            "exposure_stops": exposure_stops, "exposure_scale": k, "seed": seed,
             "motion": {"pan": motion.pan, "tilt": motion.tilt, "zoom": motion.zoom, "fov": motion.fov},
             "sensor_model": getattr(sensor_model, "name", None) if sensor_model is not None else None,
             "sequence": sequence}
@@ -410,8 +555,12 @@ CLIP_FILES = ("raw", "profile", "truth")      # the fields of clip.json that nam
 def load_clip(clip_dir, allow_outside: bool = False) -> dict:
     """Read clip.json (io.read_json) and check it: format and version, positive integer size, rate and
     frame count, and the files it names (`CLIP_FILES`) inside the clip folder unless `allow_outside`
-    (io.resolve_named). Adds "dir" (the folder, absolute) and "<field>_path" (absolute) for each of
-    `CLIP_FILES`. Errors: ClipError naming clip.json and the field."""
+    (io.resolve_named). A colour clip (version 2): `cfa` a Bayer phase with an even width and height,
+    `nd_layout` one of mask.ND_LAYOUTS or none, `sensitivity` three numbers (`check_sensitivity`); the
+    profile's `cfa` (camera.json) and the first truth frame's channels (3 for colour, 1 else) must agree.
+    Adds "dir" (the folder, absolute), "<field>_path" (absolute) for each of `CLIP_FILES`, "cfa" (none for
+    a monochrome clip) and "channels" (of the truth: 1 or 3). Errors: ClipError naming the file and the
+    field."""
     d = Path(clip_dir)
     f = d / "clip.json"
     if not f.is_file():
@@ -419,8 +568,9 @@ def load_clip(clip_dir, allow_outside: bool = False) -> dict:
     info = io.read_json(f, "clip description (clip.json)", error=ClipError)
     if info.get("format") != CLIP_FORMAT:
         raise ClipError(f"{f}: not an nrhdr clip description (field 'format' must be '{CLIP_FORMAT}')")
-    if info.get("version") != 1 or isinstance(info.get("version"), bool):
-        raise ClipError(f"{f}: field 'version': this nrhdr reads version 1, file has {info.get('version')!r}")
+    if info.get("version") not in CLIP_VERSIONS or isinstance(info.get("version"), bool):
+        raise ClipError(f"{f}: field 'version': this nrhdr reads versions "
+                        f"{', '.join(map(str, CLIP_VERSIONS))}, file has {info.get('version')!r}")
     for k, hi in (("width", profiles.MAX_SIZE), ("height", profiles.MAX_SIZE), ("fps", 10000), ("frames", 10 ** 9)):
         v = info.get(k)
         if not (isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= hi):
@@ -432,5 +582,92 @@ def load_clip(clip_dir, allow_outside: bool = False) -> dict:
     for k in CLIP_FILES:
         if k in info:
             info[f"{k}_path"] = str(io.resolve_named(f, k, info[k], ClipError, allow_outside))
+    _check_clip_colour(f, info)
     info["dir"] = str(d.resolve())
+    if "truth" in info:
+        first = _truth_file(f, info, 0, allow_outside)
+        if first.is_file():
+            _check_truth_channels(f, info, first)
     return info
+
+
+COLOUR_FIELDS = ("cfa", "nd_layout", "sensitivity")     # clip.json fields of a colour clip (version 2)
+
+
+def _check_clip_colour(f: Path, info: dict) -> None:
+    """The colour fields of clip.json `f` (COLOUR_FIELDS), in place: "cfa" and "channels" set."""
+    cfa = info.get("cfa", cfas.NONE)
+    if not isinstance(cfa, str) or cfa not in cfas.CFAS:
+        raise ClipError(f"{f}: field 'cfa' must be one of {', '.join(cfas.CFAS)}, got {cfa!r}")
+    colour = cfas.is_colour(cfa)
+    if not colour:
+        extra = [k for k in COLOUR_FIELDS[1:] if k in info]
+        if extra:
+            raise ClipError(f"{f}: field '{extra[0]}' belongs to a colour clip, but field 'cfa' says "
+                            f"{cfa!r} (monochrome)")
+    else:
+        if info["version"] < 2:
+            raise ClipError(f"{f}: field 'version': a colour clip (cfa {cfa!r}) is version 2 (a version-1 "
+                            f"reader would read its Bayer mosaic as grey), file has {info['version']!r}")
+        for k in ("width", "height"):
+            if info[k] % 2:
+                raise ClipError(f"{f}: field '{k}': a Bayer sensor (cfa {cfa!r}) has an even width and height, "
+                                f"got {info[k]}")
+        layout = info.get("nd_layout")
+        if layout not in masks.ND_LAYOUTS + (masks.NO_ND,):
+            raise ClipError(f"{f}: field 'nd_layout' must be one of {', '.join(masks.ND_LAYOUTS + (masks.NO_ND,))}, "
+                            f"got {layout!r}")
+        try:
+            info["sensitivity"] = list(check_sensitivity(info.get("sensitivity"), "'sensitivity'"))
+        except ValueError as e:
+            raise ClipError(f"{f}: field {e}") from None
+    info["cfa"] = cfa
+    info["channels"] = 3 if colour else 1
+    prof_path = Path(info["profile_path"])
+    if prof_path.is_file():          # the profile's own errors are profile.load's to report
+        try:
+            pcfa = io.read_json(prof_path, "camera profile").get("cfa", cfas.NONE)
+        except io.FileContentError:
+            return
+        if pcfa != cfa:
+            raise ClipError(f"{f}: field 'cfa' is {cfa!r} but the clip's profile {prof_path} says cfa "
+                            f"{pcfa!r}")
+
+
+def _truth_file(f: Path, info: dict, i: int, allow_outside: bool = False) -> Path:
+    """Truth frame i's file: clip.json's `truth` pattern (one %d conversion) filled with i, in the folder."""
+    pattern = info.get("truth")
+    try:
+        name = pattern % i if isinstance(pattern, str) else None
+    except (TypeError, ValueError):
+        name = None
+    if name is None or name == pattern:
+        raise ClipError(f"{f}: field 'truth' must be a file pattern with one %d conversion (truth/"
+                        f"frame_%05d.exr), got {pattern!r}")
+    return io.resolve_named(f, "truth", name, ClipError, allow_outside)
+
+
+def _check_truth_channels(f: Path, info: dict, path: Path) -> None:
+    try:
+        n = io.exr_channels(path)
+    except io.ImageFileError as e:
+        raise ClipError(f"{e} (a truth frame named by field 'truth' of {f})") from None
+    if n != info["channels"]:
+        raise ClipError(f"{path}: a truth frame of {n} channel(s), but {f} field 'cfa' is {info['cfa']!r} "
+                        f"({info['channels']} channel(s): {'R, G, B' if info['channels'] == 3 else 'Y'})")
+
+
+def read_truth(clip: dict, i: int, allow_outside: bool = False) -> np.ndarray:
+    """Truth frame i of a clip loaded by `load_clip`: float32 (H, W), or camera RGB (3, H, W) for a colour
+    clip (docs/SIMULATOR.md). Errors name the file: ClipError when its channels or size contradict
+    clip.json, io.ImageFileError when it cannot be read."""
+    f = Path(clip["dir"]) / "clip.json"
+    if not (isinstance(i, (int, np.integer)) and 0 <= i < clip["frames"]):
+        raise ValueError(f"{f}: truth frame {i!r} out of range 0..{clip['frames'] - 1}")
+    path = _truth_file(f, clip, int(i), allow_outside)
+    _check_truth_channels(f, clip, path)
+    try:
+        values, _ = io.read_exr(path, shape=(clip["height"], clip["width"]))
+    except io.ImageSizeError as e:
+        raise ClipError(f"{e} (the size {f} states)") from None
+    return values

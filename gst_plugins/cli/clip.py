@@ -2,6 +2,7 @@
 that runs the whole chain on one (nrhdr_core.simulate, nrhdr_core.profile)."""
 from __future__ import annotations
 
+import argparse
 import shlex
 import sys
 import time
@@ -10,54 +11,113 @@ from pathlib import Path
 from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
 
 
-def _scene(arg: str | None):
-    """Load the scene named on the command line, or synthesise the default one."""
+def rgb_numbers(lo: float, hi: float):
+    """A `type=` for argparse: three comma-separated numbers R,G,B, each checked by `args.number(lo, hi)`."""
+    one = number(lo, hi)
+
+    def parse(text: str):
+        parts = text.split(",")
+        if len(parts) != 3:
+            raise argparse.ArgumentTypeError(f"{text!r} is not three numbers R,G,B (e.g. 0.6,1,0.8)")
+        return tuple(float(one(t.strip())) for t in parts)
+    parse.__name__ = "R,G,B"
+    return parse
+
+
+def _scene(arg: str | None, colour: bool = False):
+    """Load the scene named on the command line (linear RGB (3, H, W) for a colour sensor, else its
+    luminance), or synthesise the default one (grey)."""
     from nrhdr_core import io, scene
     if arg in (None, "", "synthetic"):
         return scene.synthetic_hdr_scene(), "synthetic"
+    if colour:
+        return io.read_rgb(arg, nonfinite="error"), Path(arg).name
     return io.read_luminance(arg, nonfinite="error"), Path(arg).name
+
+
+def _pattern(a) -> str:
+    """--pattern (default nonregular), refused where --nd-layout regular (which has no pattern) contradicts it."""
+    if getattr(a, "nd_layout", None) == "regular" and a.pattern not in (None, "regular", "none"):
+        raise ValueError(f"--pattern {a.pattern} contradicts --nd-layout regular (the Assorted-Pixels block "
+                         f"checkerboard: it has no pattern of its own); use --nd-layout balanced or independent")
+    return a.pattern or "nonregular"
 
 
 def _profile_from_args(a, **fields):
     from nrhdr_core import profile
     if getattr(a, "profile", None):
         return profile.load(a.profile, allow_outside=a.allow_outside_paths)
-    if a.pattern == "none":    # the unmodified camera: no ND pixel, the same sensor and noise
+    pattern = _pattern(a)
+    cfa = getattr(a, "cfa", None) or "none"
+    layout = getattr(a, "nd_layout", None)
+    if cfa != "none":
+        for opt, v in (("--width", a.width), ("--height", a.height)):
+            if v % 2:
+                raise ValueError(f"{opt} {v}: a Bayer sensor (--cfa {cfa}) has an even width and height (whole "
+                                 f"2 x 2 blocks)")
+        fields["cfa"] = cfa
+    elif layout not in (None, "independent"):
+        raise ValueError(f"--nd-layout {layout} places the ND filter over a colour filter array: give --cfa")
+    if pattern == "none":    # the unmodified camera: no ND pixel, the same sensor and noise
         import numpy as np
         return profile.make(np.zeros((a.height, a.width), bool), nd=a.nd, l_min=a.l_min, **fields)
-    return profile.default(a.height, a.width, seed=a.mask_seed, pattern=a.pattern, nd=a.nd, l_min=a.l_min,
+    if cfa != "none":
+        fields["nd_layout"] = layout
+    return profile.default(a.height, a.width, seed=a.mask_seed, pattern=pattern, nd=a.nd, l_min=a.l_min,
                            **fields)
 
 
+def _option_error(e: ValueError) -> ValueError:
+    """A ValueError of nrhdr_core whose message starts with an argument's name, naming the option instead:
+    'cut_frame must ...' -> '--cut-frame must ...'."""
+    text = str(e)
+    name = text.split(" ")[0].rstrip(":")
+    return ValueError("--" + name.replace("_", "-") + text[len(name):])
+
+
 def cmd_simulate(a) -> int:
+    from nrhdr_core import cfa as cfas
     from nrhdr_core import simulate
     motion = simulate.Motion(pan=a.pan, tilt=a.tilt, zoom=a.zoom, fov=a.fov)
     try:                                   # before anything is read or written; messages start with the name
-        simulate.check_args(a.frames, a.fps, a.exposure, motion, a.sequence, cut_frame=a.cut_frame)
+        simulate.check_args(a.frames, a.fps, a.exposure, motion, a.sequence, cut_frame=a.cut_frame,
+                            cfa=a.cfa, nd_layout=a.nd_layout, sensitivity=a.sensitivity)
     except ValueError as e:
-        raise ValueError(f"--{str(e).replace('cut_frame', 'cut-frame', 1)}") from None
+        raise _option_error(e) from None
     if a.cut_scene is not None and a.cut_frame is None:
         raise ValueError("--cut-scene needs --cut-frame (the frame at which the second shot starts)")
     prof = _profile_from_args(a)
+    try:
+        simulate.clip_profile(prof, a.cfa, a.nd_layout)
+    except ValueError as e:
+        raise ValueError(f"{_option_error(e)} (--profile {a.profile})") from None
+    colour = cfas.is_colour(prof.cfa)
+    if a.sensitivity is not None and not colour:
+        raise ValueError("--sensitivity weighs the colour channels of a Bayer sensor: give --cfa (or a colour "
+                         "--profile)")
+    sens = a.sensitivity or (1.0, 1.0, 1.0)
     model = None
     if a.sensor_model and a.sensor_model != "none":
         from nrhdr_core import crosstalk
         model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width,
                                                  seed=a.sensor_seed)
-    scene, name = _scene(a.scene)
-    simulate.check_scene(scene, prof, a.exposure, a.scene or "synthetic")
-    cut_scene, cut_name = _scene(a.cut_scene) if a.cut_scene is not None else (None, None)
+    scene, name = _scene(a.scene, colour)
+    simulate.check_scene(scene, prof, a.exposure, a.scene or "synthetic", sens)
+    cut_scene, cut_name = _scene(a.cut_scene, colour) if a.cut_scene is not None else (None, None)
     if cut_scene is not None:
-        simulate.check_scene(cut_scene, prof, a.exposure, a.cut_scene)
+        simulate.check_scene(cut_scene, prof, a.exposure, a.cut_scene, sens)
     objects = simulate.random_objects(a.objects, prof.height, prof.width, a.frames, a.object_speed,
                                       a.object_size, a.object_kind, a.seed)
+    extra = {"nd_layout": a.nd_layout, "sensitivity": a.sensitivity} if colour else {}
     info = simulate.simulate_clip(scene, a.output, prof, frames=a.frames, fps=a.fps,
                                   exposure_stops=a.exposure, motion=motion, seed=a.seed,
                                   sensor_model=model, sequence=a.sequence, scene_name=name,
                                   overwrite=a.force, objects=objects, cut_frame=a.cut_frame,
-                                  cut_scene=cut_scene, cut_scene_name=cut_name)
+                                  cut_scene=cut_scene, cut_scene_name=cut_name, **extra)
     out = Path(a.output)
-    print(f"wrote {info['frames']} frames {info['width']}x{info['height']} GRAY16_LE to {out / 'clip.raw'}")
+    mosaic = f" (Bayer {info['cfa']} mosaic, ND layout {info['nd_layout']})" if info.get("cfa") else ""
+    print(f"wrote {info['frames']} frames {info['width']}x{info['height']} GRAY16_LE{mosaic} to "
+          f"{out / 'clip.raw'}")
     print(f"profile {out / 'camera.json'}, ground truth {out / 'truth'}/")
     print(f"run it: pipelines/raw_to_display.sh {shlex.quote(str(out))}   or\n  {launch_line(info, out)}")
     return 0
@@ -82,10 +142,18 @@ def cmd_profile(a) -> int:
         fmt["white_level"] = (1 << a.bit_depth) - 1
     if a.gain is not None:
         fmt["gain"] = a.gain
+    if a.white_balance is not None:
+        if a.cfa in (None, "none"):
+            raise ValueError("--white-balance holds the gains of a Bayer sensor's colour channels: give --cfa")
+        fmt["white_balance"] = a.white_balance
     p = _profile_from_args(a, **fmt)
     profile.save(p, a.output, overwrite=a.force)
-    print(f"wrote {a.output} ({p.width}x{p.height}, {a.pattern} mask, ND {p.nd}, "
-          f"{p.mask.mean() * 100:.1f} % attenuated)")
+    colour = ""
+    if a.cfa not in (None, "none"):
+        from nrhdr_core import mask
+        colour = f", CFA {p.cfa}, ND layout {mask.nd_layout_of(p.mask, p.cfa)}"
+    print(f"wrote {a.output} ({p.width}x{p.height}, {_pattern(a)} mask, ND {p.nd}, "
+          f"{p.mask.mean() * 100:.1f} % attenuated{colour})")
     return 0
 
 
@@ -183,6 +251,7 @@ def _run_demo(a, out: Path):
 
 
 def _add_sensor_args(p, profile_opt=True):
+    from nrhdr_core.cfa import CFAS, DEFAULT_ND_LAYOUT, ND_LAYOUTS
     g = p.add_argument_group("sensor (ignored with --profile)")
     if profile_opt:
         p.add_argument("--profile", help="existing camera profile JSON to use")
@@ -190,10 +259,19 @@ def _add_sensor_args(p, profile_opt=True):
     g.add_argument("--height", type=SIZE, default=480)
     g.add_argument("--pattern", choices=("nonregular", "regular", "cell2", "cell2diag", "bluenoise", "voidcluster",
                                          "none"),
-                   default="nonregular", help="ND mask: the paper's non-regular (iid) pattern, the regular "
+                   default=None, help="ND mask: the paper's non-regular (iid) pattern (the default), the regular "
                    "2x2 (Nayar) one, a reduced-randomness design (docs/PAPER.md), or none (an unmodified "
                    "camera with the same sensor, to compare against: nrhdr compare)")
     g.add_argument("--mask-seed", type=SEED, default=0, help="seed of the non-regular mask")
+    g.add_argument("--cfa", choices=CFAS, default=None,
+                   help="colour filter array: none (monochrome, the default) or a Bayer phase, the colours of "
+                        "the top-left 2x2 block (docs/COLOUR.md); width and height must be even; with "
+                        "--profile it must be the profile's")
+    g.add_argument("--nd-layout", choices=ND_LAYOUTS, default=None,
+                   help=f"ND mask over the CFA: independent (--pattern as is), balanced (--pattern on each "
+                        f"2x2 colour sub-lattice: half of every colour plane attenuated) or regular (Assorted "
+                        f"Pixels: 2x2 blocks clear / ND in a checkerboard); default {DEFAULT_ND_LAYOUT} "
+                        f"(docs/SIMULATOR.md)")
     g.add_argument("--nd", type=ND, default=6.35, help="ND factor (Eq. 1), 1..1024")
     g.add_argument("--l-min", type=CODE_LEVEL, default=100.0, help="threshold for attenuated pixels (2.3)")
 
@@ -234,6 +312,9 @@ def add_simulate(sub) -> None:
     p.add_argument("--sensor-seed", type=SEED, default=0,
                    help="seed of the sensor model's pixel-to-pixel variation (same as simulate-flats')")
     p.add_argument("--sequence", choices=("png", "tiff"), help="also write 16-bit raw frames")
+    p.add_argument("--sensitivity", type=rgb_numbers(1e-3, 1e3), default=None,
+                   help="R,G,B: relative sensitivity of a Bayer sensor's colour channels (default 1,1,1); the "
+                        "profile written gets the white balance 1/sensitivity, normalised to green")
     p.add_argument("--force", action="store_true",
                    help="replace the clip files in an existing folder (other files there are kept)")
     _add_sensor_args(p)
@@ -260,6 +341,8 @@ def add_profile(sub) -> None:
     g.add_argument("--packing", choices=tuple(PACKINGS), default="none",
                    help="packed pixel formats arriving as GRAY16_LE bytes (Aravis labels Mono12Packed so), "
                         "unpacked by nrvalidity")
+    g.add_argument("--white-balance", type=rgb_numbers(1e-3, 1e3), default=None,
+                   help="R,G,B gains that make a grey object grey (a --cfa sensor; default 1,1,1)")
     g.add_argument("--out-of-range", choices=OUT_OF_RANGE, default="clip",
                    help="a code above the bit depth's range: a clipped pixel, or an element error (a stream "
                         "of another bit depth than the profile's)")
