@@ -485,3 +485,62 @@ def test_nrhdrenc_colour_decoded_by_ffmpeg(gst, tmp_path):
     bt709 = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", primaries="bt709", peak=1000.0,
                                    source_peak=tonemap.peak_luminance(white, diffuse)) >> 6
     assert (codes[2, 8, 24] >> 6) > bt709[2, 8, 24]
+
+
+@pytest.mark.gst
+def test_hdr10_cli_colour_clip(gst_subprocess_env, tmp_path):
+    """`nrhdr hdr10` on a simulated colour clip: HEVC Main 10 with BT.2020 / PQ / BT.2020 NCL, the decoded
+    Y'CbCr (lossless) is the colour chain's R'G'B' codes in BT.2020 NCL, MaxCLL is max(R, G, B) through the
+    ST 2084 EOTF (written out here), and the stills are RGB PNG."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+    from nrhdr_core import batch, chain, profile
+    from gst_plugins.cli.hdr import colour_frame
+    if shutil.which("ffprobe") is None or subprocess.run(["gst-inspect-1.0", "--exists", "x265enc"]).returncode:
+        pytest.skip("x265enc or ffprobe not installed")
+    h, w, n = 32, 48, 2
+    clip = tmp_path / "clip"
+
+    def cli(*args):
+        p = subprocess.run([sys.executable, "-m", "gst_plugins.cli", *map(str, args)], env=gst_subprocess_env,
+                           capture_output=True, text=True, timeout=600)
+        assert p.returncode == 0, p.stdout + p.stderr
+        return p.stdout
+    cli("simulate", "synthetic", "-o", clip, "--cfa", "rggb", "--frames", n, "--width", w, "--height", h)
+    out = tmp_path / "c.mp4"
+    cli("hdr10", clip, out, "--method", "preview", "--no-progress", "--white-balance", "none",
+        "--x265-options", "lossless=1")
+    p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-read_intervals", "%+#1",
+                        "-show_frames", "-show_streams", "-of", "json", str(out)], capture_output=True, text=True,
+                       check=True)
+    info = json.loads(p.stdout)
+    st = info["streams"][0]
+    assert (st["color_primaries"], st["color_transfer"], st["color_space"]) == ("bt2020", "smpte2084", "bt2020nc")
+    prof = profile.load(clip / "camera.json")
+    src = batch.open_source(clip)
+    diffuse, white = float(prof.regular_white), float(prof.white)
+    yuv = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-f", "rawvideo", "-pix_fmt", "yuv420p10le", "-"],
+                         capture_output=True, check=True).stdout
+    per = w * h * 3 // 2 * 2
+    top = 0
+    for i in range(n):
+        rgb, _ = colour_frame(batch.read_frame(src.raw, w, h, i), prof, chain.ChainSettings(method="preview"))
+        codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000.0, source_peak=tonemap.peak_luminance(white, diffuse))
+        want = np.zeros(per, np.uint8)
+        hdr_output.ycbcr_frame(codes, want, (0, w * h * 2, w * h * 5 // 2), (w * 2, w, w))
+        assert yuv[i * per:(i + 1) * per] == want.tobytes()
+        top = max(top, int((codes >> 6).max()))
+    cll = {x["side_data_type"]: x for x in info["frames"][0]["side_data_list"]}["Content light level metadata"]
+    pq_sig = (top - 64) / 876
+    m1, m2, c1, c2, c3 = 2610 / 16384, 2523 / 32, 3424 / 4096, 2413 / 128, 2392 / 128
+    vp = pq_sig ** (1 / m2)
+    assert cll["max_content"] == int(np.ceil(10000 * (max(vp - c1, 0) / (c2 - c3 * vp)) ** (1 / m1) - 1e-9))
+    stills = tmp_path / "stills"
+    cli("hdr10", clip, stills, "--method", "preview", "--no-progress")
+    import OpenImageIO as oiio
+    inp = oiio.ImageInput.open(str(stills / "frame_00000.png"))
+    spec = inp.spec()
+    inp.close()
+    assert spec.nchannels == 3 and list(spec.getattribute("CICP")) == [9, 16, 0, 1]
