@@ -195,7 +195,7 @@ class HdrInfo:
                     RGB_LAYOUT: "float32 R, G, B planes then uint8 state"}
             takes = "; ".join(f"{x} ({what[x]})" for x in layouts)
             got = f" ({what[layout]})" if layout in what else ""
-            hint = (" (colour frames come out of nrreconstruct: put this element before it)"
+            hint = (" (nrreconstruct makes colour frames of a colour sensor's mosaic frames)"
                     if layout == RGB_LAYOUT else "")
             raise CapsError(f"{who}cannot take {HDR_MEDIA_TYPE} layout {layout}{got}: it takes {takes}{hint}")
         cfa = s.get_string("cfa") if s.has_field("cfa") else "none"
