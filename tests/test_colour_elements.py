@@ -425,3 +425,21 @@ def test_colour_recipe_refuses_a_monochrome_clip(gst_subprocess_env, tiny_clip, 
                        env=gst_subprocess_env, capture_output=True, text=True, timeout=120)
     assert p.returncode == 2
     assert "monochrome" in p.stderr and "raw_to_exr.sh" in p.stderr
+
+
+def test_crosstalk_profile_of_another_cfa_refused(gst, colour12, tmp_path):
+    path, prof = colour12
+    other, _ = save_profile(tmp_path, "bggr", cfa="bggr")
+    _s, err, _ = run(f"nrvalidity profile={path} ! nrcrosstalk profile={other}", gray16_caps(),
+                     make_buffers([colour_raws(prof, n=1)[0].astype("<u2").tobytes()]))
+    assert err is not None and err[0].startswith("nrcrosstalk")
+    assert "cfa bggr" in err[1] and "cfa=rggb" in err[1]
+
+
+def test_warmup_compiles_the_colour_path():
+    """chain.warmup with a CFA runs demosaic.reconstruct_cfa for the colour methods (and skips the others)."""
+    from nrhdr_core import chain
+    sets = [chain.ChainSettings(method=m, preset="fast") for m in ("preview", "fse", "linear")]
+    chain.warmup(sets, stages=("validity", "crosstalk", "reconstruction"), elements=True, cfa="rggb")
+    with pytest.raises(ValueError, match="cfa"):
+        chain.warmup(sets[0], cfa="rgb")
