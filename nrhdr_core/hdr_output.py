@@ -277,3 +277,24 @@ def matroska_caps(mastering: MasteringDisplay) -> str:
     """The caps (text) that a capssetter before matroskamux sets so that its Colour element states the
     mastering luminance the SEI states (MATROSKA_LUMINANCE_FACTOR)."""
     return f"video/x-h265,mastering-display-info=(string){mastering.caps_field(MATROSKA_LUMINANCE_FACTOR)}"
+
+
+def warmup_rgb(transfers=TRANSFERS, elements: bool = False) -> None:
+    """Compile (or load) the colour HDR kernels (`tonemap.hdr_encode_rgb`, with and without the roll-off, and
+    `ycbcr_frame` 4:2:0 and 4:4:4) on a tiny frame; `elements`: also a read-only input (nrtonemap's mapped
+    buffers)."""
+    from .tonemap import hdr_encode_rgb
+    h, w = 4, 6
+    v = np.geomspace(1.0, 1e4, 3 * h * w).astype(np.float32).reshape(3, h, w)
+    inputs = [v]
+    if elements:
+        ro = v.copy()
+        ro.setflags(write=False)
+        inputs.append(ro)
+    for x in inputs:
+        for transfer in transfers:
+            for peak in (0.0, DEFAULT_PEAK):
+                codes = hdr_encode_rgb(x, 1e3, transfer, peak=peak, source_peak=2 * peak)
+    frame = np.zeros(3 * h * w * 2, np.uint8)
+    for sub in (True, False):
+        ycbcr_frame(codes, frame, (0, h * w * 2, 2 * h * w * 2), (w * 2, w * 2, w * 2), subsample=sub)

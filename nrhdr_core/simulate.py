@@ -22,7 +22,7 @@ from . import io, outputs, profile as profiles, sensor
 from . import mask as masks
 
 CLIP_FORMAT = "nrhdr-clip"
-CLIP_VERSIONS = (1, 2)      # 1: monochrome; 2: a colour sensor (fields cfa, nd_layout, sensitivity)
+CLIP_VERSIONS = (1, 2)      # 1: a monochrome sensor; 2: a colour one (fields cfa, nd_layout, sensitivity)
 SENSITIVITY_RANGE = (1e-3, 1e3)   # a colour channel's sensitivity (relative; white balance = its inverse)
 
 
@@ -601,6 +601,9 @@ def _check_clip_colour(f: Path, info: dict) -> None:
         raise ClipError(f"{f}: field 'cfa' must be one of {', '.join(cfas.CFAS)}, got {cfa!r}")
     colour = cfas.is_colour(cfa)
     if not colour:
+        if info["version"] != 1:
+            raise ClipError(f"{f}: field 'version': version {info['version']} describes a colour clip, but field "
+                            f"'cfa' says {cfa!r} (a monochrome clip is version 1)")
         extra = [k for k in COLOUR_FIELDS[1:] if k in info]
         if extra:
             raise ClipError(f"{f}: field '{extra[0]}' belongs to a colour clip, but field 'cfa' says "

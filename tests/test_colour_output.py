@@ -4,6 +4,8 @@ colour EXR, against expectations computed here (sRGB, ST 2084 and the primaries'
 test)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -241,3 +243,304 @@ def test_ycbcr_frame_bt2020_ncl(subsample):
     cx = 3 if subsample else 6                                               # inside the colour half
     back = ycbcr_back(y[0, 6], cb[0, cx], cr[0, cx])
     assert np.abs(64 + 876 * back - (codes[:, 0, 6] >> 6)).max() <= 1.0
+
+
+# ---- elements ----------------------------------------------------------------------------------------------
+FPS, DUR = 10, 100_000_000
+
+
+def colour_caps(w, h, white=None, diffuse=None, profile=None):
+    c = f"other/x-nrhdr,layout=(string)rgb-f32-u8-planar,width={w},height={h},framerate={FPS}/1"
+    if white is not None:
+        c += f",white=(double){white}"
+    if diffuse is not None:
+        c += f",diffuse-white=(double){diffuse}"
+    if profile is not None:
+        c += f",profile=(string)\"{profile}\""
+    return c
+
+
+def colour_buffer(rgb, state, i):
+    """The rgb-f32-u8-planar layout written out here: float32 R, G, B planes then the uint8 state plane."""
+    from gi.repository import Gst
+    buf = Gst.Buffer.new_wrapped(np.ascontiguousarray(rgb, "<f4").tobytes() + np.ascontiguousarray(state, np.uint8).tobytes())
+    buf.pts, buf.duration = i * DUR, DUR
+    return buf
+
+
+def run_frames(desc, caps, buffers):
+    """appsrc ! desc ! appsink: [(caps string, bytes of each frame)] and the first error."""
+    from gi.repository import Gst, GstApp  # noqa: F401
+    pipeline = Gst.parse_launch(f"appsrc name=src format=time ! {desc} ! appsink name=sink sync=false")
+    src, sink = pipeline.get_by_name("src"), pipeline.get_by_name("sink")
+    src.set_property("caps", Gst.Caps.from_string(caps))
+    out, error = [], None
+    bus = pipeline.get_bus()
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        for b in buffers:
+            src.push_buffer(b)
+        src.end_of_stream()
+        while True:
+            m = bus.pop_filtered(Gst.MessageType.ERROR)
+            if m is not None:
+                error = f"{m.src.get_name()}: {m.parse_error()[0].message}"
+                break
+            smp = sink.try_pull_sample(120 * Gst.SECOND)   # None at EOS
+            if smp is None:
+                m = bus.pop_filtered(Gst.MessageType.ERROR)
+                if m is not None:
+                    error = f"{m.src.get_name()}: {m.parse_error()[0].message}"
+                break
+            buf = smp.get_buffer()
+            ok, mi = buf.map(Gst.MapFlags.READ)
+            out.append((smp.get_caps().to_string(), bytes(mi.data)))
+            buf.unmap(mi)
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    return out, error
+
+
+def rgb_scene(h=H, w=W, seed=3):
+    rng = np.random.default_rng(seed)
+    g = ramp(5.0, 3e4)[:h, :w]
+    tint = rng.uniform(0.2, 1.0, (3, h, w)).astype(np.float32)
+    rgb = (g[None] * tint).astype(np.float32)
+    rgb[:, :2, :2] = 800.0                   # a grey patch
+    return rgb
+
+
+@pytest.mark.parametrize("operator", tonemap.SDR_OPERATORS)
+def test_nrtonemap_colour_equals_core(gst, operator):
+    """Colour frames to RGB: the element's bytes are tonemap_rgb's (the local operator's statistics smoothed
+    over the frames as LocalTonemap.rgb does), rows padded to 4 bytes (w = 30: 90-byte rows, stride 92)."""
+    h, w = 10, 30
+    frames = [rgb_scene(h, w) * np.float32(k) for k in (1.0, 2.0, 0.5)]
+    state = np.zeros((h, w), np.uint8)
+    white = 4094 * 6.35
+    out, err = run_frames(f"nrtonemap operator={operator} white-balance=none smoothing=0.5 ! video/x-raw,format=RGB",
+                          colour_caps(w, h, white), [colour_buffer(f, state, i) for i, f in enumerate(frames)])
+    assert err is None, err
+    assert len(out) == 3 and "format=(string)RGB" in out[0][0]
+    local = tonemap.LocalTonemap(0.5)
+    for f, (_, data) in zip(frames, out):
+        want = local.rgb(f, white) if operator == "local" else tonemap.tonemap_rgb(f, white, "log")
+        got = np.ndarray((h, w, 3), np.uint8, data, 0, (92, 3, 1))
+        assert (got == want).all()
+        assert got[0, 0, 0] == got[0, 0, 1] == got[0, 0, 2]
+
+
+def test_nrtonemap_white_balance_from_profile_and_grey_world(gst, tmp_path):
+    from nrhdr_core import profile
+    h, w = 8, 12
+    prof = profile.default(h, w, cfa="rggb")
+    prof = dataclasses.replace(prof, white_balance=(0.5, 1.0, 2.0))
+    path = tmp_path / "camera.json"
+    profile.save(prof, path)
+    grey = ramp(50.0, 3000.0)[:h, :w]
+    tinted = np.stack([2.0 * grey, grey, 0.5 * grey]).astype(np.float32)
+    state = np.zeros((h, w), np.uint8)
+    for wb in ("profile", "grey-world"):
+        out, err = run_frames(f"nrtonemap operator=log white-balance={wb} ! video/x-raw,format=RGB",
+                              colour_caps(w, h, 26000.0, profile=path), [colour_buffer(tinted, state, 0)])
+        assert err is None, err
+        img = np.ndarray((h, w, 3), np.uint8, out[0][1], 0, (w * 3, 3, 1)).astype(int)
+        assert np.abs(img[..., 0] - img[..., 1]).max() <= 1 and np.abs(img[..., 2] - img[..., 1]).max() <= 1, wb
+    out, err = run_frames("nrtonemap operator=log white-balance=profile ! video/x-raw,format=RGB",
+                          colour_caps(w, h, 26000.0), [colour_buffer(tinted, state, 0)])
+    assert err is None, err                   # no profile in the caps: no gains
+    img = np.ndarray((h, w, 3), np.uint8, out[0][1], 0, (w * 3, 3, 1)).astype(int)
+    assert (img[..., 0] >= img[..., 1]).all() and (img[..., 0] > img[..., 1]).any()
+
+
+@pytest.mark.parametrize("fmt", ["I420_10LE", "Y444_10LE"])
+def test_nrtonemap_colour_pq_equals_core(gst, fmt):
+    h, w = 6, 10
+    rgb = rgb_scene(h, w)
+    state = np.zeros((h, w), np.uint8)
+    white, diffuse = 4094 * 6.35, 4094.0
+    out, err = run_frames(f"nrtonemap transfer=pq peak=1000 white-balance=none ! video/x-raw,format={fmt}",
+                          colour_caps(w, h, white, diffuse), [colour_buffer(rgb, state, 0)])
+    assert err is None, err
+    assert "colorimetry=(string)bt2100-pq" in out[0][0]
+    src = tonemap.peak_luminance(white, diffuse)
+    codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000, source_peak=src)
+    from gi.repository import Gst, GstVideo
+    vi = GstVideo.VideoInfo.new_from_caps(Gst.Caps.from_string(out[0][0]))
+    want = np.zeros(vi.size, np.uint8)
+    hdr_output.ycbcr_frame(codes, want, vi.offset, vi.stride, subsample=fmt == "I420_10LE")
+    assert np.frombuffer(out[0][1], np.uint8).tobytes() == want.tobytes()
+    y = np.ndarray((h, w), "<u2", out[0][1], vi.offset[0], (vi.stride[0], 2))
+    assert y[0, 0] == codes[1, 0, 0] >> 6            # the grey patch: Y' = its code
+
+
+def test_nrexrsink_colour_round_trip(gst, tmp_path):
+    """Colour frames recorded as EXR channels R, G, B (+ state) and read back exactly."""
+    from nrhdr_core import io
+    h, w = 6, 9
+    frames = [rgb_scene(h, w, seed=k) for k in range(2)]
+    frames[1][0, 0, 0] = 1e9
+    states = [np.full((h, w), k * 0x40, np.uint8) for k in range(2)]
+    from gi.repository import Gst
+    pipeline = Gst.parse_launch(f"appsrc name=src format=time caps=\"{colour_caps(w, h, 26000.0)}\" ! nrexrsink "
+                                f"location={tmp_path}/f_%02d.exr write-state=true")
+    src = pipeline.get_by_name("src")
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        for i, (f, s) in enumerate(zip(frames, states)):
+            src.push_buffer(colour_buffer(f, s, i))
+        src.end_of_stream()
+        m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
+        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    for i, (f, s) in enumerate(zip(frames, states)):
+        path = tmp_path / f"f_{i:02d}.exr"
+        import OpenImageIO as oiio
+        inp = oiio.ImageInput.open(str(path))
+        names = list(inp.spec().channelnames)
+        inp.close()
+        assert sorted(names) == ["B", "G", "R", "state"] and io.exr_channels(path) == 3
+        v, st = io.read_exr(path)
+        assert v.shape == (3, h, w) and (v == f).all() and (st == s).all()
+
+
+def patches(h=32, w=64):
+    """Flat 16 x 16 patches (linear camera RGB, diffuse white 4094): grey, orange, green, blue, at
+    several levels."""
+    cols = [(1.0, 1.0, 1.0), (1.0, 0.45, 0.1), (0.2, 0.9, 0.3), (0.15, 0.25, 1.0)]
+    rgb = np.zeros((3, h, w), np.float32)
+    for j, c in enumerate(cols):
+        for i, level in enumerate((800.0, 3000.0)):
+            rgb[:, i * 16:(i + 1) * 16, j * 16:(j + 1) * 16] = np.array(c, np.float32)[:, None, None] * level
+    return rgb
+
+
+@pytest.mark.gst
+def test_nrhdrenc_colour_decoded_by_ffmpeg(gst, tmp_path):
+    """HDR10 in colour through nrhdrenc (lossless x265), decoded by ffmpeg: BT.2020 / PQ / BT.2020 NCL in the
+    stream; the decoded Y'CbCr equals ycbcr_frame's; ffmpeg's own conversion back to R'G'B' gives each patch's
+    PQ codes (BT.709 -> BT.2020, from hdr_encode_rgb) within the Y'CbCr rounding (1.5 codes), and grey stays
+    grey."""
+    import json
+    import shutil
+    import subprocess
+    if shutil.which("ffmpeg") is None or gst.ElementFactory.find("x265enc") is None:
+        pytest.skip("needs x265enc and ffmpeg")
+    from gi.repository import Gst
+    h, w = 32, 64
+    rgb = patches(h, w)
+    state = np.zeros((h, w), np.uint8)
+    white, diffuse = 4094 * 6.35, 4094.0
+    out = tmp_path / "c.mp4"
+    pipeline = Gst.parse_launch(
+        f"appsrc name=src format=time caps=\"{colour_caps(w, h, white, diffuse)}\" ! nrhdrenc "
+        f"white-balance=none x265-options=lossless=1 ! mp4mux ! filesink location={out}")
+    src = pipeline.get_by_name("src")
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        for i in range(2):
+            src.push_buffer(colour_buffer(rgb, state, i))
+        src.end_of_stream()
+        m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
+        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-show_entries",
+                        "stream=profile,pix_fmt,color_primaries,color_transfer,color_space,color_range", "-of", "json",
+                        str(out)], capture_output=True, text=True, check=True)
+    st = json.loads(p.stdout)["streams"][0]
+    assert (st["profile"], st["pix_fmt"], st["color_primaries"], st["color_transfer"], st["color_space"],
+            st["color_range"]) == ("Main 10", "yuv420p10le", "bt2020", "smpte2084", "bt2020nc", "tv")
+    codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000.0,
+                                   source_peak=tonemap.peak_luminance(white, diffuse))
+    yuv = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-frames:v", "1", "-f", "rawvideo", "-pix_fmt",
+                          "yuv420p10le", "-"], capture_output=True, check=True).stdout
+    want = np.zeros(w * h * 2 * 3 // 2, np.uint8)
+    hdr_output.ycbcr_frame(codes, want, (0, w * h * 2, w * h * 2 * 5 // 4), (w * 2, w, w))
+    assert yuv == want.tobytes()
+    # ffmpeg's conversion (its BT.2020 NCL matrix, limited to full range) back to R'G'B', 16-bit
+    rgb16 = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-frames:v", "1", "-vf",
+                            "scale=in_color_matrix=bt2020:in_range=limited:out_range=full:flags=accurate_rnd+full_chroma_int",
+                            "-pix_fmt", "gbrp16le", "-f", "rawvideo", "-"], capture_output=True, check=True).stdout
+    g_, b_, r_ = np.frombuffer(rgb16, "<u2").reshape(3, h, w).astype(float)
+    dec = np.stack([r_, g_, b_]) / 65535 * 876 + 64               # back to 10-bit narrow-range code units
+    # swscale's limited -> full range scaling is off by about 255/256: calibrated on the two grey patches
+    # (R' = G' = B'), so that what is checked is the colour conversion
+    grey_dec = np.array([dec[1, 8, 8], dec[1, 24, 8]])
+    grey_want = np.array([codes[1, 8, 8], codes[1, 24, 8]], float) / 64
+    a, b = np.polyfit(grey_want, grey_dec, 1)
+    assert abs(a - 1) < 0.01
+    dec = (dec - b) / a
+    for i in range(2):
+        for j in range(4):
+            y0, x0 = i * 16 + 8, j * 16 + 8                       # the patch centre: flat chroma around it
+            want_codes = codes[:, y0, x0] >> 6
+            # Y', Cb, Cr each rounded to 10 bits: B' = Y' + 1.8814 Cb is within 0.5 + 0.94 x 876 / 896 codes
+            assert np.abs(dec[:, y0, x0] - want_codes).max() <= 1.5, (i, j, dec[:, y0, x0], want_codes)
+            if j == 0:
+                assert np.ptp(dec[:, y0, x0]) <= 0.5                # grey stays grey
+    # the BT.709 -> BT.2020 conversion happened: the orange patch is less saturated in BT.2020 codes than
+    # the same light would be in BT.709
+    bt709 = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", primaries="bt709", peak=1000.0,
+                                   source_peak=tonemap.peak_luminance(white, diffuse)) >> 6
+    assert (codes[2, 8, 24] >> 6) > bt709[2, 8, 24]
+
+
+@pytest.mark.gst
+def test_hdr10_cli_colour_clip(gst_subprocess_env, tmp_path):
+    """`nrhdr hdr10` on a simulated colour clip: HEVC Main 10 with BT.2020 / PQ / BT.2020 NCL, the decoded
+    Y'CbCr (lossless) is the colour chain's R'G'B' codes in BT.2020 NCL, MaxCLL is max(R, G, B) through the
+    ST 2084 EOTF (written out here), and the stills are RGB PNG."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+    from nrhdr_core import batch, chain, profile
+    from gst_plugins.cli.hdr import colour_frame
+    if shutil.which("ffprobe") is None or subprocess.run(["gst-inspect-1.0", "--exists", "x265enc"]).returncode:
+        pytest.skip("x265enc or ffprobe not installed")
+    h, w, n = 32, 48, 2
+    clip = tmp_path / "clip"
+
+    def cli(*args):
+        p = subprocess.run([sys.executable, "-m", "gst_plugins.cli", *map(str, args)], env=gst_subprocess_env,
+                           capture_output=True, text=True, timeout=600)
+        assert p.returncode == 0, p.stdout + p.stderr
+        return p.stdout
+    cli("simulate", "synthetic", "-o", clip, "--cfa", "rggb", "--frames", n, "--width", w, "--height", h)
+    out = tmp_path / "c.mp4"
+    cli("hdr10", clip, out, "--method", "preview", "--no-progress", "--white-balance", "none",
+        "--x265-options", "lossless=1")
+    p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-read_intervals", "%+#1",
+                        "-show_frames", "-show_streams", "-of", "json", str(out)], capture_output=True, text=True,
+                       check=True)
+    info = json.loads(p.stdout)
+    st = info["streams"][0]
+    assert (st["color_primaries"], st["color_transfer"], st["color_space"]) == ("bt2020", "smpte2084", "bt2020nc")
+    prof = profile.load(clip / "camera.json")
+    src = batch.open_source(clip)
+    diffuse, white = float(prof.regular_white), float(prof.white)
+    yuv = subprocess.run(["ffmpeg", "-v", "error", "-i", str(out), "-f", "rawvideo", "-pix_fmt", "yuv420p10le", "-"],
+                         capture_output=True, check=True).stdout
+    per = w * h * 3 // 2 * 2
+    top = 0
+    for i in range(n):
+        rgb, _ = colour_frame(batch.read_frame(src.raw, w, h, i), prof, chain.ChainSettings(method="preview"))
+        codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000.0, source_peak=tonemap.peak_luminance(white, diffuse))
+        want = np.zeros(per, np.uint8)
+        hdr_output.ycbcr_frame(codes, want, (0, w * h * 2, w * h * 5 // 2), (w * 2, w, w))
+        assert yuv[i * per:(i + 1) * per] == want.tobytes()
+        top = max(top, int((codes >> 6).max()))
+    cll = {x["side_data_type"]: x for x in info["frames"][0]["side_data_list"]}["Content light level metadata"]
+    pq_sig = (top - 64) / 876
+    m1, m2, c1, c2, c3 = 2610 / 16384, 2523 / 32, 3424 / 4096, 2413 / 128, 2392 / 128
+    vp = pq_sig ** (1 / m2)
+    assert cll["max_content"] == int(np.ceil(10000 * (max(vp - c1, 0) / (c2 - c3 * vp)) ** (1 / m1) - 1e-9))
+    stills = tmp_path / "stills"
+    cli("hdr10", clip, stills, "--method", "preview", "--no-progress")
+    import OpenImageIO as oiio
+    inp = oiio.ImageInput.open(str(stills / "frame_00000.png"))
+    spec = inp.spec()
+    inp.close()
+    assert spec.nchannels == 3 and list(spec.getattribute("CICP")) == [9, 16, 0, 1]

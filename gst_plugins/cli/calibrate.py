@@ -6,17 +6,32 @@ import json
 import sys
 from pathlib import Path
 
+from nrhdr_core.cfa import CFAS
+
 from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
+
+
+def _light(text: str):
+    """--light r,g,b: three numbers (checked by calibration.check_light)."""
+    import argparse
+    try:
+        v = tuple(float(c) for c in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"need three numbers r,g,b, got {text!r}") from None
+    if len(v) != 3:
+        raise argparse.ArgumentTypeError(f"need three numbers r,g,b, got {text!r}")
+    return v
 
 
 def cmd_calibrate(a) -> int:
     from nrhdr_core import calibration, flats, io
-    find = None if a.mask else flats.finder(a.clip_code, a.bit_depth, a.accept_low_confidence)
+    find = None if a.mask else flats.finder(a.clip_code, a.bit_depth, a.accept_low_confidence, cfa=a.cfa)
     try:
         s = calibration.run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
                                       clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
                                       progress=not a.quiet, overwrite=a.force,
-                                      allow_outside=a.allow_outside_paths, find_mask=find)
+                                      allow_outside=a.allow_outside_paths, find_mask=find, cfa=a.cfa,
+                                      colour_flats=a.colour_flats)
     except (calibration.CalibrationError, io.OutputExistsError) as e:
         print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
         return 2
@@ -54,7 +69,8 @@ def cmd_simulate_flats(a) -> int:
         if a.profile:
             prof = profiles.load(a.profile, allow_outside=a.allow_outside_paths)
         else:
-            prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd)
+            prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd,
+                                    **({} if a.cfa == "none" else {"cfa": a.cfa}))
         model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.sensor_seed)
     except (ValueError, profiles.ProfileError) as e:
         print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
@@ -62,7 +78,8 @@ def cmd_simulate_flats(a) -> int:
     try:
         exp = calibration.default_exposures(a.exposures, nd=prof.nd)
         truth = calibration.simulate_flats(a.output, prof, model, exposures=exp, frames_per_exposure=a.frames,
-                                           seed=a.seed, fmt=a.format, progress=not a.quiet, overwrite=a.force)
+                                           seed=a.seed, fmt=a.format, progress=not a.quiet, overwrite=a.force,
+                                           light=a.light)
     except (ValueError, io.OutputExistsError) as e:
         print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
         return 2
@@ -90,6 +107,12 @@ def add_calibrate(sub) -> None:
     p.add_argument("--clip-code", type=number(1, 65535, integer=True),
                    help="override the clip code (default: from the saturated frames)")
     p.add_argument("--bit-depth", type=number(1, 16, integer=True), help="ADC bits (default: from the largest code)")
+    p.add_argument("--cfa", default="none", choices=CFAS,
+                   help="the sensor's colour filter array (Bayer phase; default none: monochrome): the profile's "
+                        "cfa, and without --mask the ND pixels are found within each colour plane")
+    p.add_argument("--colour-flats", nargs="+", metavar="FOLDER",
+                   help="with --cfa: sweeps of the same sensor under coloured light (e.g. red, green, blue) that "
+                        "calibrate the crosstalk per colour neighbourhood (docs/COLOUR.md)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -108,6 +131,11 @@ def add_simulate_flats(sub) -> None:
     p.add_argument("--height", type=SIZE, default=480)
     p.add_argument("--nd", type=ND, default=6.35)
     p.add_argument("--mask-seed", type=SEED, default=0)
+    p.add_argument("--cfa", default="none", choices=CFAS,
+                   help="colour filter array of the default profile (Bayer phase; default none: monochrome)")
+    p.add_argument("--light", type=_light,
+                   help="r,g,b: coloured light (colour profiles): a photosite's flux is the light's channel of "
+                        "its CFA colour x the exposure (default white 1,1,1)")
     p.add_argument("--sensor-model", default="prototype", help=f"one of {crosstalk.PRESETS}")
     p.add_argument("--exposures", type=number(6, 10000, integer=True), default=40,
                    help="number of exposures (incl. dark), at least 6")
