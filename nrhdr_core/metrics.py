@@ -1,6 +1,7 @@
 """Measurements: PSNR (linear and log domain), SSIM, the SNR of a flat field (paper Eq. 4, Fig. 3/5/9), the HDR
-quality metrics of `nrhdr compare` (log2 PSNR, PU21-PSNR, pixels stops off, per luminance region) and TMQI, the
-quality of a tone-mapped image (Yeganeh and Wang 2013)."""
+quality metrics of `nrhdr compare` (log2 PSNR, PU21-PSNR, pixels stops off, per luminance region), TMQI, the
+quality of a tone-mapped image (Yeganeh and Wang 2013), and for colour images CIELAB, CIEDE2000 (Sharma, Wu and
+Dalal 2005) and false colour (docs/COLOUR.md, "Measured")."""
 from __future__ import annotations
 
 import numpy as np

@@ -4,6 +4,8 @@ An interior at mid-grey with textured walls, a deep shadow, a zone plate (fine d
 sub-sampling aliases, paper 2.1), a window onto a bright sky 3-4 stops above the regular pixels' clipping
 (recoverable through the ND pixels) crossed by dark branches (strong edges), and a lamp far beyond even the
 ND pixels' range. About 17 stops from the shadow to the lamp. Deterministic for a given seed.
+
+`colour_zone_plate`: the colour chain's false-colour test scene (linear RGB, docs/COLOUR.md "Measured").
 """
 from __future__ import annotations
 
