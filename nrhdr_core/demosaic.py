@@ -278,6 +278,7 @@ def _core(v32, state, blk, kg, cnt, c, method, preset, use_bounds, noise, fusion
         gsrc = np.zeros((1, 1), np.float32)
     else:
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
+    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
     # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
     fst = sc["fst"]
     _green(v32, state, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1], pw[1],
@@ -297,7 +298,6 @@ def _core(v32, state, blk, kg, cnt, c, method, preset, use_bounds, noise, fusion
             lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
             _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
     _colour(v32, state, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
@@ -320,12 +320,14 @@ def _ranges(fst, cnt):
 def _own_row(o, values, state, y, x0, hi, use_bounds):
     """The photosites x0, x0 + 2, ... of row y, whose own channel's estimate is o[x]: measured (VALID) or
     already RECONSTRUCTED: their value; missing: at most max(hi, lower bound), then within their bounds
-    (CLIPPED: >= lower bound, DARK: <= the value). Branch-free over the whole row (it vectorises); then,
+    (CLIPPED: >= lower bound, DARK: <= the value), and the RECONSTRUCTED bit. Branch-free over the whole
+    row (it vectorises); then,
     only in rows that have one, the clipped-neighbour rule of `validity.bounds` on the photosites' own Bayer
     phase (`validity.clip_lower_row` on the phase's lattice) raises the CLIPPED regular photosites' lower
     bound l to l' (max(min(a, max(hi, l')), l') of the first result is the clamp with l')."""
     w = values.shape[1]
     big = _BIG
+    flag = np.uint8(RECONSTRUCTED)
     ncr = 0
     for x in range(w):
         st = state[y, x]
@@ -357,6 +359,10 @@ def _own_row(o, values, state, y, x0, hi, use_bounds):
                 a = o[x]
                 a = t if a > t else a
                 o[x] = m if m > a else a
+    for x in range(w):
+        st = state[y, x]
+        m = ((x & 1) == x0) & ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
+        state[y, x] = st | (flag * np.uint8(m))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -364,7 +370,7 @@ def _green(values, state, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, 
            ixs, gout):
     """Per cell row: the green plane into `gout` (the pull-push fill `reconstruction._fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
-    missing green photosites' bounds apply, `_own`); then at the cell's red and blue photosites the log
+    missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
     colour differences (weight 1 where known, else 0) into level 1 of the d_R and d_B pyramids and `kl`,
     and the lattices' statistics `fst` (known min and max, largest CLIPPED value). The logarithm only at
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows)."""
@@ -468,11 +474,10 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 def _colour(values, state, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
-    channel's range; the photosite's own channel by `_own`; RECONSTRUCTED set on the missing photosites."""
+    channel's range; the red and blue photosites' own channel by `_own_row`."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
-    flag = np.uint8(RECONSTRUCTED)
     nch = rows.shape[0]
     for k in prange(nch):
         for y in range(k * h // nch, (k + 1) * h // nch):
@@ -496,10 +501,6 @@ def _colour(values, state, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
                     _own_row(o, values, state, y, pos[ch, 1], rng[ch, 1], use_bounds)
-            for x in range(w):
-                st = state[y, x]
-                m = ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
-                state[y, x] = st | (flag * np.uint8(m))
 
 
 @njit(cache=True, nogil=True, parallel=True)
