@@ -911,12 +911,33 @@ def _srgb_code(t, bins, thr):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ratio(v, g, L, sat):
-    """(c / L)^sat of the white-balanced channel c = min(max(v g, 0), cap); 1 where L is 0."""
+def _ratio(v, g, L, sat, powered):
+    """(c / L)^sat of the white-balanced channel c = min(max(v g, 0), cap); 1 where L is 0. `powered` is a
+    constant of each call site, so the power is not computed at all for sat = 1."""
     c = v * g
     c = min(c if c > np.float32(0.0) else np.float32(0.0), np.float32(_CHANNEL_CAP))
     r = c / L if L > np.float32(0.0) else np.float32(1.0)
-    return r if sat == np.float32(1.0) else r ** sat
+    if powered:
+        r = r ** sat
+    return r
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _display_pixel(rgb, y, x, g0, g1, g2, L, yd, sat, powered, bins, thr, out):
+    """One pixel of `_rgb_display`."""
+    one = np.float32(1.0)
+    t0 = _ratio(rgb[0, y, x], g0, L, sat, powered) * yd
+    t1 = _ratio(rgb[1, y, x], g1, L, sat, powered) * yd
+    t2 = _ratio(rgb[2, y, x], g2, L, sat, powered) * yd
+    mx = max(t0, max(t1, t2))
+    if mx > one:
+        f = (one - yd) / (mx - yd)
+        t0 = yd + (t0 - yd) * f
+        t1 = yd + (t1 - yd) * f
+        t2 = yd + (t2 - yd) * f
+    out[y, x, 0] = _srgb_code(t0, bins, thr)
+    out[y, x, 1] = _srgb_code(t1, bins, thr)
+    out[y, x, 2] = _srgb_code(t2, bins, thr)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -924,24 +945,15 @@ def _rgb_display(rgb, gains, lum, codes, dec, bins, thr, sat, out):
     """Colour display codes: level Y' = sRGB EOTF of the grey tone map's 16-bit code (`dec`), channel
     t = (c / L)^sat Y'; above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes (H, W, 3)."""
     h, w = lum.shape
-    one = np.float32(1.0)
     g0, g1, g2 = np.float32(gains[0]), np.float32(gains[1]), np.float32(gains[2])
-    for y in prange(h):
-        for x in range(w):
-            L = lum[y, x]
-            yd = dec[codes[y, x]]
-            t0 = _ratio(rgb[0, y, x], g0, L, sat) * yd
-            t1 = _ratio(rgb[1, y, x], g1, L, sat) * yd
-            t2 = _ratio(rgb[2, y, x], g2, L, sat) * yd
-            mx = max(t0, max(t1, t2))
-            if mx > one:
-                f = (one - yd) / (mx - yd)
-                t0 = yd + (t0 - yd) * f
-                t1 = yd + (t1 - yd) * f
-                t2 = yd + (t2 - yd) * f
-            out[y, x, 0] = _srgb_code(t0, bins, thr)
-            out[y, x, 1] = _srgb_code(t1, bins, thr)
-            out[y, x, 2] = _srgb_code(t2, bins, thr)
+    if sat == np.float32(1.0):
+        for y in prange(h):
+            for x in range(w):
+                _display_pixel(rgb, y, x, g0, g1, g2, lum[y, x], dec[codes[y, x]], sat, False, bins, thr, out)
+    else:
+        for y in prange(h):
+            for x in range(w):
+                _display_pixel(rgb, y, x, g0, g1, g2, lum[y, x], dec[codes[y, x]], sat, True, bins, thr, out)
 
 
 def srgb_eotf(v):
