@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_camera import IP, RECIPE, fake_camera  # noqa: F401  (the Aravis fake camera fixture)
 
 pytestmark = pytest.mark.gst
 
@@ -446,8 +447,6 @@ def test_warmup_compiles_the_colour_path():
 
 
 # ---- a GenICam camera's 8-bit Bayer (the Aravis fake camera) ---------------------------------------------
-
-from test_camera import IP, RECIPE, fake_camera  # noqa: E402,F401  (the fake camera fixture)
 
 
 def test_fake_camera_bayer8_becomes_colour_frames(fake_camera, gst, tmp_path):
