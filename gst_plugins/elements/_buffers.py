@@ -183,14 +183,23 @@ def map_video(buf: Gst.Buffer, vi: GstVideo.VideoInfo, dtype, write: bool, exact
         buf.unmap(mi)
 
 
+# the flags that describe a frame's place in the stream (not its memory): carried from input to output frame
+_STREAM_FLAGS = tuple(getattr(Gst.BufferFlags, n) for n in (
+    "LIVE", "DECODE_ONLY", "DISCONT", "RESYNC", "CORRUPTED", "MARKER", "HEADER", "GAP", "DROPPABLE", "DELTA_UNIT",
+    "SYNC_AFTER", "NON_DROPPABLE") if hasattr(Gst.BufferFlags, n))
+
+
 def copy_timestamps(src: Gst.Buffer, dst: Gst.Buffer) -> None:
+    """PTS, DTS, duration, offsets and the stream flags (DISCONT, GAP, DELTA_UNIT...) of `src` onto a new
+    output frame `dst`."""
     dst.pts = src.pts
     dst.dts = src.dts
     dst.duration = src.duration
     dst.offset = src.offset
     dst.offset_end = src.offset_end
-    if src.has_flags(Gst.BufferFlags.DISCONT):
-        dst.set_flags(Gst.BufferFlags.DISCONT)
+    for flag in _STREAM_FLAGS:
+        if src.has_flags(flag):
+            dst.set_flags(flag)
 
 
 def gray16_buffer(vi: GstVideo.VideoInfo, frame: np.ndarray, index: int, pts: int, duration: int) -> Gst.Buffer:

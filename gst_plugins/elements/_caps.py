@@ -194,10 +194,12 @@ class HdrInfo:
             what = {HDR_LAYOUT: "one float32 plane (monochrome or CFA mosaic) then uint8 state",
                     RGB_LAYOUT: "float32 R, G, B planes then uint8 state"}
             takes = "; ".join(f"{x} ({what[x]})" for x in layouts)
-            got = f" ({what[layout]})" if layout in what else ""
-            hint = (" (colour frames come out of nrreconstruct: put this element before it)"
+            if layout not in LAYOUT_CHANNELS:
+                raise CapsError(f"{who}{HDR_MEDIA_TYPE} layout {layout!r} is not supported: it takes {takes}")
+            hint = (" (nrreconstruct makes colour frames of a colour sensor's mosaic frames)"
                     if layout == RGB_LAYOUT else "")
-            raise CapsError(f"{who}cannot take {HDR_MEDIA_TYPE} layout {layout}{got}: it takes {takes}{hint}")
+            raise CapsError(f"{who}cannot take {HDR_MEDIA_TYPE} layout {layout} ({what[layout]}): it takes "
+                            f"{takes}{hint}")
         cfa = s.get_string("cfa") if s.has_field("cfa") else "none"
         if cfa not in ("none",) + BAYER_FORMATS:
             raise CapsError(f"{who}caps field cfa={cfa!r} is not one of none, {', '.join(BAYER_FORMATS)}")
