@@ -11,7 +11,9 @@ equals `nrvalidity ! nrcrosstalk ! nrreconstruct ! nrexrsink write-state=true` b
   'off'
 - nrreconstruct: ``reconstruction.reconstruct_frame(values, state, method=, preset=, use_bounds=,
   noise=profile, fusion=noise_fusion)`` (known mask and bounds in one pass, reconstruction, NOISY pixels fused with the
-  profile's noise model, missing pixels written back with the RECONSTRUCTED bit); with ``temporal=on``
+  profile's noise model, missing pixels written back with the RECONSTRUCTED bit); a colour profile (`profile.cfa`
+  a Bayer phase): ``demosaic.reconstruct_cfa(values, state, profile.cfa, method=, preset=, use_bounds=,
+  noise=profile, fusion=noise_fusion)``, the (3, H, W) RGB frame (methods of `COLOUR_METHODS`); with ``temporal=on``
   ``temporal.TemporalReconstructor(method=, preset=, use_bounds=, fusion=).process(values, state, profile)``,
   one instance per stream, passed to `process_frame` (it holds the past frames)
 - nrexrsink:     ``io.write_exr(path, values, state)``
@@ -44,6 +46,7 @@ PRESETS = tuple(FSE_PRESETS)
 TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
 STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
 TEMPORAL_MODES = ("off", "on")           # nrreconstruct temporal
+COLOUR_METHODS = ("preview", "fse")      # the reconstruction methods of a colour mosaic (demosaic.METHODS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,9 +94,13 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
     `temporal.TemporalReconstructor` (`temporal_for(settings)`) that reconstructs instead of
     `reconstruct_frame`, with the frames it was given before as its past (required with
     settings.temporal "on"; frames in stream order). Returns (values float32, state uint8), what
-    nrexrsink writes."""
-    from . import crosstalk, reconstruction, validity
+    nrexrsink writes: values (H, W), or for a colour profile the RGB frame (3, H, W) of
+    `demosaic.reconstruct_cfa` (method preview or fse, temporal off) with the mosaic's state."""
+    from . import cfa, crosstalk, reconstruction, validity
     s = settings
+    colour = cfa.is_colour(profile.cfa)
+    if colour:
+        check_colour(s, profile.cfa)
     if s.temporal == "on" and temporal is None:
         raise ValueError("process_frame: settings.temporal 'on' needs the stream's TemporalReconstructor "
                          "(temporal=chain.temporal_for(settings))")
@@ -109,12 +116,28 @@ def process_frame(raw: np.ndarray, profile, settings: ChainSettings = ChainSetti
         if s2 is not state:
             state[...] = s2
     # nrreconstruct's own frame path (one function, so batch and the element give the same bits)
+    if colour:
+        from . import demosaic
+        rgb = demosaic.reconstruct_cfa(values, state, profile.cfa, method=s.method, preset=s.preset,
+                                       use_bounds=s.use_bounds, noise=profile, fusion=s.noise_fusion)
+        return rgb, state
     if temporal is not None:
         temporal.process(values, state, noise=profile)
     else:
         reconstruction.reconstruct_frame(values, state, method=s.method, preset=s.preset,
                                          use_bounds=s.use_bounds, noise=profile, fusion=s.noise_fusion)
     return values, state
+
+
+def check_colour(settings: ChainSettings, cfa: str) -> None:
+    """ValueError naming the setting when `settings` cannot reconstruct a colour mosaic of `cfa`
+    (nrreconstruct refuses the same: method linear/nearest, temporal on)."""
+    if settings.method not in COLOUR_METHODS:
+        raise ValueError(f"method {settings.method!r} works on monochrome frames only; a colour mosaic (cfa "
+                         f"{cfa}) takes method {' or '.join(COLOUR_METHODS)}")
+    if settings.temporal == "on":
+        raise ValueError(f"temporal 'on' works on monochrome frames only; a colour mosaic (cfa {cfa}) takes "
+                         f"temporal 'off'")
 
 
 def temporal_for(settings: ChainSettings):
@@ -239,9 +262,23 @@ def _read_only(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def _warm_colour(prof, sets, raw: np.ndarray, elements: bool) -> None:
+    """`demosaic.reconstruct_cfa` with each setting of a colour method (its kernels and signatures; a
+    read-only mosaic as nrreconstruct maps its input with `elements`)."""
+    from . import demosaic
+    demosaic.warmup()
+    for s in {(s.method, s.preset, s.use_bounds, s.noise_fusion, s.mode, s.dark_policy): s
+              for s in sets if s.method in COLOUR_METHODS}.values():
+        values, state = _warm_frame(prof, s, raw)
+        for v in [values] + ([_read_only(values)] if elements else []):
+            demosaic.reconstruct_cfa(v, state.copy(), prof.cfa, method=s.method, preset=s.preset,
+                                     use_bounds=s.use_bounds, noise=prof, fusion=s.noise_fusion,
+                                     out=np.empty((3,) + raw.shape, np.float32))
+
+
 def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), tone: bool = False,
            calibrated: bool = True, *, stages: Iterable[str] = STAGES, transfers: Iterable[str] = (),
-           elements: bool = False) -> None:
+           elements: bool = False, cfa: str = "none") -> None:
     """Compile (or load from numba's cache) exactly the kernels and signatures the chain runs with `settings`
     (one `ChainSettings` or several), on a tiny synthetic frame. Never called at import; `nrhdr warmup`, the
     elements' start and `batch` call it.
@@ -258,8 +295,12 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
     - `calibrated`: the profile has a crosstalk calibration (an identity one here), as nrcrosstalk applies it.
     - `elements`: also the array types of the GStreamer elements' mapped buffers, which numba compiles
       apart: read-only raw frames with packed or padded rows (nrvalidity), a read-only HDR frame and padded
-      output rows (nrtonemap)."""
+      output rows (nrtonemap).
+    - `cfa`: the profile's CFA; a Bayer phase warms the stages on a mosaic of it, and the reconstruction
+      stage compiles `demosaic.reconstruct_cfa` (methods of COLOUR_METHODS) instead of the monochrome path."""
+    from . import cfa as cfas
     from . import crosstalk, profile, reconstruction, tonemap, validity
+    colour = cfas.is_colour(cfas.check(cfa, "warm-up cfa"))
     sets = [settings] if isinstance(settings, ChainSettings) else list(settings)
     stages = tuple(stages)
     transfers = tuple(transfers) + (("log",) if tone else ())
@@ -269,7 +310,7 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
             raise ValueError(f"warm-up {name} must be one of {', '.join(allowed)}, got {bad[0]!r}")
     h, w = 12, 16
     mask = np.random.default_rng(0).random((h, w)) < 0.5
-    prof = profile.make(mask)
+    prof = profile.make(mask, cfa=cfa) if colour else profile.make(mask)
     _, xx = np.mgrid[0:h, 0:w]
     raw = np.clip(10.0 ** (0.5 + 3.8 * xx / (w - 1)), 0, prof.max_code).astype(np.uint16)
 
@@ -286,7 +327,9 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
             values, state = _warm_frame(prof, s, raw)
             crosstalk.correct(values, state, prof_x, s.crosstalk, lut=s.crosstalk_lut)
 
-    if "reconstruction" in stages:
+    if "reconstruction" in stages and colour:
+        _warm_colour(prof, sets, raw, elements)
+    elif "reconstruction" in stages:
         for method in dict.fromkeys(s.method for s in sets):
             _warm_method(method)
         for s in {(s.method, s.preset, s.use_bounds, s.noise_fusion, s.mode, s.dark_policy): s

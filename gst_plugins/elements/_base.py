@@ -9,6 +9,7 @@ import sys
 import traceback
 
 from ._buffers import FrameSizeError
+from ._caps import CapsError
 from ._gst import Gst
 from ._log import Logging, rearm_warnings
 from ._props import Properties
@@ -125,8 +126,9 @@ class NrElement(Logging, Properties):
 
     def post_exception(self, where: str, exc: BaseException) -> Gst.FlowReturn:
         """Post an element error for an exception raised in a vfunc and return FlowReturn.ERROR. A buffer
-        of the wrong size (FrameSizeError) is a format error stated as such."""
-        if isinstance(exc, FrameSizeError):
+        of the wrong size (FrameSizeError) or caps the element cannot take (CapsError) are format errors
+        stated as such."""
+        if isinstance(exc, (FrameSizeError, CapsError)):
             self.post_error(f"{where}: {exc}", kind="format")
             return Gst.FlowReturn.ERROR
         tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 
-from ._caps import HDR_LAYOUT, HDR_MEDIA_TYPE, HdrInfo
+from ._caps import LAYOUT_CHANNELS, LAYOUTS, HdrInfo
 from ._gst import Gst, GstVideo, np
 
 RW = Gst.MapFlags.READ | Gst.MapFlags.WRITE
@@ -33,10 +33,12 @@ def _params():
     return _PARAMS
 
 
-def alloc_hdr_buffer(width: int, height: int) -> Gst.Buffer:
-    """A new HDR frame: ONE memory block of 5*W*H bytes (float32 values, then uint8 state). Elements use
-    `HdrPool` instead (allocated once per size); this is for apps and tests."""
-    return Gst.Buffer.new_allocate(Gst.Allocator.find(None), 5 * width * height, _params())
+def alloc_hdr_buffer(width: int, height: int, channels: int = 1) -> Gst.Buffer:
+    """A new HDR frame: ONE memory block of (4*channels+1)*W*H bytes (float32 values, `channels` planes,
+    then uint8 state). Elements use `HdrPool` instead (allocated once per size); this is for apps and tests."""
+    if channels not in (1, 3):
+        raise ValueError(f"an HDR frame has 1 or 3 float planes, not {channels}")
+    return Gst.Buffer.new_allocate(Gst.Allocator.find(None), (4 * channels + 1) * width * height, _params())
 
 
 class HdrPool:
@@ -48,8 +50,7 @@ class HdrPool:
         self.size = info.size
         self.pool = Gst.BufferPool.new()
         cfg = self.pool.get_config()
-        caps = Gst.Caps.from_string(f"{HDR_MEDIA_TYPE}, layout=(string){HDR_LAYOUT}, width=(int){info.width}, "
-                                    f"height=(int){info.height}")
+        caps = Gst.Caps.from_string(info.replace(fps_n=0, fps_d=0).caps_string())
         Gst.BufferPool.config_set_params(cfg, caps, self.size, min_buffers, 0)
         p = _params()
         if p is not None:
@@ -79,19 +80,24 @@ class HdrPool:
 
 
 def check_hdr_buffer(buf: Gst.Buffer, info: HdrInfo) -> None:
-    """Raise FrameSizeError unless `buf` holds exactly one frame of `info` (5*W*H bytes)."""
+    """Raise FrameSizeError unless `buf` holds exactly one frame of `info` ((4*channels+1)*W*H bytes)."""
     size = buf.get_size()
     if size != info.size:
+        c = info.channels
+        planes = "4*W*H float32 values" if c == 1 else f"{c} planes of 4*W*H float32 values (R, G, B)"
+        other = [lay for lay, k in LAYOUT_CHANNELS.items() if lay != info.layout and size == (4 * k + 1) * info.pixels]
+        hint = f" ({size} bytes is one {other[0]} frame: check the caps' layout)" if other else ""
         raise FrameSizeError(
             f"buffer is not an nrhdr HDR frame: {size} bytes in {buf.n_memory()} memory block(s), expected "
-            f"{info.size} bytes for one {info.width}x{info.height} {HDR_LAYOUT} frame (4*W*H float32 values "
-            f"then W*H state bytes). Reading a raw HDR recording? Use filesrc blocksize={info.size}")
+            f"{info.size} bytes for one {info.width}x{info.height} {info.layout} frame ({planes} "
+            f"then W*H state bytes){hint}. Reading a raw HDR recording? Use filesrc blocksize={info.size}")
 
 
 @contextlib.contextmanager
 def map_hdr(buf: Gst.Buffer, info: HdrInfo, write: bool):
-    """Yield (values float32 (H, W), state uint8 (H, W)): numpy views into the mapped frame, no copy
-    (read-only arrays unless `write`). Valid only inside the `with` block.
+    """Yield (values float32 (H, W), or (3, H, W) for a colour frame (planes R, G, B), state uint8 (H, W)):
+    numpy views into the mapped frame, no copy (read-only arrays unless `write`). Valid only inside the
+    `with` block.
 
     Frames made by the nrhdr elements are one contiguous block, mapped in place. A buffer of several
     blocks (e.g. a depayloader's output) is merged by GStreamer's map into one block of the same layout (a
@@ -102,9 +108,9 @@ def map_hdr(buf: Gst.Buffer, info: HdrInfo, write: bool):
     if not ok:
         raise RuntimeError("cannot map the HDR frame" + (" for writing (buffer not writable)" if write else ""))
     try:
-        shape = (info.height, info.width)
+        shape = info.shape
         raw = np.frombuffer(mi.data, np.uint8, count=info.size)
-        state = raw[info.state_offset:].reshape(shape)
+        state = raw[info.state_offset:].reshape(info.height, info.width)
         if raw.ctypes.data % 4 == 0:
             yield raw[:info.state_offset].view(np.float32).reshape(shape), state
         else:
@@ -118,9 +124,10 @@ def map_hdr(buf: Gst.Buffer, info: HdrInfo, write: bool):
 
 @contextlib.contextmanager
 def map_sample(sample, write: bool = False):
-    """For apps (appsink): yield (values, state) numpy views of an `other/x-nrhdr` Gst.Sample's frame, no
-    copy; valid inside the `with` block only (copy what you keep). examples/appsink_numpy.py."""
-    info = HdrInfo.from_caps(sample.get_caps())
+    """For apps (appsink): yield (values, state) numpy views of an `other/x-nrhdr` Gst.Sample's frame (values
+    (H, W), or (3, H, W) for a colour frame), no copy; valid inside the `with` block only (copy what you keep).
+    examples/appsink_numpy.py."""
+    info = HdrInfo.from_caps(sample.get_caps(), LAYOUTS)
     with map_hdr(sample.get_buffer(), info, write) as planes:
         yield planes
 
@@ -176,14 +183,23 @@ def map_video(buf: Gst.Buffer, vi: GstVideo.VideoInfo, dtype, write: bool, exact
         buf.unmap(mi)
 
 
+# the flags that describe a frame's place in the stream (not its memory): carried from input to output frame
+_STREAM_FLAGS = tuple(getattr(Gst.BufferFlags, n) for n in (
+    "LIVE", "DECODE_ONLY", "DISCONT", "RESYNC", "CORRUPTED", "MARKER", "HEADER", "GAP", "DROPPABLE", "DELTA_UNIT",
+    "SYNC_AFTER", "NON_DROPPABLE") if hasattr(Gst.BufferFlags, n))
+
+
 def copy_timestamps(src: Gst.Buffer, dst: Gst.Buffer) -> None:
+    """PTS, DTS, duration, offsets and the stream flags (DISCONT, GAP, DELTA_UNIT...) of `src` onto a new
+    output frame `dst`."""
     dst.pts = src.pts
     dst.dts = src.dts
     dst.duration = src.duration
     dst.offset = src.offset
     dst.offset_end = src.offset_end
-    if src.has_flags(Gst.BufferFlags.DISCONT):
-        dst.set_flags(Gst.BufferFlags.DISCONT)
+    for flag in _STREAM_FLAGS:
+        if src.has_flags(flag):
+            dst.set_flags(flag)
 
 
 def gray16_buffer(vi: GstVideo.VideoInfo, frame: np.ndarray, index: int, pts: int, duration: int) -> Gst.Buffer:

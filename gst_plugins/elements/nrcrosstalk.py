@@ -2,7 +2,8 @@
 
 Applies the camera profile's crosstalk calibration with `nrhdr_core.crosstalk.correct(values, state,
 profile, mode)` on the mapped frame. Without a calibration in the profile (or with mode=off) the core
-returns the frame unchanged, so frames pass through untouched.
+returns the frame unchanged, so frames pass through untouched. Mosaic frames of a colour sensor (caps `cfa`)
+pass with their cfa, which must be the profile's; colour frames are refused by name.
 """
 from __future__ import annotations
 
@@ -72,8 +73,9 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
         from nrhdr_core import chain
         s = self.settings
         if s.mode != "off":
+            cfa = self._profile.cfa if self._profile is not None else "none"
             self.nr_warmup(chain.warmup, chain.ChainSettings(crosstalk=s.mode, crosstalk_lut=s.lut),
-                           stages=("crosstalk",), elements=True)
+                           stages=("crosstalk",), elements=True, cfa=cfa)
         self._frames = 0
         return True
 
@@ -83,7 +85,7 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
 
     @guarded("set_caps", False)
     def do_set_caps(self, incaps, outcaps):
-        info = HdrInfo.from_caps(incaps)
+        info = HdrInfo.from_caps(incaps, element="nrcrosstalk")
         if not self.settings.profile:
             if not info.profile:
                 self.post_error("no camera profile: set the 'profile' property or put nrvalidity "
@@ -96,6 +98,11 @@ class NrCrosstalk(NrElement, LiveTiming, GstBase.BaseTransform):
                 return False
         p = self._profile
         if not self._check_same_sensor(p, info):
+            return False
+        if p.cfa != info.cfa:
+            self.post_error(f"profile {p.path} has cfa {p.cfa} but the stream's caps say cfa={info.cfa}: set the "
+                            f"'profile' property to a profile of the camera that recorded the stream",
+                            kind="settings")
             return False
         if (p.width, p.height) != (info.width, info.height):
             self.post_error(f"profile {p.path} has a {p.width}x{p.height} mask but the stream is "
