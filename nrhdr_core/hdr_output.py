@@ -12,16 +12,17 @@ import math
 from pathlib import Path
 
 import numpy as np
+from numba import njit, prange
 
-from .tonemap import (HLG_NOMINAL_PEAK, HLG_SYSTEM_GAMMA, L_P, REFERENCE_WHITE_NITS, TRANSFERS, eotf_ST2084,
-                      oetf_inverse_HLG, peak_luminance)
+from .tonemap import (HLG_NOMINAL_PEAK, HLG_SYSTEM_GAMMA, L_P, LUMA_BT709, LUMA_BT2020, REFERENCE_WHITE_NITS,
+                      RGB_PRIMARIES, TRANSFERS, WHITE_D65, eotf_ST2084, oetf_inverse_HLG, peak_luminance)
 
-# CIE 1931 xy of the display primaries (R, G, B) and the D65 white (ITU-R BT.2020 Table 3, SMPTE EG 432-1)
+# CIE 1931 xy of the mastering display primaries (R, G, B): BT.2020 (ITU-R BT.2020 Table 3), P3-D65 (SMPTE
+# EG 432-1); D65 white
 PRIMARIES = {
-    "bt2020": ((0.708, 0.292), (0.170, 0.797), (0.131, 0.046)),
+    "bt2020": RGB_PRIMARIES["bt2020"],
     "p3": ((0.680, 0.320), (0.265, 0.690), (0.150, 0.060)),
 }
-WHITE_D65 = (0.3127, 0.3290)
 DEFAULT_PEAK = 1000.0            # cd/m^2: the mastering display (and the EETF's target)
 DEFAULT_MIN_LUMINANCE = 0.005    # cd/m^2: the mastering display's black
 CHROMA_UNIT = 50000              # ST 2086 / H.265 D.3.28: chromaticity in 0.00002
@@ -90,8 +91,9 @@ def code_luminance(transfer: str = "pq") -> np.ndarray:
 
 class LightLevels:
     """CTA-861.3 content light levels of a sequence of frames of 10-bit codes: MaxCLL = the brightest pixel's
-    light, MaxFALL = the largest frame-average light (grey frames: max(R, G, B) is the luminance), both in
-    cd/m^2 rounded up. `update(codes, shift=6)` takes one frame (uint16 codes << shift)."""
+    light, MaxFALL = the largest frame-average light, a pixel's light being max(R, G, B) (grey frames: its
+    luminance), both in cd/m^2 rounded up. `update(codes, shift=6)` takes one frame (uint16 codes << shift,
+    grey (H, W) or R'G'B' (3, H, W))."""
 
     def __init__(self, transfer: str = "pq"):
         self.lut = code_luminance(transfer)
@@ -101,6 +103,8 @@ class LightLevels:
 
     def update(self, codes: np.ndarray, shift: int = 6) -> None:
         c = np.asarray(codes)
+        if c.ndim == 3:
+            c = c.max(axis=0)     # the codes are monotonic in light: the largest code is max(R, G, B)'s
         hist = np.bincount((c >> shift).ravel(), minlength=1024)[:1024]
         if c.size == 0:
             return
@@ -161,6 +165,77 @@ def i420_10_frame(codes: np.ndarray, out: np.ndarray, offsets, strides, shift: i
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ycc(codes, y, x, kr, kb, shift):
+    """(Y', Cb, Cr) of the R'G'B' codes at (y, x): E' = (code - 64) / 876, Y' = G' + Kr (R' - G') + Kb (B' - G')
+    (exactly G' for grey), Cb = (B' - Y') / (2 - 2 Kb), Cr = (R' - Y') / (2 - 2 Kr) (ITU-R BT.2020 Table 4)."""
+    r = ((codes[0, y, x] >> shift) - 64.0) / 876.0
+    g = ((codes[1, y, x] >> shift) - 64.0) / 876.0
+    b = ((codes[2, y, x] >> shift) - 64.0) / 876.0
+    yy = g + kr * (r - g) + kb * (b - g)
+    return yy, (b - yy) / (2.0 - 2.0 * kb), (r - yy) / (2.0 - 2.0 * kr)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _chroma_code(c):
+    code = int(math.floor(512.0 + 896.0 * c + 0.5))
+    return np.uint16(min(max(code, 64), 960))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _ycbcr_kernel(codes, kr, kb, shift, yp, up, vp):
+    """R'G'B' codes (3, H, W) -> 10-bit narrow-range Y' (H, W) and Cb, Cr planes: full size, or (4:2:0, the
+    planes' size) sited as HEVC's default chroma location (type 0: horizontally co-sited, vertically between
+    the rows): Cb, Cr of rows 2i and 2i + 1 averaged, filtered [1, 2, 1] / 4 along the row."""
+    h, w = codes.shape[1:]
+    for y in prange(h):
+        for x in range(w):
+            yy, cb, cr = _ycc(codes, y, x, kr, kb, shift)
+            code = int(math.floor(64.0 + 876.0 * yy + 0.5))
+            yp[y, x] = np.uint16(min(max(code, 4), 1019))
+    ch, cw = up.shape
+    full = ch == h and cw == w
+    for i in prange(ch):
+        for j in range(cw):
+            if full:
+                _, cb, cr = _ycc(codes, i, j, kr, kb, shift)
+            else:
+                cb = 0.0
+                cr = 0.0
+                for y in (2 * i, min(2 * i + 1, h - 1)):
+                    for dx, wt in ((-1, 0.125), (0, 0.25), (1, 0.125)):
+                        x = min(max(2 * j + dx, 0), w - 1)
+                        _, b1, r1 = _ycc(codes, y, x, kr, kb, shift)
+                        cb += wt * b1
+                        cr += wt * r1
+            up[i, j] = _chroma_code(cb)
+            vp[i, j] = _chroma_code(cr)
+
+
+MATRICES = {"bt2020": LUMA_BT2020, "bt709": LUMA_BT709}
+
+
+def ycbcr_frame(codes: np.ndarray, out: np.ndarray, offsets, strides, subsample: bool = True,
+                matrix: str = "bt2020", shift: int = 6) -> np.ndarray:
+    """R'G'B' 10-bit codes (3, H, W) (<< shift, as `tonemap.hdr_encode_rgb` writes them) into one I420_10LE
+    (`subsample`) or Y444_10LE frame `out` (uint8, the frame's bytes) with the planes at byte `offsets` and row
+    `strides` (GStreamer's VideoInfo): Y'CbCr of `matrix` (bt2020: BT.2020 non-constant luminance),
+    10-bit narrow range (Y' 64 + 876 Y', C 512 + 896 C; BT.2100 Table 9). Grey (R' = G' = B') gives Y' = the
+    code and Cb = Cr = 512."""
+    if matrix not in MATRICES:
+        raise ValueError(f"Y'CbCr matrix must be one of {', '.join(MATRICES)}, got {matrix!r}")
+    c = np.asarray(codes)
+    if c.ndim != 3 or c.shape[0] != 3 or c.dtype != np.uint16:
+        raise ValueError(f"R'G'B' codes must be uint16 (3, H, W), got {c.dtype} {c.shape}")
+    h, w = c.shape[1:]
+    ch, cw = ((h + 1) // 2, (w + 1) // 2) if subsample else (h, w)
+    planes = [np.ndarray(shape, np.dtype("<u2"), out, offsets[k], (strides[k], 2))
+              for k, shape in enumerate(((h, w), (ch, cw), (ch, cw)))]
+    kr, kb = MATRICES[matrix]
+    _ycbcr_kernel(c, kr, kb, shift, *planes)
+    return out
+
+
 def full_range16(codes: np.ndarray, shift: int = 6) -> np.ndarray:
     """10-bit narrow-range codes (<< shift) -> full-range 16-bit signal words, round(65535 (c - 64) / 876)
     clamped to 0..65535: the code values of an HDR PNG (cICP full range)."""
@@ -202,3 +277,24 @@ def matroska_caps(mastering: MasteringDisplay) -> str:
     """The caps (text) that a capssetter before matroskamux sets so that its Colour element states the
     mastering luminance the SEI states (MATROSKA_LUMINANCE_FACTOR)."""
     return f"video/x-h265,mastering-display-info=(string){mastering.caps_field(MATROSKA_LUMINANCE_FACTOR)}"
+
+
+def warmup_rgb(transfers=TRANSFERS, elements: bool = False) -> None:
+    """Compile (or load) the colour HDR kernels (`tonemap.hdr_encode_rgb`, with and without the roll-off, and
+    `ycbcr_frame` 4:2:0 and 4:4:4) on a tiny frame; `elements`: also a read-only input (nrtonemap's mapped
+    buffers)."""
+    from .tonemap import hdr_encode_rgb
+    h, w = 4, 6
+    v = np.geomspace(1.0, 1e4, 3 * h * w).astype(np.float32).reshape(3, h, w)
+    inputs = [v]
+    if elements:
+        ro = v.copy()
+        ro.setflags(write=False)
+        inputs.append(ro)
+    for x in inputs:
+        for transfer in transfers:
+            for peak in (0.0, DEFAULT_PEAK):
+                codes = hdr_encode_rgb(x, 1e3, transfer, peak=peak, source_peak=2 * peak)
+    frame = np.zeros(3 * h * w * 2, np.uint8)
+    for sub in (True, False):
+        ycbcr_frame(codes, frame, (0, h * w * 2, 2 * h * w * 2), (w * 2, w * 2, w * 2), subsample=sub)

@@ -517,6 +517,12 @@ class LocalTonemap:
                      np.float32(out_max), rows, tbuf, out)
         return out
 
+    def rgb(self, rgb: np.ndarray, white: float, exposure_stops: float = 0.0, contrast: float = DEFAULT_CONTRAST,
+            white_balance=(1.0, 1.0, 1.0), saturation: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+        """Colour frames (3, H, W) -> sRGB uint8 (H, W, 3): `tonemap_rgb` with these statistics (the
+        luminance's, smoothed over the frames as for grey)."""
+        return tonemap_rgb(rgb, white, "local", white_balance, exposure_stops, contrast, saturation, out, local=self)
+
 
 def local_tonemap(values: np.ndarray, white: float, exposure_stops: float = 0.0,
                   contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None, dtype=np.uint8) -> np.ndarray:
@@ -747,4 +753,365 @@ def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
         _hdr_kernel(v, gain * reference_white / L_P, 0, src_pq, ks, max_lum, code_max, out)
     else:
         _hdr_kernel(v, gain * hlg_reference_E(reference_white), 1, src_pq, ks, max_lum, code_max, out)
+    return out
+
+
+# ---- colour (docs/COLOUR.md "Colour output") ---------------------------------------------------------------
+#
+# Camera RGB is linear light in BT.709 / sRGB primaries (the simulator's and the reconstruction's units,
+# planar float32 (3, H, W)). SDR: white balance, then the luminance L (BT.709 weights) goes through the grey
+# operators (log or local) to a display level; each channel becomes (c / L)^s Y' in linear display light
+# (Y' = the sRGB EOTF of that level, s the saturation: 1 keeps hue and saturation; Schlick 1994, Mantiuk et
+# al. 2009), so the displayed luminance is the grey tone map's. Out of gamut (a channel above full scale) the
+# colour is mixed with its own grey Y' until the largest channel is at full scale: luminance and hue kept,
+# saturation lowered, never a per-channel clip. HDR: BT.709 -> BT.2020 (ITU-R BT.2087), then PQ or HLG per
+# channel; the BT.2390 roll-off works on max(R, G, B) and scales the three channels alike (hue kept).
+
+LUMA_BT709 = (0.2126, 0.0722)         # (Kr, Kb) of BT.709: luminance of linear BT.709 / sRGB RGB
+LUMA_BT2020 = (0.2627, 0.0593)        # (Kr, Kb) of BT.2020 non-constant luminance (ITU-R BT.2020 Table 4)
+# CIE 1931 xy of the R, G, B primaries (ITU-R BT.709 Table 1 item 1.3, BT.2020 Table 3) and the D65 white
+RGB_PRIMARIES = {
+    "bt709": ((0.640, 0.330), (0.300, 0.600), (0.150, 0.060)),
+    "bt2020": ((0.708, 0.292), (0.170, 0.797), (0.131, 0.046)),
+}
+WHITE_D65 = (0.3127, 0.3290)
+WHITE_BALANCE = ("profile", "grey-world", "none")
+_CHANNEL_CAP = 1e30                    # linear channel values are capped here (+inf stays finite)
+
+
+def rgb_to_xyz_matrix(primaries: str) -> np.ndarray:
+    """3 x 3 matrix from linear RGB of `primaries` (RGB_PRIMARIES) to CIE XYZ, white D65 at Y = 1 (SMPTE RP
+    177: columns = the primaries' XYZ scaled so that RGB = (1, 1, 1) is the white)."""
+    if primaries not in RGB_PRIMARIES:
+        raise ValueError(f"primaries must be one of {', '.join(RGB_PRIMARIES)}, got {primaries!r}")
+
+    def xyz(x, y):
+        return np.array([x / y, 1.0, (1.0 - x - y) / y])
+    p = np.stack([xyz(*c) for c in RGB_PRIMARIES[primaries]], axis=1)
+    return p * np.linalg.solve(p, xyz(*WHITE_D65))
+
+
+def primaries_matrix(source: str = "bt709", target: str = "bt2020") -> np.ndarray:
+    """Linear RGB of `source` primaries -> linear RGB of `target` primaries (same D65 white): ITU-R BT.2087
+    for bt709 -> bt2020 (rows 0.6274 0.3293 0.0433 / 0.0691 0.9195 0.0114 / 0.0164 0.0880 0.8956)."""
+    return np.linalg.solve(rgb_to_xyz_matrix(target), rgb_to_xyz_matrix(source))
+
+
+def _gains(white_balance, what: str = "white balance") -> np.ndarray:
+    g = np.asarray(white_balance, dtype=np.float64).reshape(-1)
+    if g.shape != (3,) or not (np.isfinite(g).all() and (g > 0).all()):
+        raise ValueError(f"{what} must be three finite gains > 0 (R, G, B), got {white_balance!r}")
+    return g
+
+
+def _rgb_input(rgb, what: str = "colour image") -> np.ndarray:
+    v = np.asarray(rgb, dtype=np.float32)
+    if v.ndim != 3 or v.shape[0] != 3 or min(v.shape[1:]) < 1:
+        raise ValueError(f"{what} must be planar RGB (3, H, W), got shape {v.shape}")
+    return v
+
+
+def grey_world(rgb: np.ndarray, white: float | None = None, stride: int = 4,
+               dark: float = 2.0 ** -10) -> tuple[float, float, float]:
+    """Grey-world white balance gains (R, G, B), G = 1: the means of R, G and B over the usable pixels are made
+    equal (Buchsbaum 1980). Usable: finite, every channel > 0, the largest channel below 0.98 `white` (the
+    sensor's largest value: clipped pixels have lost their colour; without `white`, below the 99th percentile
+    of the largest channel) and the luminance above `dark` times that level (near black: noise). Every
+    `stride`-th pixel in both directions. (1, 1, 1) when no pixel is usable; gains are kept within 1/64..64."""
+    v = _rgb_input(rgb)[:, ::stride, ::stride].reshape(3, -1).astype(np.float64)
+    ok = np.isfinite(v).all(axis=0) & (v > 0).all(axis=0)
+    v = v[:, ok]
+    if not v.shape[1]:
+        return (1.0, 1.0, 1.0)
+    m = v.max(axis=0)
+    top = 0.98 * float(white) if white else float(np.percentile(m, 99.0))
+    lum = v[1] + LUMA_BT709[0] * (v[0] - v[1]) + LUMA_BT709[1] * (v[2] - v[1])
+    keep = (m < top) & (lum > dark * top)
+    if not keep.any():
+        return (1.0, 1.0, 1.0)
+    means = v[:, keep].mean(axis=1)
+    g = np.clip(means[1] / means, 1 / 64, 64)
+    return (float(g[0]), 1.0, float(g[2]))
+
+
+class GreyWorld:
+    """`grey_world` gains smoothed over time in the log domain (as `AutoWhite`): log g_t = speed log g(frame)
+    + (1 - speed) log g_t-1; the first frame initialises them."""
+
+    def __init__(self, speed: float = 0.1, white: float | None = None):
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"smoothing speed must be in (0, 1], got {speed}")
+        self.speed, self.white, self.gains = speed, white, None
+
+    def update(self, rgb: np.ndarray) -> tuple[float, float, float]:
+        g = np.log(grey_world(rgb, self.white))
+        self.gains = g if self.gains is None else self.speed * g + (1 - self.speed) * self.gains
+        return tuple(float(x) for x in np.exp(self.gains))
+
+    def reset(self) -> None:
+        self.gains = None
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _rgb_luminance(rgb, gains, kr, kb, out):
+    """out = L of the white-balanced channels c = min(max(v g, 0), cap) (NaN -> 0), L = G + Kr (R - G) +
+    Kb (B - G): exactly G for a grey pixel."""
+    h, w = out.shape
+    cap = np.float32(_CHANNEL_CAP)
+    g0, g1, g2 = np.float32(gains[0]), np.float32(gains[1]), np.float32(gains[2])
+    for y in prange(h):
+        for x in range(w):
+            r = rgb[0, y, x] * g0
+            g = rgb[1, y, x] * g1
+            b = rgb[2, y, x] * g2
+            r = min(r if r > np.float32(0.0) else np.float32(0.0), cap)
+            g = min(g if g > np.float32(0.0) else np.float32(0.0), cap)
+            b = min(b if b > np.float32(0.0) else np.float32(0.0), cap)
+            out[y, x] = g + kr * (r - g) + kb * (b - g)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _srgb_code(t, bins, thr):
+    """8-bit sRGB code of linear t in [0, 1]: the bin's first code, plus one when t reaches the next code's
+    threshold (a bin holds at most one threshold: exact rounding in the encoded domain)."""
+    t = t if t > np.float32(0.0) else np.float32(0.0)
+    t = t if t < np.float32(1.0) else np.float32(1.0)
+    c = bins[int(t * np.float32(bins.shape[0] - 1))]
+    return c + 1 if t >= thr[c] else c
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ratio(v, g, L, sat):
+    """(c / L)^sat of the white-balanced channel c = min(max(v g, 0), cap); 1 where L is 0."""
+    c = v * g
+    c = min(c if c > np.float32(0.0) else np.float32(0.0), np.float32(_CHANNEL_CAP))
+    r = c / L if L > np.float32(0.0) else np.float32(1.0)
+    return r if sat == np.float32(1.0) else r ** sat
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _rgb_display(rgb, gains, lum, codes, dec, bins, thr, sat, out):
+    """Colour display codes: level Y' = sRGB EOTF of the grey tone map's 16-bit code (`dec`), channel
+    t = (c / L)^sat Y'; above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes (H, W, 3)."""
+    h, w = lum.shape
+    one = np.float32(1.0)
+    g0, g1, g2 = np.float32(gains[0]), np.float32(gains[1]), np.float32(gains[2])
+    for y in prange(h):
+        for x in range(w):
+            L = lum[y, x]
+            yd = dec[codes[y, x]]
+            t0 = _ratio(rgb[0, y, x], g0, L, sat) * yd
+            t1 = _ratio(rgb[1, y, x], g1, L, sat) * yd
+            t2 = _ratio(rgb[2, y, x], g2, L, sat) * yd
+            mx = max(t0, max(t1, t2))
+            if mx > one:
+                f = (one - yd) / (mx - yd)
+                t0 = yd + (t0 - yd) * f
+                t1 = yd + (t1 - yd) * f
+                t2 = yd + (t2 - yd) * f
+            out[y, x, 0] = _srgb_code(t0, bins, thr)
+            out[y, x, 1] = _srgb_code(t1, bins, thr)
+            out[y, x, 2] = _srgb_code(t2, bins, thr)
+
+
+def srgb_eotf(v):
+    """IEC 61966-2-1 sRGB EOTF: signal in [0, 1] -> linear display light in [0, 1]."""
+    v = np.clip(np.asarray(v, dtype=np.float64), 0.0, 1.0)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+_SRGB = []
+
+
+def _srgb_tables():
+    """(decode: float32 sRGB EOTF of each 16-bit level, bins: uint8 first code of each of 16384 linear bins,
+    thr: float32 linear threshold between code k and k + 1)."""
+    if not _SRGB:
+        dec = srgb_eotf(np.arange(65536) / 65535.0).astype(np.float32)
+        thr = np.append(srgb_eotf((np.arange(255) + 0.5) / 255.0), 2.0).astype(np.float32)
+        edges = (np.arange(16385) / 16384.0).astype(np.float32)
+        bins = np.searchsorted(thr, edges, side="right").astype(np.uint8)
+        _SRGB.append((dec, bins, thr))
+    return _SRGB[0]
+
+
+def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_balance=(1.0, 1.0, 1.0),
+                exposure_stops: float = 0.0, contrast: float = DEFAULT_CONTRAST, saturation: float = 1.0,
+                out: np.ndarray | None = None, local: "LocalTonemap | None" = None) -> np.ndarray:
+    """Linear camera RGB (3, H, W) -> 8-bit sRGB display codes (H, W, 3).
+
+    Channels times `white_balance`, then the luminance L (BT.709 weights) through `operator` ("log": the
+    paper's curve, section 5; "local": `local`, a `LocalTonemap` whose statistics are smoothed over the
+    frames, or a fresh one) with `white`, `exposure_stops`, `contrast` as for grey frames; each channel in
+    linear display light is (c / L)^saturation Y', Y' the display light of L's level (module notes: hue and
+    saturation kept, out-of-gamut colours mixed with their grey, a grey pixel gives R = G = B)."""
+    from .scratch import planes
+    if operator not in SDR_OPERATORS:
+        raise ValueError(f"tone mapping operator must be one of {', '.join(SDR_OPERATORS)}, got {operator!r}")
+    if not (saturation > 0 and math.isfinite(saturation)):
+        raise ValueError(f"saturation must be a finite number > 0, got {saturation}")
+    v = _rgb_input(rgb)
+    gains = _gains(white_balance)
+    _, h, w = v.shape
+    if out is None:
+        out = np.empty((h, w, 3), np.uint8)
+    if out.dtype != np.uint8 or out.shape != (h, w, 3):
+        raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
+    lum, codes = planes("tonemap.rgb", (h, w), lambda: (np.empty((h, w), np.float32),
+                                                        np.empty((h, w), np.uint16)))
+    _rgb_luminance(v, gains, np.float32(LUMA_BT709[0]), np.float32(LUMA_BT709[1]), lum)
+    if operator == "local":
+        (LocalTonemap() if local is None else local)(lum, white, exposure_stops, contrast, out=codes)
+    else:
+        log_tonemap(lum, white, exposure_stops, contrast, out=codes)
+    dec, bins, thr = _srgb_tables()
+    _rgb_display(v, gains, lum, codes, dec, bins, thr, np.float32(saturation), out)
+    return out
+
+
+def warmup_rgb(elements: bool = False, operators=SDR_OPERATORS) -> None:
+    """Compile (or load) the colour tone map's kernels on a tiny frame; `elements`: also a read-only input
+    and padded output rows (nrtonemap's mapped buffers)."""
+    h, w = 12, 16
+    v = np.geomspace(1.0, 1e4, 3 * h * w).astype(np.float32).reshape(3, h, w)
+    inputs = [v]
+    outs = [np.empty((h, w, 3), np.uint8)]
+    if elements:
+        ro = v.copy()
+        ro.setflags(write=False)
+        inputs.append(ro)
+        outs.append(np.zeros((h, w * 3 + 4), np.uint8)[:, :w * 3].reshape(h, w, 3))
+    for op in operators:
+        for x in inputs:
+            for o in outs:
+                tonemap_rgb(x, 1e4, op, out=o)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _hdr_signal(v, transfer):
+    """Non-linear signal of v in [0, 1] (NaN and negatives: black): PQ (0, v = cd/m^2 / L_p) or HLG (1, v = E)."""
+    if not (v > 0.0):
+        v = 0.0
+    elif v > 1.0:
+        v = 1.0
+    if transfer == 0:
+        ym = v ** M_1
+        return ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2
+    if v <= 1.0 / 12.0:
+        return math.sqrt(3.0 * v)
+    return HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _hdr_code(e, code_max):
+    code = int(64.0 + 876.0 * e + 0.5)
+    return np.uint16((code if code < code_max else code_max) << 6)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_max, out):
+    """Colour `_hdr_kernel`: channels times `gains`, primaries converted as c + d[k, 0] (R - B) + d[k, 1]
+    (G - B) (M - I with rows summing to 0: exact for grey), times `scale`, then PQ / HLG per channel. With
+    src_pq > 0 the BT.2390 EETF maps m = max(R, G, B) (display light; HLG: of the reference display) and the
+    channels are scaled by m' / m (the largest channel takes the EETF's signal directly)."""
+    h, w = rgb.shape[1:]
+    cap = _CHANNEL_CAP
+    for y in prange(h):
+        for x in range(w):
+            r = rgb[0, y, x] * gains[0]
+            g = rgb[1, y, x] * gains[1]
+            b = rgb[2, y, x] * gains[2]
+            r = min(r if r > 0.0 else 0.0, cap)
+            g = min(g if g > 0.0 else 0.0, cap)
+            b = min(b if b > 0.0 else 0.0, cap)
+            v0 = (r + d[0, 0] * (r - b) + d[0, 1] * (g - b)) * scale
+            v1 = (g + d[1, 0] * (r - b) + d[1, 1] * (g - b)) * scale
+            v2 = (b + d[2, 0] * (r - b) + d[2, 1] * (g - b)) * scale
+            if src_pq > 0.0:
+                m = max(v0, max(v1, v2))
+                if not (m > 0.0):
+                    m = 0.0
+                v = m
+                if transfer == 1:
+                    v = v ** HLG_SYSTEM_GAMMA * (HLG_NOMINAL_PEAK / L_P)
+                if v > 1.0:
+                    v = 1.0
+                ym = v ** M_1
+                e1 = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2 / src_pq
+                if e1 >= 1.0:
+                    e1 = max_lum
+                elif e1 > ks:
+                    t = (e1 - ks) / (1.0 - ks)
+                    t2 = t * t
+                    t3 = t2 * t
+                    e1 = ((2.0 * t3 - 3.0 * t2 + 1.0) * ks + (t3 - 2.0 * t2 + t) * (1.0 - ks)
+                          + (-2.0 * t3 + 3.0 * t2) * max_lum)
+                e = e1 * src_pq
+                vp = e ** (1.0 / M_2)
+                n = vp - C_1
+                if n < 0.0:
+                    n = 0.0
+                lm = (n / (C_2 - C_3 * vp)) ** (1.0 / M_1)          # the rolled-off light / L_p
+                if transfer == 1:
+                    lm = (lm * (L_P / HLG_NOMINAL_PEAK)) ** (1.0 / HLG_SYSTEM_GAMMA)
+                    if lm > 1.0:
+                        lm = 1.0
+                    e = _hdr_signal(lm, 1)
+                k = lm / m if m > 0.0 else 0.0
+                e0 = e if v0 >= m else _hdr_signal(v0 * k, transfer)
+                ea = e if v1 >= m else _hdr_signal(v1 * k, transfer)
+                eb = e if v2 >= m else _hdr_signal(v2 * k, transfer)
+            else:
+                e0 = _hdr_signal(v0, transfer)
+                ea = _hdr_signal(v1, transfer)
+                eb = _hdr_signal(v2, transfer)
+            out[0, y, x] = _hdr_code(e0, code_max)
+            out[1, y, x] = _hdr_code(ea, code_max)
+            out[2, y, x] = _hdr_code(eb, code_max)
+
+
+PRIMARIES_OUT = ("bt2020", "bt709")
+
+
+def hdr_encode_rgb(rgb: np.ndarray, diffuse_white: float, transfer: str = "pq", white_balance=(1.0, 1.0, 1.0),
+                   primaries: str = "bt2020", reference_white: float = REFERENCE_WHITE_NITS,
+                   exposure_stops: float = 0.0, out: np.ndarray | None = None, peak: float = 0.0,
+                   source_peak: float = 0.0) -> np.ndarray:
+    """Linear camera RGB (3, H, W; BT.709 primaries) -> BT.2100 10-bit narrow-range R'G'B' codes << 6,
+    uint16 (3, H, W).
+
+    Channels times `white_balance`, then (primaries "bt2020") the ITU-R BT.2087 conversion to BT.2020
+    primaries (`primaries_matrix`; "bt709": none), then per channel the mapping of `hdr_encode` (the linear
+    value `diffuse_white` shown at `reference_white`, PQ or HLG). With `peak` > 0 the BT.2390 roll-off from
+    `source_peak` maps the largest channel and scales the others alike (hue kept); a grey pixel gets the codes
+    `hdr_encode` gives its value."""
+    if transfer not in TRANSFERS:
+        raise ValueError(f"HDR transfer must be one of {', '.join(TRANSFERS)}, got {transfer!r}")
+    if primaries not in PRIMARIES_OUT:
+        raise ValueError(f"HDR output primaries must be one of {', '.join(PRIMARIES_OUT)}, got {primaries!r}")
+    if not (diffuse_white > 0 and math.isfinite(diffuse_white)):
+        raise ValueError(f"HDR diffuse white must be a finite number > 0, got {diffuse_white}")
+    if not (reference_white > 0 and math.isfinite(reference_white)):
+        raise ValueError(f"reference white must be > 0 cd/m^2, got {reference_white}")
+    if not (0.0 <= peak <= L_P and 0.0 <= source_peak and math.isfinite(source_peak)):
+        raise ValueError(f"HDR peak must be in 0..{L_P:g} cd/m^2 and the source peak >= 0, got {peak}, "
+                         f"{source_peak}")
+    v = _rgb_input(rgb)
+    gains = _gains(white_balance)
+    if out is None:
+        out = np.empty(v.shape, np.uint16)
+    if out.dtype != np.uint16 or out.shape != v.shape:
+        raise ValueError(f"colour HDR output must be uint16 {v.shape}, got {out.dtype} {out.shape}")
+    m = primaries_matrix("bt709", primaries) if primaries != "bt709" else np.eye(3)
+    d = m - np.eye(3)
+    d = np.ascontiguousarray(d[:, :2] + 0.0)      # M - I: column B is -(R + G) (rows of M sum to 1)
+    gain = 2.0 ** exposure_stops / diffuse_white
+    src_pq, ks, max_lum = _eetf_params(min(source_peak, L_P), peak)
+    code_max = 940
+    if peak > 0:
+        top = (eotf_inverse_ST2084(peak) if transfer == "pq"
+               else oetf_HLG((min(peak, HLG_NOMINAL_PEAK) / HLG_NOMINAL_PEAK) ** (1 / HLG_SYSTEM_GAMMA)))
+        code_max = min(int(math.floor(64.0 + 876.0 * float(top) + 1e-4)), 940)
+    scale = gain * reference_white / L_P if transfer == "pq" else gain * hlg_reference_E(reference_white)
+    _hdr_rgb_kernel(v, gains, d, scale, 0 if transfer == "pq" else 1, src_pq, ks, max_lum, code_max, out)
     return out

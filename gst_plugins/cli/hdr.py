@@ -3,7 +3,12 @@
 into BT.2100 10-bit codes (`tonemap.hdr_encode`: diffuse white at the reference white, the BT.2390 EETF to the
 mastering peak) and measures MaxCLL / MaxFALL; then x265enc encodes them (HEVC Main 10, BT.2020 / PQ or HLG /
 BT.2020 non-constant luminance / limited range, ST 2086 and CTA-861.3 SEI) into MP4 or Matroska. A folder
-instead of OUT.mp4 / OUT.mkv gets 16-bit PNG frames with a cICP chunk."""
+instead of OUT.mp4 / OUT.mkv gets 16-bit PNG frames with a cICP chunk.
+
+A colour clip (the profile's cfa is a Bayer phase) is reconstructed in colour (`demosaic.reconstruct_cfa`),
+white balanced (--white-balance), converted from BT.709 camera RGB to BT.2020 primaries, encoded per channel
+(`tonemap.hdr_encode_rgb`) and written as BT.2020 non-constant-luminance Y'CbCr 4:2:0
+(`hdr_output.ycbcr_frame`); MaxCLL / MaxFALL from max(R, G, B) per pixel; stills are RGB PNG."""
 from __future__ import annotations
 
 import argparse
@@ -50,6 +55,9 @@ def add_hdr10(sub) -> None:
     g.add_argument("--reference-white", type=number(1, 10000), default=tonemap.REFERENCE_WHITE_NITS,
                    help="cd/m2 of the scene's diffuse white (the regular pixels' white; ITU-R BT.2408: 203)")
     g.add_argument("--exposure", type=number(-20, 20), default=0.0, help="exposure in stops (x 2^exposure)")
+    g.add_argument("--white-balance", choices=tonemap.WHITE_BALANCE, default="profile",
+                   help="colour clips: the profile's white_balance gains, grey world (the frame's mean colour "
+                        "made grey, smoothed over the clip) or none (camera RGB)")
     g.add_argument("--peak", type=number(0, 10000), default=hdr_output.DEFAULT_PEAK,
                    help="mastering display peak in cd/m2: highlights above it are rolled off by the BT.2390 "
                         "EETF (0: no roll-off, PQ clips at 10000)")
@@ -92,30 +100,59 @@ def _need_elements(Gst, names) -> None:
                          f"(x265enc, h265parse) and gstreamer1.0-plugins-good (mp4mux, matroskamux, capssetter)")
 
 
+def colour_frame(raw, prof, settings):
+    """A raw Bayer frame through validity, crosstalk and the joint colour reconstruction: (rgb float32 (3, H, W),
+    state uint8 (H, W)). settings.method "fse" or "preview" (the two methods of `demosaic.reconstruct_cfa`)."""
+    from nrhdr_core import crosstalk, demosaic, validity
+    s = settings
+    if s.method not in ("fse", "preview"):
+        raise ValueError(f"--method {s.method}: a colour clip ({prof.cfa}) is reconstructed by fse or preview")
+    values, state = validity.classify(raw, prof, mode=s.mode, l_min=s.l_min, dark_policy=s.dark_policy)
+    if s.crosstalk != "off":
+        v2, s2 = crosstalk.correct(values, state, prof, s.crosstalk, lut=s.crosstalk_lut)
+        values, state = v2, s2
+    rgb = demosaic.reconstruct_cfa(values, state, prof.cfa, method=s.method, preset=s.preset,
+                                   use_bounds=s.use_bounds, noise=prof, fusion=s.noise_fusion)
+    return rgb, state
+
+
 def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, reference=None):
-    """Every frame through the chain and hdr_encode; codes appended to `codes_path` (uint16 << 6), or PNG
-    stills written into `pngs`; returns the measured LightLevels. `reference`: a list that gets each frame's
-    display light before quantisation (hdr_output.display_reference, float32)."""
+    """Every frame through the chain and hdr_encode (colour clips: `colour_frame` and hdr_encode_rgb); codes
+    appended to `codes_path` (uint16 << 6; colour: R'G'B' planes), or PNG stills written into `pngs`; returns
+    the measured LightLevels. `reference`: a list that gets each frame's display light before quantisation
+    (hdr_output.display_reference, float32; monochrome)."""
     import numpy as np
-    from nrhdr_core import batch, chain, hdr_output, io, tonemap
+    from nrhdr_core import batch, cfa, chain, hdr_output, io, tonemap
     diffuse, white = float(prof.regular_white), float(prof.white)
     source_peak = tonemap.peak_luminance(white, diffuse, a.transfer, a.reference_white, a.exposure)
     levels = hdr_output.LightLevels(a.transfer)
-    out = np.empty((src.height, src.width), np.uint16)
+    colour = cfa.is_colour(getattr(prof, "cfa", "none"))
+    out = np.empty(((3,) if colour else ()) + (src.height, src.width), np.uint16)
+    wb = getattr(a, "white_balance", "profile")
+    grey = tonemap.GreyWorld(0.1, white) if wb == "grey-world" else None
     with _progress(src.frames, progress, "hdr10 pass 1 (chain)") as bar, \
             (open(codes_path, "wb") if codes_path is not None else contextlib.nullcontext()) as f:
         for i in range(src.frames):
             raw = batch.read_frame(src.raw, src.width, src.height, i)
-            values, _state = chain.process_frame(raw.copy(), prof, settings)
-            tonemap.hdr_encode(values, diffuse, a.transfer, reference_white=a.reference_white,
-                               exposure_stops=a.exposure, out=out, peak=a.peak, source_peak=source_peak)
+            if colour:
+                rgb, _state = colour_frame(raw.copy(), prof, settings)
+                gains = (grey.update(rgb) if grey is not None else
+                         tuple(prof.white_balance) if wb == "profile" else (1.0, 1.0, 1.0))
+                tonemap.hdr_encode_rgb(rgb, diffuse, a.transfer, gains, "bt2020", a.reference_white, a.exposure,
+                                       out=out, peak=a.peak, source_peak=source_peak)
+            else:
+                values, _state = chain.process_frame(raw.copy(), prof, settings)
+                tonemap.hdr_encode(values, diffuse, a.transfer, reference_white=a.reference_white,
+                                   exposure_stops=a.exposure, out=out, peak=a.peak, source_peak=source_peak)
+                if reference is not None:
+                    reference.append(hdr_output.display_reference(
+                        values, diffuse, a.transfer, a.reference_white, a.exposure, a.peak,
+                        source_peak).astype(np.float32))
             levels.update(out)
-            if reference is not None:
-                reference.append(hdr_output.display_reference(
-                    values, diffuse, a.transfer, a.reference_white, a.exposure, a.peak,
-                    source_peak).astype(np.float32))
             if pngs is not None:
-                io.write_hdr_png(Path(pngs) / f"frame_{i:05d}.png", hdr_output.full_range16(out), a.transfer)
+                sig = hdr_output.full_range16(out)
+                io.write_hdr_png(Path(pngs) / f"frame_{i:05d}.png", np.moveaxis(sig, 0, -1) if colour else sig,
+                                 a.transfer)
             else:
                 f.write(out.tobytes())
             bar.update(1)
@@ -140,7 +177,7 @@ def encoder_description(a, container: str, levels: tuple[int, int] | None, width
     return caps, enc
 
 
-def second_pass(codes_path, src, caps, enc, options, target, progress):
+def second_pass(codes_path, src, caps, enc, options, target, progress, colour: bool = False):
     """Encode the codes file into `target` through appsrc ! <enc> ! filesink (x265enc `options`); raises on a
     pipeline error.
     A stop signal (outputs.Interrupted) ends the stream with EOS (the file is closed) and is returned."""
@@ -163,7 +200,8 @@ def second_pass(codes_path, src, caps, enc, options, target, progress):
     fps = vi.fps_n / vi.fps_d
     bus = pipeline.get_bus()
     frame = np.empty(vi.size, np.uint8)
-    codes = np.memmap(codes_path, np.uint16, "r", shape=(src.frames, src.height, src.width))
+    codes = np.memmap(codes_path, np.uint16, "r",
+                      shape=(src.frames,) + ((3,) if colour else ()) + (src.height, src.width))
     if pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
         raise ValueError(f"{target}: the encoder pipeline does not start ({enc})")
 
@@ -182,7 +220,10 @@ def second_pass(codes_path, src, caps, enc, options, target, progress):
         with _progress(src.frames, progress, "hdr10 pass 2 (x265)") as bar:
             try:
                 for i in range(src.frames):
-                    hdr_output.i420_10_frame(codes[i], frame, vi.offset, vi.stride)
+                    if colour:
+                        hdr_output.ycbcr_frame(codes[i], frame, vi.offset, vi.stride)
+                    else:
+                        hdr_output.i420_10_frame(codes[i], frame, vi.offset, vi.stride)
                     buf = Gst.Buffer.new_wrapped(frame.tobytes())
                     buf.pts = int(round(i * Gst.SECOND / fps))
                     buf.duration = int(round(Gst.SECOND / fps))
@@ -210,7 +251,7 @@ def second_pass(codes_path, src, caps, enc, options, target, progress):
 
 def cmd_hdr10(a) -> int:
     import numpy as np
-    from nrhdr_core import batch, chain, hdr_output, io, outputs, profile, simulate
+    from nrhdr_core import batch, cfa, chain, hdr_output, io, outputs, profile, simulate
     from nrhdr_core.tonemap import HLG_NOMINAL_PEAK
     out = Path(a.output)
     container = hdr_output.container_of(out)
@@ -222,6 +263,9 @@ def cmd_hdr10(a) -> int:
     prof = profile.load(src.profile, allow_outside=a.allow_outside_paths)
     if (prof.width, prof.height) != (src.width, src.height):
         raise ValueError(f"{src.profile}: a {prof.width}x{prof.height} profile for {src.width}x{src.height} frames")
+    colour = cfa.is_colour(getattr(prof, "cfa", "none"))
+    if colour and a.report:
+        raise ValueError(f"--report scores monochrome clips; {src.profile} is a colour profile (cfa {prof.cfa})")
     fps = a.fps
     if fps is None:
         fps = 30
@@ -234,7 +278,7 @@ def cmd_hdr10(a) -> int:
             owned = io.owned_by_patterns(r"frame_\d{5}\.png")
             with outputs.staged_folder(out, force=a.force, owned=owned) as stage:
                 levels = first_pass(src, prof, settings, a, None, progress, pngs=stage)
-            print(f"nrhdr hdr10: {src.frames} frames -> {out}/frame_NNNNN.png (16-bit, cICP BT.2020/"
+            print(f"nrhdr hdr10: {src.frames} frames -> {out}/frame_NNNNN.png (16-bit{' RGB' if colour else ''}, cICP BT.2020/"
                   f"{a.transfer.upper()}, full range); MaxCLL {levels.max_cll}, MaxFALL {levels.max_fall_int} cd/m2")
             return 0
         with outputs.lock(out):
@@ -256,7 +300,7 @@ def cmd_hdr10(a) -> int:
                 caps, enc = encoder_description(a, container, meta, src.width, src.height, fps)
                 t0, c0 = time.perf_counter(), time.process_time()
                 options = f"crf={a.crf:g}" + (f":{a.x265_options}" if a.x265_options else "")
-                stopped = second_pass(codes, src, caps, enc, options, part, progress)
+                stopped = second_pass(codes, src, caps, enc, options, part, progress, colour)
                 enc_s, enc_cpu = time.perf_counter() - t0, time.process_time() - c0
                 os.replace(part, out)           # complete, or closed by EOS after a stop: it plays
                 if stopped is not None:

@@ -1,5 +1,6 @@
 """nrexrsink: records linear HDR frames (`other/x-nrhdr`) as an OpenEXR sequence, one file per frame
-(float32 channel "Y", optionally a second channel "state"), each written completely or not at all (a
+(float32 channel "Y", or channels "R", "G", "B" for colour frames (layout rgb-f32-u8-planar: camera RGB,
+BT.709 primaries, not white balanced), optionally one more channel "state"), each written completely or not at all (a
 temporary file renamed into place by `nrhdr_core.io.write_exr`); at EOS every frame received is a whole
 file. A failed write posts an error naming the file.
 
@@ -16,8 +17,8 @@ from __future__ import annotations
 import os
 import re
 
-from ._common import (FrameSizeError, GstBase, Gst, HdrInfo, NrElement, Prop, PropertyTable, debug_category, guarded,
-                      hdr_template_caps, map_hdr, starting)
+from ._common import (LAYOUTS, FrameSizeError, GstBase, Gst, HdrInfo, NrElement, Prop, PropertyTable, debug_category,
+                      guarded, hdr_template_caps, map_hdr, starting)
 
 _CONVERSION = re.compile(r"%%|%(?P<flags>[-+ #0]*)(?P<width>\d*)(?:\.(?P<prec>\d*))?"
                          r"(?P<length>hh|h|ll|l|j|z|t|q|L)?(?P<conv>[a-zA-Z])")
@@ -129,8 +130,9 @@ PROPERTIES = PropertyTable("GstNrExrSink", [
          "printf pattern of the output files, one per frame (one integer conversion: %d, %05d, %u, ...; %% "
          "= a literal %), e.g. out/frame_%05d.exr; missing folders are created"),
     Prop("write-state", bool, False, "Write state",
-         "Add the per-pixel state byte (docs/ARCHITECTURE.md) as a second channel 'state', so the recording "
-         "keeps which pixels were measured, clipped, too dark or reconstructed"),
+         "Add the per-pixel state byte (docs/ARCHITECTURE.md) as one more channel 'state' (colour frames: the "
+         "mosaic's state, one per photosite), so the recording keeps which pixels were measured, clipped, too "
+         "dark or reconstructed"),
     Prop("index", int, 0, "Start index", "Number of the first file (the %d in location)",
          minimum=0, maximum=2147483647),
     Prop("overwrite", bool, False, "Overwrite",
@@ -147,12 +149,13 @@ class NrExrSink(NrElement, GstBase.BaseSink):
     __gstmetadata__ = (
         "nrhdr OpenEXR sequence sink",
         "Sink/Video",
-        "Writes linear HDR frames (other/x-nrhdr) as an OpenEXR sequence (float32 channel Y, optional "
-        "state channel) so a recording keeps the full dynamic range",
+        "Writes linear HDR frames (other/x-nrhdr) as an OpenEXR sequence (float32 channel Y, or R, G, B for "
+        "colour frames; optional state channel) so a recording keeps the full dynamic range",
         "nrhdr project",
     )
     __gsttemplates__ = (
-        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, hdr_template_caps()),
+        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS,
+                            hdr_template_caps(layouts=LAYOUTS)),
     )
 
     def __init__(self):
@@ -207,7 +210,7 @@ class NrExrSink(NrElement, GstBase.BaseSink):
 
     @guarded("set_caps", False)
     def do_set_caps(self, caps):
-        self._info = HdrInfo.from_caps(caps)
+        self._info = HdrInfo.from_caps(caps, LAYOUTS, element="nrexrsink")
         return True
 
     def do_render(self, buf):

@@ -7,6 +7,10 @@ and, for PQ, the ST 2086 mastering display and CTA-861.3 content light level ! x
 Live, the frames are not known in advance: MaxCLL / MaxFALL are the `max-cll` / `max-fall` properties, or
 (0) estimated from the caps (`nrhdr_core.hdr_output.estimate_light_levels`: MaxCLL the brightest light the
 sensor's white reaches, at most `peak`; MaxFALL the reference white). `nrhdr hdr10` measures them over a file.
+
+Colour frames (layout rgb-f32-u8-planar): white balanced (`white-balance`), BT.709 camera RGB converted to
+BT.2020 primaries, PQ / HLG per channel and BT.2020 non-constant-luminance Y'CbCr 4:2:0 by nrtonemap itself
+(`nrhdr_core.hdr_output.ycbcr_frame`); videoconvert passes its I420_10LE through.
 """
 from __future__ import annotations
 
@@ -15,7 +19,7 @@ import weakref
 from nrhdr_core import hdr_output
 from nrhdr_core.tonemap import REFERENCE_WHITE_NITS, TRANSFERS
 
-from ._common import Gst, HdrInfo, NrElement, Prop, PropertyTable, debug_category, hdr_template_caps
+from ._common import LAYOUTS, Gst, HdrInfo, NrElement, Prop, PropertyTable, debug_category, hdr_template_caps
 
 PROPERTIES = PropertyTable("GstNrHdrEnc", [
     Prop("transfer", TRANSFERS, "pq", "Transfer function",
@@ -26,6 +30,9 @@ PROPERTIES = PropertyTable("GstNrHdrEnc", [
          minimum=1.0, maximum=10000.0),
     Prop("exposure", float, 0.0, "Exposure", "Exposure correction in stops (x 2^exposure)",
          minimum=-20.0, maximum=20.0),
+    Prop("white-balance", ("profile", "grey-world", "none"), "profile", "White balance",
+         "Colour frames: 'profile' = the gains of the profile named in the caps (none without one); "
+         "'grey-world' = the frame's mean colour made grey, smoothed over time; 'none' = camera RGB"),
     Prop("peak", float, hdr_output.DEFAULT_PEAK, "Peak (cd/m2)",
          "Mastering display peak: light above it is rolled off by the BT.2390 EETF (0 = none: PQ clips at "
          "10000)", minimum=0.0, maximum=10000.0),
@@ -60,11 +67,13 @@ class NrHdrEnc(NrElement, Gst.Bin):
         "nrhdr HDR10 / HLG encoder",
         "Codec/Encoder/Video",
         "Linear HDR frames (other/x-nrhdr) to HEVC Main 10 (x265enc) with BT.2020 / PQ or HLG / BT.2020 NCL / "
-        "limited range and, for PQ, ST 2086 mastering display and CTA-861.3 MaxCLL / MaxFALL",
+        "limited range and, for PQ, ST 2086 mastering display and CTA-861.3 MaxCLL / MaxFALL; colour frames "
+        "converted from BT.709 to BT.2020 primaries",
         "nrhdr project",
     )
     __gsttemplates__ = (
-        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, hdr_template_caps()),
+        Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS,
+                            hdr_template_caps(layouts=LAYOUTS)),
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS,
                             Gst.Caps.from_string("video/x-h265, stream-format=(string){ hvc1, hev1, "
                                                  "byte-stream }, alignment=(string)au")),
@@ -112,6 +121,7 @@ class NrHdrEnc(NrElement, Gst.Bin):
         self._tone.set_property("transfer", p.transfer)
         self._tone.set_property("reference-white", p.reference_white)
         self._tone.set_property("exposure", p.exposure)
+        self._tone.set_property("white-balance", p.white_balance)
         self._tone.set_property("peak", p.peak)
         self._enc.set_property("speed-preset", p.speed_preset)
         opts = f"crf={p.crf:g}" + (f":{p.x265_options}" if p.x265_options else "")
@@ -126,7 +136,7 @@ class NrHdrEnc(NrElement, Gst.Bin):
         if ev is None or ev.type != Gst.EventType.CAPS:
             return Gst.PadProbeReturn.OK
         try:
-            self._set_metadata(HdrInfo.from_caps(ev.parse_caps()))
+            self._set_metadata(HdrInfo.from_caps(ev.parse_caps(), LAYOUTS, element="nrhdrenc"))
         except Exception as e:  # noqa: BLE001
             self.post_exception("caps", e)
             return Gst.PadProbeReturn.DROP
