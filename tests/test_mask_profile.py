@@ -1,5 +1,6 @@
 """ND masks (paper Fig. 1, 2) and the camera profile file format (docs/PROFILE.md)."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -200,3 +201,47 @@ def test_defect_map_is_checked(tmp_path):
         f.write_text(json.dumps(dict(doc, **change)))
         with pytest.raises(profile.ProfileError, match=words):
             profile.load(f)
+
+
+def test_colour_profile_fields_make_version_3(tmp_path):
+    p = profile.default(8, 12, cfa="grbg", white_balance=(2.0, 1.0, 1.5))
+    profile.save(p, tmp_path / "c.json")
+    doc = json.loads((tmp_path / "c.json").read_text())
+    assert doc["version"] == 3 and doc["cfa"] == "grbg" and doc["white_balance"] == [2.0, 1.0, 1.5]
+    q = profile.load(tmp_path / "c.json")
+    assert q.cfa == "grbg" and q.white_balance == (2.0, 1.0, 1.5) and np.array_equal(q.mask, p.mask)
+    # a monochrome profile with unit gains is written as before: no colour field, version 1
+    profile.save(profile.default(8, 12), tmp_path / "m.json")
+    doc = json.loads((tmp_path / "m.json").read_text())
+    assert doc["version"] == 1 and not {"cfa", "white_balance"} & set(doc)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"cfa": "rgbg"}, "field 'cfa': must be one of none, rggb, bggr, grbg, gbrg"),
+    ({"cfa": 3}, "field 'cfa' must be a string"),
+    ({"white_balance": [1, 2]}, "field 'white_balance' must be a list of three numbers"),
+    ({"white_balance": [1, 0, 1]}, "field 'white_balance': must be three finite gains"),
+    ({"version": 2}, "field 'cfa' needs version 3"),
+    ({"width": 11, "height": 8}, None),
+])
+def test_colour_profile_fields_are_checked(tmp_path, changes, message):
+    profile.save(profile.default(8, 12, cfa="rggb"), tmp_path / "c.json")
+    doc = json.loads((tmp_path / "c.json").read_text())
+    doc.update(changes)
+    if "width" in changes:        # an odd width: the mask of that size, and the CFA refuses it
+        io.write_mask(tmp_path / "c_mask.png", np.zeros((8, 11), bool))
+        message = "field 'cfa': a Bayer sensor has an even width and height"
+    (tmp_path / "c.json").write_text(json.dumps(doc))
+    with pytest.raises(profile.ProfileError, match=f"c.json.*{re.escape(message)}"):
+        profile.load(tmp_path / "c.json")
+
+
+def test_default_colour_profile_takes_an_nd_layout():
+    assert mask.nd_layout_of(profile.default(16, 16, cfa="rggb").mask, "rggb") == "balanced"
+    assert mask.nd_layout_of(profile.default(16, 16, cfa="rggb", nd_layout="regular").mask, "rggb") == "regular"
+    ind = profile.default(16, 16, cfa="rggb", nd_layout="independent", seed=3)
+    assert np.array_equal(ind.mask, mask.make_mask("nonregular", 16, 16, seed=3))
+    # monochrome: the pattern as is, whatever nd_layout None / independent
+    assert np.array_equal(profile.default(16, 16, seed=3, nd_layout="independent").mask, ind.mask)
+    with pytest.raises(ValueError, match="nd_layout: must be one of"):
+        profile.default(16, 16, cfa="rggb", nd_layout="cross")
