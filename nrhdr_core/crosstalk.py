@@ -24,7 +24,7 @@ flat-field sweeps:
 Colour sensors (profile.cfa a Bayer phase; docs/COLOUR.md "Validity and crosstalk per colour"): under
 coloured light a photosite's neighbours of other colours are not as bright as it is, which the white-light
 LUT assumes. A calibration with per-colour amplitudes (`CrosstalkCalibration.colour`, from sweeps under
-coloured light: `calibration.colour_spill`) corrects that in both modes (`_colour_kernel`): ``lut`` removes
+coloured light: `calibration.colour_spill`) corrects that in both modes (`_correct_kernel`): ``lut`` removes
 the spill of the other-colour neighbours beyond what neighbours at the pixel's flux would send, with the
 pixel's amplitude for that colour, before the LUT (same-colour neighbours keep the LUT's assumption);
 ``kernel`` does so for every neighbour, with the pixel's amplitude for the neighbour's colour.
@@ -442,6 +442,9 @@ LutScale = namedtuple("LutScale", "qs qo clip_rel")
 Spill = namedtuple("Spill", "dirs sig_e sigma alpha")
 # the `kernel` mode's scalars: ND, iterations per pass, the clipped-spill share (`correct`)
 KernelParams = namedtuple("KernelParams", "nd iters clip_share")
+# `_correct_kernel`'s colour arguments on a monochrome sensor (unused)
+_NO_COLOUR = np.ones((3, 1, 1), np.float32)
+_NO_CHANNELS = np.zeros((1, 1), np.uint8)
 
 
 def lut_record(calib: CrosstalkCalibration) -> Lut:
@@ -792,11 +795,15 @@ def _lut_pass(values, state, lut, nd, lut_out, ok_out):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
+def _correct_kernel(values, state, src, est, src_spill, lut, spill, par, colour, chan, every, coloured):
     """`kernel` mode: each VALID pixel's flux in the full table `lut` (`Lut`) after removing the difference
     between the spill its actual neighbours send (`src_spill`) and what flat neighbours at its flux would
-    send (`spill`: `Spill`), `par.iters` times (`par`: `KernelParams`); CLIPPED and DARK/NOISY pixels as in
-    `_lut_kernel`."""
+    send (`spill`: `Spill`), scaled by the pixel's amplitude alpha, `par.iters` times (`par`:
+    `KernelParams`); CLIPPED and DARK/NOISY pixels as in `_lut_kernel`. `coloured` (a Bayer mosaic, `chan`
+    its channel plane): the amplitude is the pixel's for the neighbour's colour (`colour` (3, H, W), alpha
+    for its own colour); `every` False (`lut` mode on a colour profile) skips the same-colour neighbours
+    (the LUT assumes them as bright as the pixel) and the clipped-spill rule. Monochrome: `colour` and
+    `chan` are unused placeholders, `every` True."""
     h, w = values.shape
     codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
     dirs, sig_e, sigma, alpha = spill.dirs, spill.sig_e, spill.sigma, spill.alpha
@@ -807,6 +814,9 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
         scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         flat_att = np.empty(8, np.float32)
         flat_reg = np.empty(8, np.float32)
+        acc = np.empty(3, np.float32)           # spill difference per neighbour colour (monochrome: [0])
+        clp = np.empty(3, np.float32)           # spill from clipped neighbours per colour
+        amp = np.empty(3, np.float32)
         for x in range(w):
             st = state[y, x]
             reason = st & REASON_MASK
@@ -821,32 +831,46 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
                     state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
                     continue
                 a = alpha[y, x]
+                own = chan[y, x] if coloured else np.uint8(0)
+                if coloured:
+                    for c in range(3):
+                        amp[c] = a if c == own else colour[c, y, x]
                 from_clipped = np.float32(0.0)
                 for _ in range(iters):
                     # what flat neighbours at this pixel's flux would send (the LUT's assumption)
                     _spill_vec(sig_e, sigma, f / ndf, flat_att)
                     _spill_vec(sig_e, sigma, f, flat_reg)
-                    delta = np.float32(0.0)
-                    from_clipped = np.float32(0.0)
+                    for c in range(3):
+                        acc[c] = 0.0
+                        clp[c] = 0.0
                     for d in range(8):
                         yy = y + dirs[d, 0]
                         xx = x + dirs[d, 1]
                         if yy < 0 or yy >= h or xx < 0 or xx >= w:
                             continue
+                        c = chan[yy, xx] if coloured else np.uint8(0)
+                        if coloured and c == own and not every:
+                            continue
                         stn = state[yy, xx]
                         if (stn & REASON_MASK) == DARK and est[yy, xx] > f:
                             continue        # an upper bound only: assume no brighter than this pixel
                         flat = flat_att[d] if (stn & ATTENUATED) != 0 else flat_reg[d]
-                        delta += src_spill[d, yy, xx] - flat
+                        acc[c] += src_spill[d, yy, xx] - flat
                         if (stn & REASON_MASK) == CLIPPED:
-                            from_clipped += src_spill[d, yy, xx]
-                    f2, ok2 = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m - a * delta)
+                            clp[c] += src_spill[d, yy, xx]
+                    if coloured:
+                        delta = amp[0] * acc[0] + amp[1] * acc[1] + amp[2] * acc[2]
+                        from_clipped = amp[0] * clp[0] + amp[1] * clp[1] + amp[2] * clp[2]
+                    else:
+                        delta = a * acc[0]
+                        from_clipped = a * clp[0]
+                    f2, ok2 = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m - delta)
                     if not ok2:
                         break
                     f = f2
                 if f < 0:
                     f = np.float32(0.0)
-                if a * from_clipped > clip_share * max(f / s, np.float32(1.0)):
+                if every and from_clipped > clip_share * max(f / s, np.float32(1.0)):
                     # more spill from clipped neighbours than own signal: their flux is only an
                     # estimate (>= their bound), so this pixel is unreliable; leave it to reconstruction
                     values[y, x] = f
@@ -925,8 +949,8 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     whose code lies outside their calibrated range become UNCALIBRATED (value left as measured).
     `lut` (mode 'lut' only): 'full' = the calibration's per-pixel table (accurate), 'compact' = its
     compact form (`compact_for`, fast; error: docs/CROSSTALK.md "Compact LUT"). A colour profile whose
-    calibration has per-colour amplitudes (`CrosstalkCalibration.colour`) takes `_colour_kernel` in both
-    modes (the full table). Returns (values, state)."""
+    calibration has per-colour amplitudes (`CrosstalkCalibration.colour`) takes `_correct_kernel` with them
+    in both modes (the full table). Returns (values, state)."""
     if mode not in MODES:
         raise ValueError(f"crosstalk mode must be one of {MODES}, got {mode!r}")
     if lut not in LUT_FORMS:
@@ -944,9 +968,8 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     nd = float(profile.nd)
     table = lut_record(calib)
     cfa = getattr(profile, "cfa", "none")
-    if calib.colour is not None and cfa != "none":
-        return _correct_colour(values, state, calib, table, nd, cfa, mode, iterations, passes, clip_share)
-    if mode == "lut":
+    coloured = calib.colour is not None and cfa != "none"
+    if mode == "lut" and not coloured:
         # per pixel, in place (no copy of the frame)
         if lut == "compact":
             c = compact_for(profile)
@@ -954,8 +977,14 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         else:
             _lut_kernel(values, state, table, nd)
         return values, state
+    if coloured:
+        from . import cfa as cfas
+        colour, chan = calib.colour, cfas.channel_index(cfa, *values.shape)
+    else:
+        colour, chan = _NO_COLOUR, _NO_CHANNELS
     src = values.copy()
-    # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
+    # kernel mode (and lut on a colour profile): neighbour fluxes first from the LUT, then (second pass) from
+    # the first pass's result
     state0 = state.copy()
     lut = np.empty_like(values)
     ok = np.empty(values.shape, np.bool_)
@@ -970,108 +999,11 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         if p > 0:
             state[:] = state0
         values[:] = src
-        _correct_kernel(values, state, src, est, spill, table, spill_model, par)
+        _correct_kernel(values, state, src, est, spill, table, spill_model, par, colour, chan, mode == "kernel",
+                        coloured)
         lut[:] = values
         ok[:] = (state & REASON_MASK) == VALID
     return values, state
-
-
-def _correct_colour(values, state, calib, table, nd, cfa, mode, iterations, passes, clip_share):
-    """`correct` for a Bayer sensor with per-colour amplitudes: neighbour fluxes from the LUT, then
-    `passes` passes of `_colour_kernel` (each from the previous pass's fluxes)."""
-    from . import cfa as cfas
-    h, w = values.shape
-    chan = cfas.channel_index(cfa, h, w)
-    src = values.copy()
-    state0 = state.copy()
-    lut = np.empty_like(values)
-    ok = np.empty(values.shape, np.bool_)
-    est = np.empty_like(values)
-    spill = np.empty((8,) + values.shape, np.float32)
-    _lut_pass(src, state0, table, nd, lut, ok)
-    par = KernelParams(nd, int(iterations), np.float32(clip_share if clip_share is not None else np.inf))
-    for p in range(max(1, int(passes))):
-        _neighbour_estimate(src, state0, lut, ok, DIRS, est)
-        _source_spill(est, state0, nd, calib.sig_e, calib.sigma, spill)
-        if p > 0:
-            state[:] = state0
-        values[:] = src
-        _colour_kernel(values, state, src, est, spill, table, Spill(DIRS, calib.sig_e, calib.sigma, calib.alpha),
-                       par, calib.colour, chan, mode == "kernel")
-        lut[:] = values
-        ok[:] = (state & REASON_MASK) == VALID
-    return values, state
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _colour_kernel(values, state, src, est, src_spill, lut, spill, par, colour, chan, every):
-    """`_correct_kernel` on a Bayer mosaic (`chan`: channel of each photosite): the spill of each
-    neighbour beyond what a neighbour at the pixel's flux would send, scaled by the pixel's amplitude for
-    the neighbour's colour (`colour` (3, H, W)); `every` False (`lut` mode): other-colour neighbours only
-    (the LUT assumes same-colour neighbours as bright as the pixel), True (`kernel` mode): every
-    neighbour, the pixel's own colour with its `alpha`."""
-    h, w = values.shape
-    codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
-    dirs, sig_e, sigma, alpha = spill.dirs, spill.sig_e, spill.sigma, spill.alpha
-    nd, iters, clip_share = par.nd, par.iters, par.clip_share
-    qs, qo, clip_rel = table_scale
-    ndf = np.float32(nd)
-    for y in prange(h):
-        scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
-        flat_att = np.empty(8, np.float32)
-        flat_reg = np.empty(8, np.float32)
-        for x in range(w):
-            st = state[y, x]
-            reason = st & REASON_MASK
-            att = (st & ATTENUATED) != 0
-            s = ndf if att else np.float32(1.0)
-            n = n_knots[y, x]
-            cf = clip_flux[y, x]
-            own = chan[y, x]
-            if reason == VALID:
-                m = src[y, x] / s
-                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m)
-                if not ok:
-                    state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
-                    continue
-                from_clipped = np.float32(0.0)
-                for _ in range(iters):
-                    _spill_vec(sig_e, sigma, f / ndf, flat_att)
-                    _spill_vec(sig_e, sigma, f, flat_reg)
-                    delta = np.float32(0.0)
-                    from_clipped = np.float32(0.0)
-                    for d in range(8):
-                        yy = y + dirs[d, 0]
-                        xx = x + dirs[d, 1]
-                        if yy < 0 or yy >= h or xx < 0 or xx >= w:
-                            continue
-                        c = chan[yy, xx]
-                        if c == own and not every:
-                            continue
-                        stn = state[yy, xx]
-                        if (stn & REASON_MASK) == DARK and est[yy, xx] > f:
-                            continue        # an upper bound only: assume no brighter than this pixel
-                        a = alpha[y, x] if c == own else colour[c, y, x]
-                        flat = flat_att[d] if (stn & ATTENUATED) != 0 else flat_reg[d]
-                        delta += a * (src_spill[d, yy, xx] - flat)
-                        if (stn & REASON_MASK) == CLIPPED:
-                            from_clipped += a * src_spill[d, yy, xx]
-                    f2, ok2 = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m - delta)
-                    if not ok2:
-                        break
-                    f = f2
-                if f < 0:
-                    f = np.float32(0.0)
-                values[y, x] = f
-                if every and from_clipped > clip_share * max(f / s, np.float32(1.0)):
-                    state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
-            elif reason == CLIPPED:
-                if cf == cf and cf < values[y, x]:
-                    values[y, x] = cf
-            elif reason == DARK or reason == NOISY:
-                f, ok = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, src[y, x] / s)
-                if ok and f > 0:
-                    values[y, x] = f
 
 
 def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float = 0.0,

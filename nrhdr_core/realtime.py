@@ -8,7 +8,7 @@ controller of nrreconstruct, the frame sources of `nrcamsrc` and a report of num
   budget, up only after `up_after` comfortable frames) so quality does not flicker.
 - `ClipCamera` / `SceneCamera`: raw GRAY16 frames of a clip folder (`nrhdr simulate`) or rendered from an
   HDR scene with the simulator's camera path, moving objects, cut and sensor noise model
-  (`simulate.ClipRenderer`, `sensor.capture`).
+  (`simulate.ClipRenderer`, `sensor.capture`); a Bayer mosaic for a colour profile (docs/COLOUR.md).
 - `JitWatch`: counts numba compilations (cache misses) so elements can report them instead of stalling
   silently.
 """
@@ -217,27 +217,32 @@ class SceneCamera:
     path of `simulate.Motion`, optional moving `objects` and a cut at `cut_frame` to `cut_scene`) over
     `frames` frames (then it repeats), noise and clipping from `sensor.capture`. Frame i is rendered when
     asked for (noise seeded by (seed, i)), so every repeat gives the same frames; rendered frames are kept
-    only when the whole path fits in `cache_bytes`, so memory stays flat for any `frames`."""
+    only when the whole path fits in `cache_bytes`, so memory stays flat for any `frames`.
+
+    `scene`: linear luminance (H, W) or planar linear RGB (3, H, W). A colour profile (`profile.cfa` a Bayer
+    phase) captures the CFA mosaic of the camera RGB flux (`ClipRenderer.photosite_flux`, `sensitivity`
+    R, G, B), a luminance scene being grey; a monochrome one the luminance."""
 
     CACHE_BYTES = 256 << 20          # rendered frames kept for the path's repeats when all of them fit
     PRERENDER_PIXELS = 10_000_000    # a path this small (all frames' pixels) may be rendered at start (< ~1 s)
 
     def __init__(self, scene: np.ndarray, profile, frames: int = 30, motion=None, seed: int = 0,
                  exposure_stops: float = 0.0, sensor_model=None, cache_bytes: int = CACHE_BYTES, objects=(),
-                 cut_frame: int | None = None, cut_scene=None):
+                 cut_frame: int | None = None, cut_scene=None, sensitivity=(1.0, 1.0, 1.0)):
         from . import simulate
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
         self.scene = np.asarray(scene, np.float32)
-        if self.scene.ndim != 2 or min(self.scene.shape) < 2:
-            raise ValueError(f"scene must be a 2-D luminance image, got shape {self.scene.shape}")
+        if not (self.scene.ndim == 2 or simulate.is_rgb_scene(self.scene)) or min(self.scene.shape[-2:]) < 2:
+            raise ValueError(f"scene must be a 2-D luminance image or planar RGB (3, H, W), got shape "
+                             f"{self.scene.shape}")
         self.profile = profile
         self.width, self.height = profile.width, profile.height
         self.n = int(frames)
         self.motion = motion if motion is not None else simulate.Motion()
         self.seed, self.sensor_model = seed, sensor_model
         self._render = simulate.ClipRenderer(self.scene, profile, self.n, exposure_stops, self.motion, objects,
-                                             cut_frame, cut_scene)
+                                             cut_frame, cut_scene, sensitivity=sensitivity)
         self.k = self._render.scale
         self._keep = self.n * self.width * self.height * 2 <= cache_bytes
         self._frames: dict = {}
@@ -260,24 +265,30 @@ class SceneCamera:
         i = k % self.n
         f = self._frames.get(i)
         if f is None:
-            f = sensor.capture(self._render.flux(i), self.profile, np.random.default_rng((self.seed, i)),
+            r = self._render
+            f = sensor.capture(r.photosite_flux(r.flux(i)), self.profile, np.random.default_rng((self.seed, i)),
                                sensor_model=self.sensor_model)
             if self._keep:
                 self._frames[i] = f
         return f
 
 
-def load_scene(arg: str, height: int = 1200) -> tuple[np.ndarray, str]:
-    """An HDR file's linear luminance, or for 'synthetic' the synthesised scene (4:3) at twice `height`
-    rows, at most the 1200 rows `nrhdr simulate` uses (small frames need no big scene), through the scene
-    file cache (`scene.cached_synthetic_hdr_scene`)."""
+def load_scene(arg: str, height: int = 1200, cfa: str = "none") -> tuple[np.ndarray, str]:
+    """The scene of a camera with CFA `cfa` (cfa.CFAS; a profile's `cfa`): an HDR file's linear luminance
+    (monochrome) or planar linear RGB (3, H, W) (`io.read_rgb`, a Bayer phase); for 'synthetic' the
+    synthesised scene (4:3; in colour `simulate.tint_synthetic`) at twice `height` rows, at most the 1200 rows
+    `nrhdr simulate` uses (small frames need no big scene), through the scene file cache
+    (`scene.cached_synthetic_hdr_scene`)."""
     from pathlib import Path
 
-    from . import io, scene
+    from . import cfa as cfas
+    from . import io, scene, simulate
+    colour = cfas.is_colour(cfas.check(cfa, "cfa"))
     if arg in ("", "synthetic"):
         h = int(min(1200, max(120, 2 * height)))
-        return scene.cached_synthetic_hdr_scene(h, h * 4 // 3), "synthetic"
-    return io.read_luminance(arg), Path(arg).name
+        lum = scene.cached_synthetic_hdr_scene(h, h * 4 // 3)
+        return (simulate.tint_synthetic(lum) if colour else lum), "synthetic"
+    return (io.read_rgb(arg) if colour else io.read_luminance(arg)), Path(arg).name
 
 
 # ---- numba compilations ----------------------------------------------------------------------------

@@ -282,6 +282,63 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
         return np.tensordot(io.LUMA_709, a, axes=1).astype(np.float32)
 
 
+# Colours of the synthesised scene in colour (`tint_synthetic`): linear BT.709 RGB, each scaled to luminance 1.
+# The patches: a column between the zone plate and the window (scene.synthetic_hdr_scene's layout), top to bottom.
+SYNTHETIC_PATCHES = (("red", (0.80, 0.12, 0.08)), ("yellow", (0.80, 0.70, 0.10)), ("green", (0.12, 0.60, 0.12)),
+                     ("cyan", (0.10, 0.60, 0.75)), ("blue", (0.10, 0.15, 0.80)), ("magenta", (0.75, 0.12, 0.65)))
+SYNTHETIC_SKY = (0.80, 0.90, 1.00)          # pale blue: its blue stays within the ND pixels' range
+SYNTHETIC_FLOOR = (1.00, 0.72, 0.45)        # warm wood
+PATCH_COLUMN = (0.345, 0.455)               # u range of the patch column
+PATCH_ROWS = (0.18, 0.07, 0.06)             # v of the first patch's top, pitch, height
+
+
+def _unit_luminance(rgb) -> np.ndarray:
+    c = np.asarray(rgb, np.float64)
+    return c / float(io.LUMA_709 @ c)
+
+
+def synthetic_chroma(height: int, width: int) -> np.ndarray:
+    """The colour of every pixel of `tint_synthetic` (float64 (3, H, W), Rec. 709 luminance 1): grey (1, 1, 1)
+    except the patch column (`SYNTHETIC_PATCHES`), the window (`SYNTHETIC_SKY`, where the sky is bright) and
+    the floor band (`SYNTHETIC_FLOOR`), placed in `scene.synthetic_hdr_scene`'s layout (fractions of the size)."""
+    v = (np.arange(height) + 0.5)[:, None] / height
+    u = (np.arange(width) + 0.5)[None, :] / width
+    chroma = np.ones((3, height, width))
+    floor = np.clip((v - 0.80) / 0.03, 0.0, 1.0)[None]                       # the shadowed floor band
+    chroma += floor * (_unit_luminance(SYNTHETIC_FLOOR)[:, None, None] - 1.0)
+    cols = (u >= PATCH_COLUMN[0]) & (u < PATCH_COLUMN[1])
+    top, pitch, size = PATCH_ROWS
+    for k, (_name, rgb) in enumerate(SYNTHETIC_PATCHES):
+        patch = cols & (v >= top + k * pitch) & (v < top + k * pitch + size)
+        chroma[:, patch] = _unit_luminance(rgb)[:, None]
+    return chroma
+
+
+def tint_synthetic(lum: np.ndarray) -> np.ndarray:
+    """Planar linear RGB (float32 (3, H, W)) of the synthesised luminance scene `lum` (scene.synthetic_hdr_scene
+    of any size): `synthetic_chroma` x `lum`, so its Rec. 709 luminance is `lum` (to float32 rounding); the
+    window's bright sky (above 3, scene units) is `SYNTHETIC_SKY`, its branches and frame stay grey.
+    Deterministic; the zone plate, the walls, the shadow and the lamp are grey."""
+    lum = np.asarray(lum, np.float32)
+    if lum.ndim != 2:
+        raise ValueError(f"tint_synthetic: a luminance image (H, W) is needed, got shape {lum.shape}")
+    h, w = lum.shape
+    chroma = synthetic_chroma(h, w)
+    v = (np.arange(h) + 0.5)[:, None] / h
+    u = (np.arange(w) + 0.5)[None, :] / w
+    sky = (u >= 0.48) & (u < 0.92) & (v >= 0.12) & (v < 0.62) & (lum > 3.0)
+    chroma[:, sky] = _unit_luminance(SYNTHETIC_SKY)[:, None]
+    return np.ascontiguousarray((chroma * lum[None]).astype(np.float32))
+
+
+def synthetic_rgb_scene(height: int = 1200, width: int = 1600, seed: int = 7, cached: bool = False) -> np.ndarray:
+    """The synthesised HDR scene in colour: `tint_synthetic` of `scene.synthetic_hdr_scene` (through its file
+    cache, `scene.cached_synthetic_hdr_scene`, when `cached`)."""
+    from . import scene
+    make = scene.cached_synthetic_hdr_scene if cached else scene.synthetic_hdr_scene
+    return tint_synthetic(make(height, width, seed))
+
+
 def is_rgb_scene(scene) -> bool:
     """True for a planar colour scene (3, H, W), False for a luminance scene (H, W)."""
     return np.ndim(scene) == 3 and np.shape(scene)[0] == 3

@@ -105,17 +105,22 @@ def _known_kernel(state, known):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _prepare_kernel(values, state, known, lower, upper, with_bounds):
+def _prepare_kernel(values, state, known, lower, upper, with_bounds, chan, coloured):
     """One pass: known mask, bounds, counts of missing (not VALID, not RECONSTRUCTED) and of
     not-VALID pixels. The clipped-neighbour bound is computed per row from column aggregates
-    (`clip_lower_row`), only in rows that have a clipped regular pixel."""
+    (`clip_lower_row`; a Bayer mosaic, `coloured` with its channel plane `chan`: from same-colour pixels,
+    `clip_lower_row_cfa`), only in rows that have a clipped regular pixel."""
     h, w = state.shape
     nan = np.float32(np.nan)
     n_miss = 0
     n_unknown = 0
     for y in prange(h):
         if with_bounds and row_has_clipped_regular(state, y):
-            clip_lower_row(values, state, y, lower[y])   # lower[y, x] = the rule's bound (NaN: none)
+            # lower[y, x] = the rule's bound (NaN: none)
+            if coloured:
+                clip_lower_row_cfa(values, state, chan, y, lower[y])
+            else:
+                clip_lower_row(values, state, y, lower[y])
         cm = 0
         cu = 0
         for x in range(w):
@@ -246,11 +251,9 @@ def _prepare(values, state, known, lower, upper, with_bounds, cfa=None):
     for name, a, dt in (("known", known, np.bool_), ("lower", lo_a, np.float32), ("upper", hi_a, np.float32)):
         if a.dtype != dt or (a.shape != (h, w) and a.shape != (1, 1)):
             raise ValueError(f"{name} must be a {np.dtype(dt).name} array of shape {(h, w)}")
-    if cfas.is_colour(cfa):
-        chan = cfa_channels(cfa, h, w)
-        n_miss, n_unknown = _prepare_kernel_cfa(values, state, chan, known, lo_a, hi_a, bool(with_bounds))
-    else:
-        n_miss, n_unknown = _prepare_kernel(values, state, known, lo_a, hi_a, bool(with_bounds))
+    coloured = cfas.is_colour(cfa)
+    chan = cfa_channels(cfa, h, w) if coloured else _NO_CHANNELS
+    n_miss, n_unknown = _prepare_kernel(values, state, known, lo_a, hi_a, bool(with_bounds), chan, coloured)
     return int(n_miss), int(n_unknown), known, lower, upper
 
 
@@ -267,38 +270,14 @@ def cfa_neighbour(chan, y, x, yy, xx):
     return (chan[yy, xx] == chan[y, x]) & ((yy != y) | (xx != x))
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _prepare_kernel_cfa(values, state, chan, known, lower, upper, with_bounds):
-    """`_prepare_kernel` for a Bayer mosaic: the clipped-neighbour bound from same-colour attenuated pixels
-    (`_clip_lower_at_cfa`)."""
+@njit(cache=True, nogil=True)
+def clip_lower_row_cfa(values, state, chan, y, mrow):
+    """`clip_lower_row` on a Bayer mosaic (`chan`: its channel plane): mrow[x] = `_clip_lower_at_cfa` for
+    every clipped regular pixel of row y (other entries of mrow are left as they are)."""
     h, w = state.shape
-    nan = np.float32(np.nan)
-    n_miss = 0
-    n_unknown = 0
-    for y in prange(h):
-        cm = 0
-        cu = 0
-        for x in range(w):
-            st = state[y, x]
-            r = st & REASON_MASK
-            k = r == VALID
-            known[y, x] = k
-            cu += np.int64(not k)
-            cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
-            if with_bounds:
-                v = np.float32(values[y, x])
-                lo = nan
-                if r == CLIPPED:
-                    lo = v
-                    if (st & ATTENUATED) == 0:
-                        m = _clip_lower_at_cfa(values, state, chan, y, x, h, w)
-                        if m == m and m > v:
-                            lo = m
-                lower[y, x] = lo
-                upper[y, x] = v if r == DARK else nan
-        n_miss += cm
-        n_unknown += cu
-    return n_miss, n_unknown
+    for x in range(w):
+        if (state[y, x] & (ATTENUATED | REASON_MASK)) == CLIPPED:
+            mrow[x] = _clip_lower_at_cfa(values, state, chan, y, x, h, w)
 
 
 @njit(cache=True, nogil=True)
@@ -306,23 +285,7 @@ def _clip_lower_at_cfa(values, state, chan, y, x, h, w):
     """`_clip_lower_at` among same-colour pixels: the smallest lower bound of the attenuated photosites of
     (y, x)'s channel in the 5 x 5 window (the colour plane's 3 x 3), else the 9 x 9 (its 5 x 5) when the
     5 x 5 has none, when all of them are clipped; NaN when some is not clipped or none is near."""
-    for r in range(2, 5, 2):
-        n_att = 0
-        ok = True
-        m = np.float32(np.inf)
-        for yy in range(max(y - r, 0), min(y + r + 1, h)):
-            for xx in range(max(x - r, 0), min(x + r + 1, w)):
-                s2 = state[yy, xx]
-                if (s2 & ATTENUATED) == 0 or not cfa_neighbour(chan, y, x, yy, xx):
-                    continue
-                n_att += 1
-                if (s2 & REASON_MASK) != CLIPPED:
-                    ok = False
-                elif values[yy, xx] < m:
-                    m = values[yy, xx]
-        if n_att > 0:
-            return m if ok else np.float32(np.nan)
-    return np.float32(np.nan)
+    return _clip_lower_near(values, state, chan, y, x, h, w, 2)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -352,14 +315,21 @@ def write_back(values: np.ndarray, state: np.ndarray, result: np.ndarray) -> int
 def _clip_lower_at(values, state, y, x, h, w):
     """Smallest lower bound of the attenuated pixels around (y, x) when all of them are clipped (3 x 3,
     else 5 x 5 when the 3 x 3 has none); NaN when some is not clipped or none is near."""
-    for r in range(1, 3):
+    return _clip_lower_near(values, state, state, y, x, h, w, 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip_lower_near(values, state, chan, y, x, h, w, step):
+    """The rule of `_clip_lower_at` in windows of radius `step`, then 2 `step`: step 1 every pixel,
+    step 2 the same-colour pixels of a Bayer mosaic (`chan`: its channel plane; unused with step 1)."""
+    for r in range(step, 3 * step, step):
         n_att = 0
         ok = True
         m = np.float32(np.inf)
         for yy in range(max(y - r, 0), min(y + r + 1, h)):
             for xx in range(max(x - r, 0), min(x + r + 1, w)):
                 s2 = state[yy, xx]
-                if (s2 & ATTENUATED) == 0:
+                if (s2 & ATTENUATED) == 0 or (step > 1 and not cfa_neighbour(chan, y, x, yy, xx)):
                     continue
                 n_att += 1
                 if (s2 & REASON_MASK) != CLIPPED:

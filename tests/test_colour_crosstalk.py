@@ -3,8 +3,8 @@ crosstalk per colour"; nrhdr_core/calibration.py `colour_spill`, crosstalk.corre
 flats.detect with a CFA).
 
 The flats come from a small generator written here, independent of the project's simulator: a 12-bit Bayer
-sensor (its own CFA layout below) with per-channel sensitivity, coloured light, a conserving 3 x 3 crosstalk
-kernel whose coupling may depend on the source photosite's colour, Poisson shot noise and Gaussian read noise;
+sensor (its own CFA layout below) with per-channel sensitivity, coloured light, test_flats' conserving 3 x 3
+crosstalk kernel with a coupling that may depend on the source photosite's colour, Poisson shot noise and Gaussian read noise;
 frames written as 16-bit TIFF with `exposures.csv`."""
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import pytest
 import tifffile
 
 from nrhdr_core import calibration, crosstalk, flats, mask as masks, profile, validity
+from test_flats import crosstalk_3x3
 
 GAIN = 0.5            # DN per electron
 FULL_WELL = 9000.0    # electrons: the 12-bit ADC clips (4095) first
@@ -35,21 +36,12 @@ def channels(cfa, h, w):
     return out
 
 
-def crosstalk_3x3(e, chan, edge, corner, coupling):
-    """Conserving 3 x 3 crosstalk: a photosite of colour c sends coupling[c] x `edge` of its electrons to
-    each edge neighbour and coupling[c] x `corner` to each corner neighbour, and keeps the rest."""
-    h, w = e.shape
-    src_all = e * np.asarray(coupling, float)[chan]
-    out = e.copy()
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy == dx == 0:
-                continue
-            k = edge if dy == 0 or dx == 0 else corner
-            src = src_all[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)]
-            out[max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)] += k * src
-            out[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)] -= k * src
-    return out
+def coloured_crosstalk(e, chan, edge, corner, coupling):
+    """test_flats' conserving 3 x 3 crosstalk with a coupling per source colour: a photosite of colour c
+    sends coupling[c] x `edge` (`corner`) of its electrons to each edge (corner) neighbour (linear in the
+    sent charge: e + crosstalk_3x3(s) - s with s = coupling x e)."""
+    sent = e * np.asarray(coupling, float)[chan]
+    return e + crosstalk_3x3(sent, edge, corner) - sent
 
 
 @dataclasses.dataclass
@@ -66,7 +58,7 @@ class Sensor:
         """Mean electrons after the ND filters and the crosstalk for photon flux `flux_e` (H, W) electrons."""
         chan = channels(self.cfa, *self.mask.shape)
         e = flux_e * np.asarray(self.sens, float)[chan] / np.where(self.mask, ND, 1.0)
-        return crosstalk_3x3(e, chan, self.edge, self.corner, self.coupling)
+        return coloured_crosstalk(e, chan, self.edge, self.corner, self.coupling)
 
     def frame(self, flux_e, rng=None):
         e = self.electrons(flux_e)

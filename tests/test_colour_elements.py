@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_camera import IP, RECIPE, fake_camera  # noqa: F401  (the Aravis fake camera fixture)
 
 pytestmark = pytest.mark.gst
 
@@ -443,3 +444,37 @@ def test_warmup_compiles_the_colour_path():
     chain.warmup(sets, stages=("validity", "crosstalk", "reconstruction"), elements=True, cfa="rggb")
     with pytest.raises(ValueError, match="cfa"):
         chain.warmup(sets[0], cfa="rgb")
+
+
+# ---- a GenICam camera's 8-bit Bayer (the Aravis fake camera) ---------------------------------------------
+
+
+def test_fake_camera_bayer8_becomes_colour_frames(fake_camera, gst, tmp_path):
+    """aravissrc's video/x-bayer (BayerRG8 on the camera) through nrvalidity with an 8-bit rggb profile: one
+    colour frame per camera frame, timestamps rising."""
+    path, _ = save_profile(tmp_path, "cam8", cfa="rggb", bit_depth=8, clip_code=250, l_min=4.0)
+    pl = gst.parse_launch(f"aravissrc camera-name={IP} num-buffers=3 ! {bayer_caps('rggb')} ! nrvalidity "
+                          f"profile={path} ! nrcrosstalk ! nrreconstruct method=preview ! appsink name=sink "
+                          f"sync=false")
+    sink = pl.get_by_name("sink")
+    got = []
+    try:
+        pl.set_state(gst.State.PLAYING)
+        while (smp := sink.try_pull_sample(30 * gst.SECOND)) is not None:
+            b = smp.get_buffer()
+            got.append((smp.get_caps().to_string(), b.pts, b.get_size()))
+        m = pl.get_bus().pop_filtered(gst.MessageType.ERROR)
+        assert m is None, m.parse_error()[0].message
+    finally:
+        pl.set_state(gst.State.NULL)
+    assert len(got) == 3
+    assert all("rgb-f32-u8-planar" in c and "cfa=(string)rggb" in c and n == 13 * W * H for c, _p, n in got)
+    assert [p for _c, p, _n in got] == sorted(p for _c, p, _n in got)
+
+
+def test_camera_recipe_bayer_needs_a_colour_profile(gst_subprocess_env, tmp_path):
+    path, _ = save_profile(tmp_path, "mono8", bit_depth=8, clip_code=250, l_min=4.0)
+    p = subprocess.run(["bash", str(RECIPE), "preview"], env=dict(gst_subprocess_env, PROFILE=str(path),
+                                                                     FORMAT="BAYER", CAMERA=IP),
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "FORMAT=BAYER needs a colour profile" in p.stderr

@@ -42,6 +42,9 @@ def cmd_calibrate(a) -> int:
               + (f", nominal {s['nd_nominal']} ({s['nd_vs_nominal_pct']:+.1f} %)" if s.get("nd_nominal") else ""))
         if "mask_detection" in s:
             _print_detection(s["mask_detection"])
+        if "colour" in s:
+            print("  crosstalk per colour (factor per CFA class <- neighbour colour): "
+                  + ", ".join(f"{k} {v:.3f}" for k, v in s["colour"]["factor"].items()))
         print(f"  black {s['black_level']:.1f}, clip code {s['clip_code']}, gain {s['gain_dn_per_e']:.4f} DN/e-, "
               f"read noise {s['read_noise_e']:.2f} e-, full well {s['full_well_e']:.0f} e-")
         print(f"  effective ND (Eq. 8): median {s['nd_eff_median']}, 5-95 % {s['nd_eff_p5']} .. {s['nd_eff_p95']}")
@@ -68,6 +71,8 @@ def cmd_simulate_flats(a) -> int:
     try:
         if a.profile:
             prof = profiles.load(a.profile, allow_outside=a.allow_outside_paths)
+            if a.cfa != "none" and a.cfa != prof.cfa:
+                raise ValueError(f"--cfa {a.cfa} disagrees with the profile's cfa {prof.cfa!r}")
         else:
             prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd,
                                     **({} if a.cfa == "none" else {"cfa": a.cfa}))
@@ -84,8 +89,10 @@ def cmd_simulate_flats(a) -> int:
         print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
         return 2
     print(f"wrote {len(exp) * a.frames} flat frames ({len(exp)} exposures x {a.frames}) to {a.output}/ "
-          f"with exposures.csv, mask.png and truth.json (ND {truth['nd']}, sensor model {a.sensor_model})")
-    print(f"calibrate: nrhdr calibrate {a.output} --mask {Path(a.output) / 'mask.png'} -o camera.json")
+          f"with exposures.csv, mask.png and truth.json (ND {truth['nd']}, sensor model {a.sensor_model}"
+          + (f", cfa {truth['cfa']}, light {truth['light']}" if "cfa" in truth else "") + ")")
+    print(f"calibrate: nrhdr calibrate {a.output} --mask {Path(a.output) / 'mask.png'}"
+          + (f" --cfa {truth['cfa']}" if "cfa" in truth else "") + " -o camera.json")
     return 0
 
 

@@ -26,10 +26,10 @@ def rgb_numbers(lo: float, hi: float):
 
 def _scene(arg: str | None, colour: bool = False):
     """Load the scene named on the command line (linear RGB (3, H, W) for a colour sensor, else its
-    luminance), or synthesise the default one (grey)."""
-    from nrhdr_core import io, scene
+    luminance), or synthesise the default one (in colour for a colour sensor: simulate.synthetic_rgb_scene)."""
+    from nrhdr_core import io, scene, simulate
     if arg in (None, "", "synthetic"):
-        return scene.synthetic_hdr_scene(), "synthetic"
+        return (simulate.synthetic_rgb_scene() if colour else scene.synthetic_hdr_scene()), "synthetic"
     if colour:
         return io.read_rgb(arg, nonfinite="error"), Path(arg).name
     return io.read_luminance(arg, nonfinite="error"), Path(arg).name
@@ -119,13 +119,19 @@ def cmd_simulate(a) -> int:
     print(f"wrote {info['frames']} frames {info['width']}x{info['height']} GRAY16_LE{mosaic} to "
           f"{out / 'clip.raw'}")
     print(f"profile {out / 'camera.json'}, ground truth {out / 'truth'}/")
-    print(f"run it: pipelines/raw_to_display.sh {shlex.quote(str(out))}   or\n  {launch_line(info, out)}")
+    clip = shlex.quote(str(out))
+    if colour:
+        print(f"run it: pipelines/colour_to_exr.sh {clip} (linear camera-RGB OpenEXR frames), "
+              f"pipelines/raw_to_display.sh {clip} (on the screen)   or\n  {launch_line(info, out)}")
+    else:
+        print(f"run it: pipelines/raw_to_display.sh {clip}   or\n  {launch_line(info, out)}")
     return 0
 
 
 def launch_line(clip: dict, out: Path, sink: str = "autovideosink") -> str:
     """The `nrhdr launch` command that plays clip folder `out`, quoted for a POSIX shell: it pastes into
-    bash as printed (`plane-strides=<N>` and paths with spaces stay one argument each)."""
+    bash as printed (`plane-strides=<N>` and paths with spaces stay one argument each). The same line plays a
+    colour clip: nrvalidity takes the CFA from the profile, nrreconstruct demosaics, nrtonemap gives RGB."""
     words = ["nrhdr", "launch", "filesrc", f"location={out / 'clip.raw'}", "!", *rawvideoparse(clip).split(),
              "!", "nrvalidity", f"profile={out / 'camera.json'}", "!", "nrreconstruct", "!", "nrtonemap", "!",
              "videoconvert", "!", sink]
@@ -181,8 +187,26 @@ class _DemoFailed(Exception):
     pass
 
 
+def _check_demo(a) -> None:
+    """ValueError naming the option: a colour demo (--cfa) needs an even size and a colour method."""
+    from nrhdr_core import cfa as cfas
+    if not cfas.is_colour(a.cfa):
+        return
+    for opt, v in (("--width", a.width), ("--height", a.height)):
+        if v % 2:
+            raise ValueError(f"{opt} {v}: a Bayer sensor (--cfa {a.cfa}) has an even width and height (whole "
+                             f"2 x 2 blocks)")
+    if a.method not in COLOUR_METHODS:
+        raise ValueError(f"--method {a.method} works on monochrome clips only; a colour demo (--cfa {a.cfa}) "
+                         f"takes --method {' or '.join(COLOUR_METHODS)}")
+
+
+COLOUR_METHODS = ("fse", "preview")    # nrreconstruct's methods for a mosaic stream that the demo offers
+
+
 def cmd_demo(a) -> int:
     from nrhdr_core import io, outputs
+    _check_demo(a)
     final = Path(a.output).resolve()
     try:   # locked, written aside and renamed in; a stop or failure leaves nothing
         with outputs.staged_folder(final, force=a.force, owned=io.owned_by_patterns(*DEMO_OUTPUTS)) as tmp:
@@ -200,15 +224,22 @@ def cmd_demo(a) -> int:
 def _run_demo(a, out: Path):
     """The demo in folder `out` (a staging folder); returns (rc, summary lines)."""
     import numpy as np
+    from nrhdr_core import cfa as cfas
     from nrhdr_core import io, metrics, scene, simulate
     from .. import runtime
     for sub in ("exr", "png"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    print(f"nrhdr demo: simulating {a.frames} frames {a.width}x{a.height} of the synthesised HDR scene")
+    colour = cfas.is_colour(a.cfa)
+    what = f"in colour (Bayer {a.cfa})" if colour else "(monochrome)"
+    print(f"nrhdr demo: simulating {a.frames} frames {a.width}x{a.height} of the synthesised HDR scene {what}")
     from nrhdr_core import profile
-    prof = profile.default(a.height, a.width, seed=1)
-    clip = simulate.simulate_clip(scene.synthetic_hdr_scene(), out / "clip", prof, frames=a.frames,
-                                  fps=30, seed=1)
+    if colour:
+        prof = profile.default(a.height, a.width, seed=1, cfa=a.cfa)
+        sc = simulate.synthetic_rgb_scene()
+    else:
+        prof = profile.default(a.height, a.width, seed=1)
+        sc = scene.synthetic_hdr_scene()
+    clip = simulate.simulate_clip(sc, out / "clip", prof, frames=a.frames, fps=30, seed=1)
     clip = simulate.load_clip(out / "clip")
     desc = demo_pipeline(clip, out, a.method, a.preset)
     # the staging folder `out` is gone when the demo ends: its paths are printed only at the end, in `lines`
@@ -237,12 +268,14 @@ def _run_demo(a, out: Path):
         lp.append(metrics.log_psnr(np.minimum(truth, prof.white), v))
     miss = 100.0 * float(np.mean(stats)) if stats else float("nan")
     shell = " ".join(w if w == "!" else shlex.quote(w) for w in desc.split())   # pastes into bash as printed
+    kinds = ("RGB PNG, white balance from the profile", "channels R, G, B (camera RGB) + state") if colour else \
+        ("PNG", "channels Y + state")
     lines = [f"pipeline: nrhdr launch {shell}",
-             f"tone-mapped frames: {out / 'png'}/ ({len(pngs)} PNG)",
-             f"linear HDR frames:  {out / 'exr'}/ ({len(exrs)} OpenEXR, channels Y + state)",
+             f"tone-mapped frames: {out / 'png'}/ ({len(pngs)} {kinds[0]})",
+             f"linear HDR frames:  {out / 'exr'}/ ({len(exrs)} OpenEXR, {kinds[1]})",
              f"summary: {len(pngs)} frames in {dt:.1f} s = {len(pngs) / dt:.1f} frames/s (JIT warm-up "
              f"included), {miss:.1f} % of pixels reconstructed, log-domain PSNR vs ground truth "
-             f"{np.mean(lp):.1f} dB"]
+             f"{np.mean(lp):.1f} dB{' (camera RGB, all three channels)' if colour else ''}"]
     if not (len(pngs) == a.frames == len(exrs)):
         print(f"nrhdr demo: expected {a.frames} frames, the chain wrote {len(pngs)} PNG and {len(exrs)} EXR",
               file=sys.stderr)
@@ -350,8 +383,13 @@ def add_profile(sub) -> None:
 
 
 def add_demo(sub) -> None:
+    from nrhdr_core.cfa import CFAS
     p = sub.add_parser("demo", help="simulate a clip of a synthesised scene and run the whole chain")
     p.add_argument("-o", "--output", default="demo_out")
+    p.add_argument("--cfa", choices=CFAS, default="none",
+                   help="none: the monochrome camera (default); a Bayer phase: a colour camera (ND layout "
+                        "balanced) filming the synthesised scene in colour, through the colour chain (RGB PNG, "
+                        "RGB OpenEXR; --method fse or preview)")
     p.add_argument("--frames", type=number(1, 10 ** 6, integer=True), default=60)
     p.add_argument("--width", type=number(2, 65536, integer=True), default=640)
     p.add_argument("--height", type=number(2, 65536, integer=True), default=480)

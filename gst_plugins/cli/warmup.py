@@ -2,8 +2,10 @@
 sources, `nrhdr_core/__pycache__`), so that no pipeline compiles on its first frames. Every stage line is one
 call of `nrhdr_core.chain.warmup`, the one warm-up entry point, with every setting the element offers and the
 array types of its mapped buffers (`elements=True`); no element runs here, so none reports a compilation.
-Run by scripts/setup.sh after install; elements that still compile report it (Gst INFO log + bus INFO
-message)."""
+With `--cfa` (a Bayer phase) the colour chain's kernels too: the stages on a mosaic of that phase
+(`chain.warmup(cfa=)`: demosaic.reconstruct_cfa) and nrtonemap's colour outputs (`tonemap.warmup_rgb`,
+`hdr_output.warmup_rgb`). Run by scripts/setup.sh after install; elements that still compile report it (Gst
+INFO log + bus INFO message)."""
 from __future__ import annotations
 
 import itertools
@@ -11,8 +13,10 @@ import sys
 import time
 
 
-def _stages():
-    """(element, what, callable) for every stage of the chain, in pipeline order."""
+def _stages(cfa: str = "none"):
+    """(element, what, callable) for every stage of the chain, in pipeline order; with a Bayer `cfa` the
+    colour chain's stages follow."""
+    from nrhdr_core import cfa as cfas
     from nrhdr_core import chain
     S = chain.ChainSettings
 
@@ -25,7 +29,7 @@ def _stages():
                 for m, p, b, f, d in itertools.product(methods, presets, (True, False), chain.NOISE_FUSIONS,
                                                        chain.DARK_POLICIES)]
 
-    return [
+    stages = [
         ("nrvalidity", "every mode and dark policy",
          warm(("validity",), [S(mode=m, dark_policy=d) for m, d in itertools.product(chain.VALIDITY_MODES,
                                                                                       chain.DARK_POLICIES)])),
@@ -39,14 +43,42 @@ def _stages():
         ("nrtonemap", "HDR output " + ", ".join(t for t in chain.TRANSFERS if t != "log"),
          warm(("tonemap",), S(), transfers=tuple(t for t in chain.TRANSFERS if t != "log"))),
     ]
+    if cfas.is_colour(cfa):
+        stages += _colour_stages(cfa, warm, recon)
+    return stages
 
 
-def run_warmup(out=None) -> tuple[int, float]:
-    """Compile (or load from cache) every kernel; prints a line per stage to `out` (default: stdout);
-    returns (compiled, seconds)."""
+def _colour_stages(cfa: str, warm, recon):
+    """The colour chain's stages (a Bayer mosaic of phase `cfa` in, camera RGB out): `warm` and `recon` as
+    in `_stages`."""
+    import functools
+
+    from nrhdr_core import chain, hdr_output, tonemap
+    S = chain.ChainSettings
+    mosaic = f"Bayer {cfa}"
+    return [
+        ("nrvalidity", f"{mosaic}, every mode and dark policy",
+         warm(("validity",), [S(mode=m, dark_policy=d) for m, d in itertools.product(chain.VALIDITY_MODES,
+                                                                                      chain.DARK_POLICIES)],
+              cfa=cfa)),
+        ("nrcrosstalk", f"{mosaic}, every mode and LUT form",
+         warm(("crosstalk",), [S(crosstalk=x, crosstalk_lut=lut) for x, lut in itertools.product(
+             chain.CROSSTALK_MODES, chain.LUT_FORMS)], cfa=cfa)),
+        ("nrreconstruct", f"{mosaic}, " + ", ".join(chain.COLOUR_METHODS) + ", every preset",
+         warm(("reconstruction",), recon(chain.COLOUR_METHODS, chain.PRESETS), cfa=cfa)),
+        ("nrtonemap", "RGB tone map, " + ", ".join(tonemap.SDR_OPERATORS),
+         functools.partial(tonemap.warmup_rgb, elements=True)),
+        ("nrtonemap", "RGB HDR output " + ", ".join(hdr_output.TRANSFERS),
+         functools.partial(hdr_output.warmup_rgb, elements=True)),
+    ]
+
+
+def run_warmup(out=None, cfa: str = "none") -> tuple[int, float]:
+    """Compile (or load from cache) every kernel, the colour chain's too for a Bayer `cfa`; prints a line per
+    stage to `out` (default: stdout); returns (compiled, seconds)."""
     from nrhdr_core.realtime import JitWatch
     out = sys.stdout if out is None else out
-    stages = _stages()
+    stages = _stages(cfa)
     total_n, t_all = 0, time.perf_counter()
     for i, (element, what, fn) in enumerate(stages, 1):
         snap = JitWatch.snapshot()
@@ -61,7 +93,7 @@ def run_warmup(out=None) -> tuple[int, float]:
 
 
 def cmd_warmup(a) -> int:
-    n, sec = run_warmup()
+    n, sec = run_warmup(cfa=a.cfa)
     from nrhdr_core import realtime
     t0 = time.perf_counter()
     realtime.load_scene("synthetic", 1080)          # the 1080p camera stand-in's scene, into its file cache
@@ -76,6 +108,10 @@ def cmd_warmup(a) -> int:
 def add_warmup(sub) -> None:
     p = sub.add_parser("warmup", help="compile the numba kernels of the chain once (numba cache), so "
                                       "pipelines start at full speed")
+    from nrhdr_core.cfa import CFAS
     p.add_argument("--check", action="store_true",
                    help="exit 1 if any kernel had to be compiled (i.e. the cache was cold)")
+    p.add_argument("--cfa", choices=CFAS, default="none",
+                   help="also the colour chain's kernels, on a Bayer mosaic of this phase (docs/COLOUR.md); "
+                        "default none: the monochrome chain's only")
     p.set_defaults(func=cmd_warmup)
