@@ -73,6 +73,13 @@ def test_lab_of_known_colours():
     np.testing.assert_array_equal(metrics.srgb_to_lab(np.moveaxis(codes, 2, 0), axis=0), metrics.srgb_to_lab(codes))
     np.testing.assert_allclose(metrics.srgb_to_lab(codes / 255.0), metrics.srgb_to_lab(codes), atol=1e-12)
     assert metrics.luminance(np.array([1.0, 1.0, 1.0])) == pytest.approx(1.0)
+    # mean CIEDE2000 of display images: white against black is 100 (L* 100 vs 0, S_L = 1 at mean L* 50)
+    white, black = np.full((2, 3, 3), 255, np.uint8), np.zeros((2, 3, 3), np.uint8)
+    assert metrics.mean_ciede2000_srgb(white, black) == pytest.approx(100.0)
+    assert metrics.mean_ciede2000_srgb(white, white) == 0.0
+    half = white.copy()
+    half[0] = 0
+    assert metrics.mean_ciede2000_srgb(white, half, mask=np.array([False, True])) == 0.0
     with pytest.raises(ValueError, match="3 channels"):
         metrics.linear_rgb_to_lab(np.zeros((4, 2, 2)))
     with pytest.raises(ValueError, match="white"):
