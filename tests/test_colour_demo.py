@@ -166,11 +166,15 @@ def test_simulate_colour_prints_recipes_that_run(tmp_path, capsys, gst_subproces
     p = subprocess.run(["bash", "-c", script], cwd=ROOT, env=gst_subprocess_env, capture_output=True,
                        text=True, timeout=300)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
-    # the colour recipe as printed: camera-RGB EXR frames beside the clip
-    cmd = recipe.split("run it: ", 1)[1].split(" (", 1)[0]
-    p = subprocess.run(["bash", "-c", cmd], cwd=ROOT, env=gst_subprocess_env, capture_output=True, text=True,
-                       timeout=300)
-    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    # the recipes as printed: camera-RGB EXR frames beside the clip; the display script (no display here:
+    # it says so and plays into fakesink)
+    exr_cmd, rest = recipe.split("run it: ", 1)[1].split(" (", 1)
+    display_cmd = rest.split("), ", 1)[1].split(" (", 1)[0]
+    assert display_cmd == f"pipelines/raw_to_display.sh {shlex.quote(str(out))}"
+    for cmd in (exr_cmd, display_cmd):
+        p = subprocess.run(["bash", "-c", cmd], cwd=ROOT, env=gst_subprocess_env, capture_output=True, text=True,
+                           timeout=300)
+        assert p.returncode == 0, cmd + "\n" + p.stdout[-2000:] + p.stderr[-2000:]
     exrs = sorted(Path(f"{out}_exr").glob("frame_*.exr"))
     assert len(exrs) == 2
     values, state = io.read_exr(exrs[1])
