@@ -271,13 +271,12 @@ def _core(v32, state, blk, kg, cnt, method, preset, use_bounds, noise, fusion, o
     _pull_push_levels(pv[0], pw[0], hs, ws, off)
     top = int(off[hs.shape[0] - 1])
     c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
-    if method == "preview":
-        gsrc = np.zeros((1, 1), np.float32)
-    else:
-        gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
-    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
-    # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
+    gsrc = np.zeros((1, 1), np.float32)
     fst = sc["fst"]
+    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
+    if method != "preview":
+        gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
+    # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
     _green(v32, state, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1], pw[1],
            pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
     rng = _ranges(fst, cnt)
@@ -530,25 +529,32 @@ def _mark(state):
 
 
 def _fse_green(v32, state, blk, kg, preset, use_bounds):
-    """The green plane by FSE (`reconstruction.reconstruct`) from the green sources `kg`, with the missing
-    green photosites' bounds."""
-    from .reconstruction import reconstruct
+    """The green plane by FSE (`fse.fse_reconstruct`) from the green sources `kg`, with the missing green
+    photosites' bounds, clamped to [min(known min, 0), max(known max, largest lower bound)]."""
+    from .fse import fse_reconstruct
     h, w = v32.shape
     if not kg.any():
         return np.zeros((h, w), np.float32)
+    own = np.zeros((h, w), bool)
+    for py in range(2):
+        for px in range(2):
+            own[py::2, px::2] = blk[py, px] == _cfa.G
     lower = upper = None
+    miss = ~kg & ((state & RECONSTRUCTED) == 0) & own
     if use_bounds:
-        own = np.zeros((h, w), bool)
-        for py in range(2):
-            for px in range(2):
-                own[py::2, px::2] = blk[py, px] == _cfa.G
         reason = state & REASON_MASK
-        miss = ~kg & ((state & RECONSTRUCTED) == 0) & own
         lower = np.where(miss & (reason == CLIPPED), v32, np.nan).astype(np.float32)
         upper = np.where(miss & (reason == DARK), v32, np.nan).astype(np.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return reconstruct(v32, kg, method="fse", preset=preset, lower=lower, upper=upper)
+        res = fse_reconstruct(v32, kg, lower, upper, preset)
+    kv = v32[kg]
+    top = float(kv.max())
+    if lower is not None and not np.isnan(lower).all():
+        top = max(top, float(np.nanmax(lower)))
+    np.nan_to_num(res, copy=False, nan=0.0, posinf=top, neginf=0.0)
+    np.clip(res, min(float(kv.min()), 0.0), top, out=res)
+    return res
 
 
 def _fse_lattice(lat, known, preset):
