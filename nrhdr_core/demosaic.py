@@ -591,7 +591,8 @@ def _fuse(out, v32, blk, noisy, noise, fusion):
 
 
 def warmup() -> None:
-    """Compile (or load from numba's cache) the kernels of both methods, on a tiny synthetic mosaic."""
+    """Compile (or load from numba's cache) the kernels of both methods, on a tiny synthetic mosaic (writeable
+    and read-only values, NOISY photosites fused, clipped and dark ones bounded)."""
     from .validity import default_noise
     rng = np.random.default_rng(0)
     h, w = 16, 20
@@ -599,5 +600,8 @@ def warmup() -> None:
     st = np.where(rng.random((h, w)) < 0.3, np.uint8(NOISY), np.uint8(VALID)).astype(np.uint8)
     st[0, :3] = CLIPPED
     st[1, :3] = DARK | ATTENUATED
+    ro = vals.copy()
+    ro.flags.writeable = False          # mapped input buffers are read-only: numba compiles them apart
     for method in METHODS:
-        reconstruct_cfa(vals, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
+        for v in (vals, ro):
+            reconstruct_cfa(v, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
