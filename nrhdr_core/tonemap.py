@@ -662,7 +662,7 @@ def _hdr_signal(v, transfer):
 def _rolled_off(v, transfer, src_pq, ks, max_lum):
     """PQ signal of the display light of v (transfer 0: v = cd/m^2 / L_p; 1: v = HLG's E, light of the
     1000 cd/m^2 reference display E^1.2) after the BT.2390 EETF (PQ of the source peak src_pq, knee ks,
-    target maxLum); NaN and negatives are black."""
+    target maxLum), and whether the EETF changed it (False below the knee); NaN and negatives are black."""
     if not (v > 0.0):
         v = 0.0
     if transfer == 1:
@@ -671,15 +671,16 @@ def _rolled_off(v, transfer, src_pq, ks, max_lum):
         v = 1.0
     ym = v ** M_1
     e1 = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2 / src_pq
+    rolled = e1 > ks
     if e1 >= 1.0:
         e1 = max_lum
-    elif e1 > ks:
+    elif rolled:
         t = (e1 - ks) / (1.0 - ks)
         t2 = t * t
         t3 = t2 * t
         e1 = ((2.0 * t3 - 3.0 * t2 + 1.0) * ks + (t3 - 2.0 * t2 + t) * (1.0 - ks)
               + (-2.0 * t3 + 3.0 * t2) * max_lum)
-    return e1 * src_pq
+    return e1 * src_pq, rolled
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -711,7 +712,7 @@ def _hdr_kernel(values, scale, transfer, src_pq, ks, max_lum, code_max, out):
         for x in range(w):
             v = values[y, x] * scale
             if src_pq > 0.0:
-                e = _rolled_off(v, transfer, src_pq, ks, max_lum)
+                e, _ = _rolled_off(v, transfer, src_pq, ks, max_lum)
                 if transfer == 1:
                     v = _hlg_from_pq(e)
                     if v <= 1.0 / 12.0:
@@ -1063,12 +1064,14 @@ def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_ma
                 m = max(v0, max(v1, v2))
                 if not (m > 0.0):
                     m = 0.0
-                e = _rolled_off(m, transfer, src_pq, ks, max_lum)
+                e, rolled = _rolled_off(m, transfer, src_pq, ks, max_lum)
                 if transfer == 1:
                     lm = _hlg_from_pq(e)
                     e = _hdr_signal(lm, 1)
-                else:
+                elif rolled:
                     lm = _pq_light(e)                                # the rolled-off light / L_p
+                else:
+                    lm = m                                           # below the knee: unchanged
                 k = lm / m if m > 0.0 else 0.0
                 e0 = e if v0 >= m else _hdr_signal(v0 * k, transfer)
                 ea = e if v1 >= m else _hdr_signal(v1 * k, transfer)
