@@ -369,18 +369,18 @@ def test_nrtonemap_white_balance_from_profile_and_grey_world(gst, tmp_path):
     assert (img[..., 0] >= img[..., 1]).all() and (img[..., 0] > img[..., 1]).any()
 
 
-@pytest.mark.parametrize("fmt", ["I420_10LE", "Y444_10LE"])
-def test_nrtonemap_colour_pq_equals_core(gst, fmt):
+@pytest.mark.parametrize("fmt,transfer", [("I420_10LE", "pq"), ("Y444_10LE", "pq"), ("I420_10LE", "hlg")])
+def test_nrtonemap_colour_hdr_equals_core(gst, fmt, transfer):
     h, w = 6, 10
     rgb = rgb_scene(h, w)
     state = np.zeros((h, w), np.uint8)
     white, diffuse = 4094 * 6.35, 4094.0
-    out, err = run_frames(f"nrtonemap transfer=pq peak=1000 white-balance=none ! video/x-raw,format={fmt}",
+    out, err = run_frames(f"nrtonemap transfer={transfer} peak=1000 white-balance=none ! video/x-raw,format={fmt}",
                           colour_caps(w, h, white, diffuse), [colour_buffer(rgb, state, 0)])
     assert err is None, err
-    assert "colorimetry=(string)bt2100-pq" in out[0][0]
-    src = tonemap.peak_luminance(white, diffuse)
-    codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000, source_peak=src)
+    assert f"colorimetry=(string)bt2100-{transfer}" in out[0][0]
+    src = tonemap.peak_luminance(white, diffuse, transfer)
+    codes = tonemap.hdr_encode_rgb(rgb, diffuse, transfer, peak=1000, source_peak=src)
     from gi.repository import Gst, GstVideo
     vi = GstVideo.VideoInfo.new_from_caps(Gst.Caps.from_string(out[0][0]))
     want = np.zeros(vi.size, np.uint8)
