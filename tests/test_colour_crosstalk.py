@@ -222,7 +222,8 @@ def test_simulated_coloured_flats_follow_the_cfa(tmp_path):
 
 def test_cli_calibrates_per_colour(colour_coupled, tmp_path, capsys):
     """`nrhdr calibrate --cfa rggb --colour-flats ...`: the profile has the CFA and the per-colour amplitudes
-    (the factors of `colour_spill`), the summary the factors; colour flats without --cfa are refused."""
+    (the factors of `colour_spill`), the summary the factors and the bias on each coloured sweep with either
+    calibration; colour flats without --cfa are refused."""
     from gst_plugins import cli
     sensor, _, _, cs, tmp = colour_coupled
     io.write_mask(tmp / "mask.png", sensor.mask)
@@ -232,6 +233,10 @@ def test_cli_calibrates_per_colour(colour_coupled, tmp_path, capsys):
     assert a.func(a) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["colour"]["factor"] == cs.summary()["factor"]
+    check = s["colour"]["check"]                          # the bias on the coloured flats themselves
+    assert set(check) == set(LIGHTS)
+    for r in check.values():
+        assert max(map(abs, r["white"])) > 10 and max(map(abs, r["colour"])) < 0.5 * max(map(abs, r["white"]))
     p = profile.load(tmp_path / "cam.json")
     assert p.cfa == "rggb" and p.crosstalk.colour.shape == (3,) + sensor.mask.shape
     a = cli.build_parser().parse_args(args[:5] + [str(tmp_path / "c2.json")] + args[6:])
