@@ -1181,6 +1181,40 @@ def colour_spill(prof, sweeps, where: str = "colour flats") -> ColourSpill:
     return ColourSpill(colour.astype(np.float32), gamma, inliers, fluxes, prof.cfa)
 
 
+def colour_check(prof, cs: ColourSpill, sweeps) -> dict:
+    """Per coloured sweep (named by its folder): the mean relative error (%) per channel R, G, B of the
+    attenuated photosites (interior, unclipped) at the brightest exposure `colour_spill` used, against the
+    channel fluxes it measured there, after `crosstalk.correct` mode `lut` with the white-light calibration
+    (`prof` without colour amplitudes) and with the per-colour amplitudes of `cs`: the bias the per-colour
+    calibration removes on the user's own flats."""
+    from . import cfa as cfas
+    H, W = prof.mask.shape
+    chan = cfas.channel_index(prof.cfa, H, W)
+    mask = np.asarray(prof.mask, bool)
+    white = dataclasses.replace(prof, crosstalk=dataclasses.replace(prof.crosstalk, colour=None))
+    colour = dataclasses.replace(prof, crosstalk=dataclasses.replace(prof.crosstalk, colour=cs.colour))
+    inner = np.zeros((H, W), bool)
+    inner[2:-2, 2:-2] = True
+    out = {}
+    for sw, used in zip(sweeps, cs.fluxes):
+        t, F = used[-1]
+        k = int(np.nonzero(sw.exposures == t)[0][0])
+        truth = F[chan]
+        base = ((sw.mean[k] - float(prof.black_level)) * np.where(mask, float(prof.nd), 1.0)).astype(np.float32)
+        sel0 = mask & inner & (sw.maxcode[k] < prof.clip_code) & (truth > 0)
+        res = {}
+        for name, p in (("white", white), ("colour", colour)):
+            v = base.copy()
+            st = np.where(mask, np.uint8(crosstalk.ATTENUATED), np.uint8(0)).astype(np.uint8)
+            crosstalk.correct(v, st, p, "lut")
+            ok = sel0 & ((st & crosstalk.REASON_MASK) == crosstalk.VALID)
+            r = (v - truth) / np.where(truth > 0, truth, 1.0)
+            res[name] = [round(100 * float(np.mean(r[ok & (chan == c)])), 2) if (ok & (chan == c)).any() else None
+                         for c in range(3)]
+        out[Path(sw.folder).name] = res
+    return out
+
+
 def _cfa_class(h, w):
     """(h, w) int: the photosite's place in the 2 x 2 CFA block (0..3, row by row): photosites of one class
     have the same colour and the same colours around them."""
@@ -1508,8 +1542,9 @@ def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, c
     if colour_flats:
         sweeps = [read_flats(f, progress=progress, allow_outside=allow_outside) for f in colour_flats]
         cs = colour_spill(res.profile, sweeps)
+        check = colour_check(res.profile, cs, sweeps)
         res.profile.crosstalk.colour = cs.colour
-        res.summary["colour"] = res.profile.crosstalk.info["colour"] = cs.summary()
+        res.summary["colour"] = res.profile.crosstalk.info["colour"] = dict(cs.summary(), check=check)
     if det is not None:
         res.summary["mask_detection"] = det.summary()
         res.profile.crosstalk.info["mask_detection"] = res.summary["mask_detection"]

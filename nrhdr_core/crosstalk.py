@@ -888,9 +888,11 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par, colour,
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _neighbour_estimate(values, state, lut, ok, dirs, est):
+def _neighbour_estimate(values, state, lut, ok, dirs, est, chan, step):
     """Flux estimate of every pixel as a crosstalk source: LUT flux where known; a clipped pixel is at
-    least its bound and at least as bright as its brightest known neighbour; others their value."""
+    least its bound and at least as bright as its brightest known neighbour; others their value. `step`
+    1: every neighbour; 2 (a Bayer mosaic, `chan` its channel plane): same-colour neighbours only, in the
+    colour plane's 3 x 3 and 5 x 5 (the other colours say nothing of this one's flux)."""
     h, w = values.shape
     for y in prange(h):
         for x in range(w):
@@ -899,20 +901,21 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
             if reason == CLIPPED:
                 # a clipped neighbour's bound (e.g. an attenuated pixel's clipping flux) is a lower bound
                 # for this pixel too: the region is at least that bright
-                for dy in range(-1, 2):
-                    for dx in range(-1, 2):
+                for dy in range(-step, step + 1):
+                    for dx in range(-step, step + 1):
                         yy = y + dy
                         xx = x + dx
                         if 0 <= yy < h and 0 <= xx < w and (state[yy, xx] & REASON_MASK) == CLIPPED \
-                                and lut[yy, xx] > v:
+                                and lut[yy, xx] > v and (step == 1 or chan[yy, xx] == chan[y, x]):
                             v = lut[yy, xx]
                 acc = np.float32(0.0)
                 n = 0
-                for dy in range(-2, 3):
-                    for dx in range(-2, 3):
+                for dy in range(-2 * step, 2 * step + 1):
+                    for dx in range(-2 * step, 2 * step + 1):
                         yy = y + dy
                         xx = x + dx
-                        if 0 <= yy < h and 0 <= xx < w and ok[yy, xx] and lut[yy, xx] > v:
+                        if 0 <= yy < h and 0 <= xx < w and ok[yy, xx] and lut[yy, xx] > v \
+                                and (step == 1 or chan[yy, xx] == chan[y, x]):
                             acc += lut[yy, xx]
                             n += 1
                 if n > 0:
@@ -994,7 +997,7 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     spill_model = Spill(DIRS, calib.sig_e, calib.sigma, calib.alpha)
     par = KernelParams(nd, int(iterations), np.float32(clip_share if clip_share is not None else np.inf))
     for p in range(max(1, int(passes))):
-        _neighbour_estimate(src, state0, lut, ok, DIRS, est)
+        _neighbour_estimate(src, state0, lut, ok, DIRS, est, chan, 2 if coloured else 1)
         _source_spill(est, state0, nd, calib.sig_e, calib.sigma, spill)
         if p > 0:
             state[:] = state0

@@ -26,6 +26,8 @@ from its flat-field sweep alone (docs/CROSSTALK.md section 3, "Without a mask").
 7. confidence: the populations' separation (distance of their centres in corrected log response over the
    pooled robust sigma) and the share of ambiguous pixels (farther than a third of that distance from both
    centres); `confident` needs separation >= `MIN_SEPARATION` and ambiguous <= `MAX_AMBIGUOUS`.
+A Bayer sensor (`cfa`): steps 3-5 within each CFA class (its photosites share one colour and the colours
+around them; the channels respond differently), the ND the median of the classes'.
 """
 from __future__ import annotations
 
@@ -311,16 +313,17 @@ class _Populations:
     mu_reg: float
     s_att: float
     s_reg: float
-    a0: float                      # crosstalk-free regular response (relative to the local regular response)
-    b0: float                      # crosstalk-free attenuated response
+    a0: float                      # crosstalk-free regular response (relative to the local regular response;
+    b0: float                      # crosstalk-free attenuated response          colour: per-pixel maps of the class's)
     corrected: bool
     share: dict
+    classes_nd: float | None = None  # a colour sensor: the median of its CFA classes' ND
 
     @property
     def nd(self) -> float:
-        """The ND factor: ratio of the crosstalk-free responses (a colour sensor: the median of its classes')."""
-        if "_nd" in self.__dict__:
-            return self.__dict__["_nd"]
+        """The ND factor: ratio of the crosstalk-free responses (a colour sensor: `classes_nd`)."""
+        if self.classes_nd is not None:
+            return self.classes_nd
         return float(self.a0 / self.b0) if self.b0 > 0 else float("nan")
 
 
@@ -341,10 +344,8 @@ def _class_populations(L, att, pop, window, prev, classes) -> _Populations:
     mu_reg, s_reg = _centre(lr[pop & ~att])
     nds = [p.a0 / p.b0 for p in parts if p.b0 > 0]
     share = {k: float(np.mean([p.share[k] for p in parts])) for k in parts[0].share}
-    out = _Populations(field, y, la, lr, mu_att, mu_reg, s_att, s_reg, a0, b0, all(p.corrected for p in parts),
-                       share)
-    out.__dict__["_nd"] = float(np.median(nds)) if nds else float("nan")
-    return out
+    return _Populations(field, y, la, lr, mu_att, mu_reg, s_att, s_reg, a0, b0, all(p.corrected for p in parts),
+                        share, float(np.median(nds)) if nds else float("nan"))
 
 
 def _populations(L, att, pop, window, prev=None) -> _Populations:

@@ -662,7 +662,7 @@ def _hdr_signal(v, transfer):
 def _rolled_off(v, transfer, src_pq, ks, max_lum):
     """PQ signal of the display light of v (transfer 0: v = cd/m^2 / L_p; 1: v = HLG's E, light of the
     1000 cd/m^2 reference display E^1.2) after the BT.2390 EETF (PQ of the source peak src_pq, knee ks,
-    target maxLum); NaN and negatives are black."""
+    target maxLum), and whether the EETF changed it (False below the knee); NaN and negatives are black."""
     if not (v > 0.0):
         v = 0.0
     if transfer == 1:
@@ -671,15 +671,16 @@ def _rolled_off(v, transfer, src_pq, ks, max_lum):
         v = 1.0
     ym = v ** M_1
     e1 = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2 / src_pq
+    rolled = e1 > ks
     if e1 >= 1.0:
         e1 = max_lum
-    elif e1 > ks:
+    elif rolled:
         t = (e1 - ks) / (1.0 - ks)
         t2 = t * t
         t3 = t2 * t
         e1 = ((2.0 * t3 - 3.0 * t2 + 1.0) * ks + (t3 - 2.0 * t2 + t) * (1.0 - ks)
               + (-2.0 * t3 + 3.0 * t2) * max_lum)
-    return e1 * src_pq
+    return e1 * src_pq, rolled
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -711,7 +712,7 @@ def _hdr_kernel(values, scale, transfer, src_pq, ks, max_lum, code_max, out):
         for x in range(w):
             v = values[y, x] * scale
             if src_pq > 0.0:
-                e = _rolled_off(v, transfer, src_pq, ks, max_lum)
+                e, _ = _rolled_off(v, transfer, src_pq, ks, max_lum)
                 if transfer == 1:
                     v = _hlg_from_pq(e)
                     if v <= 1.0 / 12.0:
@@ -901,59 +902,64 @@ def _rgb_luminance(rgb, gains, kr, kb, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _srgb_code(t, bins, thr):
-    """8-bit sRGB code of linear t in [0, 1]: the bin's first code, plus one when t reaches the next code's
-    threshold (a bin holds at most one threshold: exact rounding in the encoded domain)."""
-    t = t if t > np.float32(0.0) else np.float32(0.0)
-    t = t if t < np.float32(1.0) else np.float32(1.0)
-    c = bins[int(t * np.float32(bins.shape[0] - 1))]
-    return c + 1 if t >= thr[c] else c
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _ratio(v, g, L, sat, powered):
-    """(c / L)^sat of the white-balanced channel c = min(max(v g, 0), cap); 1 where L is 0. `powered` is a
-    constant of each call site, so the power is not computed at all for sat = 1."""
+def _channel(v, g):
+    """The white-balanced channel min(max(v g, 0), cap) (NaN -> 0)."""
     c = v * g
-    c = min(c if c > np.float32(0.0) else np.float32(0.0), np.float32(_CHANNEL_CAP))
-    r = c / L if L > np.float32(0.0) else np.float32(1.0)
-    if powered:
-        r = r ** sat
-    return r
+    return min(c if c > np.float32(0.0) else np.float32(0.0), np.float32(_CHANNEL_CAP))
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _display_pixel(rgb, y, x, g0, g1, g2, L, yd, sat, powered, bins, thr, out):
-    """One pixel of `_rgb_display`."""
+def _into_gamut(t0, t1, t2, yd, tb, x):
+    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into column x of `tb`, clamped to
+    [0, 1]."""
     one = np.float32(1.0)
-    t0 = _ratio(rgb[0, y, x], g0, L, sat, powered) * yd
-    t1 = _ratio(rgb[1, y, x], g1, L, sat, powered) * yd
-    t2 = _ratio(rgb[2, y, x], g2, L, sat, powered) * yd
+    zero = np.float32(0.0)
     mx = max(t0, max(t1, t2))
-    if mx > one:
-        f = (one - yd) / (mx - yd)
-        t0 = yd + (t0 - yd) * f
-        t1 = yd + (t1 - yd) * f
-        t2 = yd + (t2 - yd) * f
-    out[y, x, 0] = _srgb_code(t0, bins, thr)
-    out[y, x, 1] = _srgb_code(t1, bins, thr)
-    out[y, x, 2] = _srgb_code(t2, bins, thr)
+    f = (one - yd) / (mx - yd) if mx > one else one
+    tb[0, x] = min(max(yd + (t0 - yd) * f, zero), one)
+    tb[1, x] = min(max(yd + (t1 - yd) * f, zero), one)
+    tb[2, x] = min(max(yd + (t2 - yd) * f, zero), one)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _rgb_display(rgb, gains, lum, codes, dec, bins, thr, sat, out):
     """Colour display codes: level Y' = sRGB EOTF of the grey tone map's 16-bit code (`dec`), channel
-    t = (c / L)^sat Y'; above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes (H, W, 3)."""
+    t = (c / L)^sat Y' (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes
+    (H, W, 3): the code at the linear bin's start, plus one from the next code's threshold on (a bin holds
+    at most one threshold: exact rounding in the encoded domain). Rows in chunks through a buffer."""
     h, w = lum.shape
+    nch = min(h, 64)
+    zero = np.float32(0.0)
+    nb = np.float32(bins.shape[0] - 1)
     g0, g1, g2 = np.float32(gains[0]), np.float32(gains[1]), np.float32(gains[2])
-    if sat == np.float32(1.0):
-        for y in prange(h):
+    powered = sat != np.float32(1.0)
+    for c in prange(nch):
+        tb = np.empty((3, w), np.float32)
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            if powered:
+                for x in range(w):
+                    L = lum[y, x]
+                    yd = dec[codes[y, x]]
+                    if L > zero:
+                        _into_gamut((_channel(rgb[0, y, x], g0) / L) ** sat * yd,
+                                    (_channel(rgb[1, y, x], g1) / L) ** sat * yd,
+                                    (_channel(rgb[2, y, x], g2) / L) ** sat * yd, yd, tb, x)
+                    else:
+                        _into_gamut(yd, yd, yd, yd, tb, x)
+            else:
+                for x in range(w):
+                    L = lum[y, x]
+                    yd = dec[codes[y, x]]
+                    lit = L > zero
+                    k = yd / L if lit else zero
+                    _into_gamut(_channel(rgb[0, y, x], g0) * k if lit else yd,
+                                _channel(rgb[1, y, x], g1) * k if lit else yd,
+                                _channel(rgb[2, y, x], g2) * k if lit else yd, yd, tb, x)
             for x in range(w):
-                _display_pixel(rgb, y, x, g0, g1, g2, lum[y, x], dec[codes[y, x]], sat, False, bins, thr, out)
-    else:
-        for y in prange(h):
-            for x in range(w):
-                _display_pixel(rgb, y, x, g0, g1, g2, lum[y, x], dec[codes[y, x]], sat, True, bins, thr, out)
+                for ch in range(3):
+                    tv = tb[ch, x]
+                    code = bins[int(tv * nb)]
+                    out[y, x, ch] = code + 1 if tv >= thr[code] else code
 
 
 def srgb_eotf(v):
@@ -1058,12 +1064,14 @@ def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_ma
                 m = max(v0, max(v1, v2))
                 if not (m > 0.0):
                     m = 0.0
-                e = _rolled_off(m, transfer, src_pq, ks, max_lum)
+                e, rolled = _rolled_off(m, transfer, src_pq, ks, max_lum)
                 if transfer == 1:
                     lm = _hlg_from_pq(e)
                     e = _hdr_signal(lm, 1)
-                else:
+                elif rolled:
                     lm = _pq_light(e)                                # the rolled-off light / L_p
+                else:
+                    lm = m                                           # below the knee: unchanged
                 k = lm / m if m > 0.0 else 0.0
                 e0 = e if v0 >= m else _hdr_signal(v0 * k, transfer)
                 ea = e if v1 >= m else _hdr_signal(v1 * k, transfer)

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import tifffile
 
-from nrhdr_core import calibration, crosstalk, flats, mask as masks, profile, validity
+from nrhdr_core import calibration, crosstalk, flats, io, mask as masks, profile, validity
 from test_flats import crosstalk_3x3
 
 GAIN = 0.5            # DN per electron
@@ -96,18 +97,16 @@ class Sensor:
 LIGHTS = {"red": (1.0, 0.2, 0.1), "green": (0.2, 1.0, 0.2), "blue": (0.1, 0.2, 1.0)}
 
 
-def calibrated(tmp: Path, sensor: Sensor, colour=True):
+def calibrated(tmp: Path, sensor: Sensor):
     """(white-light profile, per-colour profile) of `sensor` calibrated from the generator's sweeps."""
     sw = calibration.read_flats(sensor.sweep(tmp / "white", seed=1), progress=False)
     res = calibration.calibrate(sw, sensor.mask, progress=False, cfa=sensor.cfa)
     white = res.profile
-    if not colour:
-        return white, None
     sweeps = [calibration.read_flats(sensor.sweep(tmp / k, light=v, seed=2 + i), progress=False)
               for i, (k, v) in enumerate(LIGHTS.items())]
     cs = calibration.colour_spill(white, sweeps)
     col = dataclasses.replace(white, crosstalk=dataclasses.replace(white.crosstalk, colour=cs.colour))
-    return white, col, cs
+    return white, col, cs, tmp
 
 
 def flat_error(prof, sensor, light, level, mode):
@@ -143,7 +142,7 @@ def colour_coupled(tmp_path_factory):
 @pytest.mark.parametrize("light", ["red", "blue"])
 def test_white_light_lut_is_biased_under_coloured_light_and_the_colour_calibration_removes_it(colour_blind,
                                                                                            light):
-    sensor, white, col, _ = colour_blind
+    sensor, white, col, _, _ = colour_blind
     L = LIGHTS[light]
     for level in (1200.0, 3000.0, 6000.0):
         e_white = flat_error(white, sensor, L, level, "lut")
@@ -161,7 +160,7 @@ def test_white_light_lut_is_biased_under_coloured_light_and_the_colour_calibrati
 def test_colour_dependent_coupling_needs_the_colour_calibration_in_kernel_mode(colour_coupled):
     """kernel mode uses the neighbours' values, but with the white calibration's coupling (an average over
     the source colours) it is biased where red neighbours spill more; the per-colour factors fix most of it."""
-    sensor, white, col, cs = colour_coupled
+    sensor, white, col, cs, _ = colour_coupled
     e_white = flat_error(white, sensor, LIGHTS["red"], 1200.0, "kernel")
     e_col = flat_error(col, sensor, LIGHTS["red"], 1200.0, "kernel")
     assert e_white[1] > 5, e_white                      # green photosites next to red ones
@@ -171,7 +170,7 @@ def test_colour_dependent_coupling_needs_the_colour_calibration_in_kernel_mode(c
 
 
 def test_colour_calibration_round_trips_and_monochrome_is_unchanged(colour_blind, tmp_path):
-    sensor, white, col, _ = colour_blind
+    sensor, white, col, _, _ = colour_blind
     path = tmp_path / "cam.json"
     profile.save(col, path)
     back = profile.load(path)
@@ -219,3 +218,27 @@ def test_simulated_coloured_flats_follow_the_cfa(tmp_path):
     with pytest.raises(ValueError, match="colour profile"):
         calibration.simulate_flats(tmp_path / "h", profile.default(8, 8), None, exposures=[0.0, 0.01],
                                    light=(1, 0.5, 0.5), progress=False)
+
+
+def test_cli_calibrates_per_colour(colour_coupled, tmp_path, capsys):
+    """`nrhdr calibrate --cfa rggb --colour-flats ...`: the profile has the CFA and the per-colour amplitudes
+    (the factors of `colour_spill`), the summary the factors and the bias on each coloured sweep with either
+    calibration; colour flats without --cfa are refused."""
+    from gst_plugins import cli
+    sensor, _, _, cs, tmp = colour_coupled
+    io.write_mask(tmp / "mask.png", sensor.mask)
+    args = ["calibrate", str(tmp / "white"), "--mask", str(tmp / "mask.png"), "-o", str(tmp_path / "cam.json"),
+            "--json", "-q", "--no-plots", "--colour-flats"] + [str(tmp / k) for k in LIGHTS]
+    a = cli.build_parser().parse_args(args + ["--cfa", "rggb"])
+    assert a.func(a) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["colour"]["factor"] == cs.summary()["factor"]
+    check = s["colour"]["check"]                          # the bias on the coloured flats themselves
+    assert set(check) == set(LIGHTS)
+    for r in check.values():
+        assert max(map(abs, r["white"])) > 10 and max(map(abs, r["colour"])) < 0.5 * max(map(abs, r["white"]))
+    p = profile.load(tmp_path / "cam.json")
+    assert p.cfa == "rggb" and p.crosstalk.colour.shape == (3,) + sensor.mask.shape
+    a = cli.build_parser().parse_args(args[:5] + [str(tmp_path / "c2.json")] + args[6:])
+    assert a.func(a) == 2
+    assert "--cfa" in capsys.readouterr().err

@@ -80,9 +80,10 @@ def make_buffers(frames, flags=None):
     return out
 
 
-def run(desc, caps, buffers, timeout=120.0):
+def run(desc, caps, buffers, timeout=900.0):
     """appsrc (caps) ! desc ! appsink: [(caps string, pts, duration, flags, bytes)], (element, error text) or None,
-    element messages."""
+    element messages. `timeout` covers a cold numba cache (nrreconstruct compiles the demosaic kernels when it
+    first sees mosaic caps)."""
     from gi.repository import Gst, GstApp  # noqa: F401
     p = Gst.parse_launch(f"appsrc name=src format=time ! {desc} ! appsink name=sink sync=false")
     src, sink = p.get_by_name("src"), p.get_by_name("sink")
@@ -261,7 +262,7 @@ def test_videotestsrc_bayer_runs(gst, colour8):
                          f"profile={path} ! nrreconstruct method=preview ! fakesink name=sink")
     try:
         p.set_state(Gst.State.PLAYING)
-        m = p.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
+        m = p.get_bus().timed_pop_filtered(900 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
         assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
         caps = p.get_by_name("sink").sinkpads[0].get_current_caps().to_string()
         assert "rgb-f32-u8-planar" in caps and "cfa=(string)rggb" in caps
@@ -393,7 +394,7 @@ def test_colour_recipe(gst, gst_subprocess_env, colour12, tmp_path):
     frames = []
     try:
         pl.set_state(Gst.State.PLAYING)
-        while (smp := sink.try_pull_sample(120 * Gst.SECOND)) is not None:
+        while (smp := sink.try_pull_sample(900 * Gst.SECOND)) is not None:
             b = smp.get_buffer()
             ok, mi = b.map(Gst.MapFlags.READ)
             frames.append(bytes(mi.data))
@@ -409,7 +410,7 @@ def test_colour_recipe(gst, gst_subprocess_env, colour12, tmp_path):
     if "rgb-f32-u8-planar" not in sink_tmpl:
         pytest.skip("nrexrsink does not take colour frames in this tree")
     p = subprocess.run(["bash", str(PIPELINES / "colour_to_exr.sh"), str(clip), str(tmp_path / "exr")],
-                       env=gst_subprocess_env, capture_output=True, text=True, timeout=300)
+                       env=gst_subprocess_env, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr
     from nrhdr_core import io
     files = sorted((tmp_path / "exr").glob("frame_*.exr"))
@@ -460,7 +461,7 @@ def test_fake_camera_bayer8_becomes_colour_frames(fake_camera, gst, tmp_path):
     got = []
     try:
         pl.set_state(gst.State.PLAYING)
-        while (smp := sink.try_pull_sample(30 * gst.SECOND)) is not None:
+        while (smp := sink.try_pull_sample(600 * gst.SECOND)) is not None:
             b = smp.get_buffer()
             got.append((smp.get_caps().to_string(), b.pts, b.get_size()))
         m = pl.get_bus().pop_filtered(gst.MessageType.ERROR)

@@ -297,3 +297,28 @@ def test_kodak_fse_beats_preview_beats_bilinear(missing):
     pre = _psnr(demosaic.reconstruct_cfa(m, st.copy(), "rggb", method="preview"), rgb)
     acc = _psnr(demosaic.reconstruct_cfa(m, st.copy(), "rggb", method="fse", preset="fast"), rgb)
     assert acc > pre + 0.3 and pre > bil + 0.5, (bil, pre, acc)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_same_result_for_any_thread_count_and_input_untouched(method):
+    from numba import get_num_threads, set_num_threads
+    h, w = 70, 90
+    rng = np.random.default_rng(11)
+    rgb = rng.uniform(10, 4000, (3, h, w)).astype(np.float32)
+    m = cfa.mosaic(rgb, "gbrg")
+    st = _states(h, w, 0.4, seed=12, reason=NOISY)
+    st[5:20, 10:40] = CLIPPED
+    m0 = m.copy()
+    old = get_num_threads()
+    try:
+        set_num_threads(1)
+        s1 = st.copy()
+        a = demosaic.reconstruct_cfa(m, s1, "gbrg", method=method, noise=validity.default_noise())
+        set_num_threads(old)
+        s2 = st.copy()
+        b = demosaic.reconstruct_cfa(m, s2, "gbrg", method=method, noise=validity.default_noise())
+    finally:
+        set_num_threads(old)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(m, m0)

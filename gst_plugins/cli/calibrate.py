@@ -45,6 +45,10 @@ def cmd_calibrate(a) -> int:
         if "colour" in s:
             print("  crosstalk per colour (factor per CFA class <- neighbour colour): "
                   + ", ".join(f"{k} {v:.3f}" for k, v in s["colour"]["factor"].items()))
+            for name, r in s["colour"]["check"].items():
+                print(f"  {name}: attenuated R/G/B mean error " + " / ".join(
+                    f"{v:+.1f}" if v is not None else "-" for v in r["white"]) + " % with the white-light LUT, "
+                    + " / ".join(f"{v:+.1f}" if v is not None else "-" for v in r["colour"]) + " % per colour")
         print(f"  black {s['black_level']:.1f}, clip code {s['clip_code']}, gain {s['gain_dn_per_e']:.4f} DN/e-, "
               f"read noise {s['read_noise_e']:.2f} e-, full well {s['full_well_e']:.0f} e-")
         print(f"  effective ND (Eq. 8): median {s['nd_eff_median']}, 5-95 % {s['nd_eff_p5']} .. {s['nd_eff_p95']}")

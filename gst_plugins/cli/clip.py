@@ -230,8 +230,8 @@ def _run_demo(a, out: Path):
     for sub in ("exr", "png"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     colour = cfas.is_colour(a.cfa)
-    what = f"in colour (Bayer {a.cfa})" if colour else "(monochrome)"
-    print(f"nrhdr demo: simulating {a.frames} frames {a.width}x{a.height} of the synthesised HDR scene {what}")
+    what = f" in colour (Bayer {a.cfa})" if colour else ""
+    print(f"nrhdr demo: simulating {a.frames} frames {a.width}x{a.height} of the synthesised HDR scene{what}")
     from nrhdr_core import profile
     if colour:
         prof = profile.default(a.height, a.width, seed=1, cfa=a.cfa)

@@ -15,9 +15,9 @@ import time
 
 def _stages(cfa: str = "none"):
     """(element, what, callable) for every stage of the chain, in pipeline order; with a Bayer `cfa` the
-    colour chain's stages follow."""
+    colour chain's stages follow (a mosaic of that phase in, camera RGB out)."""
     from nrhdr_core import cfa as cfas
-    from nrhdr_core import chain
+    from nrhdr_core import chain, hdr_output, tonemap
     S = chain.ChainSettings
 
     def warm(stages, settings, **kw):
@@ -29,13 +29,12 @@ def _stages(cfa: str = "none"):
                 for m, p, b, f, d in itertools.product(methods, presets, (True, False), chain.NOISE_FUSIONS,
                                                        chain.DARK_POLICIES)]
 
+    validity = [S(mode=m, dark_policy=d) for m, d in itertools.product(chain.VALIDITY_MODES, chain.DARK_POLICIES)]
+    crosstalk = [S(crosstalk=x, crosstalk_lut=lut) for x, lut in itertools.product(chain.CROSSTALK_MODES,
+                                                                                   chain.LUT_FORMS)]
     stages = [
-        ("nrvalidity", "every mode and dark policy",
-         warm(("validity",), [S(mode=m, dark_policy=d) for m, d in itertools.product(chain.VALIDITY_MODES,
-                                                                                      chain.DARK_POLICIES)])),
-        ("nrcrosstalk", "every mode and LUT form",
-         warm(("crosstalk",), [S(crosstalk=x, crosstalk_lut=lut) for x, lut in itertools.product(
-             chain.CROSSTALK_MODES, chain.LUT_FORMS)])),
+        ("nrvalidity", "every mode and dark policy", warm(("validity",), validity)),
+        ("nrcrosstalk", "every mode and LUT form", warm(("crosstalk",), crosstalk)),
         ("nrreconstruct", "pull-push preview", warm(("reconstruction",), recon(("preview",), ("fast",)))),
         ("nrreconstruct", "fse, every preset", warm(("reconstruction",), recon(("fse",), chain.PRESETS))),
         ("nrreconstruct", "nearest, linear", warm(("reconstruction",), recon(("nearest", "linear"), ("fast",)))),
@@ -44,33 +43,18 @@ def _stages(cfa: str = "none"):
          warm(("tonemap",), S(), transfers=tuple(t for t in chain.TRANSFERS if t != "log"))),
     ]
     if cfas.is_colour(cfa):
-        stages += _colour_stages(cfa, warm, recon)
+        mosaic = f"Bayer {cfa}"
+        stages += [
+            ("nrvalidity", f"{mosaic}, every mode and dark policy", warm(("validity",), validity, cfa=cfa)),
+            ("nrcrosstalk", f"{mosaic}, every mode and LUT form", warm(("crosstalk",), crosstalk, cfa=cfa)),
+            ("nrreconstruct", f"{mosaic}, " + ", ".join(chain.COLOUR_METHODS) + ", every preset",
+             warm(("reconstruction",), recon(chain.COLOUR_METHODS, chain.PRESETS), cfa=cfa)),
+            ("nrtonemap", "RGB tone map, " + ", ".join(tonemap.SDR_OPERATORS),
+             lambda: tonemap.warmup_rgb(elements=True)),
+            ("nrtonemap", "RGB HDR output " + ", ".join(hdr_output.TRANSFERS),
+             lambda: hdr_output.warmup_rgb(elements=True)),
+        ]
     return stages
-
-
-def _colour_stages(cfa: str, warm, recon):
-    """The colour chain's stages (a Bayer mosaic of phase `cfa` in, camera RGB out): `warm` and `recon` as
-    in `_stages`."""
-    import functools
-
-    from nrhdr_core import chain, hdr_output, tonemap
-    S = chain.ChainSettings
-    mosaic = f"Bayer {cfa}"
-    return [
-        ("nrvalidity", f"{mosaic}, every mode and dark policy",
-         warm(("validity",), [S(mode=m, dark_policy=d) for m, d in itertools.product(chain.VALIDITY_MODES,
-                                                                                      chain.DARK_POLICIES)],
-              cfa=cfa)),
-        ("nrcrosstalk", f"{mosaic}, every mode and LUT form",
-         warm(("crosstalk",), [S(crosstalk=x, crosstalk_lut=lut) for x, lut in itertools.product(
-             chain.CROSSTALK_MODES, chain.LUT_FORMS)], cfa=cfa)),
-        ("nrreconstruct", f"{mosaic}, " + ", ".join(chain.COLOUR_METHODS) + ", every preset",
-         warm(("reconstruction",), recon(chain.COLOUR_METHODS, chain.PRESETS), cfa=cfa)),
-        ("nrtonemap", "RGB tone map, " + ", ".join(tonemap.SDR_OPERATORS),
-         functools.partial(tonemap.warmup_rgb, elements=True)),
-        ("nrtonemap", "RGB HDR output " + ", ".join(hdr_output.TRANSFERS),
-         functools.partial(hdr_output.warmup_rgb, elements=True)),
-    ]
 
 
 def run_warmup(out=None, cfa: str = "none") -> tuple[int, float]:
