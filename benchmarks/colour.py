@@ -8,8 +8,9 @@ an unmodified Bayer camera (docs/COLOUR.md, "Measured").
 Cameras (CFA `rggb`, `profile.default`'s sensor: 12 bit, ND 6.35, half the photosites attenuated):
 - `nr-independent`: the non-regular ND mask laid over the CFA without regard to it;
 - `nr-balanced`: non-regular on each of the four photosites of the 2 x 2 Bayer block, half of each attenuated;
-- `sve`: the regular spatially varying exposure layout of Assorted Pixels (Nayar and Mitsunaga, TPAMI 2005): ND
-  on every other 2 x 2 Bayer block in a checkerboard, so each colour plane carries a checkerboard of exposures;
+- `sve`: the regular spatially varying exposure layout (Nayar and Mitsunaga, CVPR 2000) over the colour mosaic as
+  in Assorted Pixels (Narasimhan and Nayar, TPAMI 2005): ND on every other 2 x 2 Bayer block in a checkerboard,
+  so each colour plane carries a checkerboard of exposures;
 - `bayer`: the unmodified Bayer camera (no ND), its codes those of the regular photosites of the others (the
   same shot and read noise), its clipped photosites filled from their bound, as for the monochrome anchor.
 The layouts are the simulator's (`mask.cfa_mask`, docs/SIMULATOR.md), over the paper's non-regular mask.
