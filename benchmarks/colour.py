@@ -16,9 +16,10 @@ Cameras (CFA `rggb`, `profile.default`'s sensor: 12 bit, ND 6.35, half the photo
 The layouts are the simulator's (`mask.cfa_mask`, docs/SIMULATOR.md), over the paper's non-regular mask.
 
 Scenes: the shared HDR scenes (linear RGB, $NRHDR_SHARED_DATA/hdr) and Kodak images (sRGB decoded to linear
-light, $NRHDR_SHARED_DATA/kodak), viewed at the frame size (`simulate.view` per channel, anti-aliased) and
-exposed with `simulate.exposure_scale` on their luminance (median at 18 % of the regular pixels' range); photosite
-flux = the scene channel of its CFA colour (unit channel sensitivities); shot and read noise, no crosstalk.
+light, $NRHDR_SHARED_DATA/kodak), their truth what `nrhdr simulate --cfa` writes (`simulate.ClipRenderer`: the
+centred view, fov 0.8, anti-aliased, exposed from the scene's luminance, median at 18 % of the regular pixels'
+range); photosite flux = the truth's channel of its CFA colour (unit sensitivities); shot and read noise, no
+crosstalk.
 Chain: `validity.classify` (defaults: weighted dark policy) -> `demosaic.reconstruct_cfa` (method `preview` and
 `fse` preset fast). Colour zone plate (`scene.colour_zone_plate`: achromatic rings around 0.25 and 3 x the
 regular clip, and chromatic rings around 0.25), noise-free, so that what is measured is aliasing.
@@ -27,7 +28,7 @@ Metrics: log2 PSNR of luminance per region (`metrics.rgb_clip_report`: dark < l_
 clip, by the truth's luminance; both capped at the ND camera's white); mean CIEDE2000 of the tone-mapped result
 against the tone-mapped truth (`tonemap.tonemap_rgb`, the profile's white, truth capped at it); false colour on
 the zone plate (`metrics.false_colour_db`: 10 log10 of the mean squared CIELAB chroma error at the truth's
-luminance, on the rings). Frames/s at 1920 x 1080 on the first HDR scene, in the same run: the colour preview
+luminance, on the rings). Frames/s at 1920 x 1080 on the first scene, in the same run: the colour preview
 chain (`validity.classify -> crosstalk.correct` (compact LUT of a synthetic calibration) `-> reconstruct_cfa
 (preview) -> tonemap_rgb`) against the monochrome preview chain of the same sensor (the same stages with
 `reconstruction.reconstruct_frame` (preview) and `chain.tonemap_frame`), ms per stage; tone map `--operator`
@@ -109,25 +110,25 @@ def tonemap_rgb(rgb, white, operator):
 
 # ---- scenes -------------------------------------------------------------------------------------------------
 
-def view_rgb(rgb, h, w):
-    """The centred view (fov 0.8) of a planar RGB scene at h x w, per channel (`simulate.view`, anti-aliased)."""
-    mo = simulate.Motion(pan=0.0, tilt=0.0, zoom=1.0, fov=0.8)
-    return np.stack([simulate.view(c, h, w, 0.5, mo, simulate.prefilter(c, w, mo)) for c in rgb])
+VIEW = simulate.Motion(pan=0.0, tilt=0.0, zoom=1.0, fov=0.8)
 
 
-def load_scenes(paths, kodak, h, w, regular_white):
-    """[(name, kind, truth flux (3, h, w) float32)]: HDR files as linear RGB, Kodak PNGs sRGB-decoded."""
-    out = []
-    for p in list(paths) + list(kodak):
-        rgb = io.read_rgb(p)
-        kind = "kodak" if p in kodak else "hdr"
-        if kind == "kodak":
-            rgb = metrics.srgb_decode(rgb).astype(np.float32)
-        v = view_rgb(rgb, h, w)
-        y = metrics.luminance(v)
-        k = 0.18 * regular_white / simulate.scene_median(y)
-        out.append((Path(p).stem, kind, (v * np.float32(k)).astype(np.float32)))
-    return out
+def read_scene(path: str) -> np.ndarray:
+    """Planar linear RGB of an image file: HDR files as stored, 8-bit PNGs (Kodak) sRGB decoded."""
+    rgb = io.read_rgb(path)
+    return metrics.srgb_decode(rgb).astype(np.float32) if Path(path).suffix.lower() == ".png" else rgb
+
+
+def truth_of(rgb: np.ndarray, prof) -> np.ndarray:
+    """The noise-free camera RGB flux (3, H, W) that `nrhdr simulate --cfa` writes as its truth: the centred
+    view (fov 0.8) of the scene exposed from its luminance (`simulate.ClipRenderer`, one frame)."""
+    return simulate.ClipRenderer(rgb, prof, 1, 0.0, VIEW).flux(0)
+
+
+def load_scenes(paths, kodak, prof):
+    """[(name, kind, truth flux (3, h, w) float32)] at `prof`'s size (a colour profile)."""
+    return [(Path(p).stem, "kodak" if p in kodak else "hdr", truth_of(read_scene(p), prof))
+            for p in list(paths) + list(kodak)]
 
 
 # ---- quality -----------------------------------------------------------------------------------------------
@@ -208,12 +209,7 @@ def speed(scene_path, h, w, frames, repeat, operator, seed):
     base = profile.default(h, w, seed=3)
     base = base.replace(crosstalk=_sibling("stages").synthetic_calibration(base, 40))
     mono, col = base, base.replace(cfa=PATTERN)
-    if scene_path is None:
-        y = scene.cached_synthetic_hdr_scene(max(120, 2 * h), max(120, 2 * h) * 4 // 3)
-        rgb = view_rgb(np.stack([y, y, y]), h, w)
-    else:
-        rgb = view_rgb(io.read_rgb(scene_path), h, w)
-    truth = rgb * np.float32(0.18 * base.regular_white / simulate.scene_median(metrics.luminance(rgb)))
+    truth = truth_of(read_scene(scene_path), col)
     rng = np.random.default_rng(seed)
     raws_m = [sensor.capture(metrics.luminance(truth).astype(np.float32), mono, rng) for _ in range(frames)]
     raws_c = [sensor.capture(cfa.mosaic(truth, PATTERN), col, rng) for _ in range(frames)]
@@ -362,8 +358,8 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     t_start = time.perf_counter()
-    prof = profile.default(h, w)
-    scenes = load_scenes(paths, kodak, h, w, prof.regular_white)
+    prof = profile.default(h, w, cfa=PATTERN)
+    scenes = load_scenes(paths, kodak, prof)
     print(f"quality: {w} x {h}, {len(paths)} HDR scenes, {len(kodak)} Kodak images, methods {', '.join(methods)}",
           flush=True)
     q = quality(scenes, h, w, methods, a.seed, a.operator, log=lambda s: print(s, flush=True))
@@ -372,7 +368,7 @@ def main(argv=None) -> int:
     fps = None
     if not a.no_fps:
         print(f"frames/s: {fw} x {fh}, {fframes} frames per pass", flush=True)
-        fps = speed(paths[0] if paths else None, fh, fw, fframes, a.repeat, a.operator, a.seed)
+        fps = speed((paths + kodak)[0], fh, fw, fframes, a.repeat, a.operator, a.seed)
     g = goals(q, z, fps)
     text = (f"{w} x {h} views, CFA {PATTERN}, shot and read noise; tone map `{a.operator}`; HDR: "
              f"{', '.join(Path(p).stem for p in paths) or '-'}; Kodak: {', '.join(Path(p).stem for p in kodak) or '-'}\n")
