@@ -2,18 +2,26 @@
 (docs/COLOUR.md "Joint reconstruction").
 
 Green first, then the colour differences (Backes and Froehlich 2020, demosaicing with frequency selective
-reconstruction): the green plane is reconstructed over the known green photosites, then the colour
-differences d_R = log2(R + c) - log2(G + c) and d_B (the log domain: a hue is a ratio of channels, so an
-edge of any brightness leaves the differences smooth) are reconstructed on the red and the blue photosite
-lattices (one cell of the lattice per 2 x 2 Bayer block), interpolated bilinearly to every photosite and
-turned back into R and B. `method`: "preview" (pull-push for both steps) or "fse" (Frequency Selective
-Extrapolation for both, `nrhdr_core.fse`).
+reconstruction):
 
-Rules of the monochrome chain kept per photosite and its own channel: known = reason VALID; measured
-photosites keep their value; a missing photosite's own channel is clamped to its channel's data range and to
-its bounds (a CLIPPED photosite at least its lower bound, a DARK one at most its upper bound; the clipped-
-neighbour rule of `validity.bounds` among photosites of the same colour); NOISY photosites are fused with
-their measurement by `reconstruction.fuse_noisy` among photosites of the same colour.
+1. the green plane from the known green photosites (pull-push, or FSE);
+2. at the known red and blue photosites the log colour differences d = log2(max(x, 0) + c) -
+   log2(max(G, 0) + c) (a hue is a ratio of channels: across an edge of any contrast the differences stay
+   smooth, where linear differences scale with the brightness of an HDR scene); c keeps the logarithm
+   finite and noise-tolerant near black (`log_offset`);
+3. the differences reconstructed on the red and the blue lattice (one cell per 2 x 2 Bayer block: the level
+   1 of the pull-push pyramid, or an FSE image of half size), interpolated bilinearly to every photosite
+   and turned back into R = (max(G, 0) + c) 2^d_R - c and B.
+
+The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its
+value kept bit for bit; a missing photosite's own channel clamped to its channel's data range
+[min(known min, 0), max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= upper,
+`validity.bounds` on the photosite's own Bayer phase: the clipped-neighbour rule compares photosites of one
+colour); NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer
+phase (neighbours of the same colour). The other channels of a photosite stay within their channel's range
+[min(known min, 0), max(known max, largest lower bound)]. A channel without a known photosite takes its
+bounded photosites' bounds as measurements (none either: R = B = G, a grey; green without any: the known
+photosites of every channel).
 """
 from __future__ import annotations
 
@@ -23,26 +31,84 @@ import numpy as np
 from numba import njit, prange
 
 from . import cfa as _cfa
-from .states import CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
+from .reconstruction import _fill_row, _pull_push_levels, _pull_row, _pyramid
+from .scratch import planes
+from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
+from .validity import clip_lower_row
 
 METHODS = ("preview", "fse")
-# offset of the log domain of the colour differences: a share of the mean green level (scale invariant), at
-# least OFFSET_NOISE_K noise sigmas of a regular photosite when a noise model is given
+# offset c of the log colour differences: OFFSET_SHARE x the mean known green level (scales with the data),
+# at least OFFSET_NOISE_K sigmas of a regular photosite's noise floor when a noise model is given
 OFFSET_SHARE = 2.0 ** -6
 OFFSET_NOISE_K = 2.0
-_PHASES = ((0, 0), (0, 1), (1, 0), (1, 1))
+
+# counts of the first pass (`_stats`, per cell row)
+_N_MISS, _N_NOISY, _N_BAD, _N_BAD_KNOWN, _N_KNOWN = 0, 1, 2, 3, 4      # _N_KNOWN + ch: known photosites of ch
+_NCNT = 7
+# per cell row statistics of the red and blue lattices (`_green`): known min, known max, largest CLIPPED value
+_F_LO, _F_HI, _F_CLIP = 0, 2, 4                                        # + 0 (red) or 1 (blue)
+_NF = 6
+_CHUNKS = 64            # row chunks of `_colour` (each with its own row buffers)
+_BIG = np.float32(3.0e38)
 
 
 class DemosaicWarning(UserWarning):
     pass
 
 
+def reconstruct_cfa(values, state, cfa, method: str = "preview", preset: str = "fast", use_bounds: bool = True,
+                    noise=None, fusion: str = "auto", out=None) -> np.ndarray:
+    """Planar RGB float32 (3, H, W) from a Bayer mosaic (module docstring): `values` float (H, W), linear
+    DN of the channel `cfa` gives each photosite (`cfa.channel_index`); `state` uint8 (H, W)
+    (nrhdr_core.states), its RECONSTRUCTED bit set in place where a photosite's own channel was filled.
+
+    method: "preview" (pull-push, fused numba passes; live) or "fse" (FSE with `preset`, one of
+    `fse.FSE_PRESETS`); use_bounds: CLIPPED photosites' own channel >= their lower bound, DARK ones' <=
+    their upper bound; noise: the noise model (a CameraProfile) NOISY photosites are fused with (`fusion`:
+    one of `reconstruction.FUSIONS`; "auto": "fast" for preview, "accurate" for fse), None: they are
+    reconstructed like the other missing photosites; out: optional C-contiguous float32 (3, H, W) written
+    and returned. Measured photosites keep their value in their own channel, photosites already
+    RECONSTRUCTED theirs. Every output value is finite. No photosite known: a DemosaicWarning."""
+    name, v32 = _check(values, state, cfa, method, preset, fusion, out)
+    from .reconstruction import fusion_for
+    fusion = fusion_for(fusion, method)
+    h, w = v32.shape
+    if out is None:
+        out = np.empty((3, h, w), np.float32)
+    blk = _cfa.block(name)
+    cnt, gsum, kg = _first_pass(v32, state, blk, False)
+    if cnt[_N_BAD_KNOWN]:
+        raise ValueError("reconstruct_cfa: values contain NaN or Inf at known photosites; reconstruction needs "
+                         "finite data")
+    if cnt[_N_BAD]:
+        # non-finite values under missing photosites: they are no measurement and no bound
+        return _sanitised(v32, state, name, method, preset, use_bounds, noise, fusion, out)
+    known = cnt[_N_KNOWN:_N_KNOWN + 3]
+    if known.sum() == 0:
+        warnings.warn("reconstruct_cfa: no photosite is known; the bounds stand in for the measurements "
+                      "(clipped photosites at their lower bound, too-dark ones at their upper bound, else 0)",
+                      DemosaicWarning, stacklevel=2)
+    if use_bounds and (known == 0).any():
+        lacking = _lacking(state, name, [ch for ch in range(3) if known[ch] == 0])
+        if lacking:
+            return _with_bounds_as_data(v32, state, name, lacking, method, preset, noise, fusion, out)
+    nk = int(known[_cfa.G])
+    if nk == 0:
+        # no known green photosite: the known photosites of every channel stand in for green
+        cnt, gsum, kg = _first_pass(v32, state, blk, True)
+        nk = int(known.sum())
+    c = np.float32(log_offset(gsum / max(nk, 1), noise))
+    _core(v32, state, blk, kg, cnt, c, method, preset, bool(use_bounds), noise, fusion, out)
+    return out
+
+
 def _check(values, state, cfa, method, preset, fusion, out):
+    """The arguments checked (errors name what is wrong): (cfa name, float32 C-contiguous values)."""
     from .fse import FSE_PRESETS
     from .reconstruction import FUSIONS
     name = _cfa.check(cfa, "reconstruct_cfa: cfa")
     if name == _cfa.NONE:
-        raise ValueError("reconstruct_cfa: cfa 'none' is a monochrome sensor; use reconstruction.reconstruct_frame")
+        raise ValueError("reconstruct_cfa: cfa 'none' is a monochrome sensor (reconstruction.reconstruct_frame)")
     if method not in METHODS:
         raise ValueError(f"reconstruct_cfa: method must be one of {METHODS}, got {method!r}")
     if method == "fse" and preset not in FSE_PRESETS:
@@ -50,246 +116,471 @@ def _check(values, state, cfa, method, preset, fusion, out):
     if fusion not in FUSIONS:
         raise ValueError(f"reconstruct_cfa: noise fusion setting must be one of {FUSIONS}, got {fusion!r}")
     v = np.asarray(values)
-    s = np.asarray(state)
     if v.ndim != 2 or v.size == 0:
         raise ValueError(f"reconstruct_cfa: values must be a non-empty 2-D array (H, W), got shape {v.shape}")
-    if not np.issubdtype(v.dtype, np.floating) and not np.issubdtype(v.dtype, np.integer):
+    if v.dtype.kind not in "fiu":
         raise ValueError(f"reconstruct_cfa: values must be real numbers, got {v.dtype}")
-    if s.shape != v.shape or s.dtype != np.uint8:
-        raise ValueError(f"reconstruct_cfa: state must be uint8 of the values' shape {v.shape}, got "
-                         f"{s.dtype} {s.shape}")
-    if not isinstance(state, np.ndarray) or not state.flags.writeable:
-        raise ValueError("reconstruct_cfa: state must be a writeable numpy array (its RECONSTRUCTED bits are set)")
+    if not isinstance(state, np.ndarray) or state.shape != v.shape or state.dtype != np.uint8 \
+            or not state.flags.c_contiguous or not state.flags.writeable:
+        raise ValueError(f"reconstruct_cfa: state must be a writeable C-contiguous uint8 array of shape {v.shape}, "
+                         f"got {getattr(state, 'dtype', type(state))} {np.shape(state)}")
     h, w = v.shape
     if out is not None and (not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != (3, h, w)
                             or not out.flags.c_contiguous or not out.flags.writeable):
         raise ValueError(f"reconstruct_cfa: out must be a writeable C-contiguous float32 array of shape {(3, h, w)}")
-    v32 = np.ascontiguousarray(v, np.float32)
-    known = (s & REASON_MASK) == VALID
-    if not np.isfinite(v32[known]).all():
-        raise ValueError("reconstruct_cfa: values contain NaN or Inf at known photosites; reconstruction needs "
-                         "finite data")
-    return name, v32
+    if out is not None and np.shares_memory(out, v):
+        raise ValueError("reconstruct_cfa: out must not share memory with values")
+    return name, np.ascontiguousarray(v, np.float32)
 
 
-def reconstruct_cfa(values, state, cfa, method: str = "preview", preset: str = "fast", use_bounds: bool = True,
-                    noise=None, fusion: str = "auto", out=None) -> np.ndarray:
-    """Planar RGB float32 (3, H, W) from a Bayer mosaic: `values` float (H, W) (linear DN, one value per
-    photosite, of the channel `cfa` gives it: `cfa.channel_index`), `state` uint8 (H, W) (nrhdr_core.states).
-
-    method: "preview" (pull-push, live) or "fse" (FSE, `preset` of `fse.FSE_PRESETS`); use_bounds: clamp
-    a CLIPPED photosite's own channel to >= its lower bound and a DARK one's to <= its upper bound;
-    noise: the noise model (a CameraProfile) with which NOISY photosites are fused with their measurement
-    (`fusion`: one of `reconstruction.FUSIONS`, "auto": "fast" for preview, "accurate" for fse); without it
-    they are reconstructed like other missing photosites. out: optional (3, H, W) float32 array written and
-    returned. Measured photosites keep their value in their own channel; photosites already RECONSTRUCTED
-    keep theirs; the RECONSTRUCTED bit of `state` is set in place where the own channel was filled.
-    Output finite. No photosite known: a DemosaicWarning, and the bounds stand in for the measurements."""
-    name, v32 = _check(values, state, cfa, method, preset, fusion, out)
-    from .reconstruction import fusion_for
-    fusion = fusion_for(fusion, method)
-    h, w = v32.shape
-    if out is None:
-        out = np.empty((3, h, w), np.float32)
-    idx = _cfa.channel_index(name, h, w)
-    st = state
-    reason = st & REASON_MASK
-    known = reason == VALID
-    missing = ~known & ((st & RECONSTRUCTED) == 0)
-    lower, upper = _bounds(v32, st, use_bounds)
-    if not known.any():
-        warnings.warn("reconstruct_cfa: no photosite is known; the bounds stand in for the measurements "
-                      "(clipped photosites at their lower bound, too-dark ones at their upper bound)",
-                      DemosaicWarning, stacklevel=2)
-    pos = _phase_of(name)
-    # green plane
-    gsrc, gval = _sources(v32, known, idx == _cfa.G, lower, upper, fallback_any=True)
-    g = _fill(gval, gsrc, method, preset, None, None)
-    c = _offset(g, gsrc, noise)
-    out[_cfa.G] = g
-    # colour differences on the red and the blue lattices
-    for ch in (_cfa.R, _cfa.B):
-        py, px = pos[ch]
-        src, val = _sources(v32, known, idx == ch, lower, upper, fallback_any=False)
-        ssrc = np.ascontiguousarray(src[py::2, px::2])
-        if ssrc.size == 0 or not ssrc.any():
-            d = np.zeros((max(ssrc.shape[0], 1), max(ssrc.shape[1], 1)), np.float32)
-        else:
-            d = _log_diff(np.ascontiguousarray(val[py::2, px::2]), np.ascontiguousarray(g[py::2, px::2]), ssrc, c)
-            d = _fill(d, ssrc, method, preset, None, None, diff=True)
-        _from_diff(g, d, py, px, np.float32(c), out[ch])
-    _finish(out, v32, st, idx, known, missing, lower, upper)
-    if noise is not None:
-        _fuse(out, v32, st, idx, known, missing, noise, fusion)
-    st |= (missing * RECONSTRUCTED).astype(np.uint8)
+def _sanitised(v32, state, name, method, preset, use_bounds, noise, fusion, out):
+    """A mosaic with non-finite values under missing photosites: those become DISCARDED with value 0 in a
+    copy (no measurement, no bound), the copy is reconstructed, the RECONSTRUCTED bits go to `state`."""
+    from .states import DISCARDED
+    bad = ~np.isfinite(v32)
+    v2 = np.where(bad, np.float32(0.0), v32).astype(np.float32)
+    s2 = state.copy()
+    s2[bad] = (s2[bad] & np.uint8(~REASON_MASK & 0xFF)) | np.uint8(DISCARDED)
+    reconstruct_cfa(v2, s2, name, method, preset, use_bounds, noise, fusion, out)
+    state |= s2 & np.uint8(RECONSTRUCTED)
     return out
 
 
-def _phase_of(name):
-    """{channel: (row, column)} of R and B in the 2 x 2 block (G: its first photosite)."""
-    b = _cfa.block(name)
-    pos = {}
-    for py, px in _PHASES:
-        pos.setdefault(int(b[py, px]), (py, px))
+def _bounded(state, idx, channels):
+    """bool (H, W): the missing CLIPPED and DARK photosites of `channels`."""
+    reason = state & REASON_MASK
+    return ((reason == CLIPPED) | (reason == DARK)) & ((state & RECONSTRUCTED) == 0) & np.isin(idx, channels)
+
+
+def _lacking(state, name, channels):
+    """Those of `channels` (without a known photosite) that have a bounded photosite."""
+    idx = _cfa.channel_index(name, *state.shape)
+    return [ch for ch in channels if _bounded(state, idx, [ch]).any()]
+
+
+def _with_bounds_as_data(v32, state, name, lacking, method, preset, noise, fusion, out):
+    """Channels `lacking` a known photosite: their CLIPPED and DARK photosites count as measured at their
+    bound (their own value) in a copy of the state; the RECONSTRUCTED bits go to `state`."""
+    bounded = _bounded(state, _cfa.channel_index(name, *state.shape), lacking)
+    s2 = state.copy()
+    s2[bounded] = s2[bounded] & np.uint8(~REASON_MASK & 0xFF)          # VALID
+    reconstruct_cfa(v32, s2, name, method, preset, True, noise, fusion, out)
+    _mark(state)
+    return out
+
+
+def log_offset(green_mean: float, noise=None) -> float:
+    """c of the log colour differences log2(max(x, 0) + c): OFFSET_SHARE x `green_mean` (the mean of
+    max(known green, 0)), at least OFFSET_NOISE_K x the noise floor sigma of a regular photosite (gain, read
+    noise and quantisation, Eq. 4-7) when `noise` is given; 1 when both are 0."""
+    c = OFFSET_SHARE * float(green_mean)
+    if noise is not None:
+        g = float(noise.gain)
+        c = max(c, OFFSET_NOISE_K * float(np.sqrt(g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0)))
+    return float(c) if c > 0.0 else 1.0
+
+
+def _scratch(h, w):
+    """The calling thread's planes for an (h, w) mosaic (`scratch.planes`): green source mask, three
+    pull-push pyramids (green, d_R, d_B: values and weights), the lattices' known masks and ratios, row
+    buffers of `_colour`, per cell row counts and statistics."""
+    def make():
+        pv, _, hs, ws, _ = _pyramid(h, w)
+        n = pv.size
+        h1, w1 = int(hs[1]), int(ws[1])
+        return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
+                    kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
+                    rows=np.zeros((_CHUNKS, 2, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
+                    cnt=np.zeros((h1, _NCNT), np.int64), gs=np.zeros(h1, np.float64),
+                    fst=np.zeros((h1, _NF), np.float32))
+    return planes("demosaic.preview", (h, w), make)
+
+
+def _first_pass(v32, state, blk, g_any):
+    """(counts, sum of max(known green, 0), green source mask) of the mosaic (`_stats`); the green plane's
+    pull-push level 1 is pulled in the same pass. `g_any`: the known photosites of every channel are
+    green's sources."""
+    h, w = v32.shape
+    sc = _scratch(h, w)
+    _, _, _, ws, off = _pyramid(h, w)
+    _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], sc["cnt"], sc["gs"], g_any)
+    return sc["cnt"].sum(axis=0), float(sc["gs"].sum()), sc["kg"]
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, gs, g_any):
+    """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
+    known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
+    per channel) and the sum of max(known green, 0); the green plane's pyramid level 1 (`_pull_row`).
+    Branch-free pixel loops."""
+    h, w = values.shape
+    zero = np.float32(0.0)
+    for y1 in prange(cnt.shape[0]):
+        for i in range(_NCNT):
+            cnt[y1, i] = 0
+        s = 0.0
+        for yy in range(2 * y1, min(2 * y1 + 2, h)):
+            cm = 0
+            cn = 0
+            cb = 0
+            cbk = 0
+            kn0 = 0
+            kn1 = 0
+            b0 = blk[yy & 1, 0]
+            b1 = blk[yy & 1, 1]
+            g0 = (b0 == 1) | g_any
+            g1 = (b1 == 1) | g_any
+            for x in range(w):
+                st = state[yy, x]
+                k = (st & REASON_MASK) == VALID
+                odd = (x & 1) == 1
+                a = values[yy, x]
+                fin = a - a == zero
+                cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
+                cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
+                cb += np.int64(not fin)
+                cbk += np.int64(k & (not fin))
+                kn0 += np.int64(k & (not odd))
+                kn1 += np.int64(k & odd)
+                kk = k & (g1 if odd else g0)
+                kg[yy, x] = kk
+                s += np.float64(a) if (kk & (a > zero)) else 0.0
+            cnt[y1, _N_MISS] += cm
+            cnt[y1, _N_NOISY] += cn
+            cnt[y1, _N_BAD] += cb
+            cnt[y1, _N_BAD_KNOWN] += cbk
+            cnt[y1, _N_KNOWN + b0] += kn0
+            cnt[y1, _N_KNOWN + b1] += kn1
+        gs[y1] = s
+        _pull_row(values, kg, pv, pw, o1, w1, y1)
+
+
+def _positions(blk):
+    """int64 (3, 2): the (row, column) of each channel's photosite in the 2 x 2 block (green: the first)."""
+    pos = np.zeros((3, 2), np.int64)
+    for py, px in ((1, 1), (1, 0), (0, 1), (0, 0)):
+        pos[int(blk[py, px])] = (py, px)
     return pos
 
 
-def _bounds(v32, st, use_bounds):
-    """(lower, upper) float32 (H, W), NaN = no bound: `validity.bounds` applied to each of the four Bayer
-    phases apart, so that the clipped-neighbour rule compares photosites of one colour."""
+def _core(v32, state, blk, kg, cnt, c, method, preset, use_bounds, noise, fusion, out):
+    """Steps 1-3 of the module docstring and the noise fusion, into `out` (green sources `kg`, log offset
+    `c`); sets the RECONSTRUCTED bits."""
     h, w = v32.shape
-    lower = np.full((h, w), np.nan, np.float32)
-    upper = np.full((h, w), np.nan, np.float32)
-    if not use_bounds:
-        return lower, upper
-    from .validity import bounds
-    for py, px in _PHASES:
-        sv = np.ascontiguousarray(v32[py::2, px::2])
-        if sv.size == 0:
-            continue
-        lo, hi = bounds(sv, np.ascontiguousarray(st[py::2, px::2]))
-        lower[py::2, px::2] = lo
-        upper[py::2, px::2] = hi
-    # a non-finite measurement is no bound
-    lower[~np.isfinite(lower)] = np.nan
-    upper[~np.isfinite(upper)] = np.nan
-    return lower, upper
+    sc = _scratch(h, w)
+    pv, pw, kl, rl = sc["pv"], sc["pw"], sc["kl"], sc["rl"]
+    _, _, hs, ws, off = _pyramid(h, w)
+    pos = _positions(blk)
+    h1, w1 = int(hs[1]), int(ws[1])
+    # 1. green
+    if method == "preview":
+        _pull_push_levels(pv[0], pw[0], hs, ws, off)
+        gsrc = np.zeros((1, 1), np.float32)
+    else:
+        gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
+    # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
+    fst = sc["fst"]
+    _green(v32, state, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1], pw[1],
+           pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
+    rng = _ranges(fst, cnt)
+    # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
+    if method == "preview":
+        _pull_push_levels(pv[1], pw[1], hs, ws, off)
+        _pull_push_levels(pv[2], pw[2], hs, ws, off)
+        deep = hs.shape[0] > 2          # a level above the lattice (frames larger than 2 x 2)
+        o2, w2 = (int(off[2]), int(ws[2])) if deep else (int(off[1]), w1)
+        for i in range(2):
+            lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
+            _lattice_fill(lat, kl[i], pv[1 + i], o2, w2, rl[i])
+    else:
+        for i in range(2):
+            lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
+            _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
+    ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
+    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
+    _colour(v32, state, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
+    if noisy is not None:
+        _fuse(out, v32, blk, noisy, noise, fusion)
 
 
-def _sources(v32, known, chan, lower, upper, fallback_any):
-    """(source mask, values) of a channel's reconstruction: its known photosites; with none, its photosites
-    with a bound (value: the bound); with none either and `fallback_any`, the known photosites of any
-    channel, then the bounded ones. Values outside the sources are 0."""
-    src = known & chan
-    val = v32
-    if not src.any():
-        bnd = np.where(np.isnan(lower), upper, lower)
-        has = ~np.isnan(bnd)
-        src = has & chan
-        val = bnd
-        if not src.any() and fallback_any:
-            src = known if known.any() else has
-            val = v32 if known.any() else bnd
-    return src, np.where(src, val, np.float32(0.0)).astype(np.float32)
+def _ranges(fst, cnt):
+    """float32 (3, 3): per channel [min(known min, 0), known max, max(known max, largest CLIPPED value)];
+    a channel without a known photosite is not clamped (its values come from green)."""
+    r = np.empty((3, 3), np.float32)
+    r[:, 0] = -_BIG
+    r[:, 1:] = _BIG
+    for i, ch in enumerate((_cfa.R, _cfa.B)):
+        if cnt[_N_KNOWN + ch] > 0:
+            hi = float(fst[:, _F_HI + i].max())
+            r[ch] = (min(float(fst[:, _F_LO + i].min()), 0.0), hi, max(hi, float(fst[:, _F_CLIP + i].max())))
+    return r
 
 
-def _fill(vals, src, method, preset, lower, upper, diff=False):
-    """A channel's plane: `reconstruction.reconstruct` of `vals` at the pixels not in `src`."""
-    from .reconstruction import reconstruct
-    if not src.any():
-        return np.zeros(vals.shape, np.float32)
-    if method == "fse":
-        kw = dict(domain="linear") if diff else {}
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            return reconstruct(vals, src, method="fse", preset=preset, lower=lower, upper=upper, **kw)
-    return reconstruct(vals, src, method="preview", lower=lower, upper=upper)
+@njit(cache=True, nogil=True, inline="always")
+def _own_row(o, values, state, y, x0, hi, use_bounds):
+    """The photosites x0, x0 + 2, ... of row y, whose own channel's estimate is o[x]: measured (VALID) or
+    already RECONSTRUCTED: their value; missing: at most max(hi, lower bound), then within their bounds
+    (CLIPPED: >= lower bound, DARK: <= the value). Branch-free over the whole row (it vectorises); then,
+    only in rows that have one, the clipped-neighbour rule of `validity.bounds` on the photosites' own Bayer
+    phase (`validity.clip_lower_row` on the phase's lattice) raises the CLIPPED regular photosites' lower
+    bound l to l' (max(min(a, max(hi, l')), l') of the first result is the clamp with l')."""
+    w = values.shape[1]
+    big = _BIG
+    ncr = 0
+    for x in range(w):
+        st = state[y, x]
+        r = st & REASON_MASK
+        v = values[y, x]
+        own = (x & 1) == x0
+        keep = (r == VALID) | ((st & RECONSTRUCTED) != 0)
+        lb = v if (use_bounds & (r == CLIPPED)) else -big
+        ub = v if (use_bounds & (r == DARK)) else big
+        t = hi if hi > lb else lb
+        a = o[x]
+        b = t if a > t else a
+        b = lb if lb > b else b
+        b = ub if ub < b else b
+        b = v if keep else b
+        o[x] = b if own else a
+        ncr += np.int64(own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED))
+    if use_bounds and ncr > 0:
+        sv = values[y & 1::2, x0::2]
+        ss = state[y & 1::2, x0::2]
+        mrow = np.empty(sv.shape[1], np.float32)
+        clip_lower_row(sv, ss, y >> 1, mrow)
+        for j in range(sv.shape[1]):
+            x = x0 + 2 * j
+            m = mrow[j]
+            if (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED and m == m \
+                    and m > values[y, x]:
+                t = hi if hi > m else m
+                a = o[x]
+                a = t if a > t else a
+                o[x] = m if m > a else a
 
 
-def _offset(g, src, noise):
-    """c of the log domain log2(max(x, 0) + c): OFFSET_SHARE x the mean green source level, at least
-    OFFSET_NOISE_K regular-photosite noise sigmas (`noise`), 1 when both are 0."""
-    m = float(np.mean(np.maximum(g[src], 0.0))) if src.any() else 0.0
-    c = OFFSET_SHARE * m
-    if noise is not None:
-        gain = float(noise.gain)
-        c = max(c, OFFSET_NOISE_K * float(np.sqrt(gain * gain * float(noise.read_noise) ** 2 + 1.0 / 12.0)))
-    return c if c > 0.0 else 1.0
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _green(values, state, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb, kl, fst,
+           ixs, gout):
+    """Per cell row: the green plane into `gout` (the pull-push fill `reconstruction._fill_row` of the
+    green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
+    missing green photosites' bounds apply, `_own`); then at the cell's red and blue photosites the log
+    colour differences (weight 1 where known, else 0) into level 1 of the d_R and d_B pyramids and `kl`,
+    and the lattices' statistics `fst` (known min and max, largest CLIPPED value). The logarithm only at
+    the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows)."""
+    h, w = values.shape
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    big = _BIG
+    h1 = (h + 1) // 2
+    nch = ixs.shape[0]
+    for kc in prange(nch):
+        ix = ixs[kc]
+        for y1 in range(kc * h1 // nch, (kc + 1) * h1 // nch):
+            for y in range(2 * y1, min(2 * y1 + 2, h)):
+                g = gout[y]
+                if from_src:
+                    for x in range(w):
+                        g[x] = gsrc[y, x]
+                else:
+                    _fill_row(values, kg, pv, o1, w1, y, g, True)
+                _own_row(g, values, state, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds)
+            base = o1 + y1 * w1
+            for i in range(2):
+                ch = 0 if i == 0 else 2
+                y = 2 * y1 + pos[ch, 0]
+                px = pos[ch, 1]
+                pvd = pvr if i == 0 else pvb
+                pwd = pwr if i == 0 else pwb
+                lo = big
+                hi = -big
+                cl = -big
+                n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
+                nk = 0
+                for x1 in range(n):
+                    x = 2 * x1 + px
+                    r = state[y, x] & REASON_MASK
+                    k = r == VALID
+                    a = values[y, x]
+                    lo = min(lo, a if k else big)
+                    hi = max(hi, a if k else -big)
+                    cl = max(cl, a if (r == CLIPPED) else -big)
+                    pvd[base + x1] = zero
+                    pwd[base + x1] = one if k else zero
+                    kl[i, y1, x1] = k
+                    ix[nk] = x1
+                    nk += 1 if k else 0
+                for q in range(nk):
+                    x1 = ix[q]
+                    x = 2 * x1 + px
+                    a = values[y, x]
+                    gv = gout[y, x]
+                    a = (a if a > zero else zero) + c
+                    gv = (gv if gv > zero else zero) + c
+                    pvd[base + x1] = np.log2(a / gv)
+                for x1 in range(n, w1):
+                    pvd[base + x1] = zero
+                    pwd[base + x1] = zero
+                    kl[i, y1, x1] = False
+                fst[y1, _F_LO + i] = lo
+                fst[y1, _F_HI + i] = hi
+                fst[y1, _F_CLIP + i] = cl
 
 
-def _log_diff(vals, g, src, c):
-    """log2(max(x, 0) + c) - log2(max(G, 0) + c) at the sources, 0 elsewhere (float32)."""
-    c = np.float32(c)
-    d = np.log2(np.maximum(vals, 0) + c) - np.log2(np.maximum(g, 0) + c)
-    return np.where(src, d, np.float32(0.0)).astype(np.float32)
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _lattice_fill(lat, known, pv, o2, w2, ratio):
+    """A difference lattice after its pull-push: each cell its value where known, else the weighted mean of
+    its known 8-neighbours, else its parent's pushed value (`reconstruction._fill_row`, as the monochrome
+    preview fills level 0); stored as the ratio 2^d."""
+    for i in prange(lat.shape[0]):
+        r = ratio[i]
+        _fill_row(lat, known, pv, o2, w2, i, r, True)
+        for j in range(r.shape[0]):
+            r[j] = np.exp2(r[j])
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _from_diff(g, d, py, px, c, dst):
-    """dst = (max(G, 0) + c) 2^d - c, d interpolated bilinearly from its lattice (photosites (py + 2 i,
-    px + 2 j)) at every pixel (edge lattice values replicated)."""
-    h, w = g.shape
-    hs, ws = d.shape
+def _ratio(lat, ratio):
+    """ratio = 2^lat."""
+    for i in prange(lat.shape[0]):
+        for j in range(lat.shape[1]):
+            ratio[i, j] = np.exp2(lat[i, j])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _expand(lat, i0, i1, a, px, ext_w, w, buf):
+    """buf[x] (x < w) = the lattice row pair (i0, i1; weight a of i1) bilinear at photosite column x, for a
+    lattice of columns px, px + 2, ... (ext_w of them; edge values replicated)."""
+    b = np.float32(1.0) - a
+    for j in range(ext_w):
+        buf[px + 2 * j] = b * lat[i0, j] + a * lat[i1, j]
+    if px == 1:
+        buf[0] = buf[1]
+    last = px + 2 * (ext_w - 1)
     half = np.float32(0.5)
+    for x in range(px + 1, last, 2):
+        buf[x] = half * (buf[x - 1] + buf[x + 1])
+    for x in range(last + 1, w):
+        buf[x] = buf[last]
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _colour(values, state, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
+    """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
+    2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
+    channel's range; the photosite's own channel by `_own`; RECONSTRUCTED set on the missing photosites."""
+    h, w = values.shape
+    zero = np.float32(0.0)
+    half = np.float32(0.5)
+    flag = np.uint8(RECONSTRUCTED)
+    nch = rows.shape[0]
+    for k in prange(nch):
+        for y in range(k * h // nch, (k + 1) * h // nch):
+            g = out[1, y]
+            for i in range(2):
+                ch = 0 if i == 0 else 2
+                eh = ext[ch, 0]
+                buf = rows[k, i]
+                t = y - pos[ch, 0]
+                i0 = 0 if t < 0 else min(t >> 1, eh - 1)
+                a = half if (t > 0 and (t & 1) == 1 and i0 + 1 < eh) else zero
+                _expand(rl[i], i0, min(i0 + 1, eh - 1), a, pos[ch, 1], ext[ch, 1], w, buf)
+                lo = rng[ch, 0]
+                top = rng[ch, 2]
+                o = out[ch, y]
+                for x in range(w):
+                    gv = g[x]
+                    e = ((gv if gv > zero else zero) + c) * buf[x] - c
+                    e = e if e - e == zero else top
+                    e = lo if e < lo else e
+                    o[x] = top if e > top else e
+                if pos[ch, 0] == (y & 1):
+                    _own_row(o, values, state, y, pos[ch, 1], rng[ch, 1], use_bounds)
+            for x in range(w):
+                st = state[y, x]
+                m = ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
+                state[y, x] = st | (flag * np.uint8(m))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _mark_kernel(state):
+    h, w = state.shape
+    flag = np.uint8(RECONSTRUCTED)
     for y in prange(h):
-        t = y - py
-        i0 = 0 if t < 0 else min(t // 2, hs - 1)
-        i1 = min(i0 + 1, hs - 1)
-        a = half if (t >= 0 and t % 2 == 1) else np.float32(0.0)
         for x in range(w):
-            u = x - px
-            j0 = 0 if u < 0 else min(u // 2, ws - 1)
-            j1 = min(j0 + 1, ws - 1)
-            b = half if (u >= 0 and u % 2 == 1) else np.float32(0.0)
-            top = d[i0, j0] + b * (d[i0, j1] - d[i0, j0])
-            bot = d[i1, j0] + b * (d[i1, j1] - d[i1, j0])
-            dv = top + a * (bot - top)
-            gv = g[y, x]
-            gv = gv if gv > 0 else np.float32(0.0)
-            dst[y, x] = (gv + c) * np.exp2(dv) - c
+            st = state[y, x]
+            m = ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
+            state[y, x] = st | (flag * np.uint8(m))
 
 
-def _finish(out, v32, st, idx, known, missing, lower, upper):
-    """Own channel: measured value at known photosites, the value kept at already-RECONSTRUCTED ones;
-    missing ones clamped to the channel's data range [min(known min, 0), max(known max, lower bound)] and
-    to their bounds. Other channels: within the channel's data range; every value finite."""
-    for ch in range(3):
-        plane = out[ch]
-        own = idx == ch
-        kc = known & own
-        if kc.any():
-            lo = min(float(v32[kc].min()), 0.0)
-            hi = float(v32[kc].max())
-        else:
-            lo, hi = 0.0, 0.0
-        lb = lower[own]
-        lb = lb[~np.isnan(lb)]
-        ub = upper[own]
-        ub = ub[~np.isnan(ub)]
-        top = max([hi] + ([float(lb.max())] if lb.size else []))
-        if not kc.any() and ub.size and not lb.size:
-            top = max(top, float(ub.max()))
-        bad = ~np.isfinite(plane)
-        plane[bad] = 0.0
-        np.clip(plane, lo, top, out=plane)
-        m = missing & own
-        lo_m = np.where(m & ~np.isnan(lower), lower, -np.inf)
-        hi_m = np.where(m & ~np.isnan(upper), upper, np.inf)
-        np.maximum(plane, lo_m, out=plane)
-        np.minimum(plane, hi_m, out=plane)
-        keep = own & ~missing
-        plane[keep] = v32[keep]
-        # not finite kept values (an already-RECONSTRUCTED NaN): 0
-        plane[~np.isfinite(plane)] = 0.0
+def _mark(state):
+    """RECONSTRUCTED on every missing photosite (reason not VALID, not yet RECONSTRUCTED)."""
+    _mark_kernel(state)
 
 
-def _fuse(out, v32, st, idx, known, missing, noise, fusion):
-    """NOISY photosites: their own channel fused with the measurement (`reconstruction.fuse_noisy`) on
-    each Bayer phase apart (neighbours of the same colour)."""
+def _fse_green(v32, state, blk, kg, preset, use_bounds):
+    """The green plane by FSE (`reconstruction.reconstruct`) from the green sources `kg`, with the missing
+    green photosites' bounds."""
+    from .reconstruction import reconstruct
+    h, w = v32.shape
+    if not kg.any():
+        return np.zeros((h, w), np.float32)
+    lower = upper = None
+    if use_bounds:
+        own = np.zeros((h, w), bool)
+        for py in range(2):
+            for px in range(2):
+                own[py::2, px::2] = blk[py, px] == _cfa.G
+        reason = state & REASON_MASK
+        miss = ~kg & ((state & RECONSTRUCTED) == 0) & own
+        lower = np.where(miss & (reason == CLIPPED), v32, np.nan).astype(np.float32)
+        upper = np.where(miss & (reason == DARK), v32, np.nan).astype(np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return reconstruct(v32, kg, method="fse", preset=preset, lower=lower, upper=upper)
+
+
+def _fse_lattice(lat, known, preset):
+    """A difference lattice filled by FSE in the linear domain (the differences are logarithms already)."""
+    from .reconstruction import reconstruct
+    if not known.any():
+        return np.zeros(lat.shape, np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.ascontiguousarray(reconstruct(lat, known, method="fse", preset=preset, domain="linear"),
+                                    np.float32)
+
+
+def _noisy_phases(state):
+    """Per Bayer phase (py, px): (known, NOISY not yet RECONSTRUCTED) masks of its photosites, or None
+    where it has no such NOISY photosite."""
+    res = {}
+    for py in range(2):
+        for px in range(2):
+            ss = state[py::2, px::2]
+            noisy = (ss & (REASON_MASK | RECONSTRUCTED)) == NOISY
+            res[py, px] = ((ss & REASON_MASK) == VALID, noisy) if noisy.any() else None
+    return res
+
+
+def _fuse(out, v32, blk, noisy, noise, fusion):
+    """NOISY photosites: their own channel fused with their measurement (`reconstruction.fuse_noisy`) on
+    each Bayer phase apart (neighbours of the same colour; `noisy`: `_noisy_phases`); the fused value
+    replaces the estimate."""
     from .reconstruction import fuse_noisy
-    noisy = missing & ((st & REASON_MASK) == NOISY) & np.isfinite(v32)
-    if not noisy.any():
-        return
-    for py, px in _PHASES:
-        nz = np.ascontiguousarray(noisy[py::2, px::2])
-        if nz.size == 0 or not nz.any():
-            continue
-        ch = int(idx[py, px])
-        est = np.ascontiguousarray(out[ch][py::2, px::2])
-        fuse_noisy(est, np.ascontiguousarray(v32[py::2, px::2]), np.ascontiguousarray(known[py::2, px::2]), nz,
-                   noise, setting=fusion)
-        sub = out[ch][py::2, px::2]
-        sub[nz] = est[nz]
+    for (py, px), m in noisy.items():
+        if m is not None:
+            fuse_noisy(out[int(blk[py, px])][py::2, px::2], v32[py::2, px::2], m[0], m[1], noise, setting=fusion)
 
 
 def warmup() -> None:
-    """Compile (or load from numba's cache) the kernels of both methods on a tiny synthetic mosaic."""
+    """Compile (or load from numba's cache) the kernels of both methods, on a tiny synthetic mosaic."""
     from .validity import default_noise
     rng = np.random.default_rng(0)
     h, w = 16, 20
     vals = rng.uniform(10.0, 1000.0, (h, w)).astype(np.float32)
     st = np.where(rng.random((h, w)) < 0.3, np.uint8(NOISY), np.uint8(VALID)).astype(np.uint8)
     st[0, :3] = CLIPPED
-    st[1, :3] = DARK
+    st[1, :3] = DARK | ATTENUATED
     for method in METHODS:
         reconstruct_cfa(vals, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())

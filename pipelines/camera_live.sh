@@ -11,7 +11,9 @@
 #   GRAY16_LE negotiates), EXPOSURE (us), GAIN (dB), FPS (frames/s, in the caps), FEATURES ("Feature=value ..."
 #   for anything else); V4L2: FPS and V4L2_CONTROLS (v4l2src extra-controls, e.g. "c,exposure_time_absolute=100").
 #   FORMAT=GRAY8 takes 8-bit frames and widens them with videoconvert (code * 257: a profile with bit_depth 8 and
-#   alignment msb reads them back exactly).
+#   alignment msb reads them back exactly). A colour camera (the profile's cfa a Bayer phase): GRAY16_LE carries
+#   its 10-16-bit mosaic; FORMAT=BAYER takes 8-bit video/x-bayer in the profile's phase (bit_depth 8 profile;
+#   GenICam BayerRG8/BG8/GR8/GB8: the only Bayer caps aravissrc and v4l2src have), RGB frames come out.
 # record: every frame through the chain into OUT_DIR/frame_%05d.exr (linear, with the state channel), and the
 #   raw camera frames with their caps and timestamps into OUT_DIR/raw.gdp (RAW=false: not written; replay it
 #   with `filesrc location=raw.gdp ! gdpdepay ! nrvalidity profile=...`). The preview branch is leaky (drops
@@ -21,7 +23,7 @@
 #   an earlier recording in OUT_DIR), VERBOSE=1 (gst-launch -m), NRHDR.
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 case "${1:-}" in
-  -h|--help|"") sed -n '2,21p' "$0"; [ -n "${1:-}" ]; exit $?;;
+  -h|--help|"") sed -n '2,23p' "$0"; [ -n "${1:-}" ]; exit $?;;
   preview|record) ACTION="$1";;
   *) echo "error: unknown mode '$1': use preview or record OUT_DIR" >&2; exit 2;;
 esac
@@ -29,20 +31,27 @@ if [ -z "${PROFILE:-}" ]; then
   echo "error: set PROFILE to the camera's profile (nrhdr profile / nrhdr calibrate; docs/CAMERAS.md)" >&2; exit 2
 fi
 # the frame size the profile needs (the profile is checked here: a bad one is refused before the camera opens)
-read -r W H < <(nr_py - "$PROFILE" <<'PY' || echo "- -"
+read -r W H CFA < <(nr_py - "$PROFILE" <<'PY' || echo "- - -"
 import sys
 from nrhdr_core import profile
 try:
     p = profile.load(sys.argv[1])
 except profile.ProfileError as e:
     sys.exit(f"error: {e}")
-print(p.width, p.height)
+print(p.width, p.height, p.cfa)
 PY
 )
 [ "$W" = "-" ] && exit 2
 CAMERA="${CAMERA:-}" NBUF="${FRAMES:--1}" IN_FORMAT="${FORMAT:-GRAY16_LE}"
-case "$IN_FORMAT" in GRAY16_LE|GRAY8) ;; *) echo "error: FORMAT must be GRAY16_LE or GRAY8, got $IN_FORMAT" >&2; exit 2;; esac
-CAPS="video/x-raw,format=$IN_FORMAT,width=$W,height=$H${FPS:+,framerate=$FPS/1}"
+case "$IN_FORMAT" in
+  GRAY16_LE|GRAY8) CAPS="video/x-raw,format=$IN_FORMAT,width=$W,height=$H${FPS:+,framerate=$FPS/1}";;
+  BAYER)
+    if [ "$CFA" = none ]; then
+      echo "error: FORMAT=BAYER needs a colour profile, but $PROFILE is monochrome (cfa none)" >&2; exit 2
+    fi
+    CAPS="video/x-bayer,format=$CFA,width=$W,height=$H${FPS:+,framerate=$FPS/1}";;
+  *) echo "error: FORMAT must be GRAY16_LE, GRAY8 or BAYER, got $IN_FORMAT" >&2; exit 2;;
+esac
 if [[ "$CAMERA" == /dev/* ]]; then
   if [ ! -e "$CAMERA" ]; then
     echo "error: V4L2 device $CAMERA not found (no such file; v4l2-ctl --list-devices lists the devices)" >&2; exit 2

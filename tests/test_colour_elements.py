@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_camera import IP, RECIPE, fake_camera  # noqa: F401  (the Aravis fake camera fixture)
 
 pytestmark = pytest.mark.gst
 
@@ -79,9 +80,10 @@ def make_buffers(frames, flags=None):
     return out
 
 
-def run(desc, caps, buffers, timeout=120.0):
+def run(desc, caps, buffers, timeout=900.0):
     """appsrc (caps) ! desc ! appsink: [(caps string, pts, duration, flags, bytes)], (element, error text) or None,
-    element messages."""
+    element messages. `timeout` covers a cold numba cache (nrreconstruct compiles the demosaic kernels when it
+    first sees mosaic caps)."""
     from gi.repository import Gst, GstApp  # noqa: F401
     p = Gst.parse_launch(f"appsrc name=src format=time ! {desc} ! appsink name=sink sync=false")
     src, sink = p.get_by_name("src"), p.get_by_name("sink")
@@ -123,6 +125,28 @@ def run(desc, caps, buffers, timeout=120.0):
         p.set_state(Gst.State.NULL)
         drain()
     return samples, error, messages
+
+
+def pull_all(desc, timeout_s=900):
+    """Every sample of the appsink `sink` of pipeline `desc` until EOS: [(caps string, pts, bytes)]; an error
+    on the bus fails the test."""
+    from gi.repository import Gst
+    pl = Gst.parse_launch(desc)
+    sink = pl.get_by_name("sink")
+    got = []
+    try:
+        pl.set_state(Gst.State.PLAYING)
+        while (smp := sink.try_pull_sample(timeout_s * Gst.SECOND)) is not None:
+            b = smp.get_buffer()
+            ok, mi = b.map(Gst.MapFlags.READ)
+            assert ok
+            got.append((smp.get_caps().to_string(), b.pts, bytes(mi.data)))
+            b.unmap(mi)
+        m = pl.get_bus().pop_filtered(Gst.MessageType.ERROR)
+        assert m is None, m.parse_error()[0].message
+    finally:
+        pl.set_state(Gst.State.NULL)
+    return got
 
 
 def colour_frame(data, h=H, w=W):
@@ -260,7 +284,7 @@ def test_videotestsrc_bayer_runs(gst, colour8):
                          f"profile={path} ! nrreconstruct method=preview ! fakesink name=sink")
     try:
         p.set_state(Gst.State.PLAYING)
-        m = p.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
+        m = p.get_bus().timed_pop_filtered(900 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
         assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
         caps = p.get_by_name("sink").sinkpads[0].get_current_caps().to_string()
         assert "rgb-f32-u8-planar" in caps and "cfa=(string)rggb" in caps
@@ -387,18 +411,7 @@ def test_colour_recipe(gst, gst_subprocess_env, colour12, tmp_path):
     desc = p.stdout.strip()
     assert "nrreconstruct" in desc and "layout=rgb-f32-u8-planar" in desc and "nrexrsink" in desc
     head = desc[:desc.index("! nrexrsink")]
-    pl = Gst.parse_launch(head + " ! appsink name=sink sync=false")
-    sink = pl.get_by_name("sink")
-    frames = []
-    try:
-        pl.set_state(Gst.State.PLAYING)
-        while (smp := sink.try_pull_sample(120 * Gst.SECOND)) is not None:
-            b = smp.get_buffer()
-            ok, mi = b.map(Gst.MapFlags.READ)
-            frames.append(bytes(mi.data))
-            b.unmap(mi)
-    finally:
-        pl.set_state(Gst.State.NULL)
+    frames = [data for _c, _p, data in pull_all(head + " ! appsink name=sink sync=false")]
     assert len(frames) == 3
     for data, raw in zip(frames, raws):
         rgb, state = colour_frame(data)
@@ -408,7 +421,7 @@ def test_colour_recipe(gst, gst_subprocess_env, colour12, tmp_path):
     if "rgb-f32-u8-planar" not in sink_tmpl:
         pytest.skip("nrexrsink does not take colour frames in this tree")
     p = subprocess.run(["bash", str(PIPELINES / "colour_to_exr.sh"), str(clip), str(tmp_path / "exr")],
-                       env=gst_subprocess_env, capture_output=True, text=True, timeout=300)
+                       env=gst_subprocess_env, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr
     from nrhdr_core import io
     files = sorted((tmp_path / "exr").glob("frame_*.exr"))
@@ -443,3 +456,26 @@ def test_warmup_compiles_the_colour_path():
     chain.warmup(sets, stages=("validity", "crosstalk", "reconstruction"), elements=True, cfa="rggb")
     with pytest.raises(ValueError, match="cfa"):
         chain.warmup(sets[0], cfa="rgb")
+
+
+# ---- a GenICam camera's 8-bit Bayer (the Aravis fake camera) ---------------------------------------------
+
+
+def test_fake_camera_bayer8_becomes_colour_frames(fake_camera, gst, tmp_path):
+    """aravissrc's video/x-bayer (BayerRG8 on the camera) through nrvalidity with an 8-bit rggb profile: one
+    colour frame per camera frame, timestamps rising."""
+    path, _ = save_profile(tmp_path, "cam8", cfa="rggb", bit_depth=8, clip_code=250, l_min=4.0)
+    got = [(c, p, len(data)) for c, p, data in pull_all(
+        f"aravissrc camera-name={IP} num-buffers=3 ! {bayer_caps('rggb')} ! nrvalidity profile={path} ! "
+        f"nrcrosstalk ! nrreconstruct method=preview ! appsink name=sink sync=false")]
+    assert len(got) == 3
+    assert all("rgb-f32-u8-planar" in c and "cfa=(string)rggb" in c and n == 13 * W * H for c, _p, n in got)
+    assert [p for _c, p, _n in got] == sorted(p for _c, p, _n in got)
+
+
+def test_camera_recipe_bayer_needs_a_colour_profile(gst_subprocess_env, tmp_path):
+    path, _ = save_profile(tmp_path, "mono8", bit_depth=8, clip_code=250, l_min=4.0)
+    p = subprocess.run(["bash", str(RECIPE), "preview"], env=dict(gst_subprocess_env, PROFILE=str(path),
+                                                                     FORMAT="BAYER", CAMERA=IP),
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "FORMAT=BAYER needs a colour profile" in p.stderr

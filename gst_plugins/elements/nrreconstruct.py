@@ -9,9 +9,10 @@ Mosaic frames (caps field `cfa` = a Bayer phase): `nrhdr_core.demosaic.reconstru
 frame (`layout=rgb-f32-u8-planar`: R, G, B planes and the mosaic's state) into an output buffer from a pool,
 one frame out per frame in, timestamps and flags copied. method=preview and fse (+ preset) and auto (the
 same ladder) work; linear, nearest and temporal=on are monochrome only (an element error naming the
-property). `method` and `preset` can change while PLAYING: the streaming
-thread reads the settings snapshot once per frame. Posts an element message "nrhdr-frame-stats" per frame
-when `post-stats` is on.
+property).
+
+`method` and `preset` can change while PLAYING: the streaming thread reads the settings snapshot once per
+frame. Posts an element message "nrhdr-frame-stats" per frame when `post-stats` is on.
 
 `temporal=on` (docs/TEMPORAL.md): `nrhdr_core.temporal.TemporalReconstructor`
 instead, the previous output aligned by a motion estimate as prior and extra measurements where a per-block
@@ -27,6 +28,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
 from nrhdr_core.chain import TEMPORAL_MODES
 from nrhdr_core.fse import FSE_PRESETS
 from nrhdr_core.reconstruction import FUSIONS, METHODS
