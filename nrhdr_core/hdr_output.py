@@ -179,21 +179,28 @@ def _ycc(codes, y, x, kr, kb, shift):
 @njit(cache=True, nogil=True, inline="always")
 def _chroma_code(c):
     code = int(math.floor(512.0 + 896.0 * c + 0.5))
-    return np.uint16(min(max(code, 64), 960))
+    return min(max(code, 64), 960)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _put(out, offset, value):
+    """A 16-bit little-endian word at byte `offset` of the frame's bytes."""
+    out[offset] = np.uint8(value & 0xFF)
+    out[offset + 1] = np.uint8(value >> 8)
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _ycbcr_kernel(codes, kr, kb, shift, yp, up, vp):
-    """R'G'B' codes (3, H, W) -> 10-bit narrow-range Y' (H, W) and Cb, Cr planes: full size, or (4:2:0, the
-    planes' size) sited as HEVC's default chroma location (type 0: horizontally co-sited, vertically between
-    the rows): Cb, Cr of rows 2i and 2i + 1 averaged, filtered [1, 2, 1] / 4 along the row."""
+def _ycbcr_kernel(codes, kr, kb, shift, out, offsets, strides, ch, cw):
+    """R'G'B' codes (3, H, W) -> 10-bit narrow-range Y' (H, W) and Cb, Cr planes (ch x cw) as little-endian
+    words at byte `offsets` with row `strides` in the frame's bytes `out`: full size, or (4:2:0) sited as
+    HEVC's default chroma location (type 0: horizontally co-sited, vertically between the rows): Cb, Cr of
+    rows 2i and 2i + 1 averaged, filtered [1, 2, 1] / 4 along the row."""
     h, w = codes.shape[1:]
     for y in prange(h):
         for x in range(w):
             yy, cb, cr = _ycc(codes, y, x, kr, kb, shift)
             code = int(math.floor(64.0 + 876.0 * yy + 0.5))
-            yp[y, x] = np.uint16(min(max(code, 4), 1019))
-    ch, cw = up.shape
+            _put(out, offsets[0] + y * strides[0] + 2 * x, min(max(code, 4), 1019))
     full = ch == h and cw == w
     for i in prange(ch):
         for j in range(cw):
@@ -208,8 +215,8 @@ def _ycbcr_kernel(codes, kr, kb, shift, yp, up, vp):
                         _, b1, r1 = _ycc(codes, y, x, kr, kb, shift)
                         cb += wt * b1
                         cr += wt * r1
-            up[i, j] = _chroma_code(cb)
-            vp[i, j] = _chroma_code(cr)
+            _put(out, offsets[1] + i * strides[1] + 2 * j, _chroma_code(cb))
+            _put(out, offsets[2] + i * strides[2] + 2 * j, _chroma_code(cr))
 
 
 MATRICES = {"bt2020": LUMA_BT2020, "bt709": LUMA_BT709}
@@ -229,10 +236,18 @@ def ycbcr_frame(codes: np.ndarray, out: np.ndarray, offsets, strides, subsample:
         raise ValueError(f"R'G'B' codes must be uint16 (3, H, W), got {c.dtype} {c.shape}")
     h, w = c.shape[1:]
     ch, cw = ((h + 1) // 2, (w + 1) // 2) if subsample else (h, w)
-    planes = [np.ndarray(shape, np.dtype("<u2"), out, offsets[k], (strides[k], 2))
-              for k, shape in enumerate(((h, w), (ch, cw), (ch, cw)))]
+    frame = out
+    if not (isinstance(frame, np.ndarray) and frame.ndim == 1 and frame.dtype == np.uint8
+            and frame.flags.c_contiguous):
+        raise ValueError("the Y'CbCr frame must be the frame's bytes: a 1-D contiguous uint8 array")
+    offsets = np.array([int(x) for x in offsets[:3]], np.int64)
+    strides = np.array([int(x) for x in strides[:3]], np.int64)
+    ends = offsets + strides * (np.array([h, ch, ch]) - 1) + 2 * np.array([w, cw, cw])
+    if (strides < 2 * np.array([w, cw, cw])).any() or (offsets < 0).any() or ends.max() > frame.size:
+        raise ValueError(f"a {w}x{h} Y'CbCr frame does not fit {frame.size} bytes with plane offsets "
+                         f"{offsets.tolist()} and strides {strides.tolist()}")
     kr, kb = MATRICES[matrix]
-    _ycbcr_kernel(c, kr, kb, shift, *planes)
+    _ycbcr_kernel(c, kr, kb, shift, frame, offsets, strides, ch, cw)
     return out
 
 

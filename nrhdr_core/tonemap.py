@@ -643,6 +643,63 @@ def _eetf_params(source_peak: float, target_peak: float):
     return src, max(1.5 * max_lum - 0.5, 0.0), max_lum
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _hdr_signal(v, transfer):
+    """Non-linear signal of v in [0, 1] (NaN and negatives: black): PQ (0, v = cd/m^2 / L_p) or HLG (1, v = E)."""
+    if not (v > 0.0):
+        v = 0.0
+    elif v > 1.0:
+        v = 1.0
+    if transfer == 0:
+        ym = v ** M_1
+        return ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2
+    if v <= 1.0 / 12.0:
+        return math.sqrt(3.0 * v)
+    return HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rolled_off(v, transfer, src_pq, ks, max_lum):
+    """PQ signal of the display light of v (transfer 0: v = cd/m^2 / L_p; 1: v = HLG's E, light of the
+    1000 cd/m^2 reference display E^1.2) after the BT.2390 EETF (PQ of the source peak src_pq, knee ks,
+    target maxLum), and whether the EETF changed it (False below the knee); NaN and negatives are black."""
+    if not (v > 0.0):
+        v = 0.0
+    if transfer == 1:
+        v = v ** HLG_SYSTEM_GAMMA * (HLG_NOMINAL_PEAK / L_P)
+    if v > 1.0:
+        v = 1.0
+    ym = v ** M_1
+    e1 = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2 / src_pq
+    rolled = e1 > ks
+    if e1 >= 1.0:
+        e1 = max_lum
+    elif rolled:
+        t = (e1 - ks) / (1.0 - ks)
+        t2 = t * t
+        t3 = t2 * t
+        e1 = ((2.0 * t3 - 3.0 * t2 + 1.0) * ks + (t3 - 2.0 * t2 + t) * (1.0 - ks)
+              + (-2.0 * t3 + 3.0 * t2) * max_lum)
+    return e1 * src_pq, rolled
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pq_light(e):
+    """ST 2084 EOTF of the signal e, in units of L_p."""
+    vp = e ** (1.0 / M_2)
+    n = vp - C_1
+    if n < 0.0:
+        n = 0.0
+    return (n / (C_2 - C_3 * vp)) ** (1.0 / M_1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _hlg_from_pq(e):
+    """HLG scene light E (at most 1) whose reference-display light E^1.2 has the PQ signal e."""
+    v = (_pq_light(e) * (L_P / HLG_NOMINAL_PEAK)) ** (1.0 / HLG_SYSTEM_GAMMA)
+    return v if v <= 1.0 else 1.0
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _hdr_kernel(values, scale, transfer, src_pq, ks, max_lum, code_max, out):
     """values * scale -> PQ (transfer 0: scale gives cd/m^2 / L_p) or HLG (1: scale gives E) -> 10-bit
@@ -655,47 +712,15 @@ def _hdr_kernel(values, scale, transfer, src_pq, ks, max_lum, code_max, out):
         for x in range(w):
             v = values[y, x] * scale
             if src_pq > 0.0:
-                if not (v > 0.0):
-                    v = 0.0
+                e, _ = _rolled_off(v, transfer, src_pq, ks, max_lum)
                 if transfer == 1:
-                    v = v ** HLG_SYSTEM_GAMMA * (HLG_NOMINAL_PEAK / L_P)
-                if v > 1.0:
-                    v = 1.0
-                ym = v ** M_1
-                e1 = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2 / src_pq
-                if e1 >= 1.0:
-                    e1 = max_lum
-                elif e1 > ks:
-                    t = (e1 - ks) / (1.0 - ks)
-                    t2 = t * t
-                    t3 = t2 * t
-                    e1 = ((2.0 * t3 - 3.0 * t2 + 1.0) * ks + (t3 - 2.0 * t2 + t) * (1.0 - ks)
-                          + (-2.0 * t3 + 3.0 * t2) * max_lum)
-                e = e1 * src_pq
-                if transfer == 1:
-                    vp = e ** (1.0 / M_2)
-                    n = vp - C_1
-                    if n < 0.0:
-                        n = 0.0
-                    v = ((n / (C_2 - C_3 * vp)) ** (1.0 / M_1) * (L_P / HLG_NOMINAL_PEAK)) ** (1.0 / HLG_SYSTEM_GAMMA)
-                    if v > 1.0:
-                        v = 1.0
+                    v = _hlg_from_pq(e)
                     if v <= 1.0 / 12.0:
                         e = math.sqrt(3.0 * v)
                     else:
                         e = HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
             else:
-                if not (v > 0.0):             # NaN and negatives -> black
-                    v = 0.0
-                elif v > 1.0:
-                    v = 1.0
-                if transfer == 0:
-                    ym = v ** M_1
-                    e = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2
-                elif v <= 1.0 / 12.0:
-                    e = math.sqrt(3.0 * v)
-                else:
-                    e = HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
+                e = _hdr_signal(v, transfer)
             code = int(64.0 + 876.0 * e + 0.5)
             if code > code_max:
                 code = code_max
@@ -728,6 +753,19 @@ def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
     `peak` > 0 (cd/m^2, the mastering display's): display light from `source_peak` (`peak_luminance` of the
     frame's white) down is rolled off to `peak` by the BT.2390 EETF (`eetf_BT2390`; HLG: on the 1000 cd/m^2
     reference display's light) instead of being clipped, and no code exceeds the last one at or below `peak`."""
+    args = _hdr_arguments(transfer, diffuse_white, reference_white, exposure_stops, peak, source_peak)
+    v = np.asarray(values, dtype=np.float32)
+    if out is None:
+        out = np.empty(v.shape, np.uint16)
+    if out.dtype != np.uint16:
+        raise ValueError(f"HDR output must be uint16, got {out.dtype}")
+    _hdr_kernel(v, *args, out)
+    return out
+
+
+def _hdr_arguments(transfer, diffuse_white, reference_white, exposure_stops, peak, source_peak) -> tuple:
+    """The settings of `hdr_encode` / `hdr_encode_rgb` checked, as the kernels take them: (scale, transfer
+    0 = pq / 1 = hlg, PQ of the source peak, knee, maxLum, highest code)."""
     if transfer not in TRANSFERS:
         raise ValueError(f"HDR transfer must be one of {', '.join(TRANSFERS)}, got {transfer!r}")
     if not (diffuse_white > 0 and math.isfinite(diffuse_white)):
@@ -737,11 +775,6 @@ def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
     if not (0.0 <= peak <= L_P and 0.0 <= source_peak and math.isfinite(source_peak)):
         raise ValueError(f"HDR peak must be in 0..{L_P:g} cd/m^2 and the source peak >= 0, got {peak}, "
                          f"{source_peak}")
-    v = np.asarray(values, dtype=np.float32)
-    if out is None:
-        out = np.empty(v.shape, np.uint16)
-    if out.dtype != np.uint16:
-        raise ValueError(f"HDR output must be uint16, got {out.dtype}")
     gain = 2.0 ** exposure_stops / diffuse_white
     src_pq, ks, max_lum = _eetf_params(min(source_peak, L_P), peak)
     code_max = 940
@@ -750,10 +783,8 @@ def hdr_encode(values: np.ndarray, diffuse_white: float, transfer: str = "pq",
                else oetf_HLG((min(peak, HLG_NOMINAL_PEAK) / HLG_NOMINAL_PEAK) ** (1 / HLG_SYSTEM_GAMMA)))
         code_max = min(int(math.floor(64.0 + 876.0 * float(top) + 1e-4)), 940)
     if transfer == "pq":
-        _hdr_kernel(v, gain * reference_white / L_P, 0, src_pq, ks, max_lum, code_max, out)
-    else:
-        _hdr_kernel(v, gain * hlg_reference_E(reference_white), 1, src_pq, ks, max_lum, code_max, out)
-    return out
+        return gain * reference_white / L_P, 0, src_pq, ks, max_lum, code_max
+    return gain * hlg_reference_E(reference_white), 1, src_pq, ks, max_lum, code_max
 
 
 # ---- colour (docs/COLOUR.md "Colour output") ---------------------------------------------------------------
@@ -871,47 +902,64 @@ def _rgb_luminance(rgb, gains, kr, kb, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _srgb_code(t, bins, thr):
-    """8-bit sRGB code of linear t in [0, 1]: the bin's first code, plus one when t reaches the next code's
-    threshold (a bin holds at most one threshold: exact rounding in the encoded domain)."""
-    t = t if t > np.float32(0.0) else np.float32(0.0)
-    t = t if t < np.float32(1.0) else np.float32(1.0)
-    c = bins[int(t * np.float32(bins.shape[0] - 1))]
-    return c + 1 if t >= thr[c] else c
+def _channel(v, g):
+    """The white-balanced channel min(max(v g, 0), cap) (NaN -> 0)."""
+    c = v * g
+    return min(c if c > np.float32(0.0) else np.float32(0.0), np.float32(_CHANNEL_CAP))
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ratio(v, g, L, sat):
-    """(c / L)^sat of the white-balanced channel c = min(max(v g, 0), cap); 1 where L is 0."""
-    c = v * g
-    c = min(c if c > np.float32(0.0) else np.float32(0.0), np.float32(_CHANNEL_CAP))
-    r = c / L if L > np.float32(0.0) else np.float32(1.0)
-    return r if sat == np.float32(1.0) else r ** sat
+def _into_gamut(t0, t1, t2, yd, tb, x):
+    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into column x of `tb`, clamped to
+    [0, 1]."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    mx = max(t0, max(t1, t2))
+    f = (one - yd) / (mx - yd) if mx > one else one
+    tb[0, x] = min(max(yd + (t0 - yd) * f, zero), one)
+    tb[1, x] = min(max(yd + (t1 - yd) * f, zero), one)
+    tb[2, x] = min(max(yd + (t2 - yd) * f, zero), one)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _rgb_display(rgb, gains, lum, codes, dec, bins, thr, sat, out):
     """Colour display codes: level Y' = sRGB EOTF of the grey tone map's 16-bit code (`dec`), channel
-    t = (c / L)^sat Y'; above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes (H, W, 3)."""
+    t = (c / L)^sat Y' (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes
+    (H, W, 3): the code at the linear bin's start, plus one from the next code's threshold on (a bin holds
+    at most one threshold: exact rounding in the encoded domain). Rows in chunks through a buffer."""
     h, w = lum.shape
-    one = np.float32(1.0)
+    nch = min(h, 64)
+    zero = np.float32(0.0)
+    nb = np.float32(bins.shape[0] - 1)
     g0, g1, g2 = np.float32(gains[0]), np.float32(gains[1]), np.float32(gains[2])
-    for y in prange(h):
-        for x in range(w):
-            L = lum[y, x]
-            yd = dec[codes[y, x]]
-            t0 = _ratio(rgb[0, y, x], g0, L, sat) * yd
-            t1 = _ratio(rgb[1, y, x], g1, L, sat) * yd
-            t2 = _ratio(rgb[2, y, x], g2, L, sat) * yd
-            mx = max(t0, max(t1, t2))
-            if mx > one:
-                f = (one - yd) / (mx - yd)
-                t0 = yd + (t0 - yd) * f
-                t1 = yd + (t1 - yd) * f
-                t2 = yd + (t2 - yd) * f
-            out[y, x, 0] = _srgb_code(t0, bins, thr)
-            out[y, x, 1] = _srgb_code(t1, bins, thr)
-            out[y, x, 2] = _srgb_code(t2, bins, thr)
+    powered = sat != np.float32(1.0)
+    for c in prange(nch):
+        tb = np.empty((3, w), np.float32)
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            if powered:
+                for x in range(w):
+                    L = lum[y, x]
+                    yd = dec[codes[y, x]]
+                    if L > zero:
+                        _into_gamut((_channel(rgb[0, y, x], g0) / L) ** sat * yd,
+                                    (_channel(rgb[1, y, x], g1) / L) ** sat * yd,
+                                    (_channel(rgb[2, y, x], g2) / L) ** sat * yd, yd, tb, x)
+                    else:
+                        _into_gamut(yd, yd, yd, yd, tb, x)
+            else:
+                for x in range(w):
+                    L = lum[y, x]
+                    yd = dec[codes[y, x]]
+                    lit = L > zero
+                    k = yd / L if lit else zero
+                    _into_gamut(_channel(rgb[0, y, x], g0) * k if lit else yd,
+                                _channel(rgb[1, y, x], g1) * k if lit else yd,
+                                _channel(rgb[2, y, x], g2) * k if lit else yd, yd, tb, x)
+            for x in range(w):
+                for ch in range(3):
+                    tv = tb[ch, x]
+                    code = bins[int(tv * nb)]
+                    out[y, x, ch] = code + 1 if tv >= thr[code] else code
 
 
 def srgb_eotf(v):
@@ -988,21 +1036,6 @@ def warmup_rgb(elements: bool = False, operators=SDR_OPERATORS) -> None:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _hdr_signal(v, transfer):
-    """Non-linear signal of v in [0, 1] (NaN and negatives: black): PQ (0, v = cd/m^2 / L_p) or HLG (1, v = E)."""
-    if not (v > 0.0):
-        v = 0.0
-    elif v > 1.0:
-        v = 1.0
-    if transfer == 0:
-        ym = v ** M_1
-        return ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2
-    if v <= 1.0 / 12.0:
-        return math.sqrt(3.0 * v)
-    return HLG_A * math.log(12.0 * v - HLG_B) + HLG_C
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _hdr_code(e, code_max):
     code = int(64.0 + 876.0 * e + 0.5)
     return np.uint16((code if code < code_max else code_max) << 6)
@@ -1031,32 +1064,14 @@ def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_ma
                 m = max(v0, max(v1, v2))
                 if not (m > 0.0):
                     m = 0.0
-                v = m
+                e, rolled = _rolled_off(m, transfer, src_pq, ks, max_lum)
                 if transfer == 1:
-                    v = v ** HLG_SYSTEM_GAMMA * (HLG_NOMINAL_PEAK / L_P)
-                if v > 1.0:
-                    v = 1.0
-                ym = v ** M_1
-                e1 = ((C_1 + C_2 * ym) / (C_3 * ym + 1.0)) ** M_2 / src_pq
-                if e1 >= 1.0:
-                    e1 = max_lum
-                elif e1 > ks:
-                    t = (e1 - ks) / (1.0 - ks)
-                    t2 = t * t
-                    t3 = t2 * t
-                    e1 = ((2.0 * t3 - 3.0 * t2 + 1.0) * ks + (t3 - 2.0 * t2 + t) * (1.0 - ks)
-                          + (-2.0 * t3 + 3.0 * t2) * max_lum)
-                e = e1 * src_pq
-                vp = e ** (1.0 / M_2)
-                n = vp - C_1
-                if n < 0.0:
-                    n = 0.0
-                lm = (n / (C_2 - C_3 * vp)) ** (1.0 / M_1)          # the rolled-off light / L_p
-                if transfer == 1:
-                    lm = (lm * (L_P / HLG_NOMINAL_PEAK)) ** (1.0 / HLG_SYSTEM_GAMMA)
-                    if lm > 1.0:
-                        lm = 1.0
+                    lm = _hlg_from_pq(e)
                     e = _hdr_signal(lm, 1)
+                elif rolled:
+                    lm = _pq_light(e)                                # the rolled-off light / L_p
+                else:
+                    lm = m                                           # below the knee: unchanged
                 k = lm / m if m > 0.0 else 0.0
                 e0 = e if v0 >= m else _hdr_signal(v0 * k, transfer)
                 ea = e if v1 >= m else _hdr_signal(v1 * k, transfer)
@@ -1085,17 +1100,9 @@ def hdr_encode_rgb(rgb: np.ndarray, diffuse_white: float, transfer: str = "pq", 
     value `diffuse_white` shown at `reference_white`, PQ or HLG). With `peak` > 0 the BT.2390 roll-off from
     `source_peak` maps the largest channel and scales the others alike (hue kept); a grey pixel gets the codes
     `hdr_encode` gives its value."""
-    if transfer not in TRANSFERS:
-        raise ValueError(f"HDR transfer must be one of {', '.join(TRANSFERS)}, got {transfer!r}")
     if primaries not in PRIMARIES_OUT:
         raise ValueError(f"HDR output primaries must be one of {', '.join(PRIMARIES_OUT)}, got {primaries!r}")
-    if not (diffuse_white > 0 and math.isfinite(diffuse_white)):
-        raise ValueError(f"HDR diffuse white must be a finite number > 0, got {diffuse_white}")
-    if not (reference_white > 0 and math.isfinite(reference_white)):
-        raise ValueError(f"reference white must be > 0 cd/m^2, got {reference_white}")
-    if not (0.0 <= peak <= L_P and 0.0 <= source_peak and math.isfinite(source_peak)):
-        raise ValueError(f"HDR peak must be in 0..{L_P:g} cd/m^2 and the source peak >= 0, got {peak}, "
-                         f"{source_peak}")
+    args = _hdr_arguments(transfer, diffuse_white, reference_white, exposure_stops, peak, source_peak)
     v = _rgb_input(rgb)
     gains = _gains(white_balance)
     if out is None:
@@ -1105,13 +1112,5 @@ def hdr_encode_rgb(rgb: np.ndarray, diffuse_white: float, transfer: str = "pq", 
     m = primaries_matrix("bt709", primaries) if primaries != "bt709" else np.eye(3)
     d = m - np.eye(3)
     d = np.ascontiguousarray(d[:, :2] + 0.0)      # M - I: column B is -(R + G) (rows of M sum to 1)
-    gain = 2.0 ** exposure_stops / diffuse_white
-    src_pq, ks, max_lum = _eetf_params(min(source_peak, L_P), peak)
-    code_max = 940
-    if peak > 0:
-        top = (eotf_inverse_ST2084(peak) if transfer == "pq"
-               else oetf_HLG((min(peak, HLG_NOMINAL_PEAK) / HLG_NOMINAL_PEAK) ** (1 / HLG_SYSTEM_GAMMA)))
-        code_max = min(int(math.floor(64.0 + 876.0 * float(top) + 1e-4)), 940)
-    scale = gain * reference_white / L_P if transfer == "pq" else gain * hlg_reference_E(reference_white)
-    _hdr_rgb_kernel(v, gains, d, scale, 0 if transfer == "pq" else 1, src_pq, ks, max_lum, code_max, out)
+    _hdr_rgb_kernel(v, gains, d, *args, out)
     return out

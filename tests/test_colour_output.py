@@ -301,6 +301,22 @@ def run_frames(desc, caps, buffers):
     return out, error
 
 
+def run_to_eos(desc, caps, buffers):
+    """appsrc (caps) ! desc (ending in a sink): push `buffers`, EOS, wait for it; an error fails the test."""
+    from gi.repository import Gst
+    pipeline = Gst.parse_launch(f"appsrc name=src format=time caps=\"{caps}\" ! {desc}")
+    src = pipeline.get_by_name("src")
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        for b in buffers:
+            src.push_buffer(b)
+        src.end_of_stream()
+        m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
+        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+
+
 def rgb_scene(h=H, w=W, seed=3):
     rng = np.random.default_rng(seed)
     g = ramp(5.0, 3e4)[:h, :w]
@@ -353,50 +369,43 @@ def test_nrtonemap_white_balance_from_profile_and_grey_world(gst, tmp_path):
     assert (img[..., 0] >= img[..., 1]).all() and (img[..., 0] > img[..., 1]).any()
 
 
-@pytest.mark.parametrize("fmt", ["I420_10LE", "Y444_10LE"])
-def test_nrtonemap_colour_pq_equals_core(gst, fmt):
+@pytest.mark.parametrize("fmt,transfer", [("I420_10LE", "pq"), ("Y444_10LE", "pq"), ("I420_10LE", "hlg")])
+def test_nrtonemap_colour_hdr_equals_core(gst, fmt, transfer):
     h, w = 6, 10
     rgb = rgb_scene(h, w)
     state = np.zeros((h, w), np.uint8)
     white, diffuse = 4094 * 6.35, 4094.0
-    out, err = run_frames(f"nrtonemap transfer=pq peak=1000 white-balance=none ! video/x-raw,format={fmt}",
+    out, err = run_frames(f"nrtonemap transfer={transfer} peak=1000 white-balance=none ! video/x-raw,format={fmt}",
                           colour_caps(w, h, white, diffuse), [colour_buffer(rgb, state, 0)])
     assert err is None, err
-    assert "colorimetry=(string)bt2100-pq" in out[0][0]
-    src = tonemap.peak_luminance(white, diffuse)
-    codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000, source_peak=src)
+    assert f"colorimetry=(string)bt2100-{transfer}" in out[0][0]
+    src = tonemap.peak_luminance(white, diffuse, transfer)
+    codes = tonemap.hdr_encode_rgb(rgb, diffuse, transfer, peak=1000, source_peak=src)
     from gi.repository import Gst, GstVideo
     vi = GstVideo.VideoInfo.new_from_caps(Gst.Caps.from_string(out[0][0]))
     want = np.zeros(vi.size, np.uint8)
     hdr_output.ycbcr_frame(codes, want, vi.offset, vi.stride, subsample=fmt == "I420_10LE")
-    assert np.frombuffer(out[0][1], np.uint8).tobytes() == want.tobytes()
+    ch, cw = ((h + 1) // 2, (w + 1) // 2) if fmt == "I420_10LE" else (h, w)
+    for k, (ph, pw) in enumerate(((h, w), (ch, cw), (ch, cw))):      # the planes, not the rows' padding
+        got_plane = np.ndarray((ph, pw), "<u2", out[0][1], vi.offset[k], (vi.stride[k], 2))
+        want_plane = np.ndarray((ph, pw), "<u2", want, vi.offset[k], (vi.stride[k], 2))
+        assert (got_plane == want_plane).all(), k
     y = np.ndarray((h, w), "<u2", out[0][1], vi.offset[0], (vi.stride[0], 2))
     assert y[0, 0] == codes[1, 0, 0] >> 6            # the grey patch: Y' = its code
 
 
 def test_nrexrsink_colour_round_trip(gst, tmp_path):
     """Colour frames recorded as EXR channels R, G, B (+ state) and read back exactly."""
+    import OpenImageIO as oiio
     from nrhdr_core import io
     h, w = 6, 9
     frames = [rgb_scene(h, w, seed=k) for k in range(2)]
     frames[1][0, 0, 0] = 1e9
     states = [np.full((h, w), k * 0x40, np.uint8) for k in range(2)]
-    from gi.repository import Gst
-    pipeline = Gst.parse_launch(f"appsrc name=src format=time caps=\"{colour_caps(w, h, 26000.0)}\" ! nrexrsink "
-                                f"location={tmp_path}/f_%02d.exr write-state=true")
-    src = pipeline.get_by_name("src")
-    try:
-        pipeline.set_state(Gst.State.PLAYING)
-        for i, (f, s) in enumerate(zip(frames, states)):
-            src.push_buffer(colour_buffer(f, s, i))
-        src.end_of_stream()
-        m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
-        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
-    finally:
-        pipeline.set_state(Gst.State.NULL)
+    run_to_eos(f"nrexrsink location={tmp_path}/f_%02d.exr write-state=true", colour_caps(w, h, 26000.0),
+               [colour_buffer(f, s, i) for i, (f, s) in enumerate(zip(frames, states))])
     for i, (f, s) in enumerate(zip(frames, states)):
         path = tmp_path / f"f_{i:02d}.exr"
-        import OpenImageIO as oiio
         inp = oiio.ImageInput.open(str(path))
         names = list(inp.spec().channelnames)
         inp.close()
@@ -427,25 +436,13 @@ def test_nrhdrenc_colour_decoded_by_ffmpeg(gst, tmp_path):
     import subprocess
     if shutil.which("ffmpeg") is None or gst.ElementFactory.find("x265enc") is None:
         pytest.skip("needs x265enc and ffmpeg")
-    from gi.repository import Gst
     h, w = 32, 64
     rgb = patches(h, w)
     state = np.zeros((h, w), np.uint8)
     white, diffuse = 4094 * 6.35, 4094.0
     out = tmp_path / "c.mp4"
-    pipeline = Gst.parse_launch(
-        f"appsrc name=src format=time caps=\"{colour_caps(w, h, white, diffuse)}\" ! nrhdrenc "
-        f"white-balance=none x265-options=lossless=1 ! mp4mux ! filesink location={out}")
-    src = pipeline.get_by_name("src")
-    try:
-        pipeline.set_state(Gst.State.PLAYING)
-        for i in range(2):
-            src.push_buffer(colour_buffer(rgb, state, i))
-        src.end_of_stream()
-        m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
-        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
-    finally:
-        pipeline.set_state(Gst.State.NULL)
+    run_to_eos(f"nrhdrenc white-balance=none x265-options=lossless=1 ! mp4mux ! filesink location={out}",
+               colour_caps(w, h, white, diffuse), [colour_buffer(rgb, state, i) for i in range(2)])
     p = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-show_entries",
                         "stream=profile,pix_fmt,color_primaries,color_transfer,color_space,color_range", "-of", "json",
                         str(out)], capture_output=True, text=True, check=True)
@@ -497,7 +494,6 @@ def test_hdr10_cli_colour_clip(gst_subprocess_env, tmp_path):
     import subprocess
     import sys
     from nrhdr_core import batch, chain, profile
-    from gst_plugins.cli.hdr import colour_frame
     if shutil.which("ffprobe") is None or subprocess.run(["gst-inspect-1.0", "--exists", "x265enc"]).returncode:
         pytest.skip("x265enc or ffprobe not installed")
     h, w, n = 32, 48, 2
@@ -526,7 +522,8 @@ def test_hdr10_cli_colour_clip(gst_subprocess_env, tmp_path):
     per = w * h * 3 // 2 * 2
     top = 0
     for i in range(n):
-        rgb, _ = colour_frame(batch.read_frame(src.raw, w, h, i), prof, chain.ChainSettings(method="preview"))
+        rgb, _ = chain.process_frame(batch.read_frame(src.raw, w, h, i), prof,
+                                     chain.ChainSettings(method="preview", crosstalk="kernel"))
         codes = tonemap.hdr_encode_rgb(rgb, diffuse, "pq", peak=1000.0, source_peak=tonemap.peak_luminance(white, diffuse))
         want = np.zeros(per, np.uint8)
         hdr_output.ycbcr_frame(codes, want, (0, w * h * 2, w * h * 5 // 2), (w * 2, w, w))
@@ -544,3 +541,41 @@ def test_hdr10_cli_colour_clip(gst_subprocess_env, tmp_path):
     spec = inp.spec()
     inp.close()
     assert spec.nchannels == 3 and list(spec.getattribute("CICP")) == [9, 16, 0, 1]
+
+
+@pytest.mark.gst
+def test_colour_chain_through_the_elements(gst, tmp_path):
+    """A Bayer clip through nrvalidity ! nrreconstruct ! nrtonemap: RGB equal to chain.process_frame then
+    LocalTonemap.rgb with the profile's white and white balance (the stream's statistics)."""
+    import dataclasses as dc
+    import subprocess
+    import sys
+    from nrhdr_core import batch, chain, profile
+    h, w, n = 32, 48, 3
+    clip = tmp_path / "clip"
+    p = subprocess.run([sys.executable, "-m", "gst_plugins.cli", "simulate", "synthetic", "-o", str(clip), "--cfa",
+                        "grbg", "--frames", str(n), "--width", str(w), "--height", str(h)], capture_output=True,
+                       text=True, timeout=600)
+    assert p.returncode == 0, p.stdout + p.stderr
+    prof = dc.replace(profile.load(clip / "camera.json"), white_balance=(1.2, 1.0, 0.9))
+    path = tmp_path / "camera.json"
+    profile.save(prof, path)
+    prof = profile.load(path)
+    src = batch.open_source(clip)
+    raws = [batch.read_frame(src.raw, w, h, i) for i in range(n)]
+    from gi.repository import Gst
+    bufs = []
+    for i, r in enumerate(raws):
+        b = Gst.Buffer.new_wrapped(np.ascontiguousarray(r, "<u2").tobytes())
+        b.pts, b.duration = i * DUR, DUR
+        bufs.append(b)
+    out, err = run_frames(f"nrvalidity profile={path} ! nrreconstruct method=preview ! nrtonemap ! "
+                          f"video/x-raw,format=RGB", f"video/x-raw,format=GRAY16_LE,width={w},height={h},"
+                          f"framerate={FPS}/1", bufs)
+    assert err is None, err
+    assert len(out) == n
+    local = tonemap.LocalTonemap(0.1)
+    for r, (_, data) in zip(raws, out):
+        rgb, _ = chain.process_frame(r.copy(), prof, chain.ChainSettings(method="preview", crosstalk="off"))
+        want = local.rgb(rgb, float(prof.white), white_balance=prof.white_balance)
+        assert (np.ndarray((h, w, 3), np.uint8, data, 0, (w * 3, 3, 1)) == want).all()

@@ -5,7 +5,8 @@ mastering peak) and measures MaxCLL / MaxFALL; then x265enc encodes them (HEVC M
 BT.2020 non-constant luminance / limited range, ST 2086 and CTA-861.3 SEI) into MP4 or Matroska. A folder
 instead of OUT.mp4 / OUT.mkv gets 16-bit PNG frames with a cICP chunk.
 
-A colour clip (the profile's cfa is a Bayer phase) is reconstructed in colour (`demosaic.reconstruct_cfa`),
+A colour clip (the profile's cfa is a Bayer phase) is reconstructed in colour (`chain.process_frame`:
+`demosaic.reconstruct_cfa`),
 white balanced (--white-balance), converted from BT.709 camera RGB to BT.2020 primaries, encoded per channel
 (`tonemap.hdr_encode_rgb`) and written as BT.2020 non-constant-luminance Y'CbCr 4:2:0
 (`hdr_output.ycbcr_frame`); MaxCLL / MaxFALL from max(R, G, B) per pixel; stills are RGB PNG."""
@@ -100,24 +101,8 @@ def _need_elements(Gst, names) -> None:
                          f"(x265enc, h265parse) and gstreamer1.0-plugins-good (mp4mux, matroskamux, capssetter)")
 
 
-def colour_frame(raw, prof, settings):
-    """A raw Bayer frame through validity, crosstalk and the joint colour reconstruction: (rgb float32 (3, H, W),
-    state uint8 (H, W)). settings.method "fse" or "preview" (the two methods of `demosaic.reconstruct_cfa`)."""
-    from nrhdr_core import crosstalk, demosaic, validity
-    s = settings
-    if s.method not in ("fse", "preview"):
-        raise ValueError(f"--method {s.method}: a colour clip ({prof.cfa}) is reconstructed by fse or preview")
-    values, state = validity.classify(raw, prof, mode=s.mode, l_min=s.l_min, dark_policy=s.dark_policy)
-    if s.crosstalk != "off":
-        v2, s2 = crosstalk.correct(values, state, prof, s.crosstalk, lut=s.crosstalk_lut)
-        values, state = v2, s2
-    rgb = demosaic.reconstruct_cfa(values, state, prof.cfa, method=s.method, preset=s.preset,
-                                   use_bounds=s.use_bounds, noise=prof, fusion=s.noise_fusion)
-    return rgb, state
-
-
 def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, reference=None):
-    """Every frame through the chain and hdr_encode (colour clips: `colour_frame` and hdr_encode_rgb); codes
+    """Every frame through the chain and hdr_encode (colour clips: hdr_encode_rgb); codes
     appended to `codes_path` (uint16 << 6; colour: R'G'B' planes), or PNG stills written into `pngs`; returns
     the measured LightLevels. `reference`: a list that gets each frame's display light before quantisation
     (hdr_output.display_reference, float32; monochrome)."""
@@ -134,14 +119,13 @@ def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, referenc
             (open(codes_path, "wb") if codes_path is not None else contextlib.nullcontext()) as f:
         for i in range(src.frames):
             raw = batch.read_frame(src.raw, src.width, src.height, i)
+            values, _state = chain.process_frame(raw.copy(), prof, settings)
             if colour:
-                rgb, _state = colour_frame(raw.copy(), prof, settings)
-                gains = (grey.update(rgb) if grey is not None else
+                gains = (grey.update(values) if grey is not None else
                          tuple(prof.white_balance) if wb == "profile" else (1.0, 1.0, 1.0))
-                tonemap.hdr_encode_rgb(rgb, diffuse, a.transfer, gains, "bt2020", a.reference_white, a.exposure,
+                tonemap.hdr_encode_rgb(values, diffuse, a.transfer, gains, "bt2020", a.reference_white, a.exposure,
                                        out=out, peak=a.peak, source_peak=source_peak)
             else:
-                values, _state = chain.process_frame(raw.copy(), prof, settings)
                 tonemap.hdr_encode(values, diffuse, a.transfer, reference_white=a.reference_white,
                                    exposure_stops=a.exposure, out=out, peak=a.peak, source_peak=source_peak)
                 if reference is not None:
@@ -272,6 +256,8 @@ def cmd_hdr10(a) -> int:
         if Path(a.input).is_dir():
             fps = int(simulate.load_clip(Path(a.input), allow_outside=a.allow_outside_paths).get("fps", 30))
     settings = chain.ChainSettings(mode=a.mode, crosstalk=a.crosstalk, method=a.method, preset=a.preset)
+    if colour:
+        chain.check_colour(settings, prof.cfa)
     progress = not a.no_progress
     with outputs.stop_on_signals(ends_process=True):
         if container is None:       # HDR stills

@@ -318,7 +318,7 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
         self._grey.speed = p.smoothing
         return self._grey.update(rgb)
 
-    def _colour(self, p, rgb, white, transfer, inbuf, outbuf) -> None:
+    def _colour(self, p, rgb, white, transfer, outbuf) -> None:
         """A colour frame into the output: RGB (log) or BT.2020 Y'CbCr (pq/hlg)."""
         from nrhdr_core import hdr_output, tonemap
         from nrhdr_core.scratch import planes
@@ -424,7 +424,7 @@ class NrTonemap(NrElement, LiveTiming, GstBase.BaseTransform):
                 white = self._white(p, values[1], hdr=transfer != "log")
                 if not (math.isfinite(white) and white > 0):
                     raise ValueError(f"tone mapping white is {white}")
-                self._colour(p, values, white, transfer, inbuf, outbuf)
+                self._colour(p, values, white, transfer, outbuf)
         else:
             with self.warnings_to_bus(), map_hdr(inbuf, self._in_info, write=False) as (values, _state), \
                     map_video(outbuf, self._out_info, self._out_dtype, write=True, exact=False) as out:
