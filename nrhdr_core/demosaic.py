@@ -10,8 +10,9 @@ reconstruction):
    smooth, where linear differences scale with the brightness of an HDR scene); c keeps the logarithm
    finite and noise-tolerant near black (`log_offset`);
 3. the differences reconstructed on the red and the blue lattice (one cell per 2 x 2 Bayer block: the level
-   1 of the pull-push pyramid, or an FSE image of half size), interpolated bilinearly to every photosite
-   and turned back into R = (max(G, 0) + c) 2^d_R - c and B.
+   1 of the pull-push pyramid with the monochrome preview's neighbour fill, or an FSE image of half size in
+   the linear domain), turned into ratios 2^d, interpolated bilinearly to every photosite:
+   R = (max(G, 0) + c) 2^d_R - c, B likewise.
 
 The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its
 value kept bit for bit; a missing photosite's own channel clamped to its channel's data range
@@ -170,8 +171,9 @@ def _with_bounds_as_data(v32, state, name, lacking, method, preset, noise, fusio
 
 def log_offset(green_mean: float, noise=None) -> float:
     """c of the log colour differences log2(max(x, 0) + c): OFFSET_SHARE x max(`green_mean`, 0) (the
-    mean of the known green values: the top of their pull-push pyramid), at least OFFSET_NOISE_K x the noise floor sigma of a regular photosite (gain, read
-    noise and quantisation, Eq. 4-7) when `noise` is given; 1 when both are 0."""
+    mean of the known green values: the top of their pull-push pyramid), at least OFFSET_NOISE_K x the
+    noise floor sigma of a regular photosite (gain, read noise and quantisation, Eq. 4-7) when `noise` is
+    given; 1 when both are 0."""
     c = OFFSET_SHARE * max(float(green_mean), 0.0)
     if noise is not None:
         g = float(noise.gain)
