@@ -327,10 +327,10 @@ def _own_row(o, values, state, y, x0, hi, use_bounds):
     """The photosites x0, x0 + 2, ... of row y, whose own channel's estimate is o[x]: measured (VALID) or
     already RECONSTRUCTED: their value; missing: at most max(hi, lower bound), then within their bounds
     (CLIPPED: >= lower bound, DARK: <= the value), and the RECONSTRUCTED bit. Branch-free over the whole
-    row (it vectorises); then,
-    only in rows that have one, the clipped-neighbour rule of `validity.bounds` on the photosites' own Bayer
-    phase (`validity.clip_lower_row` on the phase's lattice) raises the CLIPPED regular photosites' lower
-    bound l to l' (max(min(a, max(hi, l')), l') of the first result is the clamp with l')."""
+    row (it vectorises). The missing CLIPPED regular photosites get their bit in a second loop, only in
+    rows that have one, where the clipped-neighbour rule of `validity.bounds` on their own Bayer phase
+    (`validity.clip_lower_row` on the phase's lattice) raises their lower bound l to l' (max(min(a,
+    max(hi, l')), l') of the first result is the clamp with l')."""
     w = values.shape[1]
     big = _BIG
     flag = np.uint8(RECONSTRUCTED)
@@ -350,26 +350,27 @@ def _own_row(o, values, state, y, x0, hi, use_bounds):
         b = ub if ub < b else b
         b = v if keep else b
         o[x] = b if own else a
-        ncr += np.int64(own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED))
-    if use_bounds and ncr > 0:
+        cr = own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED)
+        state[y, x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
+        ncr += np.int64(cr)
+    if ncr > 0:
         sv = values[y & 1::2, x0::2]
         ss = state[y & 1::2, x0::2]
         mrow = np.empty(sv.shape[1], np.float32)
-        clip_lower_row(sv, ss, y >> 1, mrow)
-        for j in range(sv.shape[1]):     # branch-free: a select (NaN m: no rule)
+        if use_bounds:
+            clip_lower_row(sv, ss, y >> 1, mrow)
+        for j in range(sv.shape[1]):     # branch-free: selects (NaN m: no rule)
             x = x0 + 2 * j
-            m = mrow[j]
-            ok = ((state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED) & (m == m) \
-                & (m > values[y, x])
+            st = state[y, x]
+            m = mrow[j] if use_bounds else np.float32(np.nan)
+            cr = (st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED
+            ok = cr & (m == m) & (m > values[y, x])
             t = hi if hi > m else m
             a = o[x]
             b = t if a > t else a
             b = m if m > b else b
             o[x] = b if ok else a
-    for x in range(w):
-        st = state[y, x]
-        m = ((x & 1) == x0) & ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
-        state[y, x] = st | (flag * np.uint8(m))
+            state[y, x] = st | (flag * np.uint8(cr))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
