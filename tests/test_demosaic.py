@@ -22,6 +22,12 @@ def _states(h, w, missing, seed=0, reason=DISCARDED):
     return np.where(rng.random((h, w)) < missing, reason, VALID).astype(np.uint8)
 
 
+def _random_mosaic(h, w, pattern, lo, hi, seed):
+    """(truth (3, H, W), its mosaic) of uniform random colours in [lo, hi)."""
+    rgb = np.random.default_rng(seed).uniform(lo, hi, (3, h, w)).astype(np.float32)
+    return rgb, cfa.mosaic(rgb, pattern)
+
+
 def _own(out, pattern):
     """Each photosite's own channel of a (3, H, W) image."""
     idx = cfa.channel_index(pattern, out.shape[1], out.shape[2])
@@ -72,9 +78,7 @@ def test_smooth_colour_ramp(method, pattern):
 @pytest.mark.parametrize("method", METHODS)
 def test_out_argument_and_scale(method):
     h, w = 20, 26
-    rng = np.random.default_rng(2)
-    rgb = rng.uniform(50, 500, (3, h, w)).astype(np.float32)
-    m = cfa.mosaic(rgb, "grbg")
+    _, m = _random_mosaic(h, w, "grbg", 50, 500, 2)
     st = _states(h, w, 0.3, seed=3)
     buf = np.full((3, h, w), np.nan, np.float32)
     res = demosaic.reconstruct_cfa(m, st.copy(), "grbg", method=method, out=buf)
@@ -303,9 +307,7 @@ def test_kodak_fse_beats_preview_beats_bilinear(missing):
 def test_same_result_for_any_thread_count_and_input_untouched(method):
     from numba import get_num_threads, set_num_threads
     h, w = 70, 90
-    rng = np.random.default_rng(11)
-    rgb = rng.uniform(10, 4000, (3, h, w)).astype(np.float32)
-    m = cfa.mosaic(rgb, "gbrg")
+    _, m = _random_mosaic(h, w, "gbrg", 10, 4000, 11)
     st = _states(h, w, 0.4, seed=12, reason=NOISY)
     st[5:20, 10:40] = CLIPPED
     m0 = m.copy()
