@@ -209,25 +209,46 @@ FLATS_OUTPUTS = io.owned_by_patterns(r"flat_\d+_\d+\.(tif|png)", r"exposures\.cs
 
 def simulate_flats(out_dir, prof, sensor_model=None, exposures=None, frames_per_exposure: int = 4,
                    seed: int = 0, fmt: str = "tiff", t_sat: float = 0.01, progress: bool = True,
-                   overwrite: bool = False) -> dict:
+                   overwrite: bool = False, light=None) -> dict:
     """Write a flat-field sweep captured by `prof` (+ `sensor_model`) into `out_dir`: frames, exposures.csv,
     mask.png and truth.json. Flux per second is chosen so that a regular pixel reaches clipping at `t_sat`.
-    Returns the truth (ND, kernel, ...). The folder is written as a whole (outputs.staged_folder: locked,
+    `light` (r, g, b), colour profiles only (profile.cfa): coloured light, the flux of a photosite is the
+    light's channel of its CFA colour x that rate x the exposure (default white, (1, 1, 1)).
+    Returns the truth (ND, kernel, light, ...). The folder is written as a whole (outputs.staged_folder: locked,
     nothing left by a stop, a killed run's temporaries removed by the next run): a non-empty `out_dir` is
     refused unless `overwrite`, which replaces only FLATS_OUTPUTS."""
     if frames_per_exposure < 1:
         raise ValueError("frames_per_exposure must be >= 1")
+    light = check_light(light, prof)
     ext = {"tiff": ".tif", "tif": ".tif", "png": ".png"}.get(fmt)
     if ext is None:
         raise ValueError(f"format must be tiff or png, got {fmt!r}")
     from . import outputs
     with outputs.staged_folder(out_dir, force=overwrite, owned=FLATS_OUTPUTS) as tmp:
         return _write_flats(tmp, prof, sensor_model, exposures, frames_per_exposure, seed, ext, t_sat,
-                            progress)
+                            progress, light)
+
+
+def check_light(light, prof):
+    """The light of a simulated sweep as a tuple of 3 floats (None: white); ValueError naming what is wrong
+    (not 3 finite values >= 0 with one > 0, or coloured light on a monochrome profile)."""
+    from . import cfa as cfas
+    if light is None:
+        return None
+    try:
+        v = tuple(float(c) for c in light)
+    except (TypeError, ValueError):
+        raise ValueError(f"light: need three numbers r, g, b, got {light!r}") from None
+    if len(v) != 3 or not all(math.isfinite(c) and c >= 0 for c in v) or max(v) <= 0:
+        raise ValueError(f"light: need three finite numbers r, g, b >= 0, not all 0, got {light!r}")
+    if not cfas.is_colour(getattr(prof, "cfa", None)) and len(set(v)) > 1:
+        raise ValueError(f"light: coloured light {v} needs a colour profile (cfa rggb, bggr, grbg or gbrg), "
+                         f"the profile's cfa is {getattr(prof, 'cfa', 'none')!r}")
+    return v
 
 
 def _write_flats(out: Path, prof, sensor_model, exposures, frames_per_exposure, seed, ext, t_sat,
-                 progress) -> dict:
+                 progress, light=None) -> dict:
     from tqdm import tqdm
     from . import sensor
     exp = default_exposures(nd=prof.nd, t_sat=t_sat) if exposures is None else np.asarray(exposures, float)
@@ -235,10 +256,15 @@ def _write_flats(out: Path, prof, sensor_model, exposures, frames_per_exposure, 
     rng = np.random.default_rng(seed)
     rows = []
     h, w = prof.mask.shape
+    share = np.ones((h, w))
+    if light is not None:
+        from . import cfa as cfas
+        share = (np.asarray(light, float)[cfas.channel_index(prof.cfa, h, w)] if cfas.is_colour(prof.cfa)
+                 else np.full((h, w), light[0]))
     with tqdm(total=len(exp) * frames_per_exposure, desc="simulating flats", unit="frame",
               disable=not progress, file=sys.stderr) as bar:
         for i, t in enumerate(exp):
-            flux = np.full((h, w), rate * t)
+            flux = share * (rate * t)
             for j in range(frames_per_exposure):
                 raw = sensor.capture(flux, prof, rng, sensor_model=sensor_model)
                 name = f"flat_{i:03d}_{j:02d}{ext}"
@@ -256,6 +282,9 @@ def _write_flats(out: Path, prof, sensor_model, exposures, frames_per_exposure, 
     truth = {"nd": prof.nd, "rate_dn_per_s": rate, "black_level": prof.black_level, "clip_code": prof.clip_code,
              "gain": prof.gain, "read_noise": prof.read_noise, "full_well": prof.full_well,
              "sensor_model": None if sensor_model is None else sensor_model.truth()}
+    if light is not None or getattr(prof, "cfa", "none") != "none":
+        truth["cfa"] = prof.cfa
+        truth["light"] = list(light) if light is not None else [1.0, 1.0, 1.0]
     (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
     return truth
 
@@ -907,10 +936,11 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
               clip_code: int | None = None, bit_depth: int | None = None, name: str = "calibrated",
               mask_name: str = "mask", progress: bool = True, smooth_chi2: float = 1.5,
               smooth_taps: int = 5, prior_g: float = 0.02, prior_alpha: float = 0.5,
-              prior_c: float = 0.0002, defects: np.ndarray | None = None) -> CalibrationResult:
+              prior_c: float = 0.0002, defects: np.ndarray | None = None, cfa: str = "none") -> CalibrationResult:
     """Calibrate crosstalk, ND and the sensor's basic parameters from a flat-field sweep: the steps of
     paper 3.2, 4.1 and 4.2 (module doc), each a function of this module. `defects`: a defect map
-    (flats.detect) for the profile, where the profile holds one."""
+    (flats.detect) for the profile, where the profile holds one. `cfa`: the profile's CFA (a Bayer sensor's
+    white sweep: every photosite sees the same flux; `colour_spill` adds the per-colour amplitudes)."""
     from tqdm import tqdm
     check_options(nd_nominal, l_min, clip_code, bit_depth)
     mask = check_mask(sweep, mask, mask_name)
@@ -933,7 +963,7 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
         clip_flux = clip_points(lut, sweep, mask, lv, ptc, flux)                    # paper 4.1
         bar.update(1)
         prof = _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, fit.alpha, l_min, name, where,
-                                   defects)
+                                   defects, cfa)
         nd_eff_map = effective_nd(clip_flux, lv.top)                                # paper 4.1, Eq. 8
         lmin_flux = _flux_at_code(lut.codes, lut.knot_flux, lut.n_knots, prof.l_min)
         rf, ratio = valid_pixel_ratio(mask, clip_flux, lmin_flux, flux)             # paper 4.2, Fig. 8b
@@ -950,7 +980,8 @@ def calibrate(sweep: FlatSweep, mask: np.ndarray, nd_nominal: float | None = Non
                              _measured_ratio(sweep, prof), examples)
 
 
-def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_min, name, where, defects=None):
+def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_min, name, where, defects=None,
+                        cfa="none"):
     """The camera profile with its crosstalk calibration (crosstalk.CrosstalkCalibration) and, where the
     profile holds one, the defect map."""
     codes_t = np.ascontiguousarray(np.moveaxis(lut.codes, 0, -1))          # (H, W, K)
@@ -963,7 +994,7 @@ def _calibrated_profile(mask, lv, ptc, ndf, lut, clip_flux, fe, sigma, alpha, l_
         return profiles.make(mask, nd=float(ndf.nd), bit_depth=int(lv.bit_depth), clip_code=int(lv.clip_code),
                              black_level=float(lv.black), gain=float(ptc.gain), read_noise=float(ptc.read_noise),
                              full_well=float(ptc.full_well), l_min=float(min(l_min, 0.5 * lv.top)), name=name,
-                             crosstalk=calib, **_defect_field(defects))
+                             crosstalk=calib, **_defect_field(defects), **({} if cfa == "none" else {"cfa": cfa}))
     except profiles.ProfileError as e:
         raise CalibrationError(f"{where}: calibrated parameters are inconsistent: {e}") from None
 
@@ -1027,6 +1058,269 @@ def _summary(sweep, mask, lv, ptc, refs, ndf, lut, nd_eff_map, examples, gains, 
 
 
 # ---- helpers of the steps ----------------------------------------------------------------------------
+
+# ======================================================================================================
+# Colour sensors: crosstalk per colour neighbourhood (docs/COLOUR.md "Validity and crosstalk per colour")
+# ======================================================================================================
+
+COLOUR_LINEAR = 0.7     # colour sweeps: exposures where 99 % of the pixels are below this share of the range
+COLOUR_ITERS = 3        # channel-flux iterations per exposure (`_channel_fluxes`)
+COLOUR_OUTER = 3        # rounds of channel fluxes and factors (`colour_spill`)
+
+
+@dataclasses.dataclass
+class ColourSpill:
+    """What `colour_spill` measured: colour (3, H, W) each pixel's amplitude for its neighbours of channel
+    R, G, B (alpha x its CFA class's factor for that colour; own channel: alpha); gamma (4, 2) the factors
+    per CFA class (`_cfa_class`) for its other colours (own + 1, own + 2 mod 3); inliers (H, W) the pixels
+    that entered the fit; fluxes [(exposure_s, (F_R, F_G, F_B))] per sweep: the channel fluxes measured at
+    each exposure used."""
+    colour: np.ndarray
+    gamma: np.ndarray
+    inliers: np.ndarray
+    fluxes: list
+    cfa: str
+
+    def summary(self) -> dict:
+        """The factor per (CFA class, neighbour colour), e.g. "G(0,1)<-R", and the sweeps' channel fluxes."""
+        from . import cfa as cfas
+        b = cfas.block(self.cfa)
+        fac = {}
+        for q in range(4):
+            o = int(b[q // 2, q % 2])
+            for j in range(2):
+                c = (o + 1 + j) % 3
+                fac[f"{cfas.CHANNEL_NAMES[o]}({q // 2},{q % 2})<-{cfas.CHANNEL_NAMES[c]}"] = round(
+                    float(self.gamma[q, j]), 4)
+        return {"factor": fac, "pixels_fitted": int(self.inliers.sum()),
+                "sweeps": [[[round(t, 6), [round(float(v), 2) for v in f]] for t, f in sw] for sw in self.fluxes]}
+
+
+def colour_spill(prof, sweeps, where: str = "colour flats") -> ColourSpill:
+    """Per-pixel crosstalk amplitudes per neighbour colour of a Bayer sensor from sweeps under coloured light
+    (e.g. red, green, blue), given its white-light calibration `prof` (profile.crosstalk from `calibrate`).
+
+    At each exposure of a sweep in the linear range (99 % of the pixels below COLOUR_LINEAR of the range):
+    the channel fluxes F_R, F_G, F_B (`_channel_fluxes`: the regular pixels of each colour through the white
+    LUT, their other-colour spill removed); then, per pixel, the code it reads minus the code the white LUT
+    gives at its own channel's flux is the spill of its other-colour neighbours beyond what neighbours at its
+    flux would send: sum over the other colours c of beta_c x Delta_c, with Delta_c the population spill
+    functions (`spill_table`) of its actual neighbours of colour c at F_c minus at F_own (`_colour_deltas`).
+    beta_c = alpha x gamma_{q, c}: the pixel's white-light amplitude alpha (the mask's local non-uniformity)
+    times a factor per CFA class q (`_cfa_class`) and neighbour colour c (the colour dependence of the
+    coupling: longer wavelengths spill more), by weighted least squares (weights: the noise of the mean at
+    the predicted code) over every sweep and exposure where the pixel is unclipped and its white LUT covers
+    its flux, pooled over the class's pixels (`_class_factors`); the channel fluxes are measured again with
+    the factors found, COLOUR_OUTER rounds from factors 1."""
+    from . import cfa as cfas
+    calib = prof.crosstalk
+    if not cfas.is_colour(getattr(prof, "cfa", None)):
+        raise CalibrationError(f"{where}: a per-colour calibration needs a colour profile (cfa)")
+    if calib is None:
+        raise CalibrationError(f"{where}: a per-colour calibration needs the white-light calibration first")
+    H, W = prof.mask.shape
+    chan = cfas.channel_index(prof.cfa, H, W)
+    mask = np.asarray(prof.mask, bool)
+    nd = float(prof.nd)
+    black = float(prof.black_level)
+    top = float(prof.clip_code) - black
+    codes = calib.codes()
+    kf = calib.knot_flux.astype(np.float64)
+    alpha = calib.alpha.astype(np.float64)
+    geo = _neighbour_geometry(chan, mask)
+    o1, o2 = (chan + 1) % 3, (chan + 2) % 3
+    gain, rn = float(prof.gain), float(prof.read_noise)
+    for sw in sweeps:
+        if sw.shape != (H, W):
+            raise CalibrationError(f"{sw.folder}: frames are {sw.shape[1]}x{sw.shape[0]}, the white sweep's "
+                                   f"{W}x{H}")
+    colour = np.repeat(alpha[None], 3, 0)
+    for _ in range(COLOUR_OUTER):     # the channel fluxes depend on the factors: estimate both in turn
+        s11, s12, s22, b1, b2 = (np.zeros((H, W)) for _ in range(5))
+        npts = np.zeros((H, W), np.int32)
+        fluxes = []
+        for sw in sweeps:
+            used = []
+            for k, t in enumerate(sw.exposures):
+                m = sw.mean[k].astype(np.float64) - black
+                if t <= 0 or np.percentile(m, 99) >= COLOUR_LINEAR * top:
+                    continue
+                unc = sw.maxcode[k] < prof.clip_code
+                F = _channel_fluxes(m, unc, prof, chan, geo, colour)
+                if not np.all(np.isfinite(F)):
+                    continue
+                used.append((float(t), F))
+                delta = _colour_deltas(F, chan, geo, calib, nd)
+                cw, okw = _white_code(codes, kf, calib.n_knots, F[chan])
+                y = m - cw
+                u1 = alpha * np.take_along_axis(delta, o1[None].astype(np.intp), 0)[0]
+                u2 = alpha * np.take_along_axis(delta, o2[None].astype(np.intp), 0)[0]
+                # noise of the mean at the predicted code (the measured one would weight low readings up)
+                pred = np.maximum(np.nan_to_num(cw) + u1 + u2, 0.0)
+                var = (gain * pred + (gain * rn) ** 2 + 1.0 / 12.0) / max(int(sw.frames[k]), 1)
+                wgt = np.where(unc & okw & np.isfinite(y), 1.0 / var, 0.0)
+                y = np.nan_to_num(y)
+                s11 += wgt * u1 * u1
+                s12 += wgt * u1 * u2
+                s22 += wgt * u2 * u2
+                b1 += wgt * u1 * y
+                b2 += wgt * u2 * y
+                npts += wgt > 0
+            if not used:
+                raise CalibrationError(f"{sw.folder}: no lit exposure in the linear range (99 % of the pixels "
+                                       f"below {COLOUR_LINEAR * 100:.0f} % of saturation)")
+            fluxes.append(used)
+        gamma, inliers = _class_factors(chan, s11, s12, s22, b1, b2, npts, where)
+        cls = _cfa_class(H, W)
+        colour = np.repeat(alpha[None], 3, 0)
+        for q in range(4):
+            sel = cls == q
+            o = int(chan[sel][0])
+            for j, c in enumerate(((o + 1) % 3, (o + 2) % 3)):
+                colour[c][sel] = alpha[sel] * gamma[q, j]
+    return ColourSpill(colour.astype(np.float32), gamma, inliers, fluxes, prof.cfa)
+
+
+def colour_check(prof, cs: ColourSpill, sweeps) -> dict:
+    """Per coloured sweep (named by its folder): the mean relative error (%) per channel R, G, B of the
+    attenuated photosites (interior, unclipped) at the brightest exposure `colour_spill` used, against the
+    channel fluxes it measured there, after `crosstalk.correct` mode `lut` with the white-light calibration
+    (`prof` without colour amplitudes) and with the per-colour amplitudes of `cs`: the bias the per-colour
+    calibration removes on the user's own flats."""
+    from . import cfa as cfas
+    H, W = prof.mask.shape
+    chan = cfas.channel_index(prof.cfa, H, W)
+    mask = np.asarray(prof.mask, bool)
+    white = dataclasses.replace(prof, crosstalk=dataclasses.replace(prof.crosstalk, colour=None))
+    colour = dataclasses.replace(prof, crosstalk=dataclasses.replace(prof.crosstalk, colour=cs.colour))
+    inner = np.zeros((H, W), bool)
+    inner[2:-2, 2:-2] = True
+    out = {}
+    for sw, used in zip(sweeps, cs.fluxes):
+        t, F = used[-1]
+        k = int(np.nonzero(sw.exposures == t)[0][0])
+        truth = F[chan]
+        base = ((sw.mean[k] - float(prof.black_level)) * np.where(mask, float(prof.nd), 1.0)).astype(np.float32)
+        sel0 = mask & inner & (sw.maxcode[k] < prof.clip_code) & (truth > 0)
+        res = {}
+        for name, p in (("white", white), ("colour", colour)):
+            v = base.copy()
+            st = np.where(mask, np.uint8(crosstalk.ATTENUATED), np.uint8(0)).astype(np.uint8)
+            crosstalk.correct(v, st, p, "lut")
+            ok = sel0 & ((st & crosstalk.REASON_MASK) == crosstalk.VALID)
+            r = (v - truth) / np.where(truth > 0, truth, 1.0)
+            res[name] = [round(100 * float(np.mean(r[ok & (chan == c)])), 2) if (ok & (chan == c)).any() else None
+                         for c in range(3)]
+        out[Path(sw.folder).name] = res
+    return out
+
+
+def _cfa_class(h, w):
+    """(h, w) int: the photosite's place in the 2 x 2 CFA block (0..3, row by row): photosites of one class
+    have the same colour and the same colours around them."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    return (yy % 2) * 2 + (xx % 2)
+
+
+def _class_factors(chan, s11, s12, s22, b1, b2, npts, where):
+    """(gamma (4, 2), inliers (H, W)): per CFA class the factors of its two other colours (in the order
+    own + 1, own + 2 mod 3) from the per-pixel normal equations pooled over the class's pixels with at least 3
+    points whose own solution is within 5 robust sigmas of the class median (defects and outliers out)."""
+    H, W = chan.shape
+    cls = _cfa_class(H, W)
+    det = s11 * s22 - s12 * s12
+    ok = (npts >= 3) & (det > 1e-9 * np.maximum(s11 * s22, 1e-300))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g1 = (s22 * b1 - s12 * b2) / det
+        g2 = (s11 * b2 - s12 * b1) / det
+    ok &= np.isfinite(g1) & np.isfinite(g2)
+    gamma = np.ones((4, 2))
+    inliers = np.zeros((H, W), bool)
+    for q in range(4):
+        sel = ok & (cls == q)
+        if sel.sum() < 8:
+            raise CalibrationError(f"{where}: fewer than 8 pixels of CFA class {q} could be fitted (need exposures "
+                                   f"in the linear range where they are unclipped)")
+        for g in (g1, g2):
+            med = np.median(g[sel])
+            mad = 1.4826 * np.median(np.abs(g[sel] - med))
+            sel &= np.abs(g - med) <= 5 * max(mad, 1e-6)
+        a11, a12, a22, r1, r2 = (float(v[sel].sum()) for v in (s11, s12, s22, b1, b2))
+        d = a11 * a22 - a12 * a12
+        if d > 0:
+            gamma[q] = ((a22 * r1 - a12 * r2) / d, (a11 * r2 - a12 * r1) / d)
+        inliers |= sel
+    return gamma, inliers
+
+
+def _neighbour_geometry(chan, mask):
+    """Per direction d (crosstalk.DIRS): (exists (H, W), neighbour channel (H, W), neighbour attenuated
+    (H, W))."""
+    out = []
+    for dy, dx in crosstalk.DIRS:
+        ex = crosstalk._shift(np.ones(chan.shape, bool), int(dy), int(dx))
+        ch = crosstalk._shift(chan, int(dy), int(dx))
+        at = crosstalk._shift(mask, int(dy), int(dx))
+        out.append((ex, ch, at))
+    return out
+
+
+def _colour_deltas(F, chan, geo, calib, nd):
+    """(3, H, W): per neighbour colour c, the spill the pixel's neighbours of colour c send at the channel
+    fluxes F minus what they would send at the pixel's own channel's flux (population spill functions
+    sigma_d of the source signal: F / ND for an attenuated source)."""
+    fe = calib.sig_e.astype(np.float64)
+    sg = calib.sigma.astype(np.float64)
+    # sp[d, c, a]: sigma_d at flux F_c of a regular (a = 0) or attenuated (a = 1) source
+    sp = np.array([[[_spill_np(fe, sg, F[c] / (nd if a else 1.0))[d] for a in (0, 1)] for c in range(3)]
+                   for d in range(8)])
+    out = np.zeros((3,) + chan.shape)
+    for d, (ex, ch, at) in enumerate(geo):
+        a = at.astype(np.intp)
+        diff = np.where(ex, sp[d][ch, a] - sp[d][chan, a], 0.0)
+        for c in range(3):
+            out[c] += np.where(ch == c, diff, 0.0)
+    return out
+
+
+def _white_code(codes, kf, n_knots, flux):
+    """(code, ok): each pixel's code above black at `flux` (H, W) on its white-light LUT (the inverse of
+    `crosstalk.lut_eval` between knots); ok False outside its knots."""
+    K = kf.size
+    j = np.clip(np.searchsorted(kf, flux, side="right") - 1, 0, K - 2)
+    c0 = np.take_along_axis(codes, j[..., None], 2)[..., 0].astype(np.float64)
+    c1 = np.take_along_axis(codes, (j + 1)[..., None], 2)[..., 0].astype(np.float64)
+    t = (flux - kf[j]) / (kf[j + 1] - kf[j])
+    ok = (j + 1 < n_knots) & (flux >= kf[0])
+    return c0 + t * (c1 - c0), ok
+
+
+def _channel_fluxes(m, unc, prof, chan, geo, amp):
+    """(F_R, F_G, F_B) of a coloured flat (codes above black `m`): the median over the unclipped regular
+    pixels of each colour of their white-LUT flux, after removing their other-colour spill (the amplitudes
+    `amp` (3, H, W) x `_colour_deltas` at the current fluxes), COLOUR_ITERS times from no correction."""
+    calib = prof.crosstalk
+    H, W = m.shape
+    nd = float(prof.nd)
+    reg = ~np.asarray(prof.mask, bool) & unc
+    table = crosstalk.lut_record(calib)
+    state = np.where(prof.mask, np.uint8(crosstalk.ATTENUATED), np.uint8(0)).astype(np.uint8)
+    out = np.empty((H, W), np.float32)
+    ok = np.empty((H, W), np.bool_)
+    F = np.full(3, np.nan)
+    spill = np.zeros((H, W))
+    for it in range(COLOUR_ITERS + 1):
+        if it:
+            spill = (amp * _colour_deltas(F, chan, geo, calib, nd)).sum(0)    # own colour: 0
+        vals = ((m - spill) * np.where(prof.mask, nd, 1.0)).astype(np.float32)
+        crosstalk._lut_pass(vals, state, table, nd, out, ok)
+        for c in range(3):
+            sel = reg & ok & (chan == c)
+            F[c] = float(np.median(out[sel])) if sel.sum() >= 8 else np.nan
+        if not np.all(np.isfinite(F)):
+            break
+    return F
+
 
 def _uncensor_mean(m, s, sig, iters: int = 40):
     """Mean mu of a Gaussian (sd `sig`) whose samples are clipped at `s`, from the clipped samples' mean `m`
@@ -1195,7 +1489,8 @@ def check_options(nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None) 
 
 
 def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_code=None, bit_depth=None,
-                  plots=True, progress=True, overwrite=False, allow_outside=False, find_mask=None):
+                  plots=True, progress=True, overwrite=False, allow_outside=False, find_mask=None, cfa="none",
+                  colour_flats=None):
     """The whole `nrhdr calibrate`: read, calibrate, write profile + plots; returns the summary. Without
     `mask_path` (None) `find_mask(sweep)` finds the mask in the flats (`flats.finder`: a
     `flats.MaskDetection` with the mask, the defect map, `summary()` for the summary's `mask_detection` and
@@ -1204,17 +1499,26 @@ def run_calibrate(flats, mask_path, output, nd_nominal=None, l_min=100.0, clip_c
     outside the flats folder only with `allow_outside` (read_index). The files are made in a temporary
     folder and moved in together at the end (outputs.staged_files): a stopped or failed run leaves none of
     them (never a mask without its profile), a killed run's temporaries are removed by the next run, and a
-    second calibration writing the same profile is refused while this one runs."""
+    second calibration writing the same profile is refused while this one runs. `cfa`: the sensor's CFA
+    (profile.cfa); `colour_flats`: folders of sweeps under coloured light for `colour_spill` (colour only)."""
+    from . import cfa as cfas
     from . import outputs
     check_options(nd_nominal, l_min, clip_code, bit_depth)
+    try:
+        cfa = cfas.check(cfa, "cfa")
+    except ValueError as e:
+        raise CalibrationError(str(e)) from None
+    if colour_flats and cfa == cfas.NONE:
+        raise CalibrationError("colour flats: calibrating per colour needs the sensor's CFA (--cfa rggb, bggr, "
+                               "grbg or gbrg)")
     out = Path(output)
     with outputs.staged_files(out, out.parent) as tmp:
         return _calibrate_into(tmp, out, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
-                               progress, overwrite, allow_outside, find_mask)
+                               progress, overwrite, allow_outside, find_mask, cfa, colour_flats)
 
 
 def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, clip_code, bit_depth, plots,
-                    progress, overwrite, allow_outside, find_mask=None) -> dict:
+                    progress, overwrite, allow_outside, find_mask=None, cfa="none", colour_flats=None) -> dict:
     if not overwrite:
         plots_made = ("curves", "nd_eff", "valid_ratio") + (("detection",) if mask_path is None else ())
         io.refuse_existing(profiles.written_files(out) + [out.parent / f"{out.stem}_calib_{k}.png" for k in
@@ -1234,7 +1538,13 @@ def _calibrate_into(tmp: Path, out: Path, flats, mask_path, nd_nominal, l_min, c
     res = calibrate(sweep, mask, nd_nominal=nd_nominal, l_min=l_min, clip_code=clip_code,
                     bit_depth=bit_depth, name=out.stem,
                     mask_name="mask found in the flats" if det is not None else str(mask_path),
-                    progress=progress, defects=None if det is None else det.defects)
+                    progress=progress, defects=None if det is None else det.defects, cfa=cfa)
+    if colour_flats:
+        sweeps = [read_flats(f, progress=progress, allow_outside=allow_outside) for f in colour_flats]
+        cs = colour_spill(res.profile, sweeps)
+        check = colour_check(res.profile, cs, sweeps)
+        res.profile.crosstalk.colour = cs.colour
+        res.summary["colour"] = res.profile.crosstalk.info["colour"] = dict(cs.summary(), check=check)
     if det is not None:
         res.summary["mask_detection"] = det.summary()
         res.profile.crosstalk.info["mask_detection"] = res.summary["mask_detection"]

@@ -21,6 +21,14 @@ flat-field sweeps:
   becomes UNCALIBRATED (`CLIP_SHARE`).
 - ``off``: identity.
 
+Colour sensors (profile.cfa a Bayer phase; docs/COLOUR.md "Validity and crosstalk per colour"): under
+coloured light a photosite's neighbours of other colours are not as bright as it is, which the white-light
+LUT assumes. A calibration with per-colour amplitudes (`CrosstalkCalibration.colour`, from sweeps under
+coloured light: `calibration.colour_spill`) corrects that in both modes (`_correct_kernel`): ``lut`` removes
+the spill of the other-colour neighbours beyond what neighbours at the pixel's flux would send, with the
+pixel's amplitude for that colour, before the LUT (same-colour neighbours keep the LUT's assumption);
+``kernel`` does so for every neighbour, with the pixel's amplitude for the neighbour's colour.
+
 Values are linear DN (attenuated pixels scaled by ND, docs/ARCHITECTURE.md); the correction returns flux in
 the same units. Clipped pixels keep their state; their lower bound is lowered to the pixel's calibrated
 clipping flux (the nominal bound (clip - black) * ND overstates it under crosstalk). Dark pixels keep their
@@ -83,7 +91,9 @@ class SensorModel:
     at half full well; `spread` (H, W) multiplies the kernel of each target pixel; `gamma` makes the coupling
     signal dependent: k * (1 + gamma * (min(e / FW, 1) - 0.5)); `bloom[1 + dy, 1 + dx]` is the share of the
     source's charge above `knee` * FW that overflows into the target (smooth hinge of width `knee_width`);
-    `prnu` (H, W) gains and `dsnu` (H, W) dark electrons are applied last.
+    `prnu` (H, W) gains and `dsnu` (H, W) dark electrons are applied last. `colour_coupling` (r, g, b), on a
+    colour profile (profile.cfa): the coupling of a source photosite of that colour relative to the kernel
+    (crosstalk grows with wavelength: red light is absorbed deeper, its carriers diffuse further); None: 1.
     """
     kernel: np.ndarray
     spread: np.ndarray | None = None
@@ -94,6 +104,7 @@ class SensorModel:
     prnu: np.ndarray | None = None
     dsnu: np.ndarray | None = None
     name: str = "custom"
+    colour_coupling: tuple | None = None
 
     def apply(self, electrons_mean: np.ndarray, profile, rng=None) -> np.ndarray:
         e = np.asarray(electrons_mean, dtype=np.float64)
@@ -104,6 +115,9 @@ class SensorModel:
             raise ValueError(f"sensor model is {spread.shape[1]}x{spread.shape[0]} but the frame is {w}x{h}")
         u = np.minimum(e / fw, 1.0)
         lin = e * (1.0 + self.gamma * (u - 0.5))              # signal-dependent coupling
+        if self.colour_coupling is not None and getattr(profile, "cfa", "none") != "none":
+            from . import cfa as cfas
+            lin = lin * np.asarray(self.colour_coupling, np.float64)[cfas.channel_index(profile.cfa, h, w)]
         bl = None
         if self.bloom is not None and np.any(self.bloom):
             bl = fw * _soft_hinge(e / fw - self.knee, self.knee_width)
@@ -132,7 +146,8 @@ class SensorModel:
                 "spread_mean": None if self.spread is None else float(np.mean(self.spread)),
                 "spread_std": None if self.spread is None else float(np.std(self.spread)),
                 "prnu_std": None if self.prnu is None else float(np.std(self.prnu)),
-                "dsnu_mean_e": None if self.dsnu is None else float(np.mean(self.dsnu))}
+                "dsnu_mean_e": None if self.dsnu is None else float(np.mean(self.dsnu)),
+                **({} if self.colour_coupling is None else {"colour_coupling": list(self.colour_coupling)})}
 
 
 def make_kernel(edge_h: float, edge_v: float, corner: float) -> np.ndarray:
@@ -189,7 +204,8 @@ class CrosstalkCalibration:
     of a regular pixel; knot 0 is the dark level, flux 0). clip_flux (H, W): flux at which the pixel reaches
     `clip_code` (NaN if it never did within the sweep: its range ends at its last knot). Kernel mode:
     sigma (8, J) spill from a source in direction d at source signal sig_e (J,), alpha (H, W) the pixel's
-    crosstalk amplitude relative to the sensor average.
+    crosstalk amplitude relative to the sensor average. Colour sensors: colour (3, H, W) float32 (or None),
+    the pixel's amplitude for its neighbours of channel R, G, B (`calibration.colour_spill`).
     """
     codes_q: np.ndarray
     qscale: float
@@ -204,6 +220,7 @@ class CrosstalkCalibration:
     sigma: np.ndarray
     alpha: np.ndarray
     info: dict = dataclasses.field(default_factory=dict)
+    colour: np.ndarray | None = None
 
     @property
     def shape(self):
@@ -229,6 +246,7 @@ def quantize_codes(codes: np.ndarray, max_code: int):
 
 
 _ARRAYS = ("codes_q", "n_knots", "knot_flux", "clip_flux", "sig_e", "sigma", "alpha")
+_OPTIONAL = ("colour",)          # per-colour amplitudes (3, H, W) of a colour calibration
 
 
 def save_calibration(calib: CrosstalkCalibration, path) -> dict:
@@ -242,7 +260,8 @@ def save_calibration(calib: CrosstalkCalibration, path) -> dict:
                             knot_flux=calib.knot_flux.astype(np.float64),
                             clip_flux=calib.clip_flux.astype(np.float32),
                             sig_e=calib.sig_e.astype(np.float64), sigma=calib.sigma.astype(np.float64),
-                            alpha=calib.alpha.astype(np.float16))
+                            alpha=calib.alpha.astype(np.float16),
+                            **({} if calib.colour is None else {"colour": calib.colour.astype(np.float32)}))
         os.replace(tmp, path)
     finally:
         Path(tmp).unlink(missing_ok=True)
@@ -275,7 +294,7 @@ def _check_npz_shapes(path: Path, h: int, w: int) -> None:
     try:
         with zipfile.ZipFile(path) as zf:
             members = set(zf.namelist())
-            for k in _ARRAYS:
+            for k in _ARRAYS + _OPTIONAL:
                 if k + ".npy" not in members:
                     continue                 # reported by the reader below, naming the array
                 with zf.open(k + ".npy") as f:
@@ -295,7 +314,7 @@ def _check_npz_shapes(path: Path, h: int, w: int) -> None:
     j = shapes.get("sig_e", (0,))[0] if len(shapes.get("sig_e", (0,))) == 1 else None
     want = {"codes_q": ((h, w, k), f"uint16 ({h}, {w}, K)"), "n_knots": ((h, w), f"({h}, {w})"),
             "clip_flux": ((h, w), f"({h}, {w})"), "alpha": ((h, w), f"({h}, {w})"), "knot_flux": ((k,), "(K,)"),
-            "sig_e": ((j,), "(J,)"), "sigma": ((8, j), "(8, J)")}
+            "sig_e": ((j,), "(J,)"), "sigma": ((8, j), "(8, J)"), "colour": ((3, h, w), f"(3, {h}, {w})")}
     for name, shp in shapes.items():
         if shp != want[name][0] or (name == "codes_q" and not (1 <= k <= 255 and dtypes[name] == np.uint16)) \
                 or (name == "sig_e" and not 2 <= j <= MAX_SPILL_SIGNALS):
@@ -340,6 +359,7 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
             arr = {}
             for k in _ARRAYS:
                 arr[k] = z[k]
+            colour = z["colour"] if "colour" in z.files else None
     except KeyError as e:
         raise ValueError(f"{path}: crosstalk calibration lacks array {e}") from None
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, RuntimeError, NotImplementedError) as e:
@@ -392,6 +412,10 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
                          f"2 values, got shape {se.shape}")
     if not np.all(np.isfinite(se.astype(np.float32))) or not np.all(np.isfinite(sg.astype(np.float32))):
         raise ValueError(f"{path}: neighbour spill table values overflow float32")
+    if colour is not None:
+        if colour.dtype.kind != "f" or not np.all(np.isfinite(colour)):
+            raise ValueError(f"{path}: per-colour crosstalk amplitudes (colour) must be finite numbers")
+        colour = np.ascontiguousarray(colour.astype(np.float32))
     info = entry.get("info") or {}
     if not isinstance(info, dict):
         raise ValueError(f"crosstalk entry: field 'info' must be an object, got {type(info).__name__}")
@@ -400,7 +424,7 @@ def load_calibration(entry: dict, base_dir, shape, source=None, allow_outside: b
         n_knots=nk, knot_flux=kf, clip_flux=cf, nd=nd, black_level=black_level,
         clip_code=clip_code, sig_e=se.astype(np.float32),
         sigma=np.ascontiguousarray(sg.astype(np.float32)),
-        alpha=al, info=dict(info))
+        alpha=al, info=dict(info), colour=colour)
 
 
 # ======================================================================================================
@@ -418,6 +442,9 @@ LutScale = namedtuple("LutScale", "qs qo clip_rel")
 Spill = namedtuple("Spill", "dirs sig_e sigma alpha")
 # the `kernel` mode's scalars: ND, iterations per pass, the clipped-spill share (`correct`)
 KernelParams = namedtuple("KernelParams", "nd iters clip_share")
+# `_correct_kernel`'s colour arguments on a monochrome sensor (unused)
+_NO_COLOUR = np.ones((3, 1, 1), np.float32)
+_NO_CHANNELS = np.zeros((1, 1), np.uint8)
 
 
 def lut_record(calib: CrosstalkCalibration) -> Lut:
@@ -768,11 +795,15 @@ def _lut_pass(values, state, lut, nd, lut_out, ok_out):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
+def _correct_kernel(values, state, src, est, src_spill, lut, spill, par, colour, chan, every, coloured):
     """`kernel` mode: each VALID pixel's flux in the full table `lut` (`Lut`) after removing the difference
     between the spill its actual neighbours send (`src_spill`) and what flat neighbours at its flux would
-    send (`spill`: `Spill`), `par.iters` times (`par`: `KernelParams`); CLIPPED and DARK/NOISY pixels as in
-    `_lut_kernel`."""
+    send (`spill`: `Spill`), scaled by the pixel's amplitude alpha, `par.iters` times (`par`:
+    `KernelParams`); CLIPPED and DARK/NOISY pixels as in `_lut_kernel`. `coloured` (a Bayer mosaic, `chan`
+    its channel plane): the amplitude is the pixel's for the neighbour's colour (`colour` (3, H, W), alpha
+    for its own colour); `every` False (`lut` mode on a colour profile) skips the same-colour neighbours
+    (the LUT assumes them as bright as the pixel) and the clipped-spill rule. Monochrome: `colour` and
+    `chan` are unused placeholders, `every` True."""
     h, w = values.shape
     codes_q, n_knots, knot_flux, clip_flux, table_scale = lut
     dirs, sig_e, sigma, alpha = spill.dirs, spill.sig_e, spill.sigma, spill.alpha
@@ -783,6 +814,9 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
         scale = LutScale(qs, qo, clip_rel)      # a tuple captured by a parfor does not lower
         flat_att = np.empty(8, np.float32)
         flat_reg = np.empty(8, np.float32)
+        acc = np.empty(3, np.float32)           # spill difference per neighbour colour (monochrome: [0])
+        clp = np.empty(3, np.float32)           # spill from clipped neighbours per colour
+        amp = np.empty(3, np.float32)
         for x in range(w):
             st = state[y, x]
             reason = st & REASON_MASK
@@ -797,32 +831,46 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
                     state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
                     continue
                 a = alpha[y, x]
+                own = chan[y, x] if coloured else np.uint8(0)
+                if coloured:
+                    for c in range(3):
+                        amp[c] = a if c == own else colour[c, y, x]
                 from_clipped = np.float32(0.0)
                 for _ in range(iters):
                     # what flat neighbours at this pixel's flux would send (the LUT's assumption)
                     _spill_vec(sig_e, sigma, f / ndf, flat_att)
                     _spill_vec(sig_e, sigma, f, flat_reg)
-                    delta = np.float32(0.0)
-                    from_clipped = np.float32(0.0)
+                    for c in range(3):
+                        acc[c] = 0.0
+                        clp[c] = 0.0
                     for d in range(8):
                         yy = y + dirs[d, 0]
                         xx = x + dirs[d, 1]
                         if yy < 0 or yy >= h or xx < 0 or xx >= w:
                             continue
+                        c = chan[yy, xx] if coloured else np.uint8(0)
+                        if coloured and c == own and not every:
+                            continue
                         stn = state[yy, xx]
                         if (stn & REASON_MASK) == DARK and est[yy, xx] > f:
                             continue        # an upper bound only: assume no brighter than this pixel
                         flat = flat_att[d] if (stn & ATTENUATED) != 0 else flat_reg[d]
-                        delta += src_spill[d, yy, xx] - flat
+                        acc[c] += src_spill[d, yy, xx] - flat
                         if (stn & REASON_MASK) == CLIPPED:
-                            from_clipped += src_spill[d, yy, xx]
-                    f2, ok2 = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m - a * delta)
+                            clp[c] += src_spill[d, yy, xx]
+                    if coloured:
+                        delta = amp[0] * acc[0] + amp[1] * acc[1] + amp[2] * acc[2]
+                        from_clipped = amp[0] * clp[0] + amp[1] * clp[1] + amp[2] * clp[2]
+                    else:
+                        delta = a * acc[0]
+                        from_clipped = a * clp[0]
+                    f2, ok2 = lut_eval(codes_q, knot_flux, scale, y, x, n, cf, m - delta)
                     if not ok2:
                         break
                     f = f2
                 if f < 0:
                     f = np.float32(0.0)
-                if a * from_clipped > clip_share * max(f / s, np.float32(1.0)):
+                if every and from_clipped > clip_share * max(f / s, np.float32(1.0)):
                     # more spill from clipped neighbours than own signal: their flux is only an
                     # estimate (>= their bound), so this pixel is unreliable; leave it to reconstruction
                     values[y, x] = f
@@ -840,9 +888,11 @@ def _correct_kernel(values, state, src, est, src_spill, lut, spill, par):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _neighbour_estimate(values, state, lut, ok, dirs, est):
+def _neighbour_estimate(values, state, lut, ok, dirs, est, chan, step):
     """Flux estimate of every pixel as a crosstalk source: LUT flux where known; a clipped pixel is at
-    least its bound and at least as bright as its brightest known neighbour; others their value."""
+    least its bound and at least as bright as its brightest known neighbour; others their value. `step`
+    1: every neighbour; 2 (a Bayer mosaic, `chan` its channel plane): same-colour neighbours only, in the
+    colour plane's 3 x 3 and 5 x 5 (the other colours say nothing of this one's flux)."""
     h, w = values.shape
     for y in prange(h):
         for x in range(w):
@@ -851,20 +901,21 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est):
             if reason == CLIPPED:
                 # a clipped neighbour's bound (e.g. an attenuated pixel's clipping flux) is a lower bound
                 # for this pixel too: the region is at least that bright
-                for dy in range(-1, 2):
-                    for dx in range(-1, 2):
+                for dy in range(-step, step + 1):
+                    for dx in range(-step, step + 1):
                         yy = y + dy
                         xx = x + dx
                         if 0 <= yy < h and 0 <= xx < w and (state[yy, xx] & REASON_MASK) == CLIPPED \
-                                and lut[yy, xx] > v:
+                                and lut[yy, xx] > v and (step == 1 or chan[yy, xx] == chan[y, x]):
                             v = lut[yy, xx]
                 acc = np.float32(0.0)
                 n = 0
-                for dy in range(-2, 3):
-                    for dx in range(-2, 3):
+                for dy in range(-2 * step, 2 * step + 1):
+                    for dx in range(-2 * step, 2 * step + 1):
                         yy = y + dy
                         xx = x + dx
-                        if 0 <= yy < h and 0 <= xx < w and ok[yy, xx] and lut[yy, xx] > v:
+                        if 0 <= yy < h and 0 <= xx < w and ok[yy, xx] and lut[yy, xx] > v \
+                                and (step == 1 or chan[yy, xx] == chan[y, x]):
                             acc += lut[yy, xx]
                             n += 1
                 if n > 0:
@@ -900,7 +951,9 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     `nd` and `mask`). Identity without a calibration or with mode 'off'. VALID pixels
     whose code lies outside their calibrated range become UNCALIBRATED (value left as measured).
     `lut` (mode 'lut' only): 'full' = the calibration's per-pixel table (accurate), 'compact' = its
-    compact form (`compact_for`, fast; error: docs/CROSSTALK.md "Compact LUT"). Returns (values, state)."""
+    compact form (`compact_for`, fast; error: docs/CROSSTALK.md "Compact LUT"). A colour profile whose
+    calibration has per-colour amplitudes (`CrosstalkCalibration.colour`) takes `_correct_kernel` with them
+    in both modes (the full table). Returns (values, state)."""
     if mode not in MODES:
         raise ValueError(f"crosstalk mode must be one of {MODES}, got {mode!r}")
     if lut not in LUT_FORMS:
@@ -917,7 +970,9 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
                          f"{calib.shape[1]}x{calib.shape[0]}")
     nd = float(profile.nd)
     table = lut_record(calib)
-    if mode == "lut":
+    cfa = getattr(profile, "cfa", "none")
+    coloured = calib.colour is not None and cfa != "none"
+    if mode == "lut" and not coloured:
         # per pixel, in place (no copy of the frame)
         if lut == "compact":
             c = compact_for(profile)
@@ -925,8 +980,14 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         else:
             _lut_kernel(values, state, table, nd)
         return values, state
+    if coloured:
+        from . import cfa as cfas
+        colour, chan = calib.colour, cfas.channel_index(cfa, *values.shape)
+    else:
+        colour, chan = _NO_COLOUR, _NO_CHANNELS
     src = values.copy()
-    # kernel mode: neighbour fluxes first from the LUT, then (second pass) from the first pass's result
+    # kernel mode (and lut on a colour profile): neighbour fluxes first from the LUT, then (second pass) from
+    # the first pass's result
     state0 = state.copy()
     lut = np.empty_like(values)
     ok = np.empty(values.shape, np.bool_)
@@ -936,12 +997,13 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     spill_model = Spill(DIRS, calib.sig_e, calib.sigma, calib.alpha)
     par = KernelParams(nd, int(iterations), np.float32(clip_share if clip_share is not None else np.inf))
     for p in range(max(1, int(passes))):
-        _neighbour_estimate(src, state0, lut, ok, DIRS, est)
+        _neighbour_estimate(src, state0, lut, ok, DIRS, est, chan, 2 if coloured else 1)
         _source_spill(est, state0, nd, calib.sig_e, calib.sigma, spill)
         if p > 0:
             state[:] = state0
         values[:] = src
-        _correct_kernel(values, state, src, est, spill, table, spill_model, par)
+        _correct_kernel(values, state, src, est, spill, table, spill_model, par, colour, chan, mode == "kernel",
+                        coloured)
         lut[:] = values
         ok[:] = (state & REASON_MASK) == VALID
     return values, state

@@ -26,6 +26,8 @@ from its flat-field sweep alone (docs/CROSSTALK.md section 3, "Without a mask").
 7. confidence: the populations' separation (distance of their centres in corrected log response over the
    pooled robust sigma) and the share of ambiguous pixels (farther than a third of that distance from both
    centres); `confident` needs separation >= `MIN_SEPARATION` and ambiguous <= `MAX_AMBIGUOUS`.
+A Bayer sensor (`cfa`): steps 3-5 within each CFA class (its photosites share one colour and the colours
+around them; the channels respond differently), the ND the median of the classes'.
 """
 from __future__ import annotations
 
@@ -106,10 +108,11 @@ class MaskDetection:
         return [[int(y), int(x), names[int(self.defects[y, x])]] for y, x in zip(ys[:limit], xs[:limit])]
 
 
-def finder(clip_code: int | None = None, bit_depth: int | None = None, accept_low_confidence: bool = False):
+def finder(clip_code: int | None = None, bit_depth: int | None = None, accept_low_confidence: bool = False,
+           cfa: str = "none"):
     """`find_mask` for calibration.run_calibrate: `detect`, then `check_confidence`."""
     def find(sweep: calibration.FlatSweep) -> MaskDetection:
-        det = detect(sweep, clip_code=clip_code, bit_depth=bit_depth)
+        det = detect(sweep, clip_code=clip_code, bit_depth=bit_depth, cfa=cfa)
         check_confidence(det, str(sweep.folder), accept_low_confidence)
         return det
     return find
@@ -129,10 +132,22 @@ def check_confidence(det: MaskDetection, where: str, accept: bool = False) -> No
 
 
 def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth: int | None = None,
-           window: int = WINDOW, iterations: int = 4) -> MaskDetection:
-    """The ND mask, ND factor and defect map of the sensor that captured `sweep` (module doc)."""
+           window: int = WINDOW, iterations: int = 4, cfa: str = "none") -> MaskDetection:
+    """The ND mask, ND factor and defect map of the sensor that captured `sweep` (module doc). `cfa`: a
+    Bayer sensor's phase: the channels respond differently, so every comparison stays within one CFA class
+    (the photosites of one place in the 2 x 2 block: one colour, the same colours around them; the box of
+    the local response is 2 x `window` - 1 so that it holds as many of them), and the ND is the median of
+    the classes' (module doc, steps 3-5)."""
+    from . import cfa as cfas
     where = str(sweep.folder)
     H, W = sweep.shape
+    classes = None
+    if cfas.is_colour(cfa):
+        if H % 2 or W % 2:
+            raise CalibrationError(f"{where}: a Bayer sensor's frames have an even width and height, got {W}x{H}")
+        cls = calibration._cfa_class(H, W)
+        classes = [cls == q for q in range(4)]
+        window = 2 * window - 1
     try:
         lv = calibration.sensor_levels(sweep, np.zeros((H, W), bool), clip_code, bit_depth)
     except CalibrationError as e:
@@ -152,18 +167,23 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
     if ok.sum() < 16:
         raise CalibrationError(f"{where}: fewer than 16 pixels respond to the exposure")
     # first split: log response relative to the local mean of all pixels, Otsu's threshold
-    r0 = L - _local_mean(L, ok & ~hot, window)
+    if classes is None:
+        r0 = L - _local_mean(L, ok & ~hot, window)
+    else:
+        r0 = np.zeros((H, W))
+        for c in classes:
+            r0[c] = (L - _local_mean(L, ok & ~hot & c, window))[c]
     att = r0 < _otsu(r0[ok])
     pop = ok.copy()
     st = None
     for _ in range(iterations):         # classification and the crosstalk-free local response, in turn
-        st = _populations(L, att, pop, window, st)
+        st = _class_populations(L, att, pop, window, st, classes)
         att = ok & (np.abs(st.la - st.mu_att) < np.abs(st.lr - st.mu_reg))
         # dead: far below the attenuated pixels; hot: far above the regular ones
         dead = ~np.isfinite(L) | (st.y < DEAD_RESPONSE * st.b0)
         hot_resp = st.y > HOT_RESPONSE * st.a0
         pop = ok & ~dead & ~hot_resp & ~hot
-    st = _populations(L, att, pop, window, st)
+    st = _class_populations(L, att, pop, window, st, classes)
     defects = np.zeros((H, W), np.uint8)
     defects[hot | (hot_resp & ok)] = DEFECT_HOT
     defects[~stuck & (dead | constant)] = DEFECT_DEAD
@@ -184,7 +204,7 @@ def detect(sweep: calibration.FlatSweep, clip_code: int | None = None, bit_depth
         separation, amb_share, n_amb = 0.0, 1.0, int(sel.sum())
     else:
         amb_share = n_amb / max(int(sel.sum()), 1)
-    nd = st.a0 / st.b0 if st.b0 > 0 else float("nan")
+    nd = st.nd
     return MaskDetection(att, float(nd), defects, own, (st.mu_att, st.mu_reg), (st.s_att, st.s_reg),
                          float(separation), amb_share, n_amb, not st.corrected, st.share, int(used))
 
@@ -293,10 +313,39 @@ class _Populations:
     mu_reg: float
     s_att: float
     s_reg: float
-    a0: float                      # crosstalk-free regular response (relative to the local regular response)
-    b0: float                      # crosstalk-free attenuated response
+    a0: float                      # crosstalk-free regular response (relative to the local regular response;
+    b0: float                      # crosstalk-free attenuated response          colour: per-pixel maps of the class's)
     corrected: bool
     share: dict
+    classes_nd: float | None = None  # a colour sensor: the median of its CFA classes' ND
+
+    @property
+    def nd(self) -> float:
+        """The ND factor: ratio of the crosstalk-free responses (a colour sensor: `classes_nd`)."""
+        if self.classes_nd is not None:
+            return self.classes_nd
+        return float(self.a0 / self.b0) if self.b0 > 0 else float("nan")
+
+
+def _class_populations(L, att, pop, window, prev, classes) -> _Populations:
+    """`_populations` of a monochrome sensor (`classes` None), or of each CFA class apart (a list of 4 bool
+    maps) merged: per-pixel fields from the pixel's class, a0 and b0 as per-pixel maps of the class's values,
+    the centres over all classes (responses relative to the class's own regular response), the ND the
+    median of the classes'."""
+    if classes is None:
+        return _populations(L, att, pop, window, prev)
+    parts = [_populations(L, att, pop & c, window, prev) for c in classes]
+    field, y, la, lr = (np.zeros(L.shape) for _ in range(4))
+    a0, b0 = np.zeros(L.shape), np.zeros(L.shape)
+    for c, p in zip(classes, parts):
+        for arr, v in ((field, p.field), (y, p.y), (la, p.la), (lr, p.lr), (a0, p.a0), (b0, p.b0)):
+            arr[c] = v[c] if np.ndim(v) else v
+    mu_att, s_att = _centre(la[pop & att])
+    mu_reg, s_reg = _centre(lr[pop & ~att])
+    nds = [p.a0 / p.b0 for p in parts if p.b0 > 0]
+    share = {k: float(np.mean([p.share[k] for p in parts])) for k in parts[0].share}
+    return _Populations(field, y, la, lr, mu_att, mu_reg, s_att, s_reg, a0, b0, all(p.corrected for p in parts),
+                        share, float(np.median(nds)) if nds else float("nan"))
 
 
 def _populations(L, att, pop, window, prev=None) -> _Populations:

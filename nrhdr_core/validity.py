@@ -24,6 +24,12 @@ the clip code comes from the profile's white level and the black level is subtra
 the noise model (signal = code - black). Pixels of the profile's defect map (hot, dead, stuck) become
 DISCARDED, missing pixels that the reconstruction fills (`_mark_defects`, a pass over the defect list only).
 
+Colour sensors (profile.cfa a Bayer phase, docs/COLOUR.md "Validity and crosstalk per colour"): each
+photosite is clipped, dark or noisy in its own channel (its own code against the same clip code and l_min:
+both are levels of the photosite's signal, whatever its colour), and every rule that compares a pixel with
+its neighbours uses same-colour neighbours only: the same-colour photosites of the 5 x 5 window (R and B:
+2 apart; G: the diagonal neighbours and those 2 apart), i.e. the 3 x 3 of the colour plane (`cfa_neighbour`).
+
 All of the classification is one numba pass (`_classify_kernel`); the pixel states are those of `states.py`.
 """
 from __future__ import annotations
@@ -31,6 +37,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from . import cfa as cfas
 from .profile import PACKINGS, CameraProfile
 from .scratch import planes
 from .sensor import zero_db_signal_dn
@@ -39,6 +46,7 @@ from .states import (ATTENUATED, CLIPPED, DARK, DISCARDED, NOISY, REASON_MASK,  
                      RECONSTRUCTED, UNCALIBRATED, VALID)
 
 MODES = ("all", "best", "threshold")
+_NO_CHANNELS = np.zeros((1, 1), np.uint8)     # `_classify_kernel`'s channel plane of a monochrome sensor
 DARK_POLICIES = ("threshold", "weighted")
 # dark policy "weighted": attenuated pixels below WEIGHTED_LEVEL x l_min are fused measurements (NOISY);
 # measured on the shared HDR scenes: x4 (l_min 100 -> 400) gains +1.2 dB log PSNR in mid-tones over x1
@@ -63,12 +71,14 @@ def missing_mask(state: np.ndarray) -> np.ndarray:
 
 
 def bounds(values: np.ndarray, state: np.ndarray, lower: np.ndarray | None = None,
-           upper: np.ndarray | None = None):
+           upper: np.ndarray | None = None, cfa: str | None = None):
     """(lower, upper) float32 arrays, NaN where there is no bound: CLIPPED pixels are at least their
     value, DARK pixels at most their value (paper 2.3; fse-reference 'Quirks'); a clipped regular pixel
     whose attenuated neighbours are all clipped too is at least the smallest of their lower bounds
     (`_clip_lower_at`: light that saturates the ND pixels around it saturates it at least as much).
-    `lower`/`upper`: optional float32 arrays to fill. One numba pass (`prepare`)."""
+    `lower`/`upper`: optional float32 arrays to fill. `cfa`: the mosaic's Bayer phase (None / "none":
+    monochrome): the neighbour rule then takes same-colour pixels only (`cfa_neighbour`). One numba pass
+    (`prepare`)."""
     values = np.asarray(values)
     state = np.asarray(state)
     if values.ndim != 2 or state.dtype != np.uint8 or values.shape != state.shape:
@@ -82,7 +92,7 @@ def bounds(values: np.ndarray, state: np.ndarray, lower: np.ndarray | None = Non
             upper[...] = hi
             hi = upper
         return lo, hi
-    _, _, lower, upper = prepare(values, state, lower=lower, upper=upper)
+    _, _, lower, upper = prepare(values, state, lower=lower, upper=upper, cfa=cfa)
     return lower, upper
 
 
@@ -95,17 +105,22 @@ def _known_kernel(state, known):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _prepare_kernel(values, state, known, lower, upper, with_bounds):
+def _prepare_kernel(values, state, known, lower, upper, with_bounds, chan, coloured):
     """One pass: known mask, bounds, counts of missing (not VALID, not RECONSTRUCTED) and of
     not-VALID pixels. The clipped-neighbour bound is computed per row from column aggregates
-    (`clip_lower_row`), only in rows that have a clipped regular pixel."""
+    (`clip_lower_row`; a Bayer mosaic, `coloured` with its channel plane `chan`: from same-colour pixels,
+    `clip_lower_row_cfa`), only in rows that have a clipped regular pixel."""
     h, w = state.shape
     nan = np.float32(np.nan)
     n_miss = 0
     n_unknown = 0
     for y in prange(h):
         if with_bounds and row_has_clipped_regular(state, y):
-            clip_lower_row(values, state, y, lower[y])   # lower[y, x] = the rule's bound (NaN: none)
+            # lower[y, x] = the rule's bound (NaN: none)
+            if coloured:
+                clip_lower_row_cfa(values, state, chan, y, lower[y])
+            else:
+                clip_lower_row(values, state, y, lower[y])
         cm = 0
         cu = 0
         for x in range(w):
@@ -210,15 +225,17 @@ def _clip_combine(state, y, natt, bad, mn, n3, mrow):
 
 
 def prepare(values: np.ndarray, state: np.ndarray, known: np.ndarray | None = None,
-            lower: np.ndarray | None = None, upper: np.ndarray | None = None, with_bounds: bool = True):
+            lower: np.ndarray | None = None, upper: np.ndarray | None = None, with_bounds: bool = True,
+            cfa: str | None = None):
     """Everything reconstruction needs from an HDR frame in one parallel pass: returns
     (n_missing, known, lower, upper) = (count of `missing_mask`, `known_mask`, `bounds`); lower/upper
-    are None when `with_bounds` is False. Output arrays may be passed in (no per-frame allocation)."""
-    n_miss, _, known, lower, upper = _prepare(values, state, known, lower, upper, with_bounds)
+    are None when `with_bounds` is False. Output arrays may be passed in (no per-frame allocation).
+    `cfa`: the mosaic's Bayer phase for the same-colour neighbour rule (None / "none": monochrome)."""
+    n_miss, _, known, lower, upper = _prepare(values, state, known, lower, upper, with_bounds, cfa)
     return n_miss, known, lower, upper
 
 
-def _prepare(values, state, known, lower, upper, with_bounds):
+def _prepare(values, state, known, lower, upper, with_bounds, cfa=None):
     h, w = state.shape
     if known is None:
         known = np.empty((h, w), np.bool_)
@@ -234,8 +251,41 @@ def _prepare(values, state, known, lower, upper, with_bounds):
     for name, a, dt in (("known", known, np.bool_), ("lower", lo_a, np.float32), ("upper", hi_a, np.float32)):
         if a.dtype != dt or (a.shape != (h, w) and a.shape != (1, 1)):
             raise ValueError(f"{name} must be a {np.dtype(dt).name} array of shape {(h, w)}")
-    n_miss, n_unknown = _prepare_kernel(values, state, known, lo_a, hi_a, bool(with_bounds))
+    coloured = cfas.is_colour(cfa)
+    chan = cfa_channels(cfa, h, w) if coloured else _NO_CHANNELS
+    n_miss, n_unknown = _prepare_kernel(values, state, known, lo_a, hi_a, bool(with_bounds), chan, coloured)
     return int(n_miss), int(n_unknown), known, lower, upper
+
+
+def cfa_channels(cfa: str, h: int, w: int) -> np.ndarray:
+    """The channel plane (`cfa.channel_index`) of an (h, w) mosaic, cached per thread (one per frame size)."""
+    name = cfas.check(cfa)
+    return planes("validity.cfa." + name, (h, w), lambda: cfas.channel_index(name, h, w))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cfa_neighbour(chan, y, x, yy, xx):
+    """True if (yy, xx) is a same-colour neighbour of (y, x): another photosite of the same channel in the
+    5 x 5 window (R, B: 2 apart; G: diagonal or 2 apart), the 3 x 3 of the colour plane."""
+    return (chan[yy, xx] == chan[y, x]) & ((yy != y) | (xx != x))
+
+
+@njit(cache=True, nogil=True)
+def clip_lower_row_cfa(values, state, chan, y, mrow):
+    """`clip_lower_row` on a Bayer mosaic (`chan`: its channel plane): mrow[x] = `_clip_lower_at_cfa` for
+    every clipped regular pixel of row y (other entries of mrow are left as they are)."""
+    h, w = state.shape
+    for x in range(w):
+        if (state[y, x] & (ATTENUATED | REASON_MASK)) == CLIPPED:
+            mrow[x] = _clip_lower_at_cfa(values, state, chan, y, x, h, w)
+
+
+@njit(cache=True, nogil=True)
+def _clip_lower_at_cfa(values, state, chan, y, x, h, w):
+    """`_clip_lower_at` among same-colour pixels: the smallest lower bound of the attenuated photosites of
+    (y, x)'s channel in the 5 x 5 window (the colour plane's 3 x 3), else the 9 x 9 (its 5 x 5) when the
+    5 x 5 has none, when all of them are clipped; NaN when some is not clipped or none is near."""
+    return _clip_lower_near(values, state, chan, y, x, h, w, 2)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -265,14 +315,21 @@ def write_back(values: np.ndarray, state: np.ndarray, result: np.ndarray) -> int
 def _clip_lower_at(values, state, y, x, h, w):
     """Smallest lower bound of the attenuated pixels around (y, x) when all of them are clipped (3 x 3,
     else 5 x 5 when the 3 x 3 has none); NaN when some is not clipped or none is near."""
-    for r in range(1, 3):
+    return _clip_lower_near(values, state, state, y, x, h, w, 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip_lower_near(values, state, chan, y, x, h, w, step):
+    """The rule of `_clip_lower_at` in windows of radius `step`, then 2 `step`: step 1 every pixel,
+    step 2 the same-colour pixels of a Bayer mosaic (`chan`: its channel plane; unused with step 1)."""
+    for r in range(step, 3 * step, step):
         n_att = 0
         ok = True
         m = np.float32(np.inf)
         for yy in range(max(y - r, 0), min(y + r + 1, h)):
             for xx in range(max(x - r, 0), min(x + r + 1, w)):
                 s2 = state[yy, xx]
-                if (s2 & ATTENUATED) == 0:
+                if (s2 & ATTENUATED) == 0 or (step > 1 and not cfa_neighbour(chan, y, x, yy, xx)):
                     continue
                 n_att += 1
                 if (s2 & REASON_MASK) != CLIPPED:
@@ -293,14 +350,16 @@ def scale_nd(signal, attenuated, nd):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, weighted, best, s0, lm, values, state):
+def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, weighted, best, s0, lm, values, state,
+                     chan):
     """Every selection mode and dark policy of `classify` in one pass per row (paper 2.3, Eq. 3): CLIPPED at
     `clip_code` (value: the lower bound (clip - black) x s), DARK below the threshold of the pixel's kind
     (value: the threshold x s as upper bound), else VALID with its ND-scaled measurement (`scale_nd`).
     `weighted` (dark policy): DARK attenuated pixels at or above SNR 0 dB (`s0`) become NOISY with their
     measurement, those below keep l_min x ND (`lm`) as bound. `best`: a VALID attenuated pixel with a VALID
-    regular pixel among its 8 neighbours becomes DISCARDED. The per-pixel rules are written with arithmetic
-    and selects, no data-dependent branches (ND and regular pixels alternate at random)."""
+    regular pixel among its 8 neighbours (a Bayer mosaic: among its same-colour neighbours, `chan` the
+    channel plane; monochrome: `chan` of shape (1, 1)) becomes DISCARDED. The per-pixel rules are written
+    with arithmetic and selects, no data-dependent branches (ND and regular pixels alternate at random)."""
     h, w = raw.shape
     ndf = np.float32(nd)
     bl = np.float32(black)
@@ -309,7 +368,14 @@ def _classify_kernel(raw, mask, black, clip_code, nd, dark_att, dark_reg, weight
     treg = np.float32(dark_reg)
     s0f = np.float32(s0)
     lmf = np.float32(lm)
-    if best:
+    if best and chan.shape[0] > 1:
+        for y in prange(h):
+            _classify_row(raw, mask, y, ndf, bl, clip_code, top, tatt, treg, weighted, s0f, lmf, values, state)
+            for x in range(w):
+                if state[y, x] == ATTENUATED | VALID and _valid_regular_neighbour_cfa(raw, mask, chan, y, x, bl,
+                                                                                      clip_code, treg):
+                    state[y, x] = ATTENUATED | DISCARDED
+    elif best:
         for y in prange(h):
             _classify_row(raw, mask, y, ndf, bl, clip_code, top, tatt, treg, weighted, s0f, lmf, values, state)
             for x in range(w):
@@ -350,6 +416,20 @@ def _valid_regular_neighbour(raw, mask, y, x, bl, clip_code, treg):
     for yy in range(max(y - 1, 0), min(y + 2, h)):
         for xx in range(max(x - 1, 0), min(x + 2, w)):
             if mask[yy, xx] or (yy == y and xx == x):
+                continue
+            c2 = raw[yy, xx]
+            if c2 < clip_code and np.float32(c2) - bl >= treg:
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _valid_regular_neighbour_cfa(raw, mask, chan, y, x, bl, clip_code, treg):
+    """`_valid_regular_neighbour` among the same-colour neighbours of (y, x) (`cfa_neighbour`)."""
+    h, w = raw.shape
+    for yy in range(max(y - 2, 0), min(y + 3, h)):
+        for xx in range(max(x - 2, 0), min(x + 3, w)):
+            if mask[yy, xx] or not cfa_neighbour(chan, y, x, yy, xx):
                 continue
             c2 = raw[yy, xx]
             if c2 < clip_code and np.float32(c2) - bl >= treg:
@@ -479,7 +559,9 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
     `dark_policy` (mode "threshold" only): "threshold" = the paper's hard l_min (DARK, value = upper
     bound); "weighted" = attenuated pixels between SNR 0 dB and WEIGHTED_LEVEL x l_min become NOISY
     with their measurement, which the reconstruction fuses with its estimate by their noise; below
-    SNR 0 dB they stay DARK with l_min x ND as upper bound."""
+    SNR 0 dB they stay DARK with l_min x ND as upper bound. A colour profile (profile.cfa): each photosite
+    against the same clip code and l_min in its own channel, the best-pixel choice among same-colour
+    neighbours (module doc)."""
     if mode not in MODES:
         raise FrameError(f"selection mode must be one of {MODES}, got {mode!r}")
     if dark_policy not in DARK_POLICIES:
@@ -505,9 +587,12 @@ def classify(raw: np.ndarray, profile: CameraProfile, mode: str = "threshold", l
         dark_att, dark_reg = (lm * WEIGHTED_LEVEL if weighted else lm), -np.inf
     else:
         dark_att, dark_reg = s0, s0
+    cfa = getattr(profile, "cfa", cfas.NONE)
+    h, w = raw.shape
+    chan = cfa_channels(cfa, h, w) if (mode == "best" and cfas.is_colour(cfa)) else _NO_CHANNELS
     _classify_kernel(raw, profile.mask, float(profile.black_level), int(profile.clip_code), float(profile.nd),
                      float(dark_att), float(dark_reg), weighted, mode == "best", float(s0), float(lm), values,
-                     state)
+                     state, chan)
     if profile.defect_index.size:
         _mark_defects(profile.defect_index, state)
     return values, state

@@ -6,17 +6,32 @@ import json
 import sys
 from pathlib import Path
 
+from nrhdr_core.cfa import CFAS
+
 from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
+
+
+def _light(text: str):
+    """--light r,g,b: three numbers (checked by calibration.check_light)."""
+    import argparse
+    try:
+        v = tuple(float(c) for c in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"need three numbers r,g,b, got {text!r}") from None
+    if len(v) != 3:
+        raise argparse.ArgumentTypeError(f"need three numbers r,g,b, got {text!r}")
+    return v
 
 
 def cmd_calibrate(a) -> int:
     from nrhdr_core import calibration, flats, io
-    find = None if a.mask else flats.finder(a.clip_code, a.bit_depth, a.accept_low_confidence)
+    find = None if a.mask else flats.finder(a.clip_code, a.bit_depth, a.accept_low_confidence, cfa=a.cfa)
     try:
         s = calibration.run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,
                                       clip_code=a.clip_code, bit_depth=a.bit_depth, plots=not a.no_plots,
                                       progress=not a.quiet, overwrite=a.force,
-                                      allow_outside=a.allow_outside_paths, find_mask=find)
+                                      allow_outside=a.allow_outside_paths, find_mask=find, cfa=a.cfa,
+                                      colour_flats=a.colour_flats)
     except (calibration.CalibrationError, io.OutputExistsError) as e:
         print(f"nrhdr calibrate: error: {e}", file=sys.stderr)
         return 2
@@ -27,6 +42,13 @@ def cmd_calibrate(a) -> int:
               + (f", nominal {s['nd_nominal']} ({s['nd_vs_nominal_pct']:+.1f} %)" if s.get("nd_nominal") else ""))
         if "mask_detection" in s:
             _print_detection(s["mask_detection"])
+        if "colour" in s:
+            print("  crosstalk per colour (factor per CFA class <- neighbour colour): "
+                  + ", ".join(f"{k} {v:.3f}" for k, v in s["colour"]["factor"].items()))
+            for name, r in s["colour"]["check"].items():
+                print(f"  {name}: attenuated R/G/B mean error " + " / ".join(
+                    f"{v:+.1f}" if v is not None else "-" for v in r["white"]) + " % with the white-light LUT, "
+                    + " / ".join(f"{v:+.1f}" if v is not None else "-" for v in r["colour"]) + " % per colour")
         print(f"  black {s['black_level']:.1f}, clip code {s['clip_code']}, gain {s['gain_dn_per_e']:.4f} DN/e-, "
               f"read noise {s['read_noise_e']:.2f} e-, full well {s['full_well_e']:.0f} e-")
         print(f"  effective ND (Eq. 8): median {s['nd_eff_median']}, 5-95 % {s['nd_eff_p5']} .. {s['nd_eff_p95']}")
@@ -53,8 +75,11 @@ def cmd_simulate_flats(a) -> int:
     try:
         if a.profile:
             prof = profiles.load(a.profile, allow_outside=a.allow_outside_paths)
+            if a.cfa != "none" and a.cfa != prof.cfa:
+                raise ValueError(f"--cfa {a.cfa} disagrees with the profile's cfa {prof.cfa!r}")
         else:
-            prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd)
+            prof = profiles.default(a.height, a.width, seed=a.mask_seed, nd=a.nd,
+                                    **({} if a.cfa == "none" else {"cfa": a.cfa}))
         model = crosstalk.sensor_model_preset(a.sensor_model, prof.height, prof.width, seed=a.sensor_seed)
     except (ValueError, profiles.ProfileError) as e:
         print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
@@ -62,13 +87,16 @@ def cmd_simulate_flats(a) -> int:
     try:
         exp = calibration.default_exposures(a.exposures, nd=prof.nd)
         truth = calibration.simulate_flats(a.output, prof, model, exposures=exp, frames_per_exposure=a.frames,
-                                           seed=a.seed, fmt=a.format, progress=not a.quiet, overwrite=a.force)
+                                           seed=a.seed, fmt=a.format, progress=not a.quiet, overwrite=a.force,
+                                           light=a.light)
     except (ValueError, io.OutputExistsError) as e:
         print(f"nrhdr simulate-flats: error: {e}", file=sys.stderr)
         return 2
     print(f"wrote {len(exp) * a.frames} flat frames ({len(exp)} exposures x {a.frames}) to {a.output}/ "
-          f"with exposures.csv, mask.png and truth.json (ND {truth['nd']}, sensor model {a.sensor_model})")
-    print(f"calibrate: nrhdr calibrate {a.output} --mask {Path(a.output) / 'mask.png'} -o camera.json")
+          f"with exposures.csv, mask.png and truth.json (ND {truth['nd']}, sensor model {a.sensor_model}"
+          + (f", cfa {truth['cfa']}, light {truth['light']}" if "cfa" in truth else "") + ")")
+    print(f"calibrate: nrhdr calibrate {a.output} --mask {Path(a.output) / 'mask.png'}"
+          + (f" --cfa {truth['cfa']}" if "cfa" in truth else "") + " -o camera.json")
     return 0
 
 
@@ -90,6 +118,12 @@ def add_calibrate(sub) -> None:
     p.add_argument("--clip-code", type=number(1, 65535, integer=True),
                    help="override the clip code (default: from the saturated frames)")
     p.add_argument("--bit-depth", type=number(1, 16, integer=True), help="ADC bits (default: from the largest code)")
+    p.add_argument("--cfa", default="none", choices=CFAS,
+                   help="the sensor's colour filter array (Bayer phase; default none: monochrome): the profile's "
+                        "cfa, and without --mask the ND pixels are found within each colour plane")
+    p.add_argument("--colour-flats", nargs="+", metavar="FOLDER",
+                   help="with --cfa: sweeps of the same sensor under coloured light (e.g. red, green, blue) that "
+                        "calibrate the crosstalk per colour neighbourhood (docs/COLOUR.md)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -108,6 +142,11 @@ def add_simulate_flats(sub) -> None:
     p.add_argument("--height", type=SIZE, default=480)
     p.add_argument("--nd", type=ND, default=6.35)
     p.add_argument("--mask-seed", type=SEED, default=0)
+    p.add_argument("--cfa", default="none", choices=CFAS,
+                   help="colour filter array of the default profile (Bayer phase; default none: monochrome)")
+    p.add_argument("--light", type=_light,
+                   help="r,g,b: coloured light (colour profiles): a photosite's flux is the light's channel of "
+                        "its CFA colour x the exposure (default white 1,1,1)")
     p.add_argument("--sensor-model", default="prototype", help=f"one of {crosstalk.PRESETS}")
     p.add_argument("--exposures", type=number(6, 10000, integer=True), default=40,
                    help="number of exposures (incl. dark), at least 6")

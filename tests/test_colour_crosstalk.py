@@ -1,0 +1,244 @@
+"""Crosstalk per colour neighbourhood and mask detection on a Bayer sensor (docs/COLOUR.md "Validity and
+crosstalk per colour"; nrhdr_core/calibration.py `colour_spill`, crosstalk.correct on colour profiles,
+flats.detect with a CFA).
+
+The flats come from a small generator written here, independent of the project's simulator: a 12-bit Bayer
+sensor (its own CFA layout below) with per-channel sensitivity, coloured light, test_flats' conserving 3 x 3
+crosstalk kernel with a coupling that may depend on the source photosite's colour, Poisson shot noise and Gaussian read noise;
+frames written as 16-bit TIFF with `exposures.csv`."""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from nrhdr_core import calibration, crosstalk, flats, io, mask as masks, profile, validity
+from test_flats import crosstalk_3x3
+
+GAIN = 0.5            # DN per electron
+FULL_WELL = 9000.0    # electrons: the 12-bit ADC clips (4095) first
+BLACK = 64.0
+CLIP = 4095
+ND = 6.0
+RATE = (CLIP - BLACK) / GAIN / 0.01          # electrons/s of a regular photosite in white light (10 ms to clip)
+
+
+def channels(cfa, h, w):
+    """Channel (0 R, 1 G, 2 B) of each photosite: the pattern names its 2 x 2 block row by row."""
+    idx = {"r": 0, "g": 1, "b": 2}
+    out = np.empty((h, w), np.intp)
+    for k, ch in enumerate(cfa):
+        out[k // 2::2, k % 2::2] = idx[ch]
+    return out
+
+
+def coloured_crosstalk(e, chan, edge, corner, coupling):
+    """test_flats' conserving 3 x 3 crosstalk with a coupling per source colour: a photosite of colour c
+    sends coupling[c] x `edge` (`corner`) of its electrons to each edge (corner) neighbour (linear in the
+    sent charge: e + crosstalk_3x3(s) - s with s = coupling x e)."""
+    sent = e * np.asarray(coupling, float)[chan]
+    return e + crosstalk_3x3(sent, edge, corner) - sent
+
+
+@dataclasses.dataclass
+class Sensor:
+    mask: np.ndarray
+    cfa: str = "rggb"
+    sens: tuple = (1.0, 1.0, 1.0)
+    coupling: tuple = (1.0, 1.0, 1.0)
+    edge: float = 0.01
+    corner: float = 0.0025
+    read_noise: float = 3.0
+
+    def electrons(self, flux_e):
+        """Mean electrons after the ND filters and the crosstalk for photon flux `flux_e` (H, W) electrons."""
+        chan = channels(self.cfa, *self.mask.shape)
+        e = flux_e * np.asarray(self.sens, float)[chan] / np.where(self.mask, ND, 1.0)
+        return coloured_crosstalk(e, chan, self.edge, self.corner, self.coupling)
+
+    def frame(self, flux_e, rng=None):
+        e = self.electrons(flux_e)
+        if rng is None:
+            code = np.minimum(e, FULL_WELL) * GAIN + BLACK
+        else:
+            n = np.minimum(rng.poisson(np.maximum(e, 0)).astype(np.float64), FULL_WELL)
+            code = (n + self.read_noise * rng.standard_normal(e.shape)) * GAIN + BLACK
+        return np.clip(np.rint(code), 0, CLIP).astype(np.uint16)
+
+    def sweep(self, folder: Path, light=(1.0, 1.0, 1.0), seed=0, frames=2, n_lo=10, n_hi=14, over=2.5):
+        """Dark, n_lo geometric steps up to the brightest channel's saturation, n_hi up to `over` x ND x
+        the dimmest channel's (every photosite clipped at the end)."""
+        rng = np.random.default_rng(seed)
+        h, w = self.mask.shape
+        chan = channels(self.cfa, h, w)
+        eff = np.asarray(light, float) * np.asarray(self.sens, float)
+        t_sat = 0.01 / eff.max()
+        t = np.concatenate([[0.0], np.geomspace(2e-3 * t_sat, 0.8 * t_sat, n_lo),
+                            np.geomspace(1.1 * t_sat, 0.01 / eff.min() * over * ND, n_hi)])
+        folder.mkdir(parents=True, exist_ok=True)
+        rows = []
+        for i, ti in enumerate(t):
+            for j in range(frames):
+                name = f"f{i:03d}_{j}.tif"
+                tifffile.imwrite(folder / name, self.frame(RATE * ti * np.asarray(light, float)[chan], rng))
+                rows.append((name, repr(float(ti))))
+        with open(folder / "exposures.csv", "w", newline="") as f:
+            wr = csv.writer(f)
+            wr.writerow(["file", "exposure_s"])
+            wr.writerows(rows)
+        return folder
+
+
+LIGHTS = {"red": (1.0, 0.2, 0.1), "green": (0.2, 1.0, 0.2), "blue": (0.1, 0.2, 1.0)}
+
+
+def calibrated(tmp: Path, sensor: Sensor):
+    """(white-light profile, per-colour profile) of `sensor` calibrated from the generator's sweeps."""
+    sw = calibration.read_flats(sensor.sweep(tmp / "white", seed=1), progress=False)
+    res = calibration.calibrate(sw, sensor.mask, progress=False, cfa=sensor.cfa)
+    white = res.profile
+    sweeps = [calibration.read_flats(sensor.sweep(tmp / k, light=v, seed=2 + i), progress=False)
+              for i, (k, v) in enumerate(LIGHTS.items())]
+    cs = calibration.colour_spill(white, sweeps)
+    col = dataclasses.replace(white, crosstalk=dataclasses.replace(white.crosstalk, colour=cs.colour))
+    return white, col, cs, tmp
+
+
+def flat_error(prof, sensor, light, level, mode):
+    """Mean relative error (%) per channel of the attenuated photosites of a noise-free coloured flat
+    (`level`: a white regular photosite's code above black) after `crosstalk.correct`, interior only."""
+    h, w = sensor.mask.shape
+    chan = channels(sensor.cfa, h, w)
+    truth = level * np.asarray(light, float)[chan]              # DN a regular photosite reads without crosstalk
+    raw = sensor.frame(truth / GAIN)
+    v, s = validity.classify(raw, prof, "threshold", l_min=0)
+    crosstalk.correct(v, s, prof, mode)
+    ok = ((s & validity.REASON_MASK) == validity.VALID) & sensor.mask & (truth >= 20)
+    ok[:2] = ok[-2:] = False
+    ok[:, :2] = ok[:, -2:] = False
+    r = (v - truth) / truth
+    return np.array([100 * float(np.mean(r[ok & (chan == c)])) for c in range(3)])
+
+
+@pytest.fixture(scope="module")
+def colour_blind(tmp_path_factory):
+    """A sensor whose crosstalk does not depend on colour, calibrated under white and coloured light."""
+    sensor = Sensor(masks.nonregular_mask(48, 48, seed=3))
+    return (sensor,) + calibrated(tmp_path_factory.mktemp("blind"), sensor)
+
+
+@pytest.fixture(scope="module")
+def colour_coupled(tmp_path_factory):
+    """A sensor whose red photosites spill 40 % more and blue ones 25 % less than green ones."""
+    sensor = Sensor(masks.nonregular_mask(48, 48, seed=4), coupling=(1.4, 1.0, 0.75))
+    return (sensor,) + calibrated(tmp_path_factory.mktemp("coupled"), sensor)
+
+
+@pytest.mark.parametrize("light", ["red", "blue"])
+def test_white_light_lut_is_biased_under_coloured_light_and_the_colour_calibration_removes_it(colour_blind,
+                                                                                           light):
+    sensor, white, col, _, _ = colour_blind
+    L = LIGHTS[light]
+    for level in (1200.0, 3000.0, 6000.0):
+        e_white = flat_error(white, sensor, L, level, "lut")
+        e_col = flat_error(col, sensor, L, level, "lut")
+        # the dim channels' attenuated photosites next to bright ones read far too much with the white LUT
+        assert np.max(np.abs(e_white)) > 15, e_white
+        # the per-colour calibration: a few % at most (the faintest channel, whose signal is mostly the
+        # bright neighbours' corner spill), 8x less overall
+        assert np.max(np.abs(e_col)) < 6.5, e_col
+        assert np.mean(np.abs(e_col)) < np.mean(np.abs(e_white)) / 8, (e_white, e_col)
+    # white light: both calibrations agree (within the flats' noise)
+    assert np.max(np.abs(flat_error(col, sensor, (1, 1, 1), 1200.0, "lut"))) < 1.0
+
+
+def test_colour_dependent_coupling_needs_the_colour_calibration_in_kernel_mode(colour_coupled):
+    """kernel mode uses the neighbours' values, but with the white calibration's coupling (an average over
+    the source colours) it is biased where red neighbours spill more; the per-colour factors fix most of it."""
+    sensor, white, col, cs, _ = colour_coupled
+    e_white = flat_error(white, sensor, LIGHTS["red"], 1200.0, "kernel")
+    e_col = flat_error(col, sensor, LIGHTS["red"], 1200.0, "kernel")
+    assert e_white[1] > 5, e_white                      # green photosites next to red ones
+    assert abs(e_col[1]) < 0.5 * e_white[1] and np.max(np.abs(e_col)) < 5, (e_white, e_col)
+    f = cs.summary()["factor"]
+    assert f["G(0,1)<-R"] > f["G(0,1)<-B"] and f["G(1,0)<-R"] > f["G(1,0)<-B"]
+
+
+def test_colour_calibration_round_trips_and_monochrome_is_unchanged(colour_blind, tmp_path):
+    sensor, white, col, _, _ = colour_blind
+    path = tmp_path / "cam.json"
+    profile.save(col, path)
+    back = profile.load(path)
+    assert back.cfa == "rggb" and np.allclose(back.crosstalk.colour, col.crosstalk.colour)
+    # the same calibration on a monochrome profile ignores the colour amplitudes
+    mono = dataclasses.replace(col, cfa="none")
+    plain = dataclasses.replace(white, cfa="none")
+    raw = sensor.frame(np.full(sensor.mask.shape, 1500.0 / GAIN))
+    outs = []
+    for p in (mono, plain):
+        v, s = validity.classify(raw, p, "threshold")
+        crosstalk.correct(v, s, p, "kernel")
+        outs.append((v, s))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+
+
+def test_mask_found_within_colour_planes(tmp_path):
+    """Channels of different sensitivity under white light: a regular blue photosite reads about what an
+    attenuated green one does, so comparing across colours confuses them; within each CFA class the mask
+    is recovered exactly and the ND within 2 %."""
+    mask = masks.nonregular_mask(48, 48, seed=7)
+    sensor = Sensor(mask, sens=(0.5, 1.0, 0.3), edge=0.005, corner=0.001)
+    sw = calibration.read_flats(sensor.sweep(tmp_path / "white", seed=5, frames=4, n_lo=12), progress=False)
+    det = flats.detect(sw, cfa="rggb")
+    assert np.array_equal(det.mask, mask) and det.confident
+    assert abs(det.nd / ND - 1) < 0.02
+    mono = flats.detect(sw)
+    assert (mono.mask != mask).sum() > 50                # across colours the populations mix
+
+
+def test_simulated_coloured_flats_follow_the_cfa(tmp_path):
+    """simulate_flats(light=...): flux of a photosite = the light's channel of its CFA colour x exposure."""
+    prof = profile.default(8, 8, cfa="grbg")
+    prof = dataclasses.replace(prof, read_noise=0.0)
+    calibration.simulate_flats(tmp_path / "f", prof, None, exposures=[0.0, 0.002, 0.004], frames_per_exposure=2,
+                               progress=False, light=(0.5, 1.0, 0.25))
+    sw = calibration.read_flats(tmp_path / "f", progress=False)
+    chan = channels("grbg", 8, 8)
+    sig = (sw.mean[2] - prof.black_level) * np.where(prof.mask, prof.nd, 1.0)
+    want = (prof.clip_code - prof.black_level) / 0.01 * 0.004 * np.array([0.5, 1.0, 0.25])[chan]
+    assert np.allclose(sig, want, rtol=0.15, atol=prof.nd * 2)
+    for bad in ((1, 2), (1, -1, 1), (0, 0, 0)):
+        with pytest.raises(ValueError, match="light"):
+            calibration.simulate_flats(tmp_path / "g", prof, None, exposures=[0.0, 0.01], light=bad, progress=False)
+    with pytest.raises(ValueError, match="colour profile"):
+        calibration.simulate_flats(tmp_path / "h", profile.default(8, 8), None, exposures=[0.0, 0.01],
+                                   light=(1, 0.5, 0.5), progress=False)
+
+
+def test_cli_calibrates_per_colour(colour_coupled, tmp_path, capsys):
+    """`nrhdr calibrate --cfa rggb --colour-flats ...`: the profile has the CFA and the per-colour amplitudes
+    (the factors of `colour_spill`), the summary the factors and the bias on each coloured sweep with either
+    calibration; colour flats without --cfa are refused."""
+    from gst_plugins import cli
+    sensor, _, _, cs, tmp = colour_coupled
+    io.write_mask(tmp / "mask.png", sensor.mask)
+    args = ["calibrate", str(tmp / "white"), "--mask", str(tmp / "mask.png"), "-o", str(tmp_path / "cam.json"),
+            "--json", "-q", "--no-plots", "--colour-flats"] + [str(tmp / k) for k in LIGHTS]
+    a = cli.build_parser().parse_args(args + ["--cfa", "rggb"])
+    assert a.func(a) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["colour"]["factor"] == cs.summary()["factor"]
+    check = s["colour"]["check"]                          # the bias on the coloured flats themselves
+    assert set(check) == set(LIGHTS)
+    for r in check.values():
+        assert max(map(abs, r["white"])) > 10 and max(map(abs, r["colour"])) < 0.5 * max(map(abs, r["white"]))
+    p = profile.load(tmp_path / "cam.json")
+    assert p.cfa == "rggb" and p.crosstalk.colour.shape == (3,) + sensor.mask.shape
+    a = cli.build_parser().parse_args(args[:5] + [str(tmp_path / "c2.json")] + args[6:])
+    assert a.func(a) == 2
+    assert "--cfa" in capsys.readouterr().err
