@@ -18,7 +18,8 @@ The rules of the monochrome chain hold per photosite, for its own channel: known
 value kept bit for bit; a missing photosite's own channel clamped to its channel's data range
 [min(known min, 0), max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= upper,
 `validity.bounds` on the photosite's own Bayer phase: the clipped-neighbour rule compares photosites of one
-colour); NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer
+colour, for red and blue the same as `validity.bounds(..., cfa=)`; for green its own phase, 2 apart, without
+the diagonal green neighbours of the other phase, so that the rule stays a vectorised row pass); NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer
 phase (neighbours of the same colour). The other channels of a photosite stay within their channel's range
 [min(known min, 0), max(known max, largest lower bound)]. A channel without a known photosite takes its
 bounded photosites' bounds as measurements (none either: R = B = G, a grey; green without any: the known

@@ -133,6 +133,10 @@ def test_bounds_respected(method, pattern):
             assert (own[d] <= hi[d]).all()
             # the per-colour neighbour rule raises some regular photosites above their own clip level
             assert (lo[c & ~att] > vals[c & ~att]).any()
+            # red and blue: the rule of validity.bounds with the CFA
+            lo_cfa = validity.bounds(vals, st, cfa=pattern)[0]
+            rb = c & ~cfa.channel_masks(pattern, h, w)[1]
+            assert (own[rb] >= lo_cfa[rb]).all()
         known = (st & REASON_MASK) == VALID
         np.testing.assert_array_equal(own[known], vals[known])
         assert ((s & RECONSTRUCTED) != 0).sum() == (~known).sum()
