@@ -93,8 +93,8 @@ def test_out_argument_and_scale(method):
 def test_bounds_respected(method, pattern):
     """A bright patch (clipped photosites whose value is their lower bound, far below the truth) and dark
     ND photosites (value = upper bound, far above the truth): each own channel on the right side of its
-    bound (`validity.bounds` with the CFA: the clipped-neighbour rule among one colour's photosites); with use_bounds off the clipped ones fall
-    back to the reconstruction from their unclipped neighbours."""
+    bound (`validity.bounds` with the CFA: the clipped-neighbour rule among one colour's photosites); with
+    use_bounds off the clipped ones fall back to the reconstruction from their unclipped neighbours."""
     h, w = 40, 48
     rng = np.random.default_rng(4)
     rgb = rng.uniform(100, 200, (3, h, w)).astype(np.float32)
