@@ -1,14 +1,15 @@
 """Joint colour reconstruction (`demosaic.reconstruct_cfa`): speed against the monochrome preview, quality on
 Kodak images (docs/COLOUR.md "Joint reconstruction").
 
-    PYTHONPATH=. .venv/bin/python benchmarks/demosaic.py --speed              # 1920 x 1080, ms per frame
+    PYTHONPATH=. .venv/bin/python benchmarks/demosaic.py --speed [--fse fast] # 1920 x 1080, ms per frame
     PYTHONPATH=. .venv/bin/python benchmarks/demosaic.py --quality            # Kodak, PSNR dB
 
 --speed: one 1920 x 1080 frame of an HDR scene (../shared/data/hdr/MtTamWest.exr, else the synthetic scene)
 captured by the sensor model and classified (dark policy weighted, noise fused with the profile) is read as
 an RGGB mosaic; `reconstruct_cfa(method="preview")` and the monochrome `reconstruction.reconstruct_frame(
 method="preview")` run on it in the same process, interleaved call by call (median ms of --repeat warm calls;
-each call gets a fresh copy of the frame, untimed).
+each call gets a fresh copy of the frame, untimed); --fse: the same for method "fse" with each preset, one
+warm call each.
 --quality: Kodak images mosaicked (RGGB), a share --missing of the photosites DISCARDED at random; PSNR (dB,
 8-bit peak) of a plain bilinear per-channel demosaic of the known photosites (normalised convolution),
 the preview and FSE (--presets).
@@ -79,6 +80,19 @@ def speed(a):
     print(f"  mono preview   (reconstruct_frame)  {mm:8.2f} ms  {1e3 / mm:6.1f} frames/s")
     print(f"  colour preview (reconstruct_cfa)    {mc:8.2f} ms  {1e3 / mc:6.1f} frames/s  "
           f"{mm / mc:.0%} of the mono frame rate")
+    for preset in [p for p in a.fse.split(",") if p]:
+        t = {}
+        for name, fn in (("mono", lambda: reconstruction.reconstruct_frame(vm, sm, method="fse", preset=preset,
+                                                                           noise=prof)),
+                         ("colour", lambda: demosaic.reconstruct_cfa(values, sc, "rggb", method="fse", preset=preset,
+                                                                     noise=prof, out=out))):
+            reset()
+            fn()
+            reset()
+            t0 = time.perf_counter()
+            fn()
+            t[name] = 1e3 * (time.perf_counter() - t0)
+        print(f"  fse {preset}: mono {t['mono']:8.1f} ms, colour {t['colour']:8.1f} ms (one warm call each)")
 
 
 def bilinear(mosaic, known, pattern):
@@ -139,7 +153,8 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=9)
     ap.add_argument("--images", default="kodim01,kodim03,kodim05,kodim08")
     ap.add_argument("--missing", type=float, default=0.4)
-    ap.add_argument("--presets", default="fast,balanced")
+    ap.add_argument("--presets", default="fast,balanced", help="FSE presets of --quality")
+    ap.add_argument("--fse", default="", help="FSE presets to time once each with --speed (e.g. fast)")
     a = ap.parse_args(argv)
     if not (a.speed or a.quality):
         ap.error("give --speed and/or --quality")

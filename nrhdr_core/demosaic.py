@@ -10,15 +10,16 @@ reconstruction):
    smooth, where linear differences scale with the brightness of an HDR scene); c keeps the logarithm
    finite and noise-tolerant near black (`log_offset`);
 3. the differences reconstructed on the red and the blue lattice (one cell per 2 x 2 Bayer block: the level
-   1 of the pull-push pyramid, or an FSE image of half size), interpolated bilinearly to every photosite
-   and turned back into R = (max(G, 0) + c) 2^d_R - c and B.
+   1 of the pull-push pyramid with the monochrome preview's neighbour fill, or an FSE image of half size in
+   the linear domain), turned into ratios 2^d, interpolated bilinearly to every photosite:
+   R = (max(G, 0) + c) 2^d_R - c, B likewise.
 
-The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its
-value kept bit for bit; a missing photosite's own channel clamped to its channel's data range
-[min(known min, 0), max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= upper,
-`validity.bounds` on the photosite's own Bayer phase: the clipped-neighbour rule compares photosites of one
-colour); NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer
-phase (neighbours of the same colour). The other channels of a photosite stay within their channel's range
+The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its value
+kept bit for bit; a missing photosite's own channel clamped to its channel's data range [min(known min, 0),
+max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= upper, `validity.bounds(...,
+cfa=)`: the clipped-neighbour rule compares photosites of one colour, computed in vectorised row passes);
+NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer phase
+(neighbours of the same colour). The other channels of a photosite stay within their channel's range
 [min(known min, 0), max(known max, largest lower bound)]. A channel without a known photosite takes its
 bounded photosites' bounds as measurements (none either: R = B = G, a grey; green without any: the known
 photosites of every channel).
@@ -31,10 +32,11 @@ import numpy as np
 from numba import njit, prange
 
 from . import cfa as _cfa
+from .fse import f32_key
 from .reconstruction import _fill_row, _pull_push_levels, _pull_row, _pyramid
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
-from .validity import clip_lower_row
+from .validity import _clip_columns, _clip_lower_at_cfa, clip_lower_row
 
 METHODS = ("preview", "fse")
 # offset c of the log colour differences: OFFSET_SHARE x the mean known green level (scales with the data),
@@ -45,7 +47,8 @@ OFFSET_NOISE_K = 2.0
 # counts of the first pass (`_stats`, per cell row)
 _N_MISS, _N_NOISY, _N_BAD, _N_BAD_KNOWN, _N_KNOWN = 0, 1, 2, 3, 4      # _N_KNOWN + ch: known photosites of ch
 _NCNT = 7
-# per cell row statistics of the red and blue lattices (`_green`): known min, known max, largest CLIPPED value
+# per cell row statistics of the red and blue lattices (`_green`): known min, known max, largest CLIPPED value,
+# as order-preserving int32 keys of the floats (`fse.f32_key`)
 _F_LO, _F_HI, _F_CLIP = 0, 2, 4                                        # + 0 (red) or 1 (blue)
 _NF = 6
 _CHUNKS = 64            # row chunks of `_colour` (each with its own row buffers)
@@ -76,7 +79,7 @@ def reconstruct_cfa(values, state, cfa, method: str = "preview", preset: str = "
     if out is None:
         out = np.empty((3, h, w), np.float32)
     blk = _cfa.block(name)
-    cnt, gsum, kg = _first_pass(v32, state, blk, False)
+    cnt, kg = _first_pass(v32, state, blk, False)
     if cnt[_N_BAD_KNOWN]:
         raise ValueError("reconstruct_cfa: values contain NaN or Inf at known photosites; reconstruction needs "
                          "finite data")
@@ -92,13 +95,11 @@ def reconstruct_cfa(values, state, cfa, method: str = "preview", preset: str = "
         lacking = _lacking(state, name, [ch for ch in range(3) if known[ch] == 0])
         if lacking:
             return _with_bounds_as_data(v32, state, name, lacking, method, preset, noise, fusion, out)
-    nk = int(known[_cfa.G])
-    if nk == 0:
+    if known[_cfa.G] == 0:
         # no known green photosite: the known photosites of every channel stand in for green
-        cnt, gsum, kg = _first_pass(v32, state, blk, True)
-        nk = int(known.sum())
-    c = np.float32(log_offset(gsum / max(nk, 1), noise))
-    _core(v32, state, blk, kg, cnt, c, method, preset, bool(use_bounds), noise, fusion, out)
+        cnt, kg = _first_pass(v32, state, blk, True)
+    chan = planes("demosaic.channels", (name, h, w), lambda: _cfa.channel_index(name, h, w))
+    _core(v32, state, chan, blk, kg, cnt, method, preset, bool(use_bounds), noise, fusion, out)
     return out
 
 
@@ -170,10 +171,11 @@ def _with_bounds_as_data(v32, state, name, lacking, method, preset, noise, fusio
 
 
 def log_offset(green_mean: float, noise=None) -> float:
-    """c of the log colour differences log2(max(x, 0) + c): OFFSET_SHARE x `green_mean` (the mean of
-    max(known green, 0)), at least OFFSET_NOISE_K x the noise floor sigma of a regular photosite (gain, read
-    noise and quantisation, Eq. 4-7) when `noise` is given; 1 when both are 0."""
-    c = OFFSET_SHARE * float(green_mean)
+    """c of the log colour differences log2(max(x, 0) + c): OFFSET_SHARE x max(`green_mean`, 0) (the
+    mean of the known green values: the top of their pull-push pyramid), at least OFFSET_NOISE_K x the
+    noise floor sigma of a regular photosite (gain, read noise and quantisation, Eq. 4-7) when `noise` is
+    given; 1 when both are 0."""
+    c = OFFSET_SHARE * max(float(green_mean), 0.0)
     if noise is not None:
         g = float(noise.gain)
         c = max(c, OFFSET_NOISE_K * float(np.sqrt(g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0)))
@@ -191,34 +193,32 @@ def _scratch(h, w):
         return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
                     rows=np.zeros((_CHUNKS, 2, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
-                    cnt=np.zeros((h1, _NCNT), np.int64), gs=np.zeros(h1, np.float64),
-                    fst=np.zeros((h1, _NF), np.float32))
+                    cnt=np.zeros((h1, _NCNT), np.int64),
+                    fst=np.zeros((h1, _NF), np.int32))
     return planes("demosaic.preview", (h, w), make)
 
 
 def _first_pass(v32, state, blk, g_any):
-    """(counts, sum of max(known green, 0), green source mask) of the mosaic (`_stats`); the green plane's
+    """(counts, green source mask) of the mosaic (`_stats`); the green plane's
     pull-push level 1 is pulled in the same pass. `g_any`: the known photosites of every channel are
     green's sources."""
     h, w = v32.shape
     sc = _scratch(h, w)
     _, _, _, ws, off = _pyramid(h, w)
-    _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], sc["cnt"], sc["gs"], g_any)
-    return sc["cnt"].sum(axis=0), float(sc["gs"].sum()), sc["kg"]
+    _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], sc["cnt"], g_any)
+    return sc["cnt"].sum(axis=0), sc["kg"]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, gs, g_any):
+def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
-    per channel) and the sum of max(known green, 0); the green plane's pyramid level 1 (`_pull_row`).
-    Branch-free pixel loops."""
+    per channel); the green plane's pyramid level 1 (`_pull_row`). Branch-free pixel loops."""
     h, w = values.shape
     zero = np.float32(0.0)
     for y1 in prange(cnt.shape[0]):
         for i in range(_NCNT):
             cnt[y1, i] = 0
-        s = 0.0
         for yy in range(2 * y1, min(2 * y1 + 2, h)):
             cm = 0
             cn = 0
@@ -244,14 +244,12 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, gs, g_any):
                 kn1 += np.int64(k & odd)
                 kk = k & (g1 if odd else g0)
                 kg[yy, x] = kk
-                s += np.float64(a) if (kk & (a > zero)) else 0.0
             cnt[y1, _N_MISS] += cm
             cnt[y1, _N_NOISY] += cn
             cnt[y1, _N_BAD] += cb
             cnt[y1, _N_BAD_KNOWN] += cbk
             cnt[y1, _N_KNOWN + b0] += kn0
             cnt[y1, _N_KNOWN + b1] += kn1
-        gs[y1] = s
         _pull_row(values, kg, pv, pw, o1, w1, y1)
 
 
@@ -263,25 +261,27 @@ def _positions(blk):
     return pos
 
 
-def _core(v32, state, blk, kg, cnt, c, method, preset, use_bounds, noise, fusion, out):
-    """Steps 1-3 of the module docstring and the noise fusion, into `out` (green sources `kg`, log offset
-    `c`); sets the RECONSTRUCTED bits."""
+def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
+    """Steps 1-3 of the module docstring and the noise fusion, into `out` (`chan`: the channel plane,
+    green sources `kg`, level 1 of their pyramid pulled); sets the RECONSTRUCTED bits."""
     h, w = v32.shape
     sc = _scratch(h, w)
     pv, pw, kl, rl = sc["pv"], sc["pw"], sc["kl"], sc["rl"]
     _, _, hs, ws, off = _pyramid(h, w)
     pos = _positions(blk)
     h1, w1 = int(hs[1]), int(ws[1])
-    # 1. green
-    if method == "preview":
-        _pull_push_levels(pv[0], pw[0], hs, ws, off)
-        gsrc = np.zeros((1, 1), np.float32)
-    else:
+    # 1. green (its pyramid's top: the mean known green level, for the log offset)
+    _pull_push_levels(pv[0], pw[0], hs, ws, off)
+    top = int(off[hs.shape[0] - 1])
+    c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
+    gsrc = np.zeros((1, 1), np.float32)
+    fst = sc["fst"]
+    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
+    if method != "preview":
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
     # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
-    fst = sc["fst"]
-    _green(v32, state, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1], pw[1],
-           pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
+    _green(v32, state, chan, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1],
+           pw[1], pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
     rng = _ranges(fst, cnt)
     # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
     if method == "preview":
@@ -297,35 +297,96 @@ def _core(v32, state, blk, kg, cnt, c, method, preset, use_bounds, noise, fusion
             lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
             _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
-    _colour(v32, state, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
+    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
 
 
+def _unkey(key) -> float:
+    """The float of an `fse.f32_key` key (the key is an involution of the float's bits)."""
+    k = np.array([key], np.int32)
+    return float((k ^ ((k >> 31) & 0x7FFFFFFF)).view(np.float32)[0])
+
+
 def _ranges(fst, cnt):
-    """float32 (3, 3): per channel [min(known min, 0), known max, max(known max, largest CLIPPED value)];
-    a channel without a known photosite is not clamped (its values come from green)."""
+    """float32 (3, 3): per channel [min(known min, 0), known max, max(known max, largest CLIPPED value)]
+    from the keys `fst`; a channel without a known photosite is not clamped (its values come from green)."""
     r = np.empty((3, 3), np.float32)
     r[:, 0] = -_BIG
     r[:, 1:] = _BIG
     for i, ch in enumerate((_cfa.R, _cfa.B)):
         if cnt[_N_KNOWN + ch] > 0:
-            hi = float(fst[:, _F_HI + i].max())
-            r[ch] = (min(float(fst[:, _F_LO + i].min()), 0.0), hi, max(hi, float(fst[:, _F_CLIP + i].max())))
+            hi = _unkey(fst[:, _F_HI + i].max())
+            cl = fst[:, _F_CLIP + i].max()
+            top = hi if cl == -0x7FFFFFFF - 1 else max(hi, _unkey(cl))
+            r[ch] = (min(_unkey(fst[:, _F_LO + i].min()), 0.0), hi, top)
     return r
 
 
+@njit(cache=True, nogil=True)
+def _green_lower_row(values, state, chan, y, x0, mrow):
+    """mrow[j] = the clipped-neighbour rule of `validity.bounds(..., cfa=)` (`validity._clip_lower_at_cfa`)
+    at the green photosite (y, x0 + 2 j) of a missing CLIPPED regular one (other entries: scratch), from
+    column aggregates (`validity._clip_columns`): the green photosites of its 5 x 5 window are those of its
+    own phase 2 apart (the phase's 3 x 3) and those of the other green phase diagonal to it (the other
+    phase's rows y - 1, y + 1 and columns x - 1, x + 1); with no attenuated one among them, the 9 x 9 window
+    (`_clip_lower_at_cfa`, a scan: rare)."""
+    h, w = values.shape
+    py = y & 1
+    sv = values[py::2, x0::2]
+    ss = state[py::2, x0::2]
+    qv = values[1 - py::2, 1 - x0::2]
+    qs = state[1 - py::2, 1 - x0::2]
+    hp, wp = sv.shape
+    wq = qv.shape[1]
+    yp = y >> 1
+    natt = np.zeros(wp, np.int32)
+    bad = np.zeros(wp, np.int32)
+    mn = np.full(wp, np.inf, np.float32)
+    for yy in range(max(yp - 1, 0), min(yp + 2, hp)):
+        _clip_columns(sv, ss, yy, natt, bad, mn)
+    qn = np.zeros(max(wq, 1), np.int32)
+    qb = np.zeros(max(wq, 1), np.int32)
+    qm = np.full(max(wq, 1), np.inf, np.float32)
+    for yf in (y - 1, y + 1):
+        if 0 <= yf < h and wq > 0:
+            _clip_columns(qv, qs, yf >> 1, qn, qb, qm)
+    for j in range(wp):
+        x = x0 + 2 * j
+        if (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) != CLIPPED:
+            continue
+        n = 0
+        bd = 0
+        m = np.float32(np.inf)
+        for jj in range(max(j - 1, 0), min(j + 2, wp)):
+            n += natt[jj]
+            bd |= bad[jj]
+            m = mn[jj] if mn[jj] < m else m
+        for xf in (x - 1, x + 1):
+            if 0 <= xf < w:
+                q = xf >> 1
+                n += qn[q]
+                bd |= qb[q]
+                m = qm[q] if qm[q] < m else m
+        if n == 0:
+            mrow[j] = _clip_lower_at_cfa(values, state, chan, y, x, h, w)
+        else:
+            mrow[j] = np.float32(np.nan) if bd != 0 else m
+
+
 @njit(cache=True, nogil=True, inline="always")
-def _own_row(o, values, state, y, x0, hi, use_bounds):
+def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
     """The photosites x0, x0 + 2, ... of row y, whose own channel's estimate is o[x]: measured (VALID) or
     already RECONSTRUCTED: their value; missing: at most max(hi, lower bound), then within their bounds
-    (CLIPPED: >= lower bound, DARK: <= the value). Branch-free over the whole row (it vectorises); then,
-    only in rows that have one, the clipped-neighbour rule of `validity.bounds` on the photosites' own Bayer
-    phase (`validity.clip_lower_row` on the phase's lattice) raises the CLIPPED regular photosites' lower
-    bound l to l' (max(min(a, max(hi, l')), l') of the first result is the clamp with l')."""
+    (CLIPPED: >= lower bound, DARK: <= the value), and the RECONSTRUCTED bit. Branch-free over the whole
+    row (it vectorises). The missing CLIPPED regular photosites get their bit in a second loop, only in
+    rows that have one, where the clipped-neighbour rule of `validity.bounds(..., cfa=)` (same-colour
+    photosites; `chan`: the channel plane) raises their lower bound l to l' (max(min(a, max(hi, l')), l')
+    of the first result is the clamp with l'): for red and blue `validity.clip_lower_row` on their Bayer
+    phase's lattice (the same photosites), for green (`green`) `_green_lower_row`."""
     w = values.shape[1]
     big = _BIG
+    flag = np.uint8(RECONSTRUCTED)
     ncr = 0
     for x in range(w):
         st = state[y, x]
@@ -342,36 +403,48 @@ def _own_row(o, values, state, y, x0, hi, use_bounds):
         b = ub if ub < b else b
         b = v if keep else b
         o[x] = b if own else a
-        ncr += np.int64(own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED))
-    if use_bounds and ncr > 0:
+        cr = own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED)
+        state[y, x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
+        ncr += np.int64(cr)
+    if ncr > 0:
         sv = values[y & 1::2, x0::2]
         ss = state[y & 1::2, x0::2]
         mrow = np.empty(sv.shape[1], np.float32)
-        clip_lower_row(sv, ss, y >> 1, mrow)
-        for j in range(sv.shape[1]):
+        if use_bounds and green:
+            _green_lower_row(values, state, chan, y, x0, mrow)
+        elif use_bounds:
+            clip_lower_row(sv, ss, y >> 1, mrow)
+        for j in range(sv.shape[1]):     # branch-free: selects (NaN m: no rule)
             x = x0 + 2 * j
-            m = mrow[j]
-            if (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED and m == m \
-                    and m > values[y, x]:
-                t = hi if hi > m else m
-                a = o[x]
-                a = t if a > t else a
-                o[x] = m if m > a else a
+            st = state[y, x]
+            m = mrow[j] if use_bounds else np.float32(np.nan)
+            cr = (st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED
+            ok = cr & (m == m) & (m > values[y, x])
+            t = hi if hi > m else m
+            a = o[x]
+            b = t if a > t else a
+            b = m if m > b else b
+            o[x] = b if ok else a
+            state[y, x] = st | (flag * np.uint8(cr))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _green(values, state, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb, kl, fst,
-           ixs, gout):
+def _green(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb, kl,
+           fst, ixs, gout):
     """Per cell row: the green plane into `gout` (the pull-push fill `reconstruction._fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
-    missing green photosites' bounds apply, `_own`); then at the cell's red and blue photosites the log
+    missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
     colour differences (weight 1 where known, else 0) into level 1 of the d_R and d_B pyramids and `kl`,
-    and the lattices' statistics `fst` (known min and max, largest CLIPPED value). The logarithm only at
+    and the lattices' statistics `fst` (keys of the known min and max and the largest CLIPPED value;
+    integer reductions vectorise, float ones do not). The logarithm only at
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows)."""
     h, w = values.shape
     zero = np.float32(0.0)
     one = np.float32(1.0)
     big = _BIG
+    kmax = np.int32(0x7FFFFFFF)
+    kmin = np.int32(-0x7FFFFFFF - 1)
+    vi = values.view(np.int32)
     h1 = (h + 1) // 2
     nch = ixs.shape[0]
     for kc in prange(nch):
@@ -384,7 +457,7 @@ def _green(values, state, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, 
                         g[x] = gsrc[y, x]
                 else:
                     _fill_row(values, kg, pv, o1, w1, y, g, True)
-                _own_row(g, values, state, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds)
+                _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
             base = o1 + y1 * w1
             for i in range(2):
                 ch = 0 if i == 0 else 2
@@ -392,19 +465,19 @@ def _green(values, state, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, 
                 px = pos[ch, 1]
                 pvd = pvr if i == 0 else pvb
                 pwd = pwr if i == 0 else pwb
-                lo = big
-                hi = -big
-                cl = -big
+                lo = kmax
+                hi = kmin
+                cl = kmin
                 n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
                 nk = 0
                 for x1 in range(n):
                     x = 2 * x1 + px
                     r = state[y, x] & REASON_MASK
                     k = r == VALID
-                    a = values[y, x]
-                    lo = min(lo, a if k else big)
-                    hi = max(hi, a if k else -big)
-                    cl = max(cl, a if (r == CLIPPED) else -big)
+                    key = f32_key(vi[y, x])
+                    lo = min(lo, key if k else kmax)
+                    hi = max(hi, key if k else kmin)
+                    cl = max(cl, key if (r == CLIPPED) else kmin)
                     pvd[base + x1] = zero
                     pwd[base + x1] = one if k else zero
                     kl[i, y1, x1] = k
@@ -465,14 +538,13 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
-    channel's range; the photosite's own channel by `_own`; RECONSTRUCTED set on the missing photosites."""
+    channel's range; the red and blue photosites' own channel by `_own_row`."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
-    flag = np.uint8(RECONSTRUCTED)
     nch = rows.shape[0]
     for k in prange(nch):
         for y in range(k * h // nch, (k + 1) * h // nch):
@@ -495,11 +567,7 @@ def _colour(values, state, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
                     e = lo if e < lo else e
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
-                    _own_row(o, values, state, y, pos[ch, 1], rng[ch, 1], use_bounds)
-            for x in range(w):
-                st = state[y, x]
-                m = ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
-                state[y, x] = st | (flag * np.uint8(m))
+                    _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -519,25 +587,32 @@ def _mark(state):
 
 
 def _fse_green(v32, state, blk, kg, preset, use_bounds):
-    """The green plane by FSE (`reconstruction.reconstruct`) from the green sources `kg`, with the missing
-    green photosites' bounds."""
-    from .reconstruction import reconstruct
+    """The green plane by FSE (`fse.fse_reconstruct`) from the green sources `kg`, with the missing green
+    photosites' bounds, clamped to [min(known min, 0), max(known max, largest lower bound)]."""
+    from .fse import fse_reconstruct
     h, w = v32.shape
     if not kg.any():
         return np.zeros((h, w), np.float32)
+    own = np.zeros((h, w), bool)
+    for py in range(2):
+        for px in range(2):
+            own[py::2, px::2] = blk[py, px] == _cfa.G
     lower = upper = None
+    miss = ~kg & ((state & RECONSTRUCTED) == 0) & own
     if use_bounds:
-        own = np.zeros((h, w), bool)
-        for py in range(2):
-            for px in range(2):
-                own[py::2, px::2] = blk[py, px] == _cfa.G
         reason = state & REASON_MASK
-        miss = ~kg & ((state & RECONSTRUCTED) == 0) & own
         lower = np.where(miss & (reason == CLIPPED), v32, np.nan).astype(np.float32)
         upper = np.where(miss & (reason == DARK), v32, np.nan).astype(np.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return reconstruct(v32, kg, method="fse", preset=preset, lower=lower, upper=upper)
+        res = fse_reconstruct(v32, kg, lower, upper, preset)
+    kv = v32[kg]
+    top = float(kv.max())
+    if lower is not None and not np.isnan(lower).all():
+        top = max(top, float(np.nanmax(lower)))
+    np.nan_to_num(res, copy=False, nan=0.0, posinf=top, neginf=0.0)
+    np.clip(res, min(float(kv.min()), 0.0), top, out=res)
+    return res
 
 
 def _fse_lattice(lat, known, preset):
@@ -574,7 +649,8 @@ def _fuse(out, v32, blk, noisy, noise, fusion):
 
 
 def warmup() -> None:
-    """Compile (or load from numba's cache) the kernels of both methods, on a tiny synthetic mosaic."""
+    """Compile (or load from numba's cache) the kernels of both methods, on a tiny synthetic mosaic (writeable
+    and read-only values, NOISY photosites fused, clipped and dark ones bounded)."""
     from .validity import default_noise
     rng = np.random.default_rng(0)
     h, w = 16, 20
@@ -582,5 +658,8 @@ def warmup() -> None:
     st = np.where(rng.random((h, w)) < 0.3, np.uint8(NOISY), np.uint8(VALID)).astype(np.uint8)
     st[0, :3] = CLIPPED
     st[1, :3] = DARK | ATTENUATED
+    ro = vals.copy()
+    ro.flags.writeable = False          # mapped input buffers are read-only: numba compiles them apart
     for method in METHODS:
-        reconstruct_cfa(vals, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
+        for v in (vals, ro):
+            reconstruct_cfa(v, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
