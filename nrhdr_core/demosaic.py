@@ -10,15 +10,16 @@ reconstruction):
    smooth, where linear differences scale with the brightness of an HDR scene); c keeps the logarithm
    finite and noise-tolerant near black (`log_offset`);
 3. the differences reconstructed on the red and the blue lattice (one cell per 2 x 2 Bayer block: the level
-   1 of the pull-push pyramid, or an FSE image of half size), interpolated bilinearly to every photosite
-   and turned back into R = (max(G, 0) + c) 2^d_R - c and B.
+   1 of the pull-push pyramid with the monochrome preview's neighbour fill, or an FSE image of half size in
+   the linear domain), turned into ratios 2^d, interpolated bilinearly to every photosite:
+   R = (max(G, 0) + c) 2^d_R - c, B likewise.
 
-The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its
-value kept bit for bit; a missing photosite's own channel clamped to its channel's data range
-[min(known min, 0), max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= upper,
-`validity.bounds` on the photosite's own Bayer phase: the clipped-neighbour rule compares photosites of one
-colour); NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer
-phase (neighbours of the same colour). The other channels of a photosite stay within their channel's range
+The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its value
+kept bit for bit; a missing photosite's own channel clamped to its channel's data range [min(known min, 0),
+max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= upper, `validity.bounds(...,
+cfa=)`: the clipped-neighbour rule compares photosites of one colour, computed in vectorised row passes);
+NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer phase
+(neighbours of the same colour). The other channels of a photosite stay within their channel's range
 [min(known min, 0), max(known max, largest lower bound)]. A channel without a known photosite takes its
 bounded photosites' bounds as measurements (none either: R = B = G, a grey; green without any: the known
 photosites of every channel).
@@ -35,7 +36,7 @@ from .fse import f32_key
 from .reconstruction import _fill_row, _pull_push_levels, _pull_row, _pyramid
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
-from .validity import clip_lower_row
+from .validity import _clip_columns, _clip_lower_at_cfa, clip_lower_row
 
 METHODS = ("preview", "fse")
 # offset c of the log colour differences: OFFSET_SHARE x the mean known green level (scales with the data),
@@ -97,7 +98,8 @@ def reconstruct_cfa(values, state, cfa, method: str = "preview", preset: str = "
     if known[_cfa.G] == 0:
         # no known green photosite: the known photosites of every channel stand in for green
         cnt, kg = _first_pass(v32, state, blk, True)
-    _core(v32, state, blk, kg, cnt, method, preset, bool(use_bounds), noise, fusion, out)
+    chan = planes("demosaic.channels", (name, h, w), lambda: _cfa.channel_index(name, h, w))
+    _core(v32, state, chan, blk, kg, cnt, method, preset, bool(use_bounds), noise, fusion, out)
     return out
 
 
@@ -170,8 +172,9 @@ def _with_bounds_as_data(v32, state, name, lacking, method, preset, noise, fusio
 
 def log_offset(green_mean: float, noise=None) -> float:
     """c of the log colour differences log2(max(x, 0) + c): OFFSET_SHARE x max(`green_mean`, 0) (the
-    mean of the known green values: the top of their pull-push pyramid), at least OFFSET_NOISE_K x the noise floor sigma of a regular photosite (gain, read
-    noise and quantisation, Eq. 4-7) when `noise` is given; 1 when both are 0."""
+    mean of the known green values: the top of their pull-push pyramid), at least OFFSET_NOISE_K x the
+    noise floor sigma of a regular photosite (gain, read noise and quantisation, Eq. 4-7) when `noise` is
+    given; 1 when both are 0."""
     c = OFFSET_SHARE * max(float(green_mean), 0.0)
     if noise is not None:
         g = float(noise.gain)
@@ -258,9 +261,9 @@ def _positions(blk):
     return pos
 
 
-def _core(v32, state, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
-    """Steps 1-3 of the module docstring and the noise fusion, into `out` (green sources `kg`, level 1 of
-    their pyramid pulled); sets the RECONSTRUCTED bits."""
+def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
+    """Steps 1-3 of the module docstring and the noise fusion, into `out` (`chan`: the channel plane,
+    green sources `kg`, level 1 of their pyramid pulled); sets the RECONSTRUCTED bits."""
     h, w = v32.shape
     sc = _scratch(h, w)
     pv, pw, kl, rl = sc["pv"], sc["pw"], sc["kl"], sc["rl"]
@@ -277,8 +280,8 @@ def _core(v32, state, blk, kg, cnt, method, preset, use_bounds, noise, fusion, o
     if method != "preview":
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
     # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
-    _green(v32, state, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1], pw[1],
-           pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
+    _green(v32, state, chan, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1],
+           pw[1], pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
     rng = _ranges(fst, cnt)
     # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
     if method == "preview":
@@ -294,7 +297,7 @@ def _core(v32, state, blk, kg, cnt, method, preset, use_bounds, noise, fusion, o
             lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
             _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    _colour(v32, state, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
+    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
 
@@ -320,15 +323,67 @@ def _ranges(fst, cnt):
     return r
 
 
+@njit(cache=True, nogil=True)
+def _green_lower_row(values, state, chan, y, x0, mrow):
+    """mrow[j] = the clipped-neighbour rule of `validity.bounds(..., cfa=)` (`validity._clip_lower_at_cfa`)
+    at the green photosite (y, x0 + 2 j) of a missing CLIPPED regular one (other entries: scratch), from
+    column aggregates (`validity._clip_columns`): the green photosites of its 5 x 5 window are those of its
+    own phase 2 apart (the phase's 3 x 3) and those of the other green phase diagonal to it (the other
+    phase's rows y - 1, y + 1 and columns x - 1, x + 1); with no attenuated one among them, the 9 x 9 window
+    (`_clip_lower_at_cfa`, a scan: rare)."""
+    h, w = values.shape
+    py = y & 1
+    sv = values[py::2, x0::2]
+    ss = state[py::2, x0::2]
+    qv = values[1 - py::2, 1 - x0::2]
+    qs = state[1 - py::2, 1 - x0::2]
+    hp, wp = sv.shape
+    wq = qv.shape[1]
+    yp = y >> 1
+    natt = np.zeros(wp, np.int32)
+    bad = np.zeros(wp, np.int32)
+    mn = np.full(wp, np.inf, np.float32)
+    for yy in range(max(yp - 1, 0), min(yp + 2, hp)):
+        _clip_columns(sv, ss, yy, natt, bad, mn)
+    qn = np.zeros(max(wq, 1), np.int32)
+    qb = np.zeros(max(wq, 1), np.int32)
+    qm = np.full(max(wq, 1), np.inf, np.float32)
+    for yf in (y - 1, y + 1):
+        if 0 <= yf < h and wq > 0:
+            _clip_columns(qv, qs, yf >> 1, qn, qb, qm)
+    for j in range(wp):
+        x = x0 + 2 * j
+        if (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) != CLIPPED:
+            continue
+        n = 0
+        bd = 0
+        m = np.float32(np.inf)
+        for jj in range(max(j - 1, 0), min(j + 2, wp)):
+            n += natt[jj]
+            bd |= bad[jj]
+            m = mn[jj] if mn[jj] < m else m
+        for xf in (x - 1, x + 1):
+            if 0 <= xf < w:
+                q = xf >> 1
+                n += qn[q]
+                bd |= qb[q]
+                m = qm[q] if qm[q] < m else m
+        if n == 0:
+            mrow[j] = _clip_lower_at_cfa(values, state, chan, y, x, h, w)
+        else:
+            mrow[j] = np.float32(np.nan) if bd != 0 else m
+
+
 @njit(cache=True, nogil=True, inline="always")
-def _own_row(o, values, state, y, x0, hi, use_bounds):
+def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
     """The photosites x0, x0 + 2, ... of row y, whose own channel's estimate is o[x]: measured (VALID) or
     already RECONSTRUCTED: their value; missing: at most max(hi, lower bound), then within their bounds
     (CLIPPED: >= lower bound, DARK: <= the value), and the RECONSTRUCTED bit. Branch-free over the whole
-    row (it vectorises); then,
-    only in rows that have one, the clipped-neighbour rule of `validity.bounds` on the photosites' own Bayer
-    phase (`validity.clip_lower_row` on the phase's lattice) raises the CLIPPED regular photosites' lower
-    bound l to l' (max(min(a, max(hi, l')), l') of the first result is the clamp with l')."""
+    row (it vectorises). The missing CLIPPED regular photosites get their bit in a second loop, only in
+    rows that have one, where the clipped-neighbour rule of `validity.bounds(..., cfa=)` (same-colour
+    photosites; `chan`: the channel plane) raises their lower bound l to l' (max(min(a, max(hi, l')), l')
+    of the first result is the clamp with l'): for red and blue `validity.clip_lower_row` on their Bayer
+    phase's lattice (the same photosites), for green (`green`) `_green_lower_row`."""
     w = values.shape[1]
     big = _BIG
     flag = np.uint8(RECONSTRUCTED)
@@ -348,31 +403,34 @@ def _own_row(o, values, state, y, x0, hi, use_bounds):
         b = ub if ub < b else b
         b = v if keep else b
         o[x] = b if own else a
-        ncr += np.int64(own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED))
-    if use_bounds and ncr > 0:
+        cr = own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED)
+        state[y, x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
+        ncr += np.int64(cr)
+    if ncr > 0:
         sv = values[y & 1::2, x0::2]
         ss = state[y & 1::2, x0::2]
         mrow = np.empty(sv.shape[1], np.float32)
-        clip_lower_row(sv, ss, y >> 1, mrow)
-        for j in range(sv.shape[1]):     # branch-free: a select (NaN m: no rule)
+        if use_bounds and green:
+            _green_lower_row(values, state, chan, y, x0, mrow)
+        elif use_bounds:
+            clip_lower_row(sv, ss, y >> 1, mrow)
+        for j in range(sv.shape[1]):     # branch-free: selects (NaN m: no rule)
             x = x0 + 2 * j
-            m = mrow[j]
-            ok = ((state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED) & (m == m) \
-                & (m > values[y, x])
+            st = state[y, x]
+            m = mrow[j] if use_bounds else np.float32(np.nan)
+            cr = (st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED
+            ok = cr & (m == m) & (m > values[y, x])
             t = hi if hi > m else m
             a = o[x]
             b = t if a > t else a
             b = m if m > b else b
             o[x] = b if ok else a
-    for x in range(w):
-        st = state[y, x]
-        m = ((x & 1) == x0) & ((st & REASON_MASK) != VALID) & ((st & RECONSTRUCTED) == 0)
-        state[y, x] = st | (flag * np.uint8(m))
+            state[y, x] = st | (flag * np.uint8(cr))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _green(values, state, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb, kl, fst,
-           ixs, gout):
+def _green(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb, kl,
+           fst, ixs, gout):
     """Per cell row: the green plane into `gout` (the pull-push fill `reconstruction._fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
@@ -399,7 +457,7 @@ def _green(values, state, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, 
                         g[x] = gsrc[y, x]
                 else:
                     _fill_row(values, kg, pv, o1, w1, y, g, True)
-                _own_row(g, values, state, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds)
+                _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
             base = o1 + y1 * w1
             for i in range(2):
                 ch = 0 if i == 0 else 2
@@ -480,7 +538,7 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
     channel's range; the red and blue photosites' own channel by `_own_row`."""
@@ -509,7 +567,7 @@ def _colour(values, state, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
                     e = lo if e < lo else e
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
-                    _own_row(o, values, state, y, pos[ch, 1], rng[ch, 1], use_bounds)
+                    _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
 
 
 @njit(cache=True, nogil=True, parallel=True)

@@ -27,6 +27,44 @@ DEFAULT_CONTRAST = 1000.0
 # and the Cephes logf polynomial (~1 ulp), with log1p(a) = log(u) * a / (u - 1), u = 1 + a (Kahan's
 # correction of the rounding of 1 + a). Same codes as math.log1p except for values within ~1e-6 of a
 # rounding boundary (tests/tonemap_reference.py, tests/test_perf_kernels.py).
+@njit(cache=True, nogil=True, inline="always")
+def _split(bits, mbits, ebuf):
+    """Exponent (into `ebuf`, as float32) and mantissa in [1, 2) (into `mbits`) of the float32 row `bits`
+    (its int32 view)."""
+    for x in range(bits.shape[0]):
+        b = bits[x]
+        ebuf[x] = np.float32((b >> 23) - 127)
+        mbits[x] = (b & 0x7FFFFF) | 0x3F800000
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _log_level(m, e, u, a0, q):
+    """log1p(q min(max(a0, 0), 1)) from the mantissa m and exponent e of u = 1 + q min(max(a0, 0), 1) (Cephes
+    logf polynomial, Kahan's correction, module notes)."""
+    big = m > np.float32(1.4142135)
+    m = m * np.float32(0.5) if big else m
+    e = e + np.float32(1.0) if big else e
+    z = m - np.float32(1.0)
+    zz = z * z
+    p = np.float32(7.0376836292e-2)
+    p = p * z - np.float32(1.1514610310e-1)
+    p = p * z + np.float32(1.1676998740e-1)
+    p = p * z - np.float32(1.2420140846e-1)
+    p = p * z + np.float32(1.4249322787e-1)
+    p = p * z - np.float32(1.6668057665e-1)
+    p = p * z + np.float32(2.0000714765e-1)
+    p = p * z - np.float32(2.4999993993e-1)
+    p = p * z + np.float32(3.3333331174e-1)
+    r = p * z * zz
+    r = r - np.float32(2.12194440e-4) * e
+    r = r - np.float32(0.5) * zz
+    lg = z + r + np.float32(0.693359375) * e
+    a = u - np.float32(1.0)
+    a0 = a0 if a0 > np.float32(0.0) else np.float32(0.0)
+    a0 = q * (a0 if a0 < np.float32(1.0) else np.float32(1.0))
+    return lg * (a0 / a) if a > np.float32(0.0) else a0
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _log_kernel(values, scale, q, inv_den, out_max, out):
     h, w = values.shape
@@ -43,48 +81,24 @@ def _log_kernel(values, scale, q, inv_den, out_max, out):
                 v = v if v > np.float32(0.0) else np.float32(0.0)     # also maps NaN to black
                 v = v if v < np.float32(1.0) else np.float32(1.0)
                 ubuf[x] = np.float32(1.0) + q * v
+            _split(ubits, mbits, ebuf)
             for x in range(w):
-                b = ubits[x]
-                ebuf[x] = np.float32((b >> 23) - 127)
-                mbits[x] = (b & 0x7FFFFF) | 0x3F800000
-            for x in range(w):
-                m = mbuf[x]
-                e = ebuf[x]
-                big = m > np.float32(1.4142135)
-                m = m * np.float32(0.5) if big else m
-                e = e + np.float32(1.0) if big else e
-                z = m - np.float32(1.0)
-                zz = z * z
-                p = np.float32(7.0376836292e-2)
-                p = p * z - np.float32(1.1514610310e-1)
-                p = p * z + np.float32(1.1676998740e-1)
-                p = p * z - np.float32(1.2420140846e-1)
-                p = p * z + np.float32(1.4249322787e-1)
-                p = p * z - np.float32(1.6668057665e-1)
-                p = p * z + np.float32(2.0000714765e-1)
-                p = p * z - np.float32(2.4999993993e-1)
-                p = p * z + np.float32(3.3333331174e-1)
-                r = p * z * zz
-                r = r - np.float32(2.12194440e-4) * e
-                r = r - np.float32(0.5) * zz
-                lg = z + r + np.float32(0.693359375) * e
-                u = ubuf[x]
-                a = u - np.float32(1.0)
-                a0 = (values[y, x] * scale)
-                a0 = a0 if a0 > np.float32(0.0) else np.float32(0.0)
-                a0 = q * (a0 if a0 < np.float32(1.0) else np.float32(1.0))
-                l1p = lg * (a0 / a) if a > np.float32(0.0) else a0
-                out[y, x] = l1p * inv_den * out_max + np.float32(0.5)
+                out[y, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], values[y, x] * scale, q) * inv_den * out_max \
+                    + np.float32(0.5)
+
+
+def _check_tone(white, contrast) -> None:
+    if not (white > 0 and math.isfinite(white)):
+        raise ValueError(f"tone mapping white must be a finite number > 0, got {white}")
+    if not (contrast > 0 and math.isfinite(contrast)):
+        raise ValueError(f"tone mapping contrast must be > 0, got {contrast}")
 
 
 def log_tonemap(values: np.ndarray, white: float, exposure_stops: float = 0.0,
                 contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None,
                 dtype=np.uint8) -> np.ndarray:
     """Map linear values (H, W) to uint8 or uint16 display codes; `out` (filled in place) fixes the type."""
-    if not (white > 0 and math.isfinite(white)):
-        raise ValueError(f"tone mapping white must be a finite number > 0, got {white}")
-    if not (contrast > 0 and math.isfinite(contrast)):
-        raise ValueError(f"tone mapping contrast must be > 0, got {contrast}")
+    _check_tone(white, contrast)
     v = np.asarray(values, dtype=np.float32)
     if out is None:
         out = np.empty(v.shape, dtype=dtype)
@@ -184,64 +198,98 @@ _LUT_LO, _LUT_STEPS = -40.0, 64     # LUT domain o in [-40, 0] stops, 64 entries
 _LOG2_MAX = 100.0                    # x is capped at 2^100 (1e30 and +inf stay finite)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _log2_row(lrow, mrow, cy, cm, cm2):
+    """lrow (x + toe per pixel) -> log2 in place by exponent / mantissa split (`mrow` the mantissas), ln m =
+    2 atanh(z), z = (m-1)/(m+1) (|error| < 1e-6 stops); its sums of l and l^2 per cell added to row cy of
+    `cm`, `cm2`."""
+    w = lrow.shape[0]
+    wc = cm.shape[1]
+    cell = LOCAL_CELL
+    k2 = np.float32(2.0 / math.log(2.0))
+    _split(lrow.view(np.int32), mrow.view(np.int32), lrow)
+    for x in range(w):
+        m = mrow[x]
+        big = m > np.float32(1.4142135)
+        m = m * np.float32(0.5) if big else m
+        e = lrow[x] + np.float32(1.0) if big else lrow[x]
+        z = (m - np.float32(1.0)) / (m + np.float32(1.0))
+        zz = z * z
+        p = np.float32(1.0 / 9.0)
+        p = p * zz + np.float32(1.0 / 7.0)
+        p = p * zz + np.float32(1.0 / 5.0)
+        p = p * zz + np.float32(1.0 / 3.0)
+        p = p * zz + np.float32(1.0)
+        lrow[x] = e + k2 * z * p
+    for cx in range(wc):
+        s1 = 0.0
+        s2 = 0.0
+        for x in range(cx * cell, min(w, (cx + 1) * cell)):
+            t = lrow[x]
+            s1 += t
+            s2 += t * t
+        cm[cy, cx] += s1
+        cm2[cy, cx] += s2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_means(cy, h, w, cm, cm2):
+    """Sums of row cy of `cm`, `cm2` -> means over the cells' pixels."""
+    cell = LOCAL_CELL
+    ny = min(h, (cy + 1) * cell) - cy * cell
+    for cx in range(cm.shape[1]):
+        n = ny * (min(w, (cx + 1) * cell) - cx * cell)
+        cm[cy, cx] /= n
+        cm2[cy, cx] /= n
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _local_log(values, scale, toe, l, cm, cm2, mbuf):
-    """l = log2(min(max(v scale, 0), 2^100) + toe) (NaN -> log2(toe)) per pixel into `l`; `cm`, `cm2`: means of
-    l and l^2 per LOCAL_CELL^2 cell. log2 by exponent / mantissa split, ln m = 2 atanh(z), z = (m-1)/(m+1)
-    (|error| < 1e-6 stops); rows in chunks, `mbuf` (chunks, w) the chunks' mantissa rows."""
+    """l = log2(min(max(v scale, 0), 2^100) + toe) (NaN -> log2(toe)) per pixel into `l` (`_log2_row`); `cm`,
+    `cm2`: means of l and l^2 per LOCAL_CELL^2 cell; rows in chunks, `mbuf` (chunks, w) the chunks' mantissa
+    rows."""
     h, w = values.shape
-    hc, wc = cm.shape
+    hc = cm.shape[0]
     nch = mbuf.shape[0]
     cell = LOCAL_CELL
     xmax = np.float32(2.0 ** _LOG2_MAX)
-    k = np.float32(2.0 / math.log(2.0))
     for c in prange(nch):
-        mrow = mbuf[c]
-        mbits = mrow.view(np.int32)
         for cy in range((c * hc) // nch, ((c + 1) * hc) // nch):
-            for cx in range(wc):
-                cm[cy, cx] = 0.0
-                cm2[cy, cx] = 0.0
-            y1 = min(h, (cy + 1) * cell)
-            for y in range(cy * cell, y1):
+            cm[cy, :] = 0.0
+            cm2[cy, :] = 0.0
+            for y in range(cy * cell, min(h, (cy + 1) * cell)):
                 lrow = l[y]
-                lbits = lrow.view(np.int32)
                 for x in range(w):
                     v = values[y, x] * scale
                     v = v if v > np.float32(0.0) else np.float32(0.0)     # also NaN
                     v = v if v < xmax else xmax
                     lrow[x] = v + toe
+                _log2_row(lrow, mbuf[c], cy, cm, cm2)
+            _cell_means(cy, h, w, cm, cm2)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _rgb_local_log(rgb, k, scale, toe, l, cm, cm2, mbuf):
+    """`_local_log` of the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`)."""
+    h, w = l.shape
+    hc = cm.shape[0]
+    nch = mbuf.shape[0]
+    cell = LOCAL_CELL
+    xmax = np.float32(2.0 ** _LOG2_MAX)
+    k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
+    for c in prange(nch):
+        for cy in range((c * hc) // nch, ((c + 1) * hc) // nch):
+            cm[cy, :] = 0.0
+            cm2[cy, :] = 0.0
+            for y in range(cy * cell, min(h, (cy + 1) * cell)):
+                lrow = l[y]
                 for x in range(w):
-                    b = lbits[x]
-                    mbits[x] = (b & 0x7FFFFF) | 0x3F800000
-                    lrow[x] = np.float32((b >> 23) - 127)
-                for x in range(w):
-                    m = mrow[x]
-                    big = m > np.float32(1.4142135)
-                    m = m * np.float32(0.5) if big else m
-                    e = lrow[x] + np.float32(1.0) if big else lrow[x]
-                    z = (m - np.float32(1.0)) / (m + np.float32(1.0))
-                    zz = z * z
-                    p = np.float32(1.0 / 9.0)
-                    p = p * zz + np.float32(1.0 / 7.0)
-                    p = p * zz + np.float32(1.0 / 5.0)
-                    p = p * zz + np.float32(1.0 / 3.0)
-                    p = p * zz + np.float32(1.0)
-                    lrow[x] = e + k * z * p
-                for cx in range(wc):
-                    s1 = 0.0
-                    s2 = 0.0
-                    for x in range(cx * cell, min(w, (cx + 1) * cell)):
-                        t = lrow[x]
-                        s1 += t
-                        s2 += t * t
-                    cm[cy, cx] += s1
-                    cm2[cy, cx] += s2
-            ny = y1 - cy * cell
-            for cx in range(wc):
-                n = ny * (min(w, (cx + 1) * cell) - cx * cell)
-                cm[cy, cx] /= n
-                cm2[cy, cx] /= n
+                    v = _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale
+                    v = v if v > np.float32(0.0) else np.float32(0.0)
+                    v = v if v < xmax else xmax
+                    lrow[x] = v + toe
+                _log2_row(lrow, mbuf[c], cy, cm, cm2)
+            _cell_means(cy, h, w, cm, cm2)
 
 
 @njit(cache=True, nogil=True)
@@ -358,6 +406,41 @@ def _local_position(ra, rb, lv, cx, j, c0, g1, k0, lo, steps):
     return ((c0 * base + gain * (lv - base) + k0) - lo) * steps
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _local_levels(l, ca, cb, y, ra, rb, t, c0, g1, k0, lut, out_max):
+    """Row y's display levels (code + 0.5, float32) into `t`: `_local_apply`'s row for `_rgb_local_apply`."""
+    w = l.shape[1]
+    hc, wc = ca.shape
+    n = lut.shape[0]
+    steps = np.float32(_LUT_STEPS)
+    lo = np.float32(_LUT_LO)
+    top = np.float32(n - 1)
+    cell = LOCAL_CELL
+    f = max((y + 0.5) / cell - 0.5, 0.0)
+    y0 = min(int(f), hc - 1)
+    y1 = min(y0 + 1, hc - 1)
+    fy = f - y0
+    for cx in range(wc):
+        ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+        rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+    ra[0], rb[0] = ra[1], rb[1]
+    ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
+    lrow = l[y]
+    # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
+    full = w // cell
+    for cx in range(full):
+        for j in range(cell):
+            x = cx * cell + j
+            t[x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+    for x in range(full * cell, w):
+        t[x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+    for x in range(w):
+        tv = min(max(t[x], np.float32(0.0)), top)        # (l is finite)
+        i = min(int(tv), n - 2)
+        ft = tv - np.float32(i)
+        t[x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
     """o = c base + (1 + (g - 1)(1 - a)) detail + k0 (g1 = g - 1), base = a l + b with a, b bilinear from the
@@ -404,6 +487,19 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
                 i = min(int(tv), n - 2)
                 ft = tv - np.float32(i)
                 out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, thr, sat, fbuf, ibuf, out):
+    """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour (`_rgb_row`) into sRGB
+    `out` (H, W, 3); `fbuf`, `ibuf` (chunks, 3, w) its rows."""
+    h, w = l.shape
+    nch = tbuf.shape[0]
+    for c in prange(nch):
+        t = tbuf[c]
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            _local_levels(l, ca, cb, y, rows[c, 0], rows[c, 1], t, c0, g1, k0, lut, np.float32(65535.0))
+            _rgb_row(rgb, y, k, t, dec, bins, thr, sat, fbuf[c], ibuf[c], out)
 
 
 def _display(o):
@@ -482,11 +578,7 @@ class LocalTonemap:
                  contrast: float = DEFAULT_CONTRAST, out: np.ndarray | None = None, dtype=np.uint8) -> np.ndarray:
         """Linear values (H, W) to uint8 / uint16 display codes; `white` / `contrast` set the toe (white / q),
         `exposure_stops` shifts the automatic brightness."""
-        from .scratch import planes
-        if not (white > 0 and math.isfinite(white)):
-            raise ValueError(f"tone mapping white must be a finite number > 0, got {white}")
-        if not (contrast > 0 and math.isfinite(contrast)):
-            raise ValueError(f"tone mapping contrast must be > 0, got {contrast}")
+        _check_tone(white, contrast)
         v = np.asarray(values, dtype=np.float32)
         if v.ndim != 2 or min(v.shape) < 1:
             raise ValueError(f"tone mapping needs a 2-D frame, got shape {v.shape}")
@@ -494,7 +586,14 @@ class LocalTonemap:
             out = np.empty(v.shape, dtype=dtype)
         if out.dtype not in (np.uint8, np.uint16):
             raise ValueError(f"tone mapping output must be uint8 or uint16, got {out.dtype}")
-        h, w = v.shape
+        out_max = 255.0 if out.dtype == np.uint8 else 65535.0
+        return self._run(v, None, white, exposure_stops, contrast, out_max, None, out)
+
+    def _run(self, v, k, white, exposure_stops, contrast, out_max, colour, out):
+        """The operator on the grey `v` (H, W), or on the luminance of the colour `v` (3, H, W) by `k` with
+        `colour` the display tables (`_log_kernel`)."""
+        from .scratch import planes
+        h, w = v.shape[-2:]
         cell = LOCAL_CELL
         hc, wc = -(-h // cell), -(-w // cell)
 
@@ -505,16 +604,22 @@ class LocalTonemap:
                     np.empty(wc),
                     np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 7)), *coarse)
         l, mbuf, rows, tbuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
-        _local_log(v, np.float32(1.0 / white), np.float32(1.0 / contrast), l, cm, cm2, mbuf)
+        scale, toe = np.float32(1.0 / white), np.float32(1.0 / contrast)
+        if colour is None:
+            _local_log(v, scale, toe, l, cm, cm2, mbuf)
+        else:
+            _rgb_local_log(v, k, scale, toe, l, cm, cm2, mbuf)
         r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
         _guided_coefficients(cm, cm2, r, LOCAL_EPS, ca, cb, t1, t2, t3, acc)
         _block_stats(cm, cm2, ca, cb, stats)
         p = np.array(local_parameters(stats, 1.0 / contrast))
         self.params = p if self.params is None else self.speed * p + (1 - self.speed) * self.params
         c, g, k0 = (float(t) for t in self.params)
-        out_max = 255.0 if out.dtype == np.uint8 else 65535.0
-        _local_apply(l, ca, cb, np.float32(c), np.float32(g - 1.0), np.float32(k0 + exposure_stops), _lut(),
-                     np.float32(out_max), rows, tbuf, out)
+        c, g1, k0 = np.float32(c), np.float32(g - 1.0), np.float32(k0 + exposure_stops)
+        if colour is None:
+            _local_apply(l, ca, cb, c, g1, k0, _lut(), np.float32(out_max), rows, tbuf, out)
+        else:
+            _rgb_local_apply(v, k, l, ca, cb, c, g1, k0, _lut(), rows, tbuf, *colour, out)
         return out
 
     def rgb(self, rgb: np.ndarray, white: float, exposure_stops: float = 0.0, contrast: float = DEFAULT_CONTRAST,
@@ -883,29 +988,21 @@ class GreyWorld:
         self.gains = None
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _rgb_luminance(rgb, gains, kr, kb, out):
-    """out = L of the white-balanced channels c = min(max(v g, 0), cap) (NaN -> 0), L = G + Kr (R - G) +
-    Kb (B - G): exactly G for a grey pixel."""
-    h, w = out.shape
-    cap = np.float32(_CHANNEL_CAP)
-    g0, g1, g2 = np.float32(gains[0]), np.float32(gains[1]), np.float32(gains[2])
-    for y in prange(h):
-        for x in range(w):
-            r = rgb[0, y, x] * g0
-            g = rgb[1, y, x] * g1
-            b = rgb[2, y, x] * g2
-            r = min(r if r > np.float32(0.0) else np.float32(0.0), cap)
-            g = min(g if g > np.float32(0.0) else np.float32(0.0), cap)
-            b = min(b if b > np.float32(0.0) else np.float32(0.0), cap)
-            out[y, x] = g + kr * (r - g) + kb * (b - g)
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _channel(v, g):
     """The white-balanced channel min(max(v g, 0), cap) (NaN -> 0)."""
     c = v * g
     return min(c if c > np.float32(0.0) else np.float32(0.0), np.float32(_CHANNEL_CAP))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _luminance(rgb, y, x, k0, k1, k2, kr, kb):
+    """L = G + Kr (R - G) + Kb (B - G) of the white-balanced channels (`_channel`, gains k0, k1, k2): exactly G
+    for a grey pixel."""
+    r = _channel(rgb[0, y, x], k0)
+    g = _channel(rgb[1, y, x], k1)
+    b = _channel(rgb[2, y, x], k2)
+    return g + kr * (r - g) + kb * (b - g)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -921,45 +1018,83 @@ def _into_gamut(t0, t1, t2, yd, tb, x):
     tb[2, x] = min(max(yd + (t2 - yd) * f, zero), one)
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _rgb_display(rgb, gains, lum, codes, dec, bins, thr, sat, out):
-    """Colour display codes: level Y' = sRGB EOTF of the grey tone map's 16-bit code (`dec`), channel
-    t = (c / L)^sat Y' (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes
-    (H, W, 3): the code at the linear bin's start, plus one from the next code's threshold on (a bin holds
-    at most one threshold: exact rounding in the encoded domain). Rows in chunks through a buffer."""
-    h, w = lum.shape
-    nch = min(h, 64)
+@njit(cache=True, nogil=True, inline="always")
+def _rgb_row(rgb, y, k, levels, dec, bins, thr, sat, fb, ib, out):
+    """Row y of the colour display codes (H, W, 3) from the grey operator's 16-bit levels of its luminance
+    (`levels`: code + 0.5, float32): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
+    (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the code at the linear
+    bin's start, plus one from the next code's threshold on (a bin holds at most one threshold: exact rounding
+    in the encoded domain). `fb`, `ib` (3, w): the row's channels and codes."""
+    npx = levels.shape[0]
     zero = np.float32(0.0)
+    one = np.float32(1.0)
     nb = np.float32(bins.shape[0] - 1)
-    g0, g1, g2 = np.float32(gains[0]), np.float32(gains[1]), np.float32(gains[2])
-    powered = sat != np.float32(1.0)
-    for c in prange(nch):
-        tb = np.empty((3, w), np.float32)
-        for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            if powered:
-                for x in range(w):
-                    L = lum[y, x]
-                    yd = dec[codes[y, x]]
-                    if L > zero:
-                        _into_gamut((_channel(rgb[0, y, x], g0) / L) ** sat * yd,
-                                    (_channel(rgb[1, y, x], g1) / L) ** sat * yd,
-                                    (_channel(rgb[2, y, x], g2) / L) ** sat * yd, yd, tb, x)
-                    else:
-                        _into_gamut(yd, yd, yd, yd, tb, x)
+    wr, wg, wb, kr, kb = k[0], k[1], k[2], k[3], k[4]
+    if sat != one:
+        for x in range(npx):
+            L = _luminance(rgb, y, x, wr, wg, wb, kr, kb)
+            yd = dec[np.int32(levels[x])]
+            if L > zero:
+                _into_gamut((_channel(rgb[0, y, x], wr) / L) ** sat * yd,
+                            (_channel(rgb[1, y, x], wg) / L) ** sat * yd,
+                            (_channel(rgb[2, y, x], wb) / L) ** sat * yd, yd, fb, x)
             else:
-                for x in range(w):
-                    L = lum[y, x]
-                    yd = dec[codes[y, x]]
-                    lit = L > zero
-                    k = yd / L if lit else zero
-                    _into_gamut(_channel(rgb[0, y, x], g0) * k if lit else yd,
-                                _channel(rgb[1, y, x], g1) * k if lit else yd,
-                                _channel(rgb[2, y, x], g2) * k if lit else yd, yd, tb, x)
+                _into_gamut(yd, yd, yd, yd, fb, x)
+    else:
+        for x in range(npx):
+            r = _channel(rgb[0, y, x], wr)
+            g = _channel(rgb[1, y, x], wg)
+            b = _channel(rgb[2, y, x], wb)
+            L = g + kr * (r - g) + kb * (b - g)
+            yd = dec[np.int32(levels[x])]
+            lit = L > zero
+            kf = yd / (L if lit else one)
+            t0 = r * kf if lit else yd
+            t1 = g * kf if lit else yd
+            t2 = b * kf if lit else yd
+            mx = max(t0, max(t1, t2))
+            over = mx > one
+            mix = (one - yd) / (mx - yd if over else one)
+            mix = mix if over else one
+            fb[0, x] = min(max(yd + (t0 - yd) * mix, zero), one)
+            fb[1, x] = min(max(yd + (t1 - yd) * mix, zero), one)
+            fb[2, x] = min(max(yd + (t2 - yd) * mix, zero), one)
+    for ch in range(3):
+        for x in range(npx):
+            lin = fb[ch, x]
+            sc = bins[np.int32(lin * nb)]
+            ib[ch, x] = sc + 1 if lin >= thr[sc] else sc
+    for x in range(npx):
+        out[y, x, 0] = ib[0, x]
+        out[y, x, 1] = ib[1, x]
+        out[y, x, 2] = ib[2, x]
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _rgb_log_kernel(rgb, k, scale, q, inv_den, dec, bins, thr, sat, tbuf, cbuf, out):
+    """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels),
+    shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `tbuf`, `cbuf` (chunks, 3, w) its rows."""
+    h, w = out.shape[0], out.shape[1]
+    nch = tbuf.shape[0]
+    k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
+    lmax = np.float32(65535.0)
+    for c in prange(nch):
+        ubuf = np.empty(w, np.float32)
+        mbuf = np.empty(w, np.float32)
+        ebuf = np.empty(w, np.float32)
+        ubits = ubuf.view(np.int32)
+        mbits = mbuf.view(np.int32)
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
             for x in range(w):
-                for ch in range(3):
-                    tv = tb[ch, x]
-                    code = bins[int(tv * nb)]
-                    out[y, x, ch] = code + 1 if tv >= thr[code] else code
+                v = _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale
+                v = v if v > np.float32(0.0) else np.float32(0.0)
+                v = v if v < np.float32(1.0) else np.float32(1.0)
+                ubuf[x] = np.float32(1.0) + q * v
+            _split(ubits, mbits, ebuf)
+            for x in range(w):
+                ebuf[x] = _log_level(mbuf[x], ebuf[x], ubuf[x], _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale,
+                                     q) * inv_den * lmax + np.float32(0.5)
+            _rgb_row(rgb, y, k, ebuf, dec, bins, thr, sat, tbuf[c], cbuf[c], out)
 
 
 def srgb_eotf(v):
@@ -972,13 +1107,13 @@ _SRGB = []
 
 
 def _srgb_tables():
-    """(decode: float32 sRGB EOTF of each 16-bit level, bins: uint8 first code of each of 16384 linear bins,
+    """(decode: float32 sRGB EOTF of each 16-bit level, bins: int32 first code of each of 16384 linear bins,
     thr: float32 linear threshold between code k and k + 1)."""
     if not _SRGB:
         dec = srgb_eotf(np.arange(65536) / 65535.0).astype(np.float32)
         thr = np.append(srgb_eotf((np.arange(255) + 0.5) / 255.0), 2.0).astype(np.float32)
         edges = (np.arange(16385) / 16384.0).astype(np.float32)
-        bins = np.searchsorted(thr, edges, side="right").astype(np.uint8)
+        bins = np.searchsorted(thr, edges, side="right").astype(np.int32)
         _SRGB.append((dec, bins, thr))
     return _SRGB[0]
 
@@ -1005,15 +1140,17 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
         out = np.empty((h, w, 3), np.uint8)
     if out.dtype != np.uint8 or out.shape != (h, w, 3):
         raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
-    lum, codes = planes("tonemap.rgb", (h, w), lambda: (np.empty((h, w), np.float32),
-                                                        np.empty((h, w), np.uint16)))
-    _rgb_luminance(v, gains, np.float32(LUMA_BT709[0]), np.float32(LUMA_BT709[1]), lum)
+    _check_tone(white, contrast)
+    k = np.array([*gains, *LUMA_BT709], np.float32)
+    bufs = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), 3, w), np.float32),
+                                                  np.empty((min(h, 64), 3, w), np.int32)))
+    colour = (*_srgb_tables(), np.float32(saturation), *bufs)
     if operator == "local":
-        (LocalTonemap() if local is None else local)(lum, white, exposure_stops, contrast, out=codes)
+        (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0, colour,
+                                                          out)
     else:
-        log_tonemap(lum, white, exposure_stops, contrast, out=codes)
-    dec, bins, thr = _srgb_tables()
-    _rgb_display(v, gains, lum, codes, dec, bins, thr, np.float32(saturation), out)
+        _rgb_log_kernel(v, k, np.float32(2.0 ** exposure_stops / white), np.float32(contrast),
+                        np.float32(1.0 / math.log1p(contrast)), *colour, out)
     return out
 
 

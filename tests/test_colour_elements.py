@@ -127,6 +127,28 @@ def run(desc, caps, buffers, timeout=900.0):
     return samples, error, messages
 
 
+def pull_all(desc, timeout_s=900):
+    """Every sample of the appsink `sink` of pipeline `desc` until EOS: [(caps string, pts, bytes)]; an error
+    on the bus fails the test."""
+    from gi.repository import Gst
+    pl = Gst.parse_launch(desc)
+    sink = pl.get_by_name("sink")
+    got = []
+    try:
+        pl.set_state(Gst.State.PLAYING)
+        while (smp := sink.try_pull_sample(timeout_s * Gst.SECOND)) is not None:
+            b = smp.get_buffer()
+            ok, mi = b.map(Gst.MapFlags.READ)
+            assert ok
+            got.append((smp.get_caps().to_string(), b.pts, bytes(mi.data)))
+            b.unmap(mi)
+        m = pl.get_bus().pop_filtered(Gst.MessageType.ERROR)
+        assert m is None, m.parse_error()[0].message
+    finally:
+        pl.set_state(Gst.State.NULL)
+    return got
+
+
 def colour_frame(data, h=H, w=W):
     """(rgb (3, H, W) float32, state (H, W) uint8) of a rgb-f32-u8-planar frame, read per the contract:
     float32 planes R, G, B (row-major, no padding) then the state plane, 13*W*H bytes in all."""
@@ -389,18 +411,7 @@ def test_colour_recipe(gst, gst_subprocess_env, colour12, tmp_path):
     desc = p.stdout.strip()
     assert "nrreconstruct" in desc and "layout=rgb-f32-u8-planar" in desc and "nrexrsink" in desc
     head = desc[:desc.index("! nrexrsink")]
-    pl = Gst.parse_launch(head + " ! appsink name=sink sync=false")
-    sink = pl.get_by_name("sink")
-    frames = []
-    try:
-        pl.set_state(Gst.State.PLAYING)
-        while (smp := sink.try_pull_sample(900 * Gst.SECOND)) is not None:
-            b = smp.get_buffer()
-            ok, mi = b.map(Gst.MapFlags.READ)
-            frames.append(bytes(mi.data))
-            b.unmap(mi)
-    finally:
-        pl.set_state(Gst.State.NULL)
+    frames = [data for _c, _p, data in pull_all(head + " ! appsink name=sink sync=false")]
     assert len(frames) == 3
     for data, raw in zip(frames, raws):
         rgb, state = colour_frame(data)
@@ -454,20 +465,9 @@ def test_fake_camera_bayer8_becomes_colour_frames(fake_camera, gst, tmp_path):
     """aravissrc's video/x-bayer (BayerRG8 on the camera) through nrvalidity with an 8-bit rggb profile: one
     colour frame per camera frame, timestamps rising."""
     path, _ = save_profile(tmp_path, "cam8", cfa="rggb", bit_depth=8, clip_code=250, l_min=4.0)
-    pl = gst.parse_launch(f"aravissrc camera-name={IP} num-buffers=3 ! {bayer_caps('rggb')} ! nrvalidity "
-                          f"profile={path} ! nrcrosstalk ! nrreconstruct method=preview ! appsink name=sink "
-                          f"sync=false")
-    sink = pl.get_by_name("sink")
-    got = []
-    try:
-        pl.set_state(gst.State.PLAYING)
-        while (smp := sink.try_pull_sample(600 * gst.SECOND)) is not None:
-            b = smp.get_buffer()
-            got.append((smp.get_caps().to_string(), b.pts, b.get_size()))
-        m = pl.get_bus().pop_filtered(gst.MessageType.ERROR)
-        assert m is None, m.parse_error()[0].message
-    finally:
-        pl.set_state(gst.State.NULL)
+    got = [(c, p, len(data)) for c, p, data in pull_all(
+        f"aravissrc camera-name={IP} num-buffers=3 ! {bayer_caps('rggb')} ! nrvalidity profile={path} ! "
+        f"nrcrosstalk ! nrreconstruct method=preview ! appsink name=sink sync=false")]
     assert len(got) == 3
     assert all("rgb-f32-u8-planar" in c and "cfa=(string)rggb" in c and n == 13 * W * H for c, _p, n in got)
     assert [p for _c, p, _n in got] == sorted(p for _c, p, _n in got)

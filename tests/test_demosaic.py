@@ -22,6 +22,12 @@ def _states(h, w, missing, seed=0, reason=DISCARDED):
     return np.where(rng.random((h, w)) < missing, reason, VALID).astype(np.uint8)
 
 
+def _random_mosaic(h, w, pattern, lo, hi, seed):
+    """(truth (3, H, W), its mosaic) of uniform random colours in [lo, hi)."""
+    rgb = np.random.default_rng(seed).uniform(lo, hi, (3, h, w)).astype(np.float32)
+    return rgb, cfa.mosaic(rgb, pattern)
+
+
 def _own(out, pattern):
     """Each photosite's own channel of a (3, H, W) image."""
     idx = cfa.channel_index(pattern, out.shape[1], out.shape[2])
@@ -72,9 +78,7 @@ def test_smooth_colour_ramp(method, pattern):
 @pytest.mark.parametrize("method", METHODS)
 def test_out_argument_and_scale(method):
     h, w = 20, 26
-    rng = np.random.default_rng(2)
-    rgb = rng.uniform(50, 500, (3, h, w)).astype(np.float32)
-    m = cfa.mosaic(rgb, "grbg")
+    _, m = _random_mosaic(h, w, "grbg", 50, 500, 2)
     st = _states(h, w, 0.3, seed=3)
     buf = np.full((3, h, w), np.nan, np.float32)
     res = demosaic.reconstruct_cfa(m, st.copy(), "grbg", method=method, out=buf)
@@ -84,24 +88,13 @@ def test_out_argument_and_scale(method):
     np.testing.assert_allclose(res2, buf * 1024.0, rtol=2e-3)
 
 
-def _phase_bounds(values, state):
-    """Lower and upper bounds of every photosite from `validity.bounds` on each Bayer phase apart."""
-    lo = np.full(values.shape, np.nan, np.float32)
-    hi = np.full(values.shape, np.nan, np.float32)
-    for py in range(2):
-        for px in range(2):
-            lo[py::2, px::2], hi[py::2, px::2] = validity.bounds(np.ascontiguousarray(values[py::2, px::2]),
-                                                                 np.ascontiguousarray(state[py::2, px::2]))
-    return lo, hi
-
-
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("pattern", ("rggb", "gbrg"))
 def test_bounds_respected(method, pattern):
     """A bright patch (clipped photosites whose value is their lower bound, far below the truth) and dark
     ND photosites (value = upper bound, far above the truth): each own channel on the right side of its
-    bound (the clipped-neighbour rule per colour included); with use_bounds off the clipped ones fall
-    back to the reconstruction from their unclipped neighbours."""
+    bound (`validity.bounds` with the CFA: the clipped-neighbour rule among one colour's photosites); with
+    use_bounds off the clipped ones fall back to the reconstruction from their unclipped neighbours."""
     h, w = 40, 48
     rng = np.random.default_rng(4)
     rgb = rng.uniform(100, 200, (3, h, w)).astype(np.float32)
@@ -116,7 +109,7 @@ def test_bounds_respected(method, pattern):
     dark = att & ~clip & (rng.random((h, w)) < 0.2)
     vals[dark] = 90.0                                       # threshold below the truth... an upper bound
     st[dark] |= DARK
-    lo, hi = _phase_bounds(vals, st)
+    lo, hi = validity.bounds(vals, st, cfa=pattern)
     for use_bounds in (True, False):
         s = st.copy()
         out = demosaic.reconstruct_cfa(vals, s, pattern, method=method, use_bounds=use_bounds)
@@ -129,6 +122,10 @@ def test_bounds_respected(method, pattern):
             assert (own[d] <= hi[d]).all()
             # the per-colour neighbour rule raises some regular photosites above their own clip level
             assert (lo[c & ~att] > vals[c & ~att]).any()
+            # inside the patch the estimates (from the dim surroundings) sit below the bounds: exactly them
+            inner = np.zeros((h, w), bool)
+            inner[13:23, 15:27] = True
+            np.testing.assert_array_equal(own[c & inner], lo[c & inner])
         known = (st & REASON_MASK) == VALID
         np.testing.assert_array_equal(own[known], vals[known])
         assert ((s & RECONSTRUCTED) != 0).sum() == (~known).sum()
@@ -303,9 +300,7 @@ def test_kodak_fse_beats_preview_beats_bilinear(missing):
 def test_same_result_for_any_thread_count_and_input_untouched(method):
     from numba import get_num_threads, set_num_threads
     h, w = 70, 90
-    rng = np.random.default_rng(11)
-    rgb = rng.uniform(10, 4000, (3, h, w)).astype(np.float32)
-    m = cfa.mosaic(rgb, "gbrg")
+    _, m = _random_mosaic(h, w, "gbrg", 10, 4000, 11)
     st = _states(h, w, 0.4, seed=12, reason=NOISY)
     st[5:20, 10:40] = CLIPPED
     m0 = m.copy()

@@ -113,6 +113,8 @@ def cmd_batch(a) -> int:
                     allow_outside=a.allow_outside_paths,
                     chunk=batch.DEFAULT_CHUNK if a.chunk is None else a.chunk,
                     overlap=batch.DEFAULT_OVERLAP if a.overlap is None else a.overlap)
+    if job.profile.cfa != "none":    # a colour mosaic takes the colour methods only: refuse before any frame
+        chain.check_colour(settings, job.profile.cfa)
     if job.xt_profile is not None:   # another sensor's calibration would correct the wrong pixels
         profile.check_same_sensor(job.xt_profile, job.profile)
     # the stop signals raise outputs.Interrupted once (later ones are ignored, so the clean-up is not

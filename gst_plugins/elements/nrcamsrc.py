@@ -177,7 +177,7 @@ class NrCamSrc(NrElement, GstBase.BaseSrc):
             self.post_error(f"profile={s.profile}: {e}", kind="read")
             return None
         try:
-            scene, name = realtime.load_scene(s.scene, prof.height)
+            scene, name = realtime.load_scene(s.scene, prof.height, cfa=prof.cfa)
         except (OSError, ValueError) as e:
             self.post_error(f"scene={s.scene}: {e}", kind="read")
             return None
