@@ -24,8 +24,8 @@ ND layouts over a Bayer CFA (`ND_LAYOUTS`, `cfa_mask`; docs/COLOUR.md, docs/SIMU
 - ``balanced`` (the default, `DEFAULT_ND_LAYOUT`): the chosen pattern drawn on each of the four 2 x 2 CFA
   sub-lattices (R, the two greens, B) separately, so every colour plane has exactly half its photosites
   attenuated, placed as the pattern places them (non-regular within each plane for ``nonregular``).
-- ``regular``: the Assorted-Pixels / spatially-varying-exposure layout (Nayar and Mitsunaga, "Assorted
-  Pixels: Multi-sampled imaging with structural models", TPAMI 2005): whole 2 x 2 Bayer blocks alternate
+- ``regular``: the Assorted-Pixels / spatially-varying-exposure layout (spatially varying exposure, Nayar and
+  Mitsunaga, CVPR 2000, over the colour mosaic as in Assorted Pixels, Narasimhan and Nayar, TPAMI 2005): whole 2 x 2 Bayer blocks alternate
   clear / ND in a checkerboard of blocks, so every colour plane is a regular checkerboard (the pattern is
   not used).
 """
@@ -243,7 +243,7 @@ SUBLATTICES = ((0, 0), (0, 1), (1, 0), (1, 1))   # the four 2 x 2 CFA sub-lattic
 
 
 def block_checkerboard(height: int, width: int) -> np.ndarray:
-    """The `regular` ND layout over a CFA (Nayar and Mitsunaga, Assorted Pixels, TPAMI 2005): 2 x 2 blocks
+    """The `regular` ND layout over a CFA (SVE, Nayar and Mitsunaga 2000; Assorted Pixels, Narasimhan and Nayar 2005): 2 x 2 blocks
     attenuated where (block row + block column) is odd, the top-left block clear; every colour plane is a
     regular checkerboard."""
     _check_size(height, width)
