@@ -135,14 +135,19 @@ class TemporalReconstructor:
             return self._alone(values, state, noise, report, g, floor, nd)
         # 1. global motion
         dy, dx = global_motion(values, state, self._prev, int(o["search"]))
-        # 2. per-block consistency (and, with no motion, which REUSE blocks step 3 finishes alone)
+        # 2. per-block consistency; with no motion, settled still blocks are finished in the same pass (their
+        # past and output; undone on a cut)
         cy, cx, cmis = _candidates(dy, dx, float(o["shift_error"]))
-        n_kept, n_unknown, n_flagged, n_bad = _judge_blocks(
-            values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand, fast, lower, g, floor, nd,
-            np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]), np.float32(Z_OUT),
-            int(o["min_evidence"]), np.float32(o["reuse_frames"]), cmis, self.use_bounds, cy.size == 1)
+        if self.use_bounds:
+            _clip_lower_rows(values, state, lower)
+        n_kept, n_unknown, n_flagged, n_bad, n = _judge_blocks(
+            values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand, fast, lower, work, g, floor,
+            nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]), np.float32(Z_OUT),
+            int(o["min_evidence"]), np.float32(o["reuse_frames"]), cmis, self.use_bounds,
+            np.float32(o["max_frames"]), cy.size == 1)
         if n_flagged or n_bad:
             # pixels filled upstream or non-finite measurements: the general single-frame path judges them
+            _undo_fast(values, state, work, fast, bs)
             return self._alone(values, state, noise, report, g, floor, nd)
         counts = np.bincount(dec.ravel(), minlength=5)
         trusted = (dec == REFRESH) | (dec == REUSE) | (dec == NO_PRIOR)
@@ -152,16 +157,14 @@ class TemporalReconstructor:
         judged = dec.size - counts[NO_EVIDENCE] - n_kept      # blocks with measurements to judge by
         if judged and counts[FRESH] > float(o["cut_share"]) * judged:
             report["cut"] = True
+            _undo_fast(values, state, work, fast, bs)
             return self._alone(values, state, noise, report, g, floor, nd)
         method, preset = self.method, self.preset
         if callable(method):
             method, preset = method(n_unknown / float(h * w)) if n_unknown else ("preview", preset)
         lo_a = lower if self.use_bounds else _EMPTY
         up_a = upper if self.use_bounds else _EMPTY
-        # 3. still blocks whose past is settled: finished in one pass (their past and their output)
-        n = _reuse_blocks(values, state, self._prev, self._var, self._cnt, lower, fast, bs, self.use_bounds, g,
-                          floor, nd, np.float32(o["max_frames"]))
-        # 4. the other blocks: measured pixels averaged, settled missing pixels reused, the rest reconstructed
+        # 3. the other blocks: measured pixels averaged, settled missing pixels reused, the rest reconstructed
         blocks = np.argwhere(fast == 0).astype(np.int32)
         if len(blocks):
             left = np.zeros(len(blocks), np.int64)
@@ -172,7 +175,7 @@ class TemporalReconstructor:
             if len(todo):
                 self._reconstruct_left(todo, fast, work, known, lower if self.use_bounds else None,
                                        upper if self.use_bounds else None, state, noise, method, preset)
-        # 5. fused with the past, written back, kept as the next frame's past
+        # 4. fused with the past, written back, kept as the next frame's past
         n += _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, fast, bs, lo_a, up_a,
                     self.use_bounds, g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]),
                     np.float32(o["reuse_frames"]), floor, np.float32(o["rec_texture"]), nd, np.float32(Z_OUT))
@@ -527,16 +530,18 @@ def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lower, g, floor, nd, z_mean,
-                  out_share, tol, z_out, min_ev, reuse_frames, cmis, use_bounds, allow_fast):
+def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lower, work, g, floor, nd, z_mean,
+                  out_share, tol, z_out, min_ev, reuse_frames, cmis, use_bounds, max_frames, allow_fast):
     """Per block: the candidate motion (`_candidates`: (cy[c], cx[c])) that explains the measured pixels
     (VALID and NOISY) best, and the decision (FRESH, REFRESH, REUSE, NO_PRIOR, NO_EVIDENCE). With
-    `allow_fast` (no motion: the only candidate is none) a REUSE block without an outlier gets fast = 1:
-    `_reuse_blocks` finishes it in one pass, the general path skips it. With `use_bounds`
-    `lower` holds the clipped-neighbour bound at clipped regular pixels (`validity.clip_lower_row`;
-    elsewhere scratch), for `_reuse_block` and `_prepare_blocks`. Returns the blocks
-    trusted on their bounds alone, the pixels not VALID, those of them already RECONSTRUCTED, and the VALID
-    pixels that are not finite."""
+    `allow_fast` (no motion: the only candidate is none; every read is of the block's own pixels) a REUSE
+    block without pixels filled upstream or non-finite measurements is finished right here, in cache
+    (`_reuse_row` once the block row is judged: its past and its output, its input values kept in `work`
+    for `_undo_fast`), fast = 1;
+    the general path skips it. With `use_bounds` `lower` holds the clipped-neighbour bound at clipped
+    regular pixels (`_clip_lower_rows`; elsewhere scratch). Returns the blocks trusted on their bounds
+    alone, the pixels not VALID, those of them already RECONSTRUCTED, the VALID pixels that are not
+    finite, and the pixels not VALID written."""
     h, w = values.shape
     nby, nbx = dec.shape
     nc = cy.shape[0]
@@ -544,14 +549,15 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
     n_unknown = 0
     n_flagged = 0
     n_bad = 0
+    n_written = 0
     for by in prange(nby):
         zl = np.empty(bs, np.float32)       # the still fit's per-column sums (`_still_fit`)
         il = np.empty((6, bs), np.int32)
-        if use_bounds:
-            # the clipped-neighbour bound of the block row's clipped regular pixels (`validity.bounds`)
-            for y in range(by * bs, min(by * bs + bs, h)):
-                if row_has_clipped_regular(state, y):
-                    clip_lower_row(values, state, y, lower[y])
+        la = np.empty(w, np.float32)        # the reused blocks' rows (`_reuse_row`)
+        lv = np.empty(w, np.float32)
+        lc = np.empty(w, np.uint8)
+        fm = np.zeros(w, np.uint8)
+        c_written = 0
         for bx in range(nbx):
             y0 = by * bs
             x0 = bx * bs
@@ -564,6 +570,7 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
             best_n = 0
             best_c = 0
             unsettled = 0
+            blk_bad = 0
             for c in range(nc):
                 sy = cy[c]
                 sx = cx[c]
@@ -573,11 +580,12 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
                 no = 0
                 if c == 0:
                     # still: the past at the same pixel, branch-free (the mask is random)
-                    zr, n, no, nu, nf, nb, unsettled = _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1,
-                                                                  g, floor, nd, tol, z_out, reuse_frames, zl, il)
+                    zr, n, no, nu, nf, nb, unsettled = _still_fit(
+                        values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol, z_out, reuse_frames, zl, il)
                     zs = zr
                     n_unknown += nu
                     n_flagged += nf
+                    blk_bad = nf + nb
                     n_bad += nb
                 for y in range(y0, y1 if c > 0 else y0):
                     for x in range(x0, x1):
@@ -622,7 +630,9 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
                     continue
             if (not kept) and (best_m >= z_mean or best_o > max(np.float32(1.0), out_share * best_n)):
                 dec[by, bx] = FRESH
-            elif (not kept) and best_o > 0:
+            elif (not kept) and best_o > 0 and not ((best_c == 0) & (best_o == 1)):
+                # an outlier: the missing pixels keep no prior (a single one in a still block is the
+                # noise's: that pixel alone restarts from its measurement)
                 dec[by, bx] = NO_PRIOR
             else:
                 # reusable when the past of every missing pixel averages `reuse_frames` reconstructions (or
@@ -631,17 +641,25 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
                 # not would be copied with its position error, frame after frame)
                 reuse = (best_c == 0) & (unsettled == 0)
                 dec[by, bx] = REUSE if reuse else REFRESH
-                fast[by, bx] = np.uint8(reuse & allow_fast & (best_o == 0))
-    return n_kept, n_unknown, n_flagged, n_bad
+                if reuse & allow_fast & (blk_bad == 0):
+                    fast[by, bx] = 1
+                    fm[x0:x1] = 1
+        if fm.any():
+            for y in range(by * bs, min(by * bs + bs, h)):
+                c_written += _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g, floor,
+                                        nd, tol, z_out, max_frames, la, lv, lc)
+        n_written += c_written
+    return n_kept, n_unknown, n_flagged, n_bad, n_written
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol, z_out, reuse_frames, zl, il):
     """(sum of min(z, z_out), count, outliers) of the block's measured pixels against the past at the
     same pixels (`_judge_blocks`' still candidate); the block's pixels not VALID, those of them already
-    RECONSTRUCTED, the VALID ones that are not finite, and the pixels not VALID whose past averages fewer
-    than `reuse_frames` frames. Branch-free, summed per column in the scratch lanes zl (float32) and il
-    (int32, 6 rows), at least x1 - x0 long, so that the loop vectorises."""
+    RECONSTRUCTED, the VALID ones that are not finite, and the missing pixels (neither VALID nor NOISY:
+    NOISY ones are measured every frame) whose past averages fewer than `reuse_frames` frames.
+    Branch-free, summed per column in the scratch lanes zl (float32) and il (int32, 6 rows), at least
+    x1 - x0 long, so that the loop vectorises."""
     zero = np.float32(0.0)
     nw = x1 - x0
     ndg = nd * g
@@ -676,7 +694,7 @@ def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol,
             il[2, i] += np.int32(u)
             il[3, i] += np.int32(u & ((st & RECONSTRUCTED) != 0))
             il[4, i] += np.int32((r == VALID) & (not (abs(v) < np.inf)))
-            il[5, i] += np.int32(u & (cr[x] < reuse_frames))
+            il[5, i] += np.int32(u & (r != NOISY) & (cr[x] < reuse_frames))
     zs = zero
     for i in range(nw):
         zs += zl[i]
@@ -684,83 +702,97 @@ def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol,
             np.int64(il[3, :nw].sum()), np.int64(il[4, :nw].sum()), np.int64(il[5, :nw].sum()))
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _reuse_block(values, state, prev, var, cnt, lower, y0, y1, x0, x1, use_bounds, g, floor, nd, max_frames, la, lv,
-                 lc):
-    """A still REUSE block without an outlier, finished in place, branch-free: its past and its output
-    become the numbers `_prepare_px` and `_finish` give (measured and NOISY pixels averaged with their
-    past, the others their past within their bounds, RECONSTRUCTED). Each row is computed into the
-    scratch lanes la, lv, lc (the caller's, at least x1 - x0 long), then copied, so that both loops
-    vectorise. Returns the pixels not VALID written."""
+@njit(cache=True, nogil=True, error_model="numpy")
+def _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g, floor, nd, tol, z_out, max_frames,
+               la, lv, lc):
+    """Row y of the still REUSE blocks (fm[x] = 1 at their pixels) finished in place, branch-free: their
+    past and output become the numbers `_prepare_px` and `_finish` give (measured and NOISY pixels
+    averaged with their past, an outlier restarted from its measurement, the others their past within
+    their bounds, RECONSTRUCTED); `work` keeps the input values (`_undo_fast`). The whole row is computed
+    into the scratch lanes la, lv, lc (the caller's, the row's length), then selected, so that both loops
+    are long and vectorise. Returns the pixels not VALID written."""
     zero = np.float32(0.0)
     ndg = nd * g
     ndf = nd * nd * floor
-    nw = x1 - x0
     flag = np.uint8(RECONSTRUCTED)
+    vr = values[y]
+    sr = state[y]
+    pr = prev[y]
+    qr = var[y]
+    cr = cnt[y]
+    lr = lower[y]                             # (scratch without use_bounds: not used)
+    wr = work[y]
+    w = vr.shape[0]
+    for x in range(w):
+        st = sr[x]
+        r = st & REASON_MASK
+        v = vr[x]
+        p = pr[x]
+        vp = qr[x]
+        n0 = np.int32(cr[x])
+        meas = (r == VALID) | (r == NOISY)
+        att = ((st & ATTENUATED) != 0) | (r == NOISY)
+        lvl = p if p > zero else zero
+        vm = (ndg * lvl + ndf) if att else (g * lvl + floor)
+        lim = vm / max_frames
+        vpp = vp if vp > lim else lim
+        inv = np.float32(1.0) / (vm + vpp)
+        a = (v * vpp + p * vm) * inv
+        nv = vm * vpp * inv
+        nv = nv if nv > lim else lim
+        d = v - p
+        t = tol * p
+        out = meas & (d * d > z_out * (vm + vp + t * t))       # restarts from its measurement
+        vo = v if v > zero else zero
+        nvo = (ndg * vo + ndf) if att else (g * vo + floor)
+        q = p
+        m = lr[x]                             # the neighbours' bound of a clipped regular pixel
+        lb = m if ((st & (ATTENUATED | REASON_MASK)) == CLIPPED) & (m == m) & (m > v) else v
+        q = lb if use_bounds & (r == CLIPPED) & (lb == lb) & (lb > q) else q
+        q = v if use_bounds & (r == DARK) & (v == v) & (v < q) else q
+        n1 = n0 + 1
+        n1 = n1 if n1 < 255 else 255
+        la[x] = v if out else (a if meas else q)
+        lv[x] = nvo if out else (nv if meas else vp)
+        lc[x] = np.uint8(1 if out else (n1 if meas else n0))
     n = 0
-    for y in range(y0, y1):
-        vr = values[y]
-        sr = state[y]
-        pr = prev[y]
-        qr = var[y]
-        cr = cnt[y]
-        lr = lower[y]                             # (scratch without use_bounds: not used)
-        for i in range(nw):
-            x = x0 + i
-            st = sr[x]
-            r = st & REASON_MASK
-            v = vr[x]
-            p = pr[x]
-            vp = qr[x]
-            n0 = np.int32(cr[x])
-            meas = (r == VALID) | (r == NOISY)
-            att = ((st & ATTENUATED) != 0) | (r == NOISY)
-            lvl = p if p > zero else zero
-            vm = (ndg * lvl + ndf) if att else (g * lvl + floor)
-            lim = vm / max_frames
-            vpp = vp if vp > lim else lim
-            a = (v * vpp + p * vm) / (vm + vpp)
-            nv = vm * vpp / (vm + vpp)
-            nv = nv if nv > lim else lim
-            q = p
-            m = lr[x]                             # the neighbours' bound of a clipped regular pixel
-            lb = m if ((st & (ATTENUATED | REASON_MASK)) == CLIPPED) & (m == m) & (m > v) else v
-            q = lb if use_bounds & (r == CLIPPED) & (lb == lb) & (lb > q) else q
-            q = v if use_bounds & (r == DARK) & (v == v) & (v < q) else q
-            n1 = n0 + 1
-            la[i] = a if meas else q
-            lv[i] = nv if meas else vp
-            lc[i] = np.uint8((n1 if n1 < 255 else 255) if meas else n0)
-        for i in range(nw):
-            st = sr[x0 + i]
-            m = (st & REASON_MASK) != VALID
-            pr[x0 + i] = la[i]
-            qr[x0 + i] = lv[i]
-            cr[x0 + i] = lc[i]
-            vr[x0 + i] = la[i]
-            sr[x0 + i] = st | (flag * np.uint8(m))
-            n += np.int64(m)
+    for x in range(w):
+        f = fm[x] != 0
+        st = sr[x]
+        m = f & ((st & REASON_MASK) != VALID)
+        v = vr[x]
+        wr[x] = v
+        pr[x] = la[x] if f else pr[x]
+        qr[x] = lv[x] if f else qr[x]
+        cr[x] = lc[x] if f else cr[x]
+        vr[x] = la[x] if f else v
+        sr[x] = st | (flag * np.uint8(m))
+        n += np.int64(m)
     return n
 
 
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _reuse_blocks(values, state, prev, var, cnt, lower, fast, bs, use_bounds, g, floor, nd, max_frames):
-    """`_reuse_block` for every block with fast = 1 (after the judgement, once the frame is not a cut).
-    Returns the pixels not VALID written."""
+@njit(cache=True, nogil=True, parallel=True)
+def _clip_lower_rows(values, state, lower):
+    """lower[y, x] = the clipped-neighbour bound of the clipped regular pixels (`validity.clip_lower_row`,
+    in the rows that have one; elsewhere scratch)."""
+    for y in prange(state.shape[0]):
+        if row_has_clipped_regular(state, y):
+            clip_lower_row(values, state, y, lower[y])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _undo_fast(values, state, work, fast, bs):
+    """The input again in the blocks `_judge_blocks` finished (a cut, or a frame the single-frame path must
+    judge): values from `work`, no RECONSTRUCTED bit on their missing pixels (they had none)."""
     h, w = values.shape
-    nby, nbx = fast.shape
-    n = 0
-    for by in prange(nby):
-        la = np.empty(bs, np.float32)
-        lv = np.empty(bs, np.float32)
-        lc = np.empty(bs, np.uint8)
-        c = 0
-        for bx in range(nbx):
-            if fast[by, bx] != 0:
-                c += _reuse_block(values, state, prev, var, cnt, lower, by * bs, min(by * bs + bs, h), bx * bs,
-                                  min(bx * bs + bs, w), use_bounds, g, floor, nd, max_frames, la, lv, lc)
-        n += c
-    return n
+    keep = np.uint8(~RECONSTRUCTED & 0xFF)
+    for y in prange(h):
+        by = y // bs
+        for x in range(w):
+            if fast[by, x // bs] != 0:
+                values[y, x] = work[y, x]
+                st = state[y, x]
+                state[y, x] = st if (st & REASON_MASK) == VALID else st & keep
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -815,12 +847,16 @@ def _prepare_px(v, st, p, vp, va, n_past, d, lb, ub, use_bounds, g, floor, nd, t
         vm = _meas_var(p, att or r == NOISY, g, floor, nd)
         dd = v - p
         t = tol * p
-        if dd * dd > z_out * (vm + vp + t * t):
-            return v, v, (pvar if r == VALID else inf), np.int32(0), known   # an outlier: the pixel restarts
-        vpp = vp if vp > vm / max_frames else vm / max_frames
-        a = (v * vpp + p * vm) / (vm + vpp)
-        nv = vm * vpp / (vm + vpp)
-        nv = nv if nv > vm / max_frames else vm / max_frames
+        if dd * dd > z_out * (vm + vp + t * t):                # an outlier: the pixel restarts
+            if r == VALID:
+                return v, v, pvar, np.int32(0), known
+            return v, v, -_meas_var(v, True, g, floor, nd), np.int32(0), True   # from its measurement
+        lim = vm / max_frames
+        vpp = vp if vp > lim else lim
+        inv = np.float32(1.0) / (vm + vpp)         # (as `_reuse_row`: the same numbers)
+        a = (v * vpp + p * vm) * inv
+        nv = vm * vpp * inv
+        nv = nv if nv > lim else lim
         return a, a, (nv if r == VALID else -nv), n_past, True          # negative: a reused pixel, as it is
     if d == REUSE:
         if use_bounds:
@@ -918,7 +954,7 @@ def _tex_var_ctx(work, prev, fast, bs, y, x, h, w, rec_tex):
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, fast, bs, lower, upper, use_bounds, g, rec_noise,
             rec_tol, reuse_frames, floor, rec_tex, nd, z_out):
-    """Write the frame and keep it as the past, outside the blocks `_reuse_blocks` wrote (`fast`):
+    """Write the frame and keep it as the past, outside the blocks `_judge_blocks` finished (`fast`):
     measured pixels get their average, missing pixels the reconstruction fused by inverse
     variance with their aligned past (where they have one and it agrees within Z_OUT), within their
     bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
@@ -931,7 +967,7 @@ def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, fast, bs, lower, 
         for x0 in range(0, w, bs):
             x1 = min(x0 + bs, w)
             if fast[by, x0 // bs] != 0:
-                continue                                  # written by `_reuse_blocks`
+                continue                                  # finished by `_judge_blocks`
             for x in range(x0, x1):
                 st = state[y, x]
                 r = st & REASON_MASK
