@@ -694,7 +694,7 @@ def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol,
             il[2, i] += np.int32(u)
             il[3, i] += np.int32(u & ((st & RECONSTRUCTED) != 0))
             il[4, i] += np.int32((r == VALID) & (not (abs(v) < np.inf)))
-            il[5, i] += np.int32(u & (r != NOISY) & (cr[x] < reuse_frames))
+            il[5, i] += np.int32(u & (cr[x] < reuse_frames))
     zs = zero
     for i in range(nw):
         zs += zl[i]
@@ -754,7 +754,7 @@ def _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g,
         n1 = n1 if n1 < 255 else 255
         la[x] = v if out else (a if meas else q)
         lv[x] = nvo if out else (nv if meas else vp)
-        lc[x] = np.uint8(1 if out else (n1 if meas else n0))
+        lc[x] = np.uint8((n0 if r == NOISY else 1) if out else (n1 if meas else n0))
     n = 0
     for x in range(w):
         f = fm[x] != 0
@@ -850,7 +850,9 @@ def _prepare_px(v, st, p, vp, va, n_past, d, lb, ub, use_bounds, g, floor, nd, t
         if dd * dd > z_out * (vm + vp + t * t):                # an outlier: the pixel restarts
             if r == VALID:
                 return v, v, pvar, np.int32(0), known
-            return v, v, -_meas_var(v, True, g, floor, nd), np.int32(0), True   # from its measurement
+            # a NOISY one from its measurement, keeping its count (it is measured every frame: its
+            # block stays settled)
+            return v, v, -_meas_var(v, True, g, floor, nd), n_past - 1, True
         lim = vm / max_frames
         vpp = vp if vp > lim else lim
         inv = np.float32(1.0) / (vm + vpp)         # (as `_reuse_row`: the same numbers)
