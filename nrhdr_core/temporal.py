@@ -8,23 +8,23 @@ recursive, variance-weighted averaging is a motion-compensated recursive (Kalman
 
 Per frame (`TemporalReconstructor.process`):
 
-1. known mask and bounds (`validity.prepare`);
-2. global motion (`global_motion`): the best match within a pixel of still, else phase correlation of
+1. global motion (`global_motion`): the best match within a pixel of still, else phase correlation of
    4 x 4 cell means of log2 values (the frame's measured pixels against the previous output), its peaks
    refined by 2-D matching at full resolution, sub-pixel by parabolic fits;
-3. per block (``block`` x ``block``) and candidate motion (none, the global motion rounded and as it is)
+2. per block (``block`` x ``block``) and candidate motion (none, the global motion rounded and as it is)
    the consistency of the frame's measured pixels with the aligned previous output: z = (m - p)^2 /
    (var_m + var_p + (tol p)^2 + alignment), var_m the measurement's noise (Eq. 4-7 as
    `validity.measurement_variance`), var_p the previous output's variance; the block is trusted when the
-   mean of min(z, Z_OUT) stays below ``z_mean`` and few pixels are outliers (z > Z_OUT); most blocks
-   untrusted = a scene cut: the state is reset and the frame is reconstructed alone
-   (`reconstruction.reconstruct_frame`, the same bits);
-4. in trusted blocks measured pixels are averaged with their aligned past by inverse variance (per pixel:
-   an outlier restarts its pixel); in still blocks whose missing pixels' past already averages
-   ``reuse_frames`` frames the past is taken as known (the block costs nothing); the other missing pixels
-   are reconstructed from the averaged values (the blocks as one mosaic when they are few) and fused with
-   their past;
-5. untrusted blocks (motion the candidates do not explain, occlusion, a block with an outlier) are
+   mean of min(z, Z_OUT) stays below ``z_mean`` and few pixels are outliers (z > Z_OUT; a single one in
+   a still block restarts that pixel only); most blocks untrusted = a scene cut: the state is reset and
+   the frame is reconstructed alone (`reconstruction.reconstruct_frame`, the same bits);
+3. cost follows change: with no motion, a still block whose missing and NOISY pixels' past already
+   averages ``reuse_frames`` frames is finished in the judgement's pass (`_reuse_row`: measured and NOISY
+   pixels averaged with their past, missing ones keep it; undone on a cut);
+4. in the other trusted blocks measured pixels are averaged with their aligned past by inverse variance
+   (per pixel: an outlier restarts its pixel); the missing pixels are reconstructed from the averaged
+   values (the blocks as one mosaic when they are few) and fused with their past;
+5. untrusted blocks (motion the candidates do not explain, occlusion, a block with outliers) are
    reconstructed alone.
 
 The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
