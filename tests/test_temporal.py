@@ -332,3 +332,22 @@ def test_restart_from_a_steady_state_is_a_frame_alone(prof, views, how):
     reconstruction.reconstruct_frame(v1, s1, method="fse", preset="fast", noise=prof)
     np.testing.assert_array_equal(v, v1)
     np.testing.assert_array_equal(s, s1)
+
+
+def test_a_frame_with_a_pixel_filled_upstream_is_a_frame_alone_from_a_steady_state(prof, views):
+    """From a steady state, a frame in which one missing pixel already carries RECONSTRUCTED (filled
+    upstream) goes to the single-frame path: bit for bit `reconstruct_frame`'s output, with every other
+    block of the input as it came (nothing of the reuse left in it)."""
+    raw = sensor.capture(crop(views[0]), prof, np.random.default_rng(17))
+    tr, _, _, rep = steady(prof, raw)
+    assert rep["reused"] > 0.9
+    v, s = validity.classify(raw, prof, dark_policy="weighted")
+    miss = np.argwhere((s & REASON_MASK) != VALID)
+    y, x = miss[len(miss) // 2]
+    s[y, x] |= RECONSTRUCTED
+    v1, s1 = v.copy(), s.copy()
+    rep = tr.process(v, s, noise=prof)
+    assert rep["reset"] and not rep["cut"]
+    reconstruction.reconstruct_frame(v1, s1, method="fse", preset="fast", noise=prof)
+    np.testing.assert_array_equal(v, v1)
+    np.testing.assert_array_equal(s, s1)
