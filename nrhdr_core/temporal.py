@@ -664,8 +664,10 @@ def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol,
     nw = x1 - x0
     ndg = nd * g
     ndf = nd * nd * floor
-    zl[:nw] = zero
-    il[:, :nw] = 0
+    for i in range(nw):
+        zl[i] = zero
+        for k in range(6):
+            il[k, i] = 0
     for y in range(y0, y1):
         vr = values[y]
         sr = state[y]
@@ -696,10 +698,16 @@ def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol,
             il[4, i] += np.int32((r == VALID) & (not (abs(v) < np.inf)))
             il[5, i] += np.int32(u & (cr[x] < reuse_frames))
     zs = zero
+    c0 = c1 = c2 = c3 = c4 = c5 = 0
     for i in range(nw):
         zs += zl[i]
-    return (zs, np.int64(il[0, :nw].sum()), np.int64(il[1, :nw].sum()), np.int64(il[2, :nw].sum()),
-            np.int64(il[3, :nw].sum()), np.int64(il[4, :nw].sum()), np.int64(il[5, :nw].sum()))
+        c0 += il[0, i]
+        c1 += il[1, i]
+        c2 += il[2, i]
+        c3 += il[3, i]
+        c4 += il[4, i]
+        c5 += il[5, i]
+    return (zs, np.int64(c0), np.int64(c1), np.int64(c2), np.int64(c3), np.int64(c4), np.int64(c5))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
