@@ -23,10 +23,12 @@ Metrics (`metrics.clip_report`, as `nrhdr compare` and hdr_quality.py): log2 PSN
 log2(white), truth and output capped at the ND camera's white) per region of the truth (dark < l_min x ND,
 bright >= the regular clip, mid between), the mean over all frames of all scenes; flicker: the RMS over
 consecutive frame pairs of the change of the log2 error in stops, at pixels not bright in either truth,
-pooled over pairs and scenes. Frames/s: each clip kind of the first scene (or `--fps-scene`) rendered at
-1920 x 1080 through `chain.process_frame` in sequence (best of `--repeat` timed passes after an untimed
-one), for the single-frame preview method (the anchor, same run), fse fast, and fse fast with the temporal
-state.
+pooled over pairs and scenes; per frame and region, log2 PSNR temporal on minus off (the frames where on
+is furthest below off are listed). Speed: each clip kind of the first scene (or `--fps-scene`) at 1920 x
+1080, classified, then the reconstruction stage alone per frame in sequence, for the single-frame preview
+method (the anchor), fse fast and fse fast with the temporal state, the three back to back on each frame
+(best of `--repeat` timed passes after an untimed one): ms per frame in the steady state (median of the
+second half of the clip) and over the clip, and frames/s.
 Writes bench_out/temporal/results.json and results.md.
 """
 from __future__ import annotations
@@ -149,10 +151,20 @@ class Flicker:
         return float(np.sqrt(self.sse / self.n)) if self.n else None
 
 
+def frame_regions(truth, out, prof) -> dict:
+    """log2 PSNR per region of one frame, as `metrics.clip_report` scores it (None: the region is empty)."""
+    white = prof.white
+    r = metrics.hdr_report(np.minimum(truth, white), np.minimum(np.asarray(out, np.float64), white),
+                           prof.l_min * prof.nd, prof.regular_white, white=white, peak_stops=float(np.log2(white)))
+    return {k: (r[k]["log2_psnr"] if r[k]["pixels"] else None) for k in metrics.REGIONS}
+
+
 def quality(scenes, names, h, w, frames, seed, configs):
-    """{clip kind: {config: report with 'flicker'}} over all scenes."""
+    """({clip kind: {config: report with 'flicker'}} over all scenes, per frame and region temporal on
+    against off: a list of {clip, scene, frame, region, on, off, delta})."""
     prof = profile.default(h, w, seed=3)
     res = {}
+    per_frame = []
     for kind in CLIPS:
         pairs = {c: [] for c in configs}
         flick = {c: Flicker(prof.white, prof.regular_white) for c in configs}
@@ -160,24 +172,37 @@ def quality(scenes, names, h, w, frames, seed, configs):
             t0 = time.perf_counter()
             truths = [renderer(kind, scenes, j, prof, frames, seed).flux(i) for i in range(frames)]
             nd, cam, p0 = capture_pair(truths, prof, seed + 100 * j)
+            by = {}
             for c in configs:
                 if c == "camera":
                     outs = camera(cam, p0)
                 else:
                     outs = run_chain(nd, prof, SETTINGS, temporal() if c == "on" else None)
+                by[c] = outs
                 pairs[c] += zip(truths, outs)
                 flick[c].add_clip(truths, outs)
+            if "on" in by:
+                for i, t in enumerate(truths):
+                    on, off = frame_regions(t, by["on"][i], prof), frame_regions(t, by["off"][i], prof)
+                    per_frame += [{"clip": kind, "scene": names[j], "frame": i, "region": k, "on": on[k],
+                                   "off": off[k], "delta": on[k] - off[k]} for k in metrics.REGIONS
+                                  if on[k] is not None and off[k] is not None]
             print(f"  {kind}, {names[j]}: {time.perf_counter() - t0:.1f} s", flush=True)
         res[kind] = {}
         for c in configs:
             r = metrics.clip_report(pairs[c], prof.l_min * prof.nd, prof.regular_white, prof.white)
             r["flicker"] = flick[c].value()
             res[kind][c] = r
-    return res
+    return res, per_frame
 
 
 def speed(scene_list, h, w, frames, seed, repeat):
-    """{clip kind: {config: frames/s}} at h x w on the first scene."""
+    """{clip kind: {config: {"ms": [per frame], "steady": ms, "mean": ms}}} at h x w on the first scene: the
+    reconstruction stage alone (`reconstruct_frame` for preview and fse fast, the temporal state's `process`
+    for temporal on) on the classified frames, each frame timed for every configuration back to back (the
+    same moment of the shared machine's load), best of `repeat` passes per frame after an untimed pass.
+    "steady": the median over the second half of the clip (a steady shot's reused state), "mean": over all
+    frames."""
     prof = profile.default(h, w, seed=3)
     configs = [("preview", PREVIEW, None), ("off", SETTINGS, None)]
     if TemporalReconstructor is not None:
@@ -186,16 +211,30 @@ def speed(scene_list, h, w, frames, seed, repeat):
     for kind in CLIPS:
         r = renderer(kind, scene_list, 0, prof, frames, seed)
         raws, _, _ = capture_pair([r.flux(i) for i in range(frames)], prof, seed)
-        res[kind] = {}
-        for name, s, tr in configs:
-            run_chain(raws, prof, s, tr)                 # untimed: compiles, fills caches
-            best = float("inf")
-            for _ in range(repeat):
-                t0 = time.perf_counter()
-                run_chain(raws, prof, s, tr)
-                best = min(best, time.perf_counter() - t0)
-            res[kind][name] = frames / best
-        print(f"  {kind}: " + ", ".join(f"{k} {v:.1f}" for k, v in res[kind].items()) + " frames/s", flush=True)
+        classified = [validity.classify(raw, prof, mode=SETTINGS.mode, l_min=SETTINGS.l_min,
+                                        dark_policy=SETTINGS.dark_policy) for raw in raws]
+        best = {name: [float("inf")] * frames for name, _, _ in configs}
+        for rep in range(repeat + 1):                    # the first pass untimed: compiles, fills caches
+            for _, _, tr in configs:
+                if tr is not None:
+                    tr.reset()
+            for i, (v0, s0) in enumerate(classified):
+                for name, st, tr in configs:
+                    v, s = v0.copy(), s0.copy()
+                    t0 = time.perf_counter()
+                    if tr is None:
+                        reconstruction.reconstruct_frame(v, s, method=st.method, preset=st.preset,
+                                                         use_bounds=st.use_bounds, noise=prof,
+                                                         fusion=st.noise_fusion)
+                    else:
+                        tr.process(v, s, noise=prof)
+                    dt = (time.perf_counter() - t0) * 1e3
+                    if rep:
+                        best[name][i] = min(best[name][i], dt)
+        res[kind] = {name: {"ms": ms, "steady": float(np.median(ms[frames // 2:])), "mean": float(np.mean(ms))}
+                     for name, ms in best.items()}
+        print(f"  {kind}: " + ", ".join(f"{k} {v['steady']:.1f} ms steady, {v['mean']:.1f} ms mean"
+                                        for k, v in res[kind].items()), flush=True)
     return res
 
 
@@ -217,13 +256,23 @@ def quality_table(res, configs) -> str:
 
 
 def speed_table(res, h, w, frames) -> str:
+    """ms per frame of the reconstruction stage (frames/s): the steady state (median of the second half)
+    and the mean over the clip."""
     cols = [("preview", "preview (anchor)"), ("off", "fse fast, temporal off"), ("on", "fse fast, temporal on")]
     cols = [c for c in cols if any(c[0] in by for by in res.values())]
-    lines = [f"| clip ({w} x {h}, {frames} frames) | " + " | ".join(c[1] for c in cols) + " |",
-             "|---" * (len(cols) + 1) + "|"]
+    lines = [f"| clip ({w} x {h}, {frames} frames): ms steady / mean (frames/s) | "
+             + " | ".join(c[1] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for kind, by in res.items():
-        lines.append(f"| {kind} | " + " | ".join(f"{by[c]:.1f}" for c, _ in cols) + " |")
+        lines.append(f"| {kind} | " + " | ".join(
+            f"{by[c]['steady']:.1f} / {by[c]['mean']:.1f} ({1e3 / by[c]['steady']:.1f})" for c, _ in cols) + " |")
     return "\n".join(lines)
+
+
+def worst_frames(per_frame, n=3) -> str:
+    """The frames and regions where temporal on falls furthest below temporal off (log2 PSNR dB)."""
+    rows = sorted(per_frame, key=lambda r: r["delta"])[:n]
+    return "\n".join(f"- {r['clip']}, {r['scene']}, frame {r['frame']}, {r['region']}: on {r['on']:.2f}, off "
+                     f"{r['off']:.2f} ({r['delta']:+.2f} dB)" for r in rows)
 
 
 def size(text: str) -> tuple[int, int]:
@@ -277,10 +326,14 @@ def main(argv=None) -> int:
             "nrhdr_core.temporal is not in this tree: temporal off and the unmodified camera only\n\n")
     print(note + f"quality: {w} x {h}, {frames} frames per clip, scenes {', '.join(names)}", flush=True)
     t_start = time.perf_counter()
-    q = quality(scenes, names, h, w, frames, a.seed, configs)
+    q, per_frame = quality(scenes, names, h, w, frames, a.seed, configs)
     text = (note + f"{w} x {h}, {frames} frames per clip, scenes {', '.join(names)}, shot and read noise, "
             "chain defaults (weighted, fse fast); log2 PSNR all / dark / mid / bright dB; flicker in stops\n\n"
             + quality_table(q, configs) + "\n")
+    if per_frame:
+        worse = [r for r in per_frame if r["delta"] < 0]
+        text += (f"\nper frame and region, temporal on below off: {len(worse)} of {len(per_frame)}; the "
+                 f"furthest:\n" + worst_frames(per_frame) + "\n")
     sp = None
     if not a.no_fps:
         fscenes = list(scenes)
@@ -292,13 +345,15 @@ def main(argv=None) -> int:
             fscenes[0] = realtime.load_scene("synthetic", height=fh)[0]
         print(f"frames/s: {fw} x {fh}, {fframes} frames per clip, {fname}", flush=True)
         sp = speed(fscenes, fh, fw, fframes, a.seed, a.repeat)
-        text += f"\nframes/s, {fname}, best of {a.repeat}:\n\n" + speed_table(sp, fh, fw, fframes) + "\n"
+        text += (f"\nreconstruction stage, {fname}, ms per frame (best of {a.repeat} per frame, configurations back "
+                 f"to back):\n\n" + speed_table(sp, fh, fw, fframes) + "\n")
     total = time.perf_counter() - t_start
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     info = {"quick": a.quick, "size": [w, h], "frames": frames, "scenes": names, "seed": a.seed,
             "temporal": TemporalReconstructor is not None, "quality": q, "fps_size": [fw, fh],
-            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "seconds": total}
+            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "per_frame": per_frame,
+            "seconds": total}
     (out / "results.json").write_text(json.dumps(info, indent=1) + "\n")
     (out / "results.md").write_text(text)
     print("\n" + text + f"\n({total:.0f} s)")

@@ -8,23 +8,23 @@ recursive, variance-weighted averaging is a motion-compensated recursive (Kalman
 
 Per frame (`TemporalReconstructor.process`):
 
-1. known mask and bounds (`validity.prepare`);
-2. global motion (`global_motion`): the best match within a pixel of still, else phase correlation of
+1. global motion (`global_motion`): the best match within a pixel of still, else phase correlation of
    4 x 4 cell means of log2 values (the frame's measured pixels against the previous output), its peaks
    refined by 2-D matching at full resolution, sub-pixel by parabolic fits;
-3. per block (``block`` x ``block``) and candidate motion (none, the global motion rounded and as it is)
+2. per block (``block`` x ``block``) and candidate motion (none, the global motion rounded and as it is)
    the consistency of the frame's measured pixels with the aligned previous output: z = (m - p)^2 /
    (var_m + var_p + (tol p)^2 + alignment), var_m the measurement's noise (Eq. 4-7 as
    `validity.measurement_variance`), var_p the previous output's variance; the block is trusted when the
-   mean of min(z, Z_OUT) stays below ``z_mean`` and few pixels are outliers (z > Z_OUT); most blocks
-   untrusted = a scene cut: the state is reset and the frame is reconstructed alone
-   (`reconstruction.reconstruct_frame`, the same bits);
-4. in trusted blocks measured pixels are averaged with their aligned past by inverse variance (per pixel:
-   an outlier restarts its pixel); in still blocks whose missing pixels' past already averages
-   ``reuse_frames`` frames the past is taken as known (the block costs nothing); the other missing pixels
-   are reconstructed from the averaged values (the blocks as one mosaic when they are few) and fused with
-   their past;
-5. untrusted blocks (motion the candidates do not explain, occlusion, a block with an outlier) are
+   mean of min(z, Z_OUT) stays below ``z_mean`` and few pixels are outliers (z > Z_OUT; a single one in
+   a still block restarts that pixel only); most blocks untrusted = a scene cut: the state is reset and
+   the frame is reconstructed alone (`reconstruction.reconstruct_frame`, the same bits);
+3. cost follows change: with no motion, a still block whose missing and NOISY pixels' past already
+   averages ``reuse_frames`` frames is finished in the judgement's pass (`_reuse_row`: measured and NOISY
+   pixels averaged with their past, missing ones keep it; undone on a cut);
+4. in the other trusted blocks measured pixels are averaged with their aligned past by inverse variance
+   (per pixel: an outlier restarts its pixel); the missing pixels are reconstructed from the averaged
+   values (the blocks as one mosaic when they are few) and fused with their past;
+5. untrusted blocks (motion the candidates do not explain, occlusion, a block with outliers) are
    reconstructed alone.
 
 The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
@@ -39,6 +39,7 @@ from numba import njit, prange
 
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
+from .validity import clip_lower_row, row_has_clipped_regular
 
 # block decisions
 FRESH = 0      # no trusted past: reconstructed alone
@@ -107,7 +108,7 @@ class TemporalReconstructor:
         returns), "blocks", the shares "fresh", "refreshed", "reused", "no_prior", "no_evidence" of the
         blocks, "motion" (dy, dx): the motion most trusted blocks took (the global estimate where none),
         "cut" and "reset" (True when the frame was reconstructed alone)."""
-        from . import reconstruction, validity
+        from . import validity
         o = self.options
         if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
                 and values.flags.c_contiguous and values.flags.writeable):
@@ -126,51 +127,58 @@ class TemporalReconstructor:
                   "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True}
         if self._prev is not None and self._prev.shape != values.shape:
             self.reset()
-        known, lower, upper, work, pv, pvar, pc, dec, cand = _planes(h, w, nby, nbx)
-        n_miss, n_unknown, known, lower, upper = validity._prepare(
-            values, state, known, lower if self.use_bounds else None, upper if self.use_bounds else None,
-            self.use_bounds)
-        method, preset = self.method, self.preset
-        if callable(method):
-            method, preset = method(n_miss / float(h * w)) if n_miss else ("preview", preset)
+        known, lower, upper, work, pv, pvar, pc, dec, cand, fast = _planes(h, w, nby, nbx)
         g = np.float32(noise.gain)
         floor = np.float32(float(noise.gain) ** 2 * float(noise.read_noise) ** 2 + 1.0 / 12.0)
         nd = np.float32(noise.nd)
-        if self._prev is None or n_miss != n_unknown or reconstruction._nonfinite_known(values, known):
-            # first frame (or a frame the general path must judge: non-finite measurements, pixels filled
-            # upstream)
-            return self._alone(values, state, noise, method, preset, report, g, floor, nd)
-        # 2. global motion
+        if self._prev is None:
+            return self._alone(values, state, noise, report, g, floor, nd)
+        # 1. global motion
         dy, dx = global_motion(values, state, self._prev, int(o["search"]))
-        # 3. per-block consistency
-        lo_a = lower if lower is not None else _EMPTY
+        # 2. per-block consistency; with no motion, settled still blocks are finished in the same pass (their
+        # past and output; undone on a cut)
         cy, cx, cmis = _candidates(dy, dx, float(o["shift_error"]))
-        n_kept = _judge_blocks(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
-                      g, floor, nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]),
-                      np.float32(Z_OUT), int(o["min_evidence"]), np.float32(o["rec_noise"]),
-                      np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]), cmis, np.float32(o["rec_texture"]))
+        if self.use_bounds:
+            _clip_lower_rows(values, state, lower)
+        n_kept, n_unknown, n_flagged, n_bad, n = _judge_blocks(
+            values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand, fast, lower, work, g, floor,
+            nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]), np.float32(Z_OUT),
+            int(o["min_evidence"]), np.float32(o["reuse_frames"]), cmis, self.use_bounds,
+            np.float32(o["max_frames"]), cy.size == 1)
+        if n_flagged or n_bad:
+            # pixels filled upstream or non-finite measurements: the general single-frame path judges them
+            _undo_fast(values, state, work, fast, bs)
+            return self._alone(values, state, noise, report, g, floor, nd)
         counts = np.bincount(dec.ravel(), minlength=5)
         trusted = (dec == REFRESH) | (dec == REUSE) | (dec == NO_PRIOR)
         # the dominant motion: the candidate most trusted blocks took (the global estimate when none did)
         top = int(np.argmax(np.bincount(cand[trusted], minlength=cy.size))) if trusted.any() else -1
         report["motion"] = (float(cy[top]), float(cx[top])) if top >= 0 else (float(dy), float(dx))
         judged = dec.size - counts[NO_EVIDENCE] - n_kept      # blocks with measurements to judge by
-        untrusted = counts[FRESH]
-        if judged and untrusted > float(o["cut_share"]) * judged:
+        if judged and counts[FRESH] > float(o["cut_share"]) * judged:
             report["cut"] = True
-            return self._alone(values, state, noise, method, preset, report, g, floor, nd)
-        # 4. measured pixels averaged, settled missing pixels reused, the rest marked for the reconstruction
-        up_a = upper if upper is not None else _EMPTY
-        left = _prepare_work(values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
-                      known, lo_a, up_a, lower is not None, work, pv, pvar, pc, g, floor, nd, np.float32(o["tol"]),
-                      np.float32(Z_OUT), np.float32(o["max_frames"]), cmis)
-        if left:
-            self._reconstruct_left(work, known, lower, upper, state, noise, method, preset)
-        # 5. fused with the past, written back, kept as the next frame's past
-        n = _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, lo_a, up_a,
-                    lower is not None,
-                    g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]), np.float32(o["reuse_frames"]),
-                    floor, np.float32(o["rec_texture"]), nd, np.float32(Z_OUT))
+            _undo_fast(values, state, work, fast, bs)
+            return self._alone(values, state, noise, report, g, floor, nd)
+        method, preset = self.method, self.preset
+        if callable(method):
+            method, preset = method(n_unknown / float(h * w)) if n_unknown else ("preview", preset)
+        lo_a = lower if self.use_bounds else _EMPTY
+        up_a = upper if self.use_bounds else _EMPTY
+        # 3. the other blocks: measured pixels averaged, settled missing pixels reused, the rest reconstructed
+        blocks = np.argwhere(fast == 0).astype(np.int32)
+        if len(blocks):
+            left = np.zeros(len(blocks), np.int64)
+            _prepare_blocks(blocks, values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
+                            known, lo_a, up_a, self.use_bounds, work, pv, pvar, pc, left, g, floor, nd,
+                            np.float32(o["tol"]), np.float32(Z_OUT), np.float32(o["max_frames"]), cmis)
+            todo = blocks[left > 0]
+            if len(todo):
+                self._reconstruct_left(todo, fast, work, known, lower if self.use_bounds else None,
+                                       upper if self.use_bounds else None, state, noise, method, preset)
+        # 4. fused with the past, written back, kept as the next frame's past
+        n += _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, fast, bs, lo_a, up_a,
+                    self.use_bounds, g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]),
+                    np.float32(o["reuse_frames"]), floor, np.float32(o["rec_texture"]), nd, np.float32(Z_OUT))
         self.frames += 1
         tot = float(dec.size)
         report.update(missing=int(n), reset=False, fresh=counts[FRESH] / tot, refreshed=counts[REFRESH] / tot,
@@ -178,18 +186,21 @@ class TemporalReconstructor:
                       no_evidence=counts[NO_EVIDENCE] / tot)
         return report
 
-    def _reconstruct_left(self, work, known, lower, upper, state, noise, method, preset) -> None:
-        """`reconstruction.reconstruct` of the pixels left unknown, in place in `work`: on the whole frame,
-        or, when they lie in at most MOSAIC_SHARE of the blocks, on a mosaic of those blocks, each with
-        MARGIN pixels of context (cost follows change: the reconstruction's per-frame passes run over those
-        blocks only)."""
+    def _reconstruct_left(self, todo, fast, work, known, lower, upper, state, noise, method, preset) -> None:
+        """`reconstruction.reconstruct` of the pixels left unknown in the blocks `todo` ((by, bx) rows), in
+        place in `work`: on the whole frame, or, when they are at most MOSAIC_SHARE of the blocks, on a
+        mosaic of those blocks, each with MARGIN pixels of context (cost follows change: the
+        reconstruction's passes run over those blocks only). Blocks finished in the judgement (`fast`)
+        enter as known context: their new past."""
         from . import reconstruction
         h, w = work.shape
         bs = int(self.options["block"])
-        counts = _tile_counts(known, bs)
-        blocks = np.argwhere(counts > 0)
         side = bs + 2 * MARGIN
-        if len(blocks) > MOSAIC_SHARE * counts.size or h < side or w < side:
+        nby, nbx = fast.shape
+        if len(todo) > MOSAIC_SHARE * fast.size or h < side or w < side:
+            _fill_fast(np.argwhere(fast != 0).astype(np.int32), self._prev, bs, work, known,
+                       lower if lower is not None else _EMPTY, upper if upper is not None else _EMPTY,
+                       lower is not None)
             noisy = ((state & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~known
             noisy = noisy if noisy.any() else None
             reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
@@ -197,11 +208,17 @@ class TemporalReconstructor:
                                        fusion=self.fusion)
             return
         # each block's context window (side x side, moved inside the frame), stacked into one column
-        ys = np.clip(blocks[:, 0] * bs - MARGIN, 0, h - side)
-        xs = np.clip(blocks[:, 1] * bs - MARGIN, 0, w - side)
+        ys = np.clip(todo[:, 0] * bs - MARGIN, 0, h - side)
+        xs = np.clip(todo[:, 1] * bs - MARGIN, 0, w - side)
+        near = np.zeros((nby, nbx), np.bool_)            # the finished blocks the windows reach into
+        for y0, x0 in zip(ys, xs):
+            near[y0 // bs:(y0 + side - 1) // bs + 1, x0 // bs:(x0 + side - 1) // bs + 1] = True
+        _fill_fast(np.argwhere(near & (fast != 0)).astype(np.int32), self._prev, bs, work, known,
+                   lower if lower is not None else _EMPTY, upper if upper is not None else _EMPTY,
+                   lower is not None)
         rows = (ys[:, None] + np.arange(side)[None, :])[:, :, None]
         cols = (xs[:, None] + np.arange(side)[None, :])[:, None, :]
-        n = len(blocks)
+        n = len(todo)
 
         def mosaic(a):
             return None if a is None else np.ascontiguousarray(a[rows, cols].reshape(n * side, side))
@@ -213,17 +230,17 @@ class TemporalReconstructor:
         reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
                                    noisy=noisy, noise=noise if noisy is not None else None, fusion=self.fusion)
         sub = sub.reshape(n, side, side)
-        for i, (by, bx) in enumerate(blocks):
+        for i, (by, bx) in enumerate(todo):
             y0, x0 = by * bs, bx * bs
             y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
             oy, ox = y0 - ys[i], x0 - xs[i]
             work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
 
-    def _alone(self, values, state, noise, method, preset, report, g, floor, nd) -> dict:
+    def _alone(self, values, state, noise, report, g, floor, nd) -> dict:
         """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it."""
         from . import reconstruction
         report["missing"] = int(reconstruction.reconstruct_frame(
-            values, state, method=method, preset=preset, use_bounds=self.use_bounds, noise=noise,
+            values, state, method=self.method, preset=self.preset, use_bounds=self.use_bounds, noise=noise,
             fusion=self.fusion))
         if self._prev is None or self._prev.shape != values.shape:
             self._prev = np.empty_like(values)
@@ -241,27 +258,14 @@ MARGIN = 16          # pixels of context around a block reconstructed in a mosai
 MOSAIC_SHARE = 0.15  # at most this share of the blocks left to reconstruct: a mosaic of them, else the frame
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _tile_counts(known, tile):
-    """Pixels not known per tile x tile tile."""
-    h, w = known.shape
-    nty = (h + tile - 1) // tile
-    ntx = (w + tile - 1) // tile
-    out = np.zeros((nty, ntx), np.int64)
-    for ty in prange(nty):
-        for y in range(ty * tile, min((ty + 1) * tile, h)):
-            for x in range(w):
-                out[ty, x // tile] += 0 if known[y, x] else 1
-    return out
-
-
 def _planes(h, w, nby, nbx):
     """The calling thread's working planes: known, lower, upper, work, aligned past, its variance and its
-    count, block decisions and candidates."""
+    count, block decisions, candidates and the blocks finished in the judgement."""
     return planes("temporal.work", (h, w, nby, nbx), lambda: (
         np.empty((h, w), np.bool_), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
         np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
-        np.empty((h, w), np.uint8), np.empty((nby, nbx), np.uint8), np.empty((nby, nbx), np.uint8)))
+        np.empty((h, w), np.uint8), np.empty((nby, nbx), np.uint8), np.empty((nby, nbx), np.uint8),
+        np.empty((nby, nbx), np.uint8)))
 
 
 # ---- noise model --------------------------------------------------------------------------------------
@@ -297,7 +301,7 @@ def _tex_var(img, y, x, h, w, rec_tex):
     return rec_tex * r * r
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex):
     """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
     the others with a fresh reconstruction's, each the average of 1 frame."""
@@ -525,26 +529,48 @@ def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
     return p, vp, half * half * s + extra
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor, nd, z_mean, out_share, tol,
-                  z_out, min_ev, rec_noise, rec_tol, reuse_frames, cmis, rec_tex):
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lower, work, g, floor, nd, z_mean,
+                  out_share, tol, z_out, min_ev, reuse_frames, cmis, use_bounds, max_frames, allow_fast):
     """Per block: the candidate motion (`_candidates`: (cy[c], cx[c])) that explains the measured pixels
-    (VALID and NOISY) best, and the decision (FRESH, REFRESH, REUSE, NO_PRIOR, NO_EVIDENCE)."""
+    (VALID and NOISY) best, and the decision (FRESH, REFRESH, REUSE, NO_PRIOR, NO_EVIDENCE). With
+    `allow_fast` (no motion: the only candidate is none; every read is of the block's own pixels) a REUSE
+    block without pixels filled upstream or non-finite measurements is finished right here, in cache
+    (`_reuse_row` once the block row is judged: its past and its output, its input values kept in `work`
+    for `_undo_fast`), fast = 1;
+    the general path skips it. With `use_bounds` `lower` holds the clipped-neighbour bound at clipped
+    regular pixels (`_clip_lower_rows`; elsewhere scratch). Returns the blocks trusted on their bounds
+    alone, the pixels not VALID, those of them already RECONSTRUCTED, the VALID pixels that are not
+    finite, and the pixels not VALID written."""
     h, w = values.shape
     nby, nbx = dec.shape
     nc = cy.shape[0]
     n_kept = 0
+    n_unknown = 0
+    n_flagged = 0
+    n_bad = 0
+    n_written = 0
     for by in prange(nby):
+        zl = np.empty(bs, np.float32)       # the still fit's per-column sums (`_still_fit`)
+        il = np.empty((6, bs), np.int32)
+        la = np.empty(w, np.float32)        # the reused blocks' rows (`_reuse_row`)
+        lv = np.empty(w, np.float32)
+        lc = np.empty(w, np.uint8)
+        fm = np.zeros(w, np.uint8)
+        c_written = 0
         for bx in range(nbx):
             y0 = by * bs
             x0 = bx * bs
             y1 = min(y0 + bs, h)
             x1 = min(x0 + bs, w)
+            fast[by, bx] = 0
             best_m = np.float32(np.inf)
             best_r = np.float32(np.inf)
             best_o = 0
             best_n = 0
             best_c = 0
+            unsettled = 0
+            blk_bad = 0
             for c in range(nc):
                 sy = cy[c]
                 sx = cx[c]
@@ -554,22 +580,22 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                 no = 0
                 if c == 0:
                     # still: the past at the same pixel, branch-free (the mask is random)
-                    zr, n, no = _still_fit(values, state, prev, var, y0, y1, x0, x1, g, floor, nd, tol, z_out)
+                    zr, n, no, nu, nf, nb, unsettled = _still_fit(
+                        values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol, z_out, reuse_frames, zl, il)
                     zs = zr
+                    n_unknown += nu
+                    n_flagged += nf
+                    blk_bad = nf + nb
+                    n_bad += nb
                 for y in range(y0, y1 if c > 0 else y0):
                     for x in range(x0, x1):
                         st = state[y, x]
                         r = st & REASON_MASK
                         if r != VALID and r != NOISY:
                             continue
-                        if c == 0:
-                            p = prev[y, x]
-                            vp = var[y, x]
-                            va = np.float32(0.0)
-                        else:
-                            p, vp, va = _aligned(prev, var, y, x, sy, sx, h, w, cmis[c])
-                            if not vp < np.inf:
-                                continue
+                        p, vp, va = _aligned(prev, var, y, x, sy, sx, h, w, cmis[c])
+                        if not vp < np.inf:
+                            continue
                         vm = _meas_var(p, (st & ATTENUATED) != 0 or r == NOISY, g, floor, nd)
                         d = values[y, x] - p
                         t = tol * p
@@ -578,7 +604,7 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                         z = d * d / (base + va)                # with the alignment's uncertainty, for trust
                         zs += min(z, z_out)
                         n += 1
-                        no += 1 if z > z_out else 0
+                        no += 1 if d * d > z_out * (base + va) else 0
                 mr = zr / n if n > 0 else np.float32(np.inf)
                 m = zs / n if n > 0 else np.float32(np.inf)
                 if c == 0 or mr < best_r * np.float32(0.9):     # a later candidate must fit clearly better
@@ -604,46 +630,191 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, g, floor
                     continue
             if (not kept) and (best_m >= z_mean or best_o > max(np.float32(1.0), out_share * best_n)):
                 dec[by, bx] = FRESH
-            elif (not kept) and best_o > 0:
+            elif (not kept) and best_o > 0 and not ((best_c == 0) & (best_o == 1)):
+                # an outlier: the missing pixels keep no prior (a single one in a still block is the
+                # noise's: that pixel alone restarts from its measurement)
                 dec[by, bx] = NO_PRIOR
             else:
                 # reusable when the past of every missing pixel averages `reuse_frames` reconstructions (or
                 # noisy measurements)
                 # (only where nothing moved: a past moved by a whole-pixel estimate of a motion that is
                 # not would be copied with its position error, frame after frame)
-                unsettled = 0
-                for y in range(y0, y1 if best_c == 0 else y0):
-                    for x in range(x0, x1):      # (a still block: the same pixel; branch-free)
-                        unsettled += np.int64(((state[y, x] & REASON_MASK) != VALID) & (cnt[y, x] < reuse_frames))
-                dec[by, bx] = REUSE if (best_c == 0) & (unsettled == 0) else REFRESH
-    return n_kept
+                reuse = (best_c == 0) & (unsettled == 0)
+                dec[by, bx] = REUSE if reuse else REFRESH
+                if reuse & allow_fast & (blk_bad == 0):
+                    fast[by, bx] = 1
+                    fm[x0:x1] = 1
+        if fm.any():
+            for y in range(by * bs, min(by * bs + bs, h)):
+                c_written += _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g, floor,
+                                        nd, tol, z_out, max_frames, la, lv, lc)
+        n_written += c_written
+    return n_kept, n_unknown, n_flagged, n_bad, n_written
 
 
-@njit(cache=True, nogil=True)
-def _still_fit(values, state, prev, var, y0, y1, x0, x1, g, floor, nd, tol, z_out):
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol, z_out, reuse_frames, zl, il):
     """(sum of min(z, z_out), count, outliers) of the block's measured pixels against the past at the
-    same pixels (`_judge_blocks`' still candidate), branch-free."""
-    zs = np.float32(0.0)
-    n = 0
-    no = 0
+    same pixels (`_judge_blocks`' still candidate); the block's pixels not VALID, those of them already
+    RECONSTRUCTED, the VALID ones that are not finite, and the missing pixels (neither VALID nor NOISY:
+    NOISY ones are measured every frame) whose past averages fewer than `reuse_frames` frames.
+    Branch-free, summed per column in the scratch lanes zl (float32) and il (int32, 6 rows), at least
+    x1 - x0 long, so that the loop vectorises."""
     zero = np.float32(0.0)
+    nw = x1 - x0
+    ndg = nd * g
+    ndf = nd * nd * floor
+    for i in range(nw):
+        zl[i] = zero
+        for k in range(6):
+            il[k, i] = 0
     for y in range(y0, y1):
-        for x in range(x0, x1):
-            st = state[y, x]
+        vr = values[y]
+        sr = state[y]
+        pr = prev[y]
+        qr = var[y]
+        cr = cnt[y]
+        for i in range(nw):
+            x = x0 + i
+            st = sr[x]
             r = st & REASON_MASK
             m = (r == VALID) | (r == NOISY)
-            p = prev[y, x]
+            p = pr[x]
             att = ((st & ATTENUATED) != 0) | (r == NOISY)
             lv = p if p > zero else zero
-            vm = (nd * g * lv + nd * nd * floor) if att else (g * lv + floor)
-            d = values[y, x] - p
+            vm = (ndg * lv + ndf) if att else (g * lv + floor)
+            v = vr[x]
+            d = v - p
             t = tol * p
-            z = d * d / (vm + var[y, x] + t * t)
+            base = vm + qr[x] + t * t
+            z = d * d / base
             zc = z if z < z_out else z_out
-            zs += zc if m else zero
-            n += np.int64(m)
-            no += np.int64(m & (z > z_out))
-    return zs, n, no
+            zl[i] += zc if m else zero
+            u = r != VALID
+            il[0, i] += np.int32(m)
+            il[1, i] += np.int32(m & (d * d > z_out * base))
+            il[2, i] += np.int32(u)
+            il[3, i] += np.int32(u & ((st & RECONSTRUCTED) != 0))
+            il[4, i] += np.int32((r == VALID) & (not (abs(v) < np.inf)))
+            il[5, i] += np.int32(u & (cr[x] < reuse_frames))
+    zs = zero
+    c0 = c1 = c2 = c3 = c4 = c5 = 0
+    for i in range(nw):
+        zs += zl[i]
+        c0 += il[0, i]
+        c1 += il[1, i]
+        c2 += il[2, i]
+        c3 += il[3, i]
+        c4 += il[4, i]
+        c5 += il[5, i]
+    return (zs, np.int64(c0), np.int64(c1), np.int64(c2), np.int64(c3), np.int64(c4), np.int64(c5))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g, floor, nd, tol, z_out, max_frames,
+               la, lv, lc):
+    """Row y of the still REUSE blocks (fm[x] = 1 at their pixels) finished in place, branch-free: their
+    past and output become the numbers `_prepare_px` and `_finish` give (measured and NOISY pixels
+    averaged with their past, an outlier restarted from its measurement, the others their past within
+    their bounds, RECONSTRUCTED); `work` keeps the input values (`_undo_fast`). The whole row is computed
+    into the scratch lanes la, lv, lc (the caller's, the row's length), then selected, so that both loops
+    are long and vectorise. Returns the pixels not VALID written."""
+    zero = np.float32(0.0)
+    ndg = nd * g
+    ndf = nd * nd * floor
+    flag = np.uint8(RECONSTRUCTED)
+    vr = values[y]
+    sr = state[y]
+    pr = prev[y]
+    qr = var[y]
+    cr = cnt[y]
+    lr = lower[y]                             # (scratch without use_bounds: not used)
+    wr = work[y]
+    w = vr.shape[0]
+    for x in range(w):
+        st = sr[x]
+        r = st & REASON_MASK
+        v = vr[x]
+        p = pr[x]
+        vp = qr[x]
+        n0 = np.int32(cr[x])
+        meas = (r == VALID) | (r == NOISY)
+        att = ((st & ATTENUATED) != 0) | (r == NOISY)
+        lvl = p if p > zero else zero
+        vm = (ndg * lvl + ndf) if att else (g * lvl + floor)
+        lim = vm / max_frames
+        vpp = vp if vp > lim else lim
+        inv = np.float32(1.0) / (vm + vpp)
+        a = (v * vpp + p * vm) * inv
+        nv = vm * vpp * inv
+        nv = nv if nv > lim else lim
+        d = v - p
+        t = tol * p
+        out = meas & (d * d > z_out * (vm + vp + t * t))       # restarts from its measurement
+        vo = v if v > zero else zero
+        nvo = (ndg * vo + ndf) if att else (g * vo + floor)
+        q = p
+        m = lr[x]                             # the neighbours' bound of a clipped regular pixel
+        lb = m if ((st & (ATTENUATED | REASON_MASK)) == CLIPPED) & (m == m) & (m > v) else v
+        q = lb if use_bounds & (r == CLIPPED) & (lb == lb) & (lb > q) else q
+        q = v if use_bounds & (r == DARK) & (v == v) & (v < q) else q
+        n1 = n0 + 1
+        n1 = n1 if n1 < 255 else 255
+        la[x] = v if out else (a if meas else q)
+        lv[x] = nvo if out else (nv if meas else vp)
+        lc[x] = np.uint8((n0 if r == NOISY else 1) if out else (n1 if meas else n0))
+    n = 0
+    for x in range(w):
+        f = fm[x] != 0
+        st = sr[x]
+        m = f & ((st & REASON_MASK) != VALID)
+        v = vr[x]
+        wr[x] = v
+        pr[x] = la[x] if f else pr[x]
+        qr[x] = lv[x] if f else qr[x]
+        cr[x] = lc[x] if f else cr[x]
+        vr[x] = la[x] if f else v
+        sr[x] = st | (flag * np.uint8(m))
+        n += np.int64(m)
+    return n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _clip_lower_rows(values, state, lower):
+    """lower[y, x] = the clipped-neighbour bound of the clipped regular pixels (`validity.clip_lower_row`,
+    in the rows that have one; elsewhere scratch)."""
+    for y in prange(state.shape[0]):
+        if row_has_clipped_regular(state, y):
+            clip_lower_row(values, state, y, lower[y])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _undo_fast(values, state, work, fast, bs):
+    """The input again in the blocks `_judge_blocks` finished (a cut, or a frame the single-frame path must
+    judge): values from `work`, no RECONSTRUCTED bit on their missing pixels (they had none)."""
+    h, w = values.shape
+    keep = np.uint8(~RECONSTRUCTED & 0xFF)
+    for y in prange(h):
+        by = y // bs
+        for x in range(w):
+            if fast[by, x // bs] != 0:
+                values[y, x] = work[y, x]
+                st = state[y, x]
+                state[y, x] = st if (st & REASON_MASK) == VALID else st & keep
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bounds_at(values, state, lower, y, x):
+    """(lower, upper) bound of pixel (y, x) as `validity.bounds` gives them (NaN: none): a CLIPPED pixel
+    at least its value, a clipped regular one at least its attenuated neighbours' smallest value when they
+    are all clipped (`lower[y, x]` as `_judge_blocks` leaves it); a DARK pixel at most its value."""
+    nan = np.float32(np.nan)
+    st = state[y, x]
+    r = st & REASON_MASK
+    v = values[y, x]
+    m = lower[y, x]
+    lo = m if ((st & (ATTENUATED | REASON_MASK)) == CLIPPED) & (m == m) & (m > v) else v
+    return (lo if r == CLIPPED else nan), (v if r == DARK else nan)
 
 
 @njit(cache=True, nogil=True)
@@ -668,141 +839,189 @@ def _bounds_kept(values, state, prev, y0, y1, x0, x1, tol):
     return True
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _prepare_work(values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, lower, upper, use_bounds, work, pv,
-                  pvar, pc, g, floor, nd, tol, z_out, max_frames, cmis):
-    """The reconstruction's input: `work` = the values with measured pixels of trusted blocks averaged with
-    their aligned past (inverse variance; an outlier restarts its pixel), missing pixels of REUSE blocks =
-    their past within their bounds and known (NOISY ones averaged with their measurement); pv / pvar =
-    the aligned past where a missing pixel is to be fused with it (pvar inf: no past) or, at measured and
-    reused pixels, the new value's variance (negative: reused); pc = the frames the past averages. Returns
-    the number of pixels left to reconstruct."""
-    h, w = values.shape
+@njit(cache=True, nogil=True, inline="always")
+def _prepare_px(v, st, p, vp, va, n_past, d, lb, ub, use_bounds, g, floor, nd, tol, z_out, max_frames):
+    """One pixel of the reconstruction's input, given its block's decision d and its aligned past (p, vp,
+    alignment variance va; vp inf: none, n_past frames): (work, pv, pvar, pc, known) (`_prepare_blocks`)."""
     inf = np.float32(np.inf)
-    left = 0
-    for y in prange(h):
-        by = y // bs
-        nl = 0
-        for x in range(w):
-            nl += 0 if known[y, x] else 1      # left to reconstruct (less those marked known below)
-            d = dec[by, x // bs]
-            st = state[y, x]
-            r = st & REASON_MASK
-            v = values[y, x]
-            att = (st & ATTENUATED) != 0
-            work[y, x] = v
-            pv[y, x] = v
-            pc[y, x] = 0
+    r = st & REASON_MASK
+    att = (st & ATTENUATED) != 0
+    known = r == VALID
+    pvar = _meas_var(v, att, g, floor, nd) if known else inf
+    if d == FRESH or d == NO_EVIDENCE or not vp < inf:
+        return v, v, pvar, np.int32(0), known
+    vp = vp + va
+    if r == VALID or (d == REUSE and r == NOISY):
+        vm = _meas_var(p, att or r == NOISY, g, floor, nd)
+        dd = v - p
+        t = tol * p
+        if dd * dd > z_out * (vm + vp + t * t):                # an outlier: the pixel restarts
             if r == VALID:
-                pvar[y, x] = _meas_var(v, att, g, floor, nd)
-            else:
-                pvar[y, x] = inf
-            if d == FRESH or d == NO_EVIDENCE:
-                continue
-            c = cand[by, x // bs]
-            if c == 0:                          # still: the past at the same pixel
-                p = prev[y, x]
-                vp = var[y, x]
-                n_past = np.int32(cnt[y, x])
-            else:
-                p, vp, va = _aligned(prev, var, y, x, cy[c], cx[c], h, w, cmis[c])
-                if not vp < inf:
-                    continue
-                vp += va
-                n_past = _count_at(cnt, y, x, cy[c], cx[c], h, w)
-            if r == VALID or (d == REUSE and r == NOISY):
-                vm = _meas_var(p, att or r == NOISY, g, floor, nd)
-                dd = v - p
-                t = tol * p
-                if dd * dd > z_out * (vm + vp + t * t):
-                    pvar[y, x] = _meas_var(v, att, g, floor, nd)   # an outlier: the pixel restarts
-                    if r == NOISY:
-                        pvar[y, x] = inf          # reconstructed alone
-                    continue
-                vpp = vp if vp > vm / max_frames else vm / max_frames
-                a = (v * vpp + p * vm) / (vm + vpp)
-                nv = vm * vpp / (vm + vpp)
-                work[y, x] = a
-                pv[y, x] = a
-                nv = nv if nv > vm / max_frames else vm / max_frames
-                pvar[y, x] = nv if r == VALID else -nv    # negative: a reused pixel, as it is
-                pc[y, x] = n_past
-                nl -= 0 if known[y, x] else 1
-                known[y, x] = True
-            elif d == REUSE:
+                return v, v, pvar, np.int32(0), known
+            # a NOISY one from its measurement, keeping its count (it is measured every frame: its
+            # block stays settled)
+            return v, v, -_meas_var(v, True, g, floor, nd), n_past - 1, True
+        lim = vm / max_frames
+        vpp = vp if vp > lim else lim
+        inv = np.float32(1.0) / (vm + vpp)         # (as `_reuse_row`: the same numbers)
+        a = (v * vpp + p * vm) * inv
+        nv = vm * vpp * inv
+        nv = nv if nv > lim else lim
+        return a, a, (nv if r == VALID else -nv), n_past, True          # negative: a reused pixel, as it is
+    if d == REUSE:
+        if use_bounds:
+            p = lb if (r == CLIPPED) & (lb == lb) & (lb > p) else p
+            p = ub if (r == DARK) & (ub == ub) & (ub < p) else p
+        return p, p, -vp, n_past - 1, True                              # (`_finish` adds the frame)
+    if d == REFRESH:
+        return v, p, vp, n_past, known
+    return v, v, pvar, np.int32(0), known
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _prepare_blocks(blocks, values, state, prev, var, cnt, cy, cx, bs, dec, cand, known, lower, upper, use_bounds,
+                    work, pv, pvar, pc, left, g, floor, nd, tol, z_out, max_frames, cmis):
+    """The reconstruction's input in the blocks `blocks` ((by, bx) rows): known mask and bounds
+    (`validity.bounds`' rules), `work` = the values with measured pixels of trusted blocks averaged with
+    their aligned past (inverse variance; an outlier restarts its pixel), missing pixels of REUSE blocks =
+    their past within their bounds and known (NOISY ones averaged with their measurement); pv / pvar = the
+    aligned past where a missing pixel is to be fused with it (pvar inf: no past) or, at measured and
+    reused pixels, the new value's variance (negative: reused); pc = the frames the past averages.
+    left[i] = the pixels of block i left to reconstruct."""
+    h, w = values.shape
+    nan = np.float32(np.nan)
+    for i in prange(blocks.shape[0]):
+        by = blocks[i, 0]
+        bx = blocks[i, 1]
+        d = dec[by, bx]
+        c = cand[by, bx]
+        nl = 0
+        for y in range(by * bs, min(by * bs + bs, h)):
+            for x in range(bx * bs, min(bx * bs + bs, w)):
+                st = state[y, x]
+                lb = nan
+                ub = nan
                 if use_bounds:
-                    lb = lower[y, x]
-                    ub = upper[y, x]
-                    p = lb if (r == CLIPPED) & (lb == lb) & (lb > p) else p
-                    p = ub if (r == DARK) & (ub == ub) & (ub < p) else p
-                work[y, x] = p
-                pv[y, x] = p
-                pvar[y, x] = -vp                  # negative: reused as it is
-                pc[y, x] = n_past - 1             # (`_finish` adds the frame)
-                nl -= 1
-                known[y, x] = True
-            elif d == REFRESH:
-                pv[y, x] = p
-                pvar[y, x] = vp
-                pc[y, x] = n_past
-        left += nl
-    return left
+                    lb, ub = _bounds_at(values, state, lower, y, x)
+                    lower[y, x] = lb
+                    upper[y, x] = ub
+                if c == 0:                          # still: the past at the same pixel
+                    p = prev[y, x]
+                    vp = var[y, x]
+                    va = np.float32(0.0)
+                    n_past = np.int32(cnt[y, x])
+                else:
+                    p, vp, va = _aligned(prev, var, y, x, cy[c], cx[c], h, w, cmis[c])
+                    n_past = _count_at(cnt, y, x, cy[c], cx[c], h, w)
+                a, q, qv, n, k = _prepare_px(values[y, x], st, p, vp, va, n_past, d, lb, ub, use_bounds, g,
+                                             floor, nd, tol, z_out, max_frames)
+                work[y, x] = a
+                pv[y, x] = q
+                pvar[y, x] = qv
+                pc[y, x] = n
+                known[y, x] = k
+                nl += 0 if k else 1
+        left[i] = nl
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, lower, upper, use_bounds, g, rec_noise, rec_tol,
-            reuse_frames, floor, rec_tex, nd, z_out):
-    """Write the frame and keep it as the past: measured pixels get their average, missing pixels the
-    reconstruction fused by inverse variance with their aligned past (where they have one and it agrees
-    within Z_OUT), within their bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
+def _fill_fast(blocks, prev, bs, work, known, lower, upper, use_bounds):
+    """The blocks finished in the judgement as the reconstruction's known context: work = their new past."""
+    h, w = work.shape
+    nan = np.float32(np.nan)
+    for i in prange(blocks.shape[0]):
+        by = blocks[i, 0]
+        bx = blocks[i, 1]
+        for y in range(by * bs, min(by * bs + bs, h)):
+            for x in range(bx * bs, min(bx * bs + bs, w)):
+                work[y, x] = prev[y, x]
+                known[y, x] = True
+                if use_bounds:
+                    lower[y, x] = nan
+                    upper[y, x] = nan
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ctx(work, prev, fast, bs, y, x):
+    """The reconstruction's value at (y, x): the new past in a block finished in the judgement."""
+    return prev[y, x] if fast[y // bs, x // bs] != 0 else work[y, x]
+
+
+@njit(cache=True, nogil=True)
+def _tex_var_ctx(work, prev, fast, bs, y, x, h, w, rec_tex):
+    """`_tex_var` of the reconstruction (`_ctx`)."""
+    lo = work[y, x]
+    hi = lo
+    for yy in range(max(y - 1, 0), min(y + 2, h)):
+        for xx in range(max(x - 1, 0), min(x + 2, w)):
+            a = _ctx(work, prev, fast, bs, yy, xx)
+            lo = a if a < lo else lo
+            hi = a if a > hi else hi
+    r = np.float32(0.5) * (hi - lo)
+    return rec_tex * r * r
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, fast, bs, lower, upper, use_bounds, g, rec_noise,
+            rec_tol, reuse_frames, floor, rec_tex, nd, z_out):
+    """Write the frame and keep it as the past, outside the blocks `_judge_blocks` finished (`fast`):
+    measured pixels get their average, missing pixels the reconstruction fused by inverse
+    variance with their aligned past (where they have one and it agrees within Z_OUT), within their
+    bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
     h, w = values.shape
     flag = np.uint8(RECONSTRUCTED)
     n = 0
     for y in prange(h):
         c = 0
-        for x in range(w):
-            st = state[y, x]
-            r = st & REASON_MASK
-            a = work[y, x]
-            n1 = np.int32(pc[y, x]) + 1
-            cnt[y, x] = np.uint8(n1 if n1 < 255 else 255)
-            if r == VALID:
+        by = y // bs
+        for x0 in range(0, w, bs):
+            x1 = min(x0 + bs, w)
+            if fast[by, x0 // bs] != 0:
+                continue                                  # finished by `_judge_blocks`
+            for x in range(x0, x1):
+                st = state[y, x]
+                r = st & REASON_MASK
+                a = work[y, x]
+                n1 = np.int32(pc[y, x]) + 1
+                cnt[y, x] = np.uint8(n1 if n1 < 255 else 255)
+                if r == VALID:
+                    values[y, x] = a
+                    prev[y, x] = a
+                    var[y, x] = pvar[y, x]
+                    continue
+                vp = pvar[y, x]
+                p = pv[y, x]
+                if vp < np.float32(0.0):
+                    values[y, x] = a                          # reused: the past as it is
+                    state[y, x] = st | flag
+                    prev[y, x] = a
+                    var[y, x] = -vp
+                    c += 1
+                    continue
+                vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var_ctx(work, prev, fast, bs, y, x, h, w,
+                                                                              rec_tex)
+                if r == NOISY:          # fused with its own measurement: no less certain than that
+                    vm = _meas_var(a, True, g, floor, nd)
+                    vr = vm if vm < vr else vr
+                nv = vr
+                if vp < np.float32(np.inf):
+                    dd = a - p
+                    if dd * dd > z_out * (vr + vp):
+                        cnt[y, x] = 1                         # the past disagrees: the reconstruction alone
+                    else:
+                        a = (a * vp + p * vr) / (vr + vp)
+                        if use_bounds:
+                            lb = lower[y, x]
+                            ub = upper[y, x]
+                            a = lb if (r == CLIPPED) & (lb == lb) & (lb > a) else a
+                            a = ub if (r == DARK) & (ub == ub) & (ub < a) else a
+                        nv = vr * vp / (vr + vp)
+                        lim = vr / reuse_frames
+                        nv = nv if nv > lim else lim
                 values[y, x] = a
-                prev[y, x] = a
-                var[y, x] = pvar[y, x]
-                continue
-            vp = pvar[y, x]
-            p = pv[y, x]
-            if vp < np.float32(0.0):
-                values[y, x] = a                              # reused: the past as it is
                 state[y, x] = st | flag
                 prev[y, x] = a
-                var[y, x] = -vp
+                var[y, x] = nv
                 c += 1
-                continue
-            vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var(work, y, x, h, w, rec_tex)
-            if r == NOISY:          # fused with its own measurement: no less certain than that
-                vm = _meas_var(a, True, g, floor, nd)
-                vr = vm if vm < vr else vr
-            nv = vr
-            if vp < np.float32(np.inf):
-                dd = a - p
-                if dd * dd > z_out * (vr + vp):
-                    cnt[y, x] = 1                             # the past disagrees: the reconstruction alone
-                else:
-                    a = (a * vp + p * vr) / (vr + vp)
-                    if use_bounds:
-                        lb = lower[y, x]
-                        ub = upper[y, x]
-                        a = lb if (r == CLIPPED) & (lb == lb) & (lb > a) else a
-                        a = ub if (r == DARK) & (ub == ub) & (ub < a) else a
-                    nv = vr * vp / (vr + vp)
-                    lim = vr / reuse_frames
-                    nv = nv if nv > lim else lim
-            values[y, x] = a
-            state[y, x] = st | flag
-            prev[y, x] = a
-            var[y, x] = nv
-            c += 1
         n += c
     return n

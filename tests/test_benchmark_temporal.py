@@ -45,7 +45,16 @@ def test_quick_run_at_a_tiny_size(bench, tmp_path, capsys):
         # the ND pixels measure what the unmodified camera clips
         assert by["off"]["bright"]["log2_psnr"] > by["camera"]["bright"]["log2_psnr"]
     for by in info["fps"].values():
-        assert set(by) == {"preview", *configs} - {"camera"} and all(v > 0 for v in by.values())
+        assert set(by) == {"preview", *configs} - {"camera"}
+        for v in by.values():
+            assert len(v["ms"]) == 2 and min(v["ms"]) > 0
+            assert v["mean"] == pytest.approx(sum(v["ms"]) / 2) and v["steady"] == v["ms"][1]
+    if "on" in configs:      # per frame and region, on against off, every clip kind
+        rows = info["per_frame"]
+        assert {r["clip"] for r in rows} == set(bench.CLIPS) and {r["frame"] for r in rows} == {0, 1, 2}
+        assert all(r["delta"] == pytest.approx(r["on"] - r["off"]) for r in rows)
+        # the first frame of a clip is a frame alone: the same output
+        assert all(r["delta"] == 0 for r in rows if r["frame"] == 0)
     out = capsys.readouterr().out
     assert "| static |" in out and "| cut |" in out and "preview (anchor)" in out
     assert (tmp_path / "results.md").read_text().count("| fast motion |") == 2

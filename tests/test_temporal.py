@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from nrhdr_core import chain, profile, reconstruction, scene, sensor, simulate, validity
-from nrhdr_core.states import REASON_MASK, RECONSTRUCTED, VALID
+from nrhdr_core.states import NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from nrhdr_core.temporal import TemporalReconstructor
 
 H, W = 96, 128
@@ -244,3 +244,110 @@ def test_element_temporal_with_method_auto_runs(gst, prof, views):
     for _c, _p, _d, (v, s) in r.samples:
         miss = (s & REASON_MASK) != VALID
         assert np.isfinite(v).all() and np.all(s[miss] & RECONSTRUCTED)
+
+
+# ---- cost follows change: reused blocks, a changed block, restarts from a steady state -------------------
+
+def steady(prof, raw, n=7):
+    """A TemporalReconstructor run over `n` frames of the same raw frame (no change at all), with the last
+    output and report."""
+    tr = TemporalReconstructor()
+    for _ in range(n):
+        v, s = validity.classify(raw, prof, dark_policy="weighted")
+        rep = tr.process(v, s, noise=prof)
+    return tr, v, s, rep
+
+
+def test_unchanged_input_keeps_the_previous_output_of_reused_blocks(prof, views):
+    """The same input again: every block is reused; missing pixels (not NOISY) keep exactly the previous
+    output; measured pixels move from their previous output towards their measurement, never past it."""
+    raw = sensor.capture(crop(views[0]), prof, np.random.default_rng(12))
+    tr, v_prev, s_prev, rep = steady(prof, raw)
+    assert rep["reused"] == 1.0 and rep["motion"] == (0.0, 0.0)
+    v_in, s_in = validity.classify(raw, prof, dark_policy="weighted")
+    v, s = v_in.copy(), s_in.copy()
+    rep = tr.process(v, s, noise=prof)
+    assert rep["reused"] == 1.0 and not rep["reset"]
+    r = s_in & REASON_MASK
+    kept = (r != VALID) & (r != NOISY)
+    assert kept.sum() > 100
+    np.testing.assert_array_equal(v[kept], v_prev[kept])
+    np.testing.assert_array_equal(s, s_prev)                     # the same states and RECONSTRUCTED flags
+    meas = r == VALID
+    lo = np.minimum(v_prev[meas], v_in[meas])
+    hi = np.maximum(v_prev[meas], v_in[meas])
+    eps = 1e-6 * hi                                               # float32 rounding of the average
+    assert np.all((v[meas] >= lo - eps) & (v[meas] <= hi + eps))
+    assert np.any(v[meas] != v_prev[meas])                        # the average goes on
+
+
+def test_a_changed_block_is_refreshed_and_the_rest_reused(prof, views):
+    """One 16 x 16 block's content one stop brighter, the rest of the input unchanged: that block follows
+    the new input (its measurements as they are, its missing pixels near the new truth), the others keep
+    their previous output."""
+    flux = crop(views[0])
+    raw = sensor.capture(flux, prof, np.random.default_rng(13))
+    tr, v_prev, _, _ = steady(prof, raw)
+    ys, xs = slice(32, 48), slice(48, 64)
+    brighter = flux.copy()
+    brighter[ys, xs] *= 2
+    raw2 = raw.copy()
+    raw2[ys, xs] = sensor.capture(brighter, prof, np.random.default_rng(14))[ys, xs]
+    v_in, s_in = validity.classify(raw2, prof, dark_policy="weighted")
+    v, s = v_in.copy(), s_in.copy()
+    rep = tr.process(v, s, noise=prof)
+    blocks = rep["blocks"]
+    assert not rep["cut"] and rep["fresh"] * blocks >= 1 and rep["reused"] * blocks >= blocks - 9
+    r = s_in & REASON_MASK
+    inside = np.zeros(v.shape, bool)
+    inside[ys, xs] = True
+    meas = inside & (r == VALID)
+    np.testing.assert_array_equal(v[meas], v_in[meas])           # reconstructed alone: measurements kept
+    miss = inside & (r != VALID) & (brighter < prof.regular_white) & (brighter > 4)
+    err_new = np.abs(np.log2(v[miss] / brighter[miss]))
+    err_old = np.abs(np.log2(v_prev[miss] / brighter[miss]))
+    assert np.median(err_new) < 0.25 < np.median(err_old)
+    far = np.zeros(v.shape, bool)
+    far[:, 96:] = True                                            # two blocks and more from the change
+    kept = far & (r != VALID) & (r != NOISY)
+    np.testing.assert_array_equal(v[kept], v_prev[kept])
+
+
+@pytest.mark.parametrize("how", ["reset", "cut"])
+def test_restart_from_a_steady_state_is_a_frame_alone(prof, views, how):
+    """From a steady state (most blocks reused), `reset()` or a cut to another scene: the frame is
+    reconstructed alone, bit for bit, and the state restarts."""
+    raw = sensor.capture(crop(views[0]), prof, np.random.default_rng(15))
+    tr, _, _, rep = steady(prof, raw)
+    assert rep["reused"] > 0.9
+    if how == "reset":
+        tr.reset()
+        raw2 = raw
+    else:
+        raw2 = sensor.capture(crop(views[1]), prof, np.random.default_rng(16))
+    v, s = validity.classify(raw2, prof, dark_policy="weighted")
+    v1, s1 = v.copy(), s.copy()
+    rep = tr.process(v, s, noise=prof)
+    assert rep["reset"] and rep["cut"] == (how == "cut") and tr.frames == 1
+    reconstruction.reconstruct_frame(v1, s1, method="fse", preset="fast", noise=prof)
+    np.testing.assert_array_equal(v, v1)
+    np.testing.assert_array_equal(s, s1)
+
+
+def test_a_frame_with_a_pixel_filled_upstream_is_a_frame_alone_from_a_steady_state(prof, views):
+    """From a steady state, a frame in which one missing pixel already carries RECONSTRUCTED (filled
+    upstream) goes to the single-frame path: bit for bit `reconstruct_frame`'s output, with every other
+    block of the input as it came (nothing of the reuse left in it)."""
+    raw = sensor.capture(crop(views[0]), prof, np.random.default_rng(17))
+    tr, _, _, rep = steady(prof, raw)
+    assert rep["reused"] > 0.9
+    v, s = validity.classify(raw, prof, dark_policy="weighted")
+    miss = np.argwhere((s & REASON_MASK) != VALID)
+    y, x = miss[len(miss) // 2]
+    s[y, x] |= RECONSTRUCTED
+    v1, s1 = v.copy(), s.copy()
+    rep = tr.process(v, s, noise=prof)
+    assert rep["reset"] and not rep["cut"]
+    reconstruction.reconstruct_frame(v1, s1, method="fse", preset="fast", noise=prof)
+    np.testing.assert_array_equal(v, v1)
+    np.testing.assert_array_equal(s, s1)
