@@ -241,11 +241,13 @@ def _warm_method(method: str) -> None:
 
 
 def _warm_temporal(prof, s: ChainSettings, raw: np.ndarray) -> None:
-    """`temporal_for(s)` over a frame alone, a steady one (block judgement, averaging, the reconstruction
-    of what is left, the fusion with the past) and one moved by a pixel (the aligned past)."""
+    """`temporal_for(s)` over a frame alone, steady ones until their blocks are settled (block judgement,
+    averaging, the reconstruction of what is left, the fusion with the past, the finished still blocks), a cut
+    after them (the finished blocks' input restored) and one moved by a pixel (the aligned past)."""
     tr = temporal_for(s)
-    for shift in (0, 0, 1):
-        values, state = _warm_frame(prof, s, np.roll(raw, shift, axis=1))
+    cut = np.ascontiguousarray(raw[::-1, ::-1])
+    for frame in [raw] * 6 + [cut, np.roll(cut, 1, axis=1)]:
+        values, state = _warm_frame(prof, s, frame)
         tr.process(values, state, noise=prof)
 
 
