@@ -20,7 +20,9 @@ max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= up
 cfa=)`: the clipped-neighbour rule compares photosites of one colour, computed in vectorised row passes);
 NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer phase
 (neighbours of the same colour). The other channels of a photosite stay within their channel's range
-[min(known min, 0), max(known max, largest lower bound)]. A channel without a known photosite takes its
+[min(known min, 0), max(known max, largest lower bound)], and a channel whose adjacent photosites are all
+CLIPPED is at least the smallest of their own-channel values (`_clipped_around`: a saturated region in one
+colour). A channel without a known photosite takes its
 bounded photosites' bounds as measurements (none either: R = B = G, a grey; green without any: the known
 photosites of every channel).
 """
@@ -46,7 +48,8 @@ OFFSET_NOISE_K = 2.0
 
 # counts of the first pass (`_stats`, per cell row)
 _N_MISS, _N_NOISY, _N_BAD, _N_BAD_KNOWN, _N_KNOWN = 0, 1, 2, 3, 4      # _N_KNOWN + ch: known photosites of ch
-_NCNT = 7
+_N_CLIP = 7                                                            # photosites of reason CLIPPED
+_NCNT = 8
 # per cell row statistics of the red and blue lattices (`_green`): known min, known max, largest CLIPPED value,
 # as order-preserving int32 keys of the floats (`fse.f32_key`)
 _F_LO, _F_HI, _F_CLIP = 0, 2, 4                                        # + 0 (red) or 1 (blue)
@@ -213,7 +216,7 @@ def _first_pass(v32, state, blk, g_any):
 def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
-    per channel); the green plane's pyramid level 1 (`_pull_row`). Branch-free pixel loops."""
+    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`_pull_row`). Branch-free pixel loops."""
     h, w = values.shape
     zero = np.float32(0.0)
     for y1 in prange(cnt.shape[0]):
@@ -226,6 +229,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
             cbk = 0
             kn0 = 0
             kn1 = 0
+            ccl = 0
             b0 = blk[yy & 1, 0]
             b1 = blk[yy & 1, 1]
             g0 = (b0 == 1) | g_any
@@ -240,6 +244,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
                 cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
                 cb += np.int64(not fin)
                 cbk += np.int64(k & (not fin))
+                ccl += np.int64((st & REASON_MASK) == CLIPPED)
                 kn0 += np.int64(k & (not odd))
                 kn1 += np.int64(k & odd)
                 kk = k & (g1 if odd else g0)
@@ -248,6 +253,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
             cnt[y1, _N_NOISY] += cn
             cnt[y1, _N_BAD] += cb
             cnt[y1, _N_BAD_KNOWN] += cbk
+            cnt[y1, _N_CLIP] += ccl
             cnt[y1, _N_KNOWN + b0] += kn0
             cnt[y1, _N_KNOWN + b1] += kn1
         _pull_row(values, kg, pv, pw, o1, w1, y1)
@@ -298,6 +304,8 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
             _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
     _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
+    if use_bounds and cnt[_N_CLIP]:
+        _clipped_around(state, pos, sc["cnt"][:, _N_CLIP] > 0, out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
 
@@ -568,6 +576,62 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, ou
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
                     _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lift_row(o, own, state, y, x0, nbrs):
+    """o[x] (x = x0, x0 + 2, ...) at least the smallest of the own-channel values `own` of its neighbours
+    (y + dy, x + dx) for (dy, dx) in `nbrs` (those in the frame) when they are all CLIPPED."""
+    h, w = state.shape
+    for x in range(x0, w, 2):
+        n = 0
+        allc = True
+        m = _BIG
+        for d in nbrs:
+            yy = y + d[0]
+            xx = x + d[1]
+            if 0 <= yy < h and 0 <= xx < w:
+                n += 1
+                allc &= (state[yy, xx] & REASON_MASK) == CLIPPED
+                v = own[yy, xx]
+                m = v if v < m else m
+        if n > 0 and allc and o[x] < m:
+            o[x] = m
+
+
+@njit(cache=True, nogil=True)
+def _clipped_row(state, pos, out, y):
+    """`_clipped_around` in row y."""
+    row = ((0, -1), (0, 1))
+    col = ((-1, 0), (1, 0))
+    diag = ((-1, -1), (-1, 1), (1, -1), (1, 1))
+    cross = ((0, -1), (0, 1), (-1, 0), (1, 0))
+    for ch in range(3):
+        o = out[ch, y]
+        py = pos[ch, 0]
+        px = pos[ch, 1]
+        if ch == 1:        # green: phases (py, px) and (1 - py, 1 - px); its others in row y
+            gx = px if (y & 1) == py else 1 - px
+            _lift_row(o, out[ch], state, y, 1 - gx, cross)
+        elif (y & 1) == py:
+            _lift_row(o, out[ch], state, y, 1 - px, row)
+        else:
+            _lift_row(o, out[ch], state, y, px, col)
+            _lift_row(o, out[ch], state, y, 1 - px, diag)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _clipped_around(state, pos, crow, out):
+    """A channel at a photosite of another colour whose adjacent photosites of that channel (green: the 4
+    neighbours; red, blue: the 2 in its row or column, else the 4 diagonal ones) are all CLIPPED: at least
+    the smallest of their own-channel values (each at least its lower bound), so that a saturated region
+    comes out in one saturated colour. Only rows near a CLIPPED photosite (`crow`: per cell row)."""
+    h = state.shape[0]
+    h1 = crow.shape[0]
+    for y in prange(h):
+        y1 = y >> 1
+        if crow[y1] or (y1 > 0 and crow[y1 - 1]) or (y1 + 1 < h1 and crow[y1 + 1]):
+            _clipped_row(state, pos, out, y)
 
 
 @njit(cache=True, nogil=True, parallel=True)
