@@ -303,9 +303,10 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
             lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
             _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
+    crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
+    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], out)
     if use_bounds and cnt[_N_CLIP]:
-        _clipped_around(state, pos, sc["cnt"][:, _N_CLIP] > 0, out)
+        _clipped_around(state, pos, crow, out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
 
@@ -546,10 +547,12 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
-    channel's range; the red and blue photosites' own channel by `_own_row`."""
+    channel's range; the red and blue photosites' own channel by `_own_row`. In the rows `crow` (near a
+    CLIPPED photosite) first green, then red and blue from their own row, at least the smallest own value
+    of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there)."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
@@ -557,6 +560,10 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, ou
     for k in prange(nch):
         for y in range(k * h // nch, (k + 1) * h // nch):
             g = out[1, y]
+            near = crow[y]
+            if near:
+                gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
+                _lift_row(g, out[1], state, y, 1 - gx, True, True, False)
             for i in range(2):
                 ch = 0 if i == 0 else 2
                 eh = ext[ch, 0]
@@ -576,48 +583,62 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, ou
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
                     _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
+                    if near:
+                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _lift_row(o, own, state, y, x0, nbrs):
-    """o[x] (x = x0, x0 + 2, ...) at least the smallest of the own-channel values `own` of its neighbours
-    (y + dy, x + dx) for (dy, dx) in `nbrs` (those in the frame) when they are all CLIPPED."""
+def _cv(own, state, y, x):
+    """own[y, x] where the photosite is CLIPPED, else -_BIG (a minimum with it lifts nothing)."""
+    return own[y, x] if (state[y, x] & REASON_MASK) == CLIPPED else -_BIG
+
+
+@njit(cache=True, nogil=True)
+def _lift_row(o, own, state, y, x0, hz, vt, dg):
+    """o[x] (x = x0, x0 + 2, ...) at least the smallest own-channel value `own` of its neighbours in the
+    frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED
+    (branch-free: a neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG)."""
     h, w = state.shape
+    big = _BIG
+    up = y - 1 if y > 0 else y
+    dn = y + 1 if y + 1 < h else y
+    hu = y > 0
+    hd = y + 1 < h
     for x in range(x0, w, 2):
-        n = 0
-        allc = True
-        m = _BIG
-        for d in nbrs:
-            yy = y + d[0]
-            xx = x + d[1]
-            if 0 <= yy < h and 0 <= xx < w:
-                n += 1
-                allc &= (state[yy, xx] & REASON_MASK) == CLIPPED
-                v = own[yy, xx]
-                m = v if v < m else m
-        if n > 0 and allc and o[x] < m:
-            o[x] = m
+        hl = x > 0
+        hr = x + 1 < w
+        xl = x - 1 if hl else x
+        xr = x + 1 if hr else x
+        m = big
+        if hz:
+            a = _cv(own, state, y, xl) if hl else big
+            b = _cv(own, state, y, xr) if hr else big
+            m = min(m, min(a, b))
+        if vt:
+            a = _cv(own, state, up, x) if hu else big
+            b = _cv(own, state, dn, x) if hd else big
+            m = min(m, min(a, b))
+        if dg:
+            a = _cv(own, state, up, xl) if (hu & hl) else big
+            b = _cv(own, state, up, xr) if (hu & hr) else big
+            c = _cv(own, state, dn, xl) if (hd & hl) else big
+            d = _cv(own, state, dn, xr) if (hd & hr) else big
+            m = min(m, min(min(a, b), min(c, d)))
+        v = o[x]
+        o[x] = m if ((m > v) & (m < big)) else v
 
 
 @njit(cache=True, nogil=True)
 def _clipped_row(state, pos, out, y):
-    """`_clipped_around` in row y."""
-    row = ((0, -1), (0, 1))
-    col = ((-1, 0), (1, 0))
-    diag = ((-1, -1), (-1, 1), (1, -1), (1, 1))
-    cross = ((0, -1), (0, 1), (-1, 0), (1, 0))
-    for ch in range(3):
+    """`_clipped_around` in row y: red and blue outside their own rows (the neighbours in the rows above
+    and below; green and the own rows' neighbours: `_colour`)."""
+    y = np.int64(y)
+    for ch in (0, 2):
         o = out[ch, y]
-        py = pos[ch, 0]
         px = pos[ch, 1]
-        if ch == 1:        # green: phases (py, px) and (1 - py, 1 - px); its others in row y
-            gx = px if (y & 1) == py else 1 - px
-            _lift_row(o, out[ch], state, y, 1 - gx, cross)
-        elif (y & 1) == py:
-            _lift_row(o, out[ch], state, y, 1 - px, row)
-        else:
-            _lift_row(o, out[ch], state, y, px, col)
-            _lift_row(o, out[ch], state, y, 1 - px, diag)
+        if (y & 1) != pos[ch, 0]:
+            _lift_row(o, out[ch], state, y, px, False, True, False)
+            _lift_row(o, out[ch], state, y, 1 - px, False, False, True)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -625,13 +646,20 @@ def _clipped_around(state, pos, crow, out):
     """A channel at a photosite of another colour whose adjacent photosites of that channel (green: the 4
     neighbours; red, blue: the 2 in its row or column, else the 4 diagonal ones) are all CLIPPED: at least
     the smallest of their own-channel values (each at least its lower bound), so that a saturated region
-    comes out in one saturated colour. Only rows near a CLIPPED photosite (`crow`: per cell row)."""
-    h = state.shape[0]
-    h1 = crow.shape[0]
-    for y in prange(h):
-        y1 = y >> 1
-        if crow[y1] or (y1 > 0 and crow[y1 - 1]) or (y1 + 1 < h1 and crow[y1 + 1]):
+    comes out in one saturated colour. Only the rows `crow` (`_near_clipped`)."""
+    for y in prange(state.shape[0]):
+        if crow[y]:
             _clipped_row(state, pos, out, y)
+
+
+def _near_clipped(ccnt, use_bounds, h):
+    """bool (h,): the photosite rows of a cell row with a CLIPPED photosite in it or in a cell row beside
+    it (`ccnt`: CLIPPED counts per cell row); all False without `use_bounds`."""
+    c = (ccnt > 0) & bool(use_bounds)
+    d = c.copy()
+    d[1:] |= c[:-1]
+    d[:-1] |= c[1:]
+    return np.ascontiguousarray(np.repeat(d, 2)[:h])
 
 
 @njit(cache=True, nogil=True, parallel=True)
