@@ -195,7 +195,7 @@ def _scratch(h, w):
         h1, w1 = int(hs[1]), int(ws[1])
         return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
-                    rows=np.zeros((_CHUNKS, 2, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
+                    rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
                     cnt=np.zeros((h1, _NCNT), np.int64),
                     fst=np.zeros((h1, _NF), np.int32))
     return planes("demosaic.preview", (h, w), make)
@@ -306,7 +306,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
     _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], out)
     if use_bounds and cnt[_N_CLIP]:
-        _clipped_around(state, pos, crow, out)
+        _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
 
@@ -563,7 +563,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
             near = crow[y]
             if near:
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(g, out[1], state, y, 1 - gx, True, True, False)
+                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3])
             for i in range(2):
                 ch = 0 if i == 0 else 2
                 eh = ext[ch, 0]
@@ -584,7 +584,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                 if pos[ch, 0] == (y & 1):
                     _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
                     if near:
-                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False)
+                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -594,42 +594,43 @@ def _cv(own, state, y, x):
 
 
 @njit(cache=True, nogil=True)
-def _lift_row(o, own, state, y, x0, hz, vt, dg):
+def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1):
     """o[x] (x = x0, x0 + 2, ...) at least the smallest own-channel value `own` of its neighbours in the
-    frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED
-    (branch-free: a neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG)."""
+    frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED: a
+    neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
+    minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise)."""
     h, w = state.shape
     big = _BIG
     up = y - 1 if y > 0 else y
     dn = y + 1 if y + 1 < h else y
-    hu = y > 0
-    hd = y + 1 < h
+    bu = np.float32(-big) if y > 0 else big          # + a value: the row's own, or +_BIG outside
+    bd = np.float32(-big) if y + 1 < h else big
+    if vt or dg:
+        for x in range(w):
+            a = _cv(own, state, up, x)
+            a = a if bu < 0 else big
+            c = _cv(own, state, dn, x)
+            c = c if bd < 0 else big
+            b0[x] = min(a, c)
+    if hz:
+        for x in range(w):
+            b1[x] = _cv(own, state, y, x)
     for x in range(x0, w, 2):
-        hl = x > 0
-        hr = x + 1 < w
-        xl = x - 1 if hl else x
-        xr = x + 1 if hr else x
         m = big
+        xl = x - 1 if x > 0 else x
+        xr = x + 1 if x + 1 < w else x
         if hz:
-            a = _cv(own, state, y, xl) if hl else big
-            b = _cv(own, state, y, xr) if hr else big
-            m = min(m, min(a, b))
+            m = min(m, min(b1[xl] if x > 0 else big, b1[xr] if x + 1 < w else big))
         if vt:
-            a = _cv(own, state, up, x) if hu else big
-            b = _cv(own, state, dn, x) if hd else big
-            m = min(m, min(a, b))
+            m = min(m, b0[x])
         if dg:
-            a = _cv(own, state, up, xl) if (hu & hl) else big
-            b = _cv(own, state, up, xr) if (hu & hr) else big
-            c = _cv(own, state, dn, xl) if (hd & hl) else big
-            d = _cv(own, state, dn, xr) if (hd & hr) else big
-            m = min(m, min(min(a, b), min(c, d)))
+            m = min(m, min(b0[xl] if x > 0 else big, b0[xr] if x + 1 < w else big))
         v = o[x]
         o[x] = m if ((m > v) & (m < big)) else v
 
 
 @njit(cache=True, nogil=True)
-def _clipped_row(state, pos, out, y):
+def _clipped_row(state, pos, out, y, b0, b1):
     """`_clipped_around` in row y: red and blue outside their own rows (the neighbours in the rows above
     and below; green and the own rows' neighbours: `_colour`)."""
     y = np.int64(y)
@@ -637,19 +638,23 @@ def _clipped_row(state, pos, out, y):
         o = out[ch, y]
         px = pos[ch, 1]
         if (y & 1) != pos[ch, 0]:
-            _lift_row(o, out[ch], state, y, px, False, True, False)
-            _lift_row(o, out[ch], state, y, 1 - px, False, False, True)
+            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1)
+            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1)
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _clipped_around(state, pos, crow, out):
+def _clipped_around(state, pos, crow, rows, out):
     """A channel at a photosite of another colour whose adjacent photosites of that channel (green: the 4
     neighbours; red, blue: the 2 in its row or column, else the 4 diagonal ones) are all CLIPPED: at least
     the smallest of their own-channel values (each at least its lower bound), so that a saturated region
-    comes out in one saturated colour. Only the rows `crow` (`_near_clipped`)."""
-    for y in prange(state.shape[0]):
-        if crow[y]:
-            _clipped_row(state, pos, out, y)
+    comes out in one saturated colour. Only the rows `crow` (`_near_clipped`); row buffers `rows`, one
+    pair per chunk of rows."""
+    h = state.shape[0]
+    nch = rows.shape[0]
+    for k in prange(nch):
+        for y in range(k * h // nch, (k + 1) * h // nch):
+            if crow[y]:
+                _clipped_row(state, pos, out, y, rows[k, 0], rows[k, 1])
 
 
 def _near_clipped(ccnt, use_bounds, h):
