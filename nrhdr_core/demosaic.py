@@ -20,7 +20,9 @@ max(known max, its lower bound)] and to its bounds (CLIPPED >= lower, DARK <= up
 cfa=)`: the clipped-neighbour rule compares photosites of one colour, computed in vectorised row passes);
 NOISY photosites fused with their measurement by `reconstruction.fuse_noisy` on their own Bayer phase
 (neighbours of the same colour). The other channels of a photosite stay within their channel's range
-[min(known min, 0), max(known max, largest lower bound)]. A channel without a known photosite takes its
+[min(known min, 0), max(known max, largest lower bound)], and a channel whose adjacent photosites are all
+CLIPPED is at least the smallest of their own-channel values (`_clipped_around`: a saturated region in one
+colour). A channel without a known photosite takes its
 bounded photosites' bounds as measurements (none either: R = B = G, a grey; green without any: the known
 photosites of every channel).
 """
@@ -46,7 +48,8 @@ OFFSET_NOISE_K = 2.0
 
 # counts of the first pass (`_stats`, per cell row)
 _N_MISS, _N_NOISY, _N_BAD, _N_BAD_KNOWN, _N_KNOWN = 0, 1, 2, 3, 4      # _N_KNOWN + ch: known photosites of ch
-_NCNT = 7
+_N_CLIP = 7                                                            # photosites of reason CLIPPED
+_NCNT = 8
 # per cell row statistics of the red and blue lattices (`_green`): known min, known max, largest CLIPPED value,
 # as order-preserving int32 keys of the floats (`fse.f32_key`)
 _F_LO, _F_HI, _F_CLIP = 0, 2, 4                                        # + 0 (red) or 1 (blue)
@@ -192,7 +195,7 @@ def _scratch(h, w):
         h1, w1 = int(hs[1]), int(ws[1])
         return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
-                    rows=np.zeros((_CHUNKS, 2, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
+                    rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
                     cnt=np.zeros((h1, _NCNT), np.int64),
                     fst=np.zeros((h1, _NF), np.int32))
     return planes("demosaic.preview", (h, w), make)
@@ -213,7 +216,7 @@ def _first_pass(v32, state, blk, g_any):
 def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
-    per channel); the green plane's pyramid level 1 (`_pull_row`). Branch-free pixel loops."""
+    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`_pull_row`). Branch-free pixel loops."""
     h, w = values.shape
     zero = np.float32(0.0)
     for y1 in prange(cnt.shape[0]):
@@ -226,6 +229,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
             cbk = 0
             kn0 = 0
             kn1 = 0
+            ccl = 0
             b0 = blk[yy & 1, 0]
             b1 = blk[yy & 1, 1]
             g0 = (b0 == 1) | g_any
@@ -240,6 +244,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
                 cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
                 cb += np.int64(not fin)
                 cbk += np.int64(k & (not fin))
+                ccl += np.int64((st & REASON_MASK) == CLIPPED)
                 kn0 += np.int64(k & (not odd))
                 kn1 += np.int64(k & odd)
                 kk = k & (g1 if odd else g0)
@@ -248,6 +253,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
             cnt[y1, _N_NOISY] += cn
             cnt[y1, _N_BAD] += cb
             cnt[y1, _N_BAD_KNOWN] += cbk
+            cnt[y1, _N_CLIP] += ccl
             cnt[y1, _N_KNOWN + b0] += kn0
             cnt[y1, _N_KNOWN + b1] += kn1
         _pull_row(values, kg, pv, pw, o1, w1, y1)
@@ -297,7 +303,10 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
             lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
             _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, sc["rows"], out)
+    crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
+    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], out)
+    if use_bounds and cnt[_N_CLIP]:
+        _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
 
@@ -538,10 +547,12 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
-    channel's range; the red and blue photosites' own channel by `_own_row`."""
+    channel's range; the red and blue photosites' own channel by `_own_row`. In the rows `crow` (near a
+    CLIPPED photosite) first green, then red and blue from their own row, at least the smallest own value
+    of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there)."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
@@ -549,6 +560,10 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, ou
     for k in prange(nch):
         for y in range(k * h // nch, (k + 1) * h // nch):
             g = out[1, y]
+            near = crow[y]
+            if near:
+                gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
+                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3])
             for i in range(2):
                 ch = 0 if i == 0 else 2
                 eh = ext[ch, 0]
@@ -568,6 +583,88 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, rows, ou
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
                     _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
+                    if near:
+                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cv(own, state, y, x):
+    """own[y, x] where the photosite is CLIPPED, else -_BIG (a minimum with it lifts nothing)."""
+    return own[y, x] if (state[y, x] & REASON_MASK) == CLIPPED else -_BIG
+
+
+@njit(cache=True, nogil=True)
+def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1):
+    """o[x] (x = x0, x0 + 2, ...) at least the smallest own-channel value `own` of its neighbours in the
+    frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED: a
+    neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
+    minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise)."""
+    h, w = state.shape
+    big = _BIG
+    up = y - 1 if y > 0 else y
+    dn = y + 1 if y + 1 < h else y
+    bu = np.float32(-big) if y > 0 else big          # + a value: the row's own, or +_BIG outside
+    bd = np.float32(-big) if y + 1 < h else big
+    if vt or dg:
+        for x in range(w):
+            a = _cv(own, state, up, x)
+            a = a if bu < 0 else big
+            c = _cv(own, state, dn, x)
+            c = c if bd < 0 else big
+            b0[x] = min(a, c)
+    if hz:
+        for x in range(w):
+            b1[x] = _cv(own, state, y, x)
+    for x in range(x0, w, 2):
+        m = big
+        xl = x - 1 if x > 0 else x
+        xr = x + 1 if x + 1 < w else x
+        if hz:
+            m = min(m, min(b1[xl] if x > 0 else big, b1[xr] if x + 1 < w else big))
+        if vt:
+            m = min(m, b0[x])
+        if dg:
+            m = min(m, min(b0[xl] if x > 0 else big, b0[xr] if x + 1 < w else big))
+        v = o[x]
+        o[x] = m if ((m > v) & (m < big)) else v
+
+
+@njit(cache=True, nogil=True)
+def _clipped_row(state, pos, out, y, b0, b1):
+    """`_clipped_around` in row y: red and blue outside their own rows (the neighbours in the rows above
+    and below; green and the own rows' neighbours: `_colour`)."""
+    y = np.int64(y)
+    for ch in (0, 2):
+        o = out[ch, y]
+        px = pos[ch, 1]
+        if (y & 1) != pos[ch, 0]:
+            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1)
+            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _clipped_around(state, pos, crow, rows, out):
+    """A channel at a photosite of another colour whose adjacent photosites of that channel (green: the 4
+    neighbours; red, blue: the 2 in its row or column, else the 4 diagonal ones) are all CLIPPED: at least
+    the smallest of their own-channel values (each at least its lower bound), so that a saturated region
+    comes out in one saturated colour. Only the rows `crow` (`_near_clipped`); row buffers `rows`, one
+    pair per chunk of rows."""
+    h = state.shape[0]
+    nch = rows.shape[0]
+    for k in prange(nch):
+        for y in range(k * h // nch, (k + 1) * h // nch):
+            if crow[y]:
+                _clipped_row(state, pos, out, y, rows[k, 0], rows[k, 1])
+
+
+def _near_clipped(ccnt, use_bounds, h):
+    """bool (h,): the photosite rows of a cell row with a CLIPPED photosite in it or in a cell row beside
+    it (`ccnt`: CLIPPED counts per cell row); all False without `use_bounds`."""
+    c = (ccnt > 0) & bool(use_bounds)
+    d = c.copy()
+    d[1:] |= c[:-1]
+    d[:-1] |= c[1:]
+    return np.ascontiguousarray(np.repeat(d, 2)[:h])
 
 
 @njit(cache=True, nogil=True, parallel=True)

@@ -132,6 +132,40 @@ def test_bounds_respected(method, pattern):
 
 
 @pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("pattern", ("rggb", "grbg"))
+def test_clipped_disc_one_saturated_colour(method, pattern):
+    """A lamp core (a disc where every photosite is clipped) in a coloured scene: every channel of every
+    pixel inside it at least the smallest lower bound (`validity.bounds` with the CFA) of its adjacent
+    photosites of that channel (regular and ND photosites at their own clip levels); with one clip level,
+    one saturated colour: every channel at the clip level, no pixel-level checkerboard."""
+    h, w = 40, 48
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:h, 0:w]
+    rgb = np.stack([rng.uniform(140, 160, (h, w)), rng.uniform(90, 110, (h, w)),
+                    rng.uniform(50, 70, (h, w))]).astype(np.float32)
+    disc = (y - 20) ** 2 + (x - 24) ** 2 <= 10 ** 2
+    inner = (y - 20) ** 2 + (x - 24) ** 2 <= 8 ** 2
+    rgb[:, disc] *= 100.0
+    truth = cfa.mosaic(rgb, pattern)
+    idx = cfa.channel_index(pattern, h, w)
+    for nd in (True, False):
+        att = (rng.random((h, w)) < 0.5) & (nd | ~disc)
+        st = np.where(att, ATTENUATED, 0).astype(np.uint8)
+        vals = truth.copy()
+        vals[disc] = np.where(att[disc], 4000.0, 1000.0)
+        st[disc] |= CLIPPED
+        lo, _ = validity.bounds(vals, st, cfa=pattern)
+        out = demosaic.reconstruct_cfa(vals, st.copy(), pattern, method=method)
+        for ch in range(3):
+            # the smallest lower bound of the channel's photosites in each pixel's 3 x 3 (its adjacent ones)
+            lc = np.pad(np.where(idx == ch, lo, np.inf), 1, constant_values=np.inf)
+            near = np.min([lc[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)], axis=0)
+            assert (out[ch][inner] >= near[inner]).all(), (nd, ch)
+        if not nd:
+            np.testing.assert_array_equal(out[:, inner], 1000.0)
+
+
+@pytest.mark.parametrize("method", METHODS)
 def test_noisy_fast_fusion_between_estimate_and_measurement(method):
     """The fast fusion of a NOISY photosite is e + w (m - e), 0 <= w <= 1: between the estimate without
     fusion and the measurement; with the accurate one the own channel stays finite and non-negative."""
