@@ -1178,48 +1178,143 @@ def _hdr_code(e, code_max):
     return np.uint16((code if code < code_max else code_max) << 6)
 
 
+# Colour HDR codes by threshold tables: a channel's code is a non-decreasing function f(v) of its linear value,
+# so code(v) = f(0) + #{c : thr[c] <= v} with thr[c] the smallest float64 v where f reaches c, found by bisection
+# on the bit patterns with the very formulas of `_hdr_kernel` (the same codes, not an approximation). Bins of
+# 2^_TAB_BITS per octave (on the float64 bit pattern) give the code at each bin's start; the thresholds inside
+# a bin are stepped over.
+_TAB_BITS = 8
+_TAB_SHIFT = 52 - _TAB_BITS
+_TAB_VMAX = 16.0               # above every clamp of the transfers (HLG's roll-off: E^1.2 / 10 <= 1)
+_TAB_VMIN = 2.0 ** -80
+_TABLES: dict = {}
+
+
+@njit(cache=True, nogil=True)
+def _code_at(v, kind, transfer, src_pq, ks, max_lum, code_max):
+    """The 10-bit code of `_hdr_rgb_kernel` for a channel value v: kind 0 a channel's own (PQ / HLG, no
+    roll-off), 1 the largest channel's through the roll-off; kind 2: 1 if the roll-off changes v, else 0."""
+    if kind == 0:
+        e = _hdr_signal(v, transfer)
+    else:
+        e, rolled = _rolled_off(v, transfer, src_pq, ks, max_lum)
+        if kind == 2:
+            return 1 if rolled else 0
+        if transfer == 1:
+            e = _hdr_signal(_hlg_from_pq(e), 1)
+    code = int(64.0 + 876.0 * e + 0.5)
+    return code if code < code_max else code_max
+
+
+@njit(cache=True, nogil=True)
+def _thresholds(kind, transfer, src_pq, ks, max_lum, code_max, thr):
+    """thr[c] = the smallest float64 v in [0, _TAB_VMAX] with `_code_at` >= c (inf where none); returns
+    (f(0), f(_TAB_VMAX))."""
+    bits = np.empty(1, np.int64)
+    val = bits.view(np.float64)
+    val[0] = _TAB_VMAX
+    top_bits = bits[0]
+    lo_code = _code_at(0.0, kind, transfer, src_pq, ks, max_lum, code_max)
+    hi_code = _code_at(_TAB_VMAX, kind, transfer, src_pq, ks, max_lum, code_max)
+    thr[:] = np.inf
+    for c in range(lo_code + 1, hi_code + 1):
+        lo, hi = 0, top_bits              # f(lo) < c <= f(hi)
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            bits[0] = mid
+            if _code_at(val[0], kind, transfer, src_pq, ks, max_lum, code_max) >= c:
+                hi = mid
+            else:
+                lo = mid
+        bits[0] = hi
+        thr[c] = val[0]
+    return lo_code, hi_code
+
+
+def _code_table(kind, transfer, src_pq, ks, max_lum, code_max):
+    """(base bit pattern >> _TAB_SHIFT, codes at the bins' starts (int32), thresholds (float64, by code), top
+    code) for `_table_code`, kept per setting."""
+    key = (kind, transfer, src_pq, ks, max_lum, code_max)
+    if key not in _TABLES:
+        thr = np.empty(1026, np.float64)
+        lo_code, hi_code = _thresholds(kind, transfer, src_pq, ks, max_lum, code_max, thr)
+        finite = thr[np.isfinite(thr)]
+        vmin = max(float(finite.min()) if finite.size else _TAB_VMAX, _TAB_VMIN)
+        base = int(np.array(vmin).view(np.int64)) >> _TAB_SHIFT
+        top = int(np.array(_TAB_VMAX).view(np.int64)) >> _TAB_SHIFT
+        starts = (np.arange(base, top + 1, dtype=np.int64) << _TAB_SHIFT).view(np.float64).copy()
+        starts[0] = 0.0
+        bins = (lo_code + np.searchsorted(np.sort(finite), starts, side="right")).astype(np.int32)
+        if len(_TABLES) > 32:
+            _TABLES.clear()
+        _TABLES[key] = (np.int64(base), bins, thr, np.int64(hi_code))
+    return _TABLES[key]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _table_code(v, vbits, base, bins, thr, top):
+    """`_code_at` of v (its float64 bit pattern `vbits`) from a `_code_table`."""
+    if not (v > 0.0):
+        return bins[0]
+    if v >= _TAB_VMAX:
+        return top
+    i = (vbits >> _TAB_SHIFT) - base
+    code = bins[i if i > 0 else 0]
+    while code < top and v >= thr[code + 1]:
+        code += 1
+    return code
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_max, out):
+def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_max, knee, tab, tabm, out):
     """Colour `_hdr_kernel`: channels times `gains`, primaries converted as c + d[k, 0] (R - B) + d[k, 1]
-    (G - B) (M - I with rows summing to 0: exact for grey), times `scale`, then PQ / HLG per channel. With
-    src_pq > 0 the BT.2390 EETF maps m = max(R, G, B) (display light; HLG: of the reference display) and the
-    channels are scaled by m' / m (the largest channel takes the EETF's signal directly)."""
+    (G - B) (M - I with rows summing to 0: exact for grey), times `scale`, then PQ / HLG per channel (codes
+    from the table `tab`). With src_pq > 0 the BT.2390 EETF maps m = max(R, G, B) (display light; HLG: of the
+    reference display; its code from `tabm`) and the channels are scaled by m' / m; below the knee of PQ's
+    roll-off (m < `knee`) m' = m."""
     h, w = rgb.shape[1:]
     cap = _CHANNEL_CAP
-    for y in prange(h):
-        for x in range(w):
-            r = rgb[0, y, x] * gains[0]
-            g = rgb[1, y, x] * gains[1]
-            b = rgb[2, y, x] * gains[2]
-            r = min(r if r > 0.0 else 0.0, cap)
-            g = min(g if g > 0.0 else 0.0, cap)
-            b = min(b if b > 0.0 else 0.0, cap)
-            v0 = (r + d[0, 0] * (r - b) + d[0, 1] * (g - b)) * scale
-            v1 = (g + d[1, 0] * (r - b) + d[1, 1] * (g - b)) * scale
-            v2 = (b + d[2, 0] * (r - b) + d[2, 1] * (g - b)) * scale
-            if src_pq > 0.0:
-                m = max(v0, max(v1, v2))
-                if not (m > 0.0):
-                    m = 0.0
-                e, rolled = _rolled_off(m, transfer, src_pq, ks, max_lum)
-                if transfer == 1:
-                    lm = _hlg_from_pq(e)
-                    e = _hdr_signal(lm, 1)
-                elif rolled:
-                    lm = _pq_light(e)                                # the rolled-off light / L_p
+    b0, b1, bt, t0 = tab
+    m0, m1, mt, tm = tabm
+    nch = min(h, 64)
+    for c in prange(nch):
+        vb = np.empty(4, np.float64)
+        ib = vb.view(np.int64)
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            for x in range(w):
+                r = rgb[0, y, x] * gains[0]
+                g = rgb[1, y, x] * gains[1]
+                b = rgb[2, y, x] * gains[2]
+                r = min(r if r > 0.0 else 0.0, cap)
+                g = min(g if g > 0.0 else 0.0, cap)
+                b = min(b if b > 0.0 else 0.0, cap)
+                vb[0] = (r + d[0, 0] * (r - b) + d[0, 1] * (g - b)) * scale
+                vb[1] = (g + d[1, 0] * (r - b) + d[1, 1] * (g - b)) * scale
+                vb[2] = (b + d[2, 0] * (r - b) + d[2, 1] * (g - b)) * scale
+                if src_pq > 0.0:
+                    m = max(vb[0], max(vb[1], vb[2]))
+                    if not (m > 0.0):
+                        m = 0.0
+                    vb[3] = m
+                    cm = _table_code(m, ib[3], m0, m1, mt, tm)
+                    if transfer == 1 or m >= knee:
+                        e, rolled = _rolled_off(m, transfer, src_pq, ks, max_lum)
+                        if transfer == 1:
+                            lm = _hlg_from_pq(e)
+                        elif rolled:
+                            lm = _pq_light(e)                        # the rolled-off light / L_p
+                        else:
+                            lm = m
+                        k = lm / m if m > 0.0 else 0.0
+                        for ch in range(3):
+                            if vb[ch] < m:
+                                vb[ch] *= k
+                    for ch in range(3):
+                        code = cm if vb[ch] >= m else _table_code(vb[ch], ib[ch], b0, b1, bt, t0)
+                        out[ch, y, x] = np.uint16(code << 6)
                 else:
-                    lm = m                                           # below the knee: unchanged
-                k = lm / m if m > 0.0 else 0.0
-                e0 = e if v0 >= m else _hdr_signal(v0 * k, transfer)
-                ea = e if v1 >= m else _hdr_signal(v1 * k, transfer)
-                eb = e if v2 >= m else _hdr_signal(v2 * k, transfer)
-            else:
-                e0 = _hdr_signal(v0, transfer)
-                ea = _hdr_signal(v1, transfer)
-                eb = _hdr_signal(v2, transfer)
-            out[0, y, x] = _hdr_code(e0, code_max)
-            out[1, y, x] = _hdr_code(ea, code_max)
-            out[2, y, x] = _hdr_code(eb, code_max)
+                    for ch in range(3):
+                        out[ch, y, x] = np.uint16(_table_code(vb[ch], ib[ch], b0, b1, bt, t0) << 6)
 
 
 PRIMARIES_OUT = ("bt2020", "bt709")
@@ -1249,5 +1344,11 @@ def hdr_encode_rgb(rgb: np.ndarray, diffuse_white: float, transfer: str = "pq", 
     m = primaries_matrix("bt709", primaries) if primaries != "bt709" else np.eye(3)
     d = m - np.eye(3)
     d = np.ascontiguousarray(d[:, :2] + 0.0)      # M - I: column B is -(R + G) (rows of M sum to 1)
-    _hdr_rgb_kernel(v, gains, d, *args, out)
+    scale, tr, src_pq, ks, max_lum, code_max = args
+    tab = _code_table(0, tr, src_pq, ks, max_lum, code_max)
+    tabm, knee = tab, _TAB_VMAX
+    if src_pq > 0.0:
+        tabm = _code_table(1, tr, src_pq, ks, max_lum, code_max)
+        knee = float(_code_table(2, tr, src_pq, ks, max_lum, 1)[2][1])    # the smallest m the EETF changes
+    _hdr_rgb_kernel(v, gains, d, *args, knee, tab, tabm, out)
     return out
