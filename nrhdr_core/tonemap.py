@@ -499,7 +499,7 @@ def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, 
         t = tbuf[c]
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
             _local_levels(l, ca, cb, y, rows[c, 0], rows[c, 1], t, c0, g1, k0, lut, np.float32(65535.0))
-            _rgb_row(rgb, y, k, t, dec, bins, thr, sat, fbuf[c], ibuf[c], out)
+            _rgb_row(rgb, y, k, tbuf, c, dec, bins, thr, sat, fbuf, ibuf, out)
 
 
 def _display(o):
@@ -1019,13 +1019,14 @@ def _into_gamut(t0, t1, t2, yd, tb, x):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rgb_row(rgb, y, k, levels, dec, bins, thr, sat, fb, ib, out):
+def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, ib, out):
     """Row y of the colour display codes (H, W, 3) from the grey operator's 16-bit levels of its luminance
-    (`levels`: code + 0.5, float32): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
+    (`lev[c]`: code + 0.5, float32): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
     (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the code at the linear
     bin's start, plus one from the next code's threshold on (a bin holds at most one threshold: exact rounding
-    in the encoded domain). `fb`, `ib` (3, w): the row's channels and codes."""
-    npx = levels.shape[0]
+    in the encoded domain). `fb[c]`, `ib[c]` (3, w): the row's channels and codes. Every
+    array indexed in full (no slices): the loops vectorise."""
+    npx = lev.shape[1]
     zero = np.float32(0.0)
     one = np.float32(1.0)
     nb = np.float32(bins.shape[0] - 1)
@@ -1033,20 +1034,20 @@ def _rgb_row(rgb, y, k, levels, dec, bins, thr, sat, fb, ib, out):
     if sat != one:
         for x in range(npx):
             L = _luminance(rgb, y, x, wr, wg, wb, kr, kb)
-            yd = dec[np.int32(levels[x])]
+            yd = dec[np.int32(lev[c, x])]
             if L > zero:
                 _into_gamut((_channel(rgb[0, y, x], wr) / L) ** sat * yd,
                             (_channel(rgb[1, y, x], wg) / L) ** sat * yd,
-                            (_channel(rgb[2, y, x], wb) / L) ** sat * yd, yd, fb, x)
+                            (_channel(rgb[2, y, x], wb) / L) ** sat * yd, yd, fb[c], x)
             else:
-                _into_gamut(yd, yd, yd, yd, fb, x)
+                _into_gamut(yd, yd, yd, yd, fb[c], x)
     else:
         for x in range(npx):
             r = _channel(rgb[0, y, x], wr)
             g = _channel(rgb[1, y, x], wg)
             b = _channel(rgb[2, y, x], wb)
             L = g + kr * (r - g) + kb * (b - g)
-            yd = dec[np.int32(levels[x])]
+            yd = dec[np.int32(lev[c, x])]
             lit = L > zero
             kf = yd / (L if lit else one)
             t0 = r * kf if lit else yd
@@ -1056,24 +1057,25 @@ def _rgb_row(rgb, y, k, levels, dec, bins, thr, sat, fb, ib, out):
             over = mx > one
             mix = (one - yd) / (mx - yd if over else one)
             mix = mix if over else one
-            fb[0, x] = min(max(yd + (t0 - yd) * mix, zero), one)
-            fb[1, x] = min(max(yd + (t1 - yd) * mix, zero), one)
-            fb[2, x] = min(max(yd + (t2 - yd) * mix, zero), one)
+            fb[c, 0, x] = min(max(yd + (t0 - yd) * mix, zero), one)
+            fb[c, 1, x] = min(max(yd + (t1 - yd) * mix, zero), one)
+            fb[c, 2, x] = min(max(yd + (t2 - yd) * mix, zero), one)
     for ch in range(3):
         for x in range(npx):
-            lin = fb[ch, x]
+            lin = fb[c, ch, x]
             sc = bins[np.int32(lin * nb)]
-            ib[ch, x] = sc + 1 if lin >= thr[sc] else sc
+            ib[c, ch, x] = sc + 1 if lin >= thr[sc] else sc
     for x in range(npx):
-        out[y, x, 0] = ib[0, x]
-        out[y, x, 1] = ib[1, x]
-        out[y, x, 2] = ib[2, x]
+        out[y, x, 0] = ib[c, 0, x]
+        out[y, x, 1] = ib[c, 1, x]
+        out[y, x, 2] = ib[c, 2, x]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _rgb_log_kernel(rgb, k, scale, q, inv_den, dec, bins, thr, sat, tbuf, cbuf, out):
-    """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels),
-    shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `tbuf`, `cbuf` (chunks, 3, w) its rows."""
+def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, tbuf, cbuf, out):
+    """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels
+    into `lev` (chunks, w)), shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `tbuf`, `cbuf` (chunks,
+    3, w) its rows."""
     h, w = out.shape[0], out.shape[1]
     nch = tbuf.shape[0]
     k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
@@ -1092,9 +1094,9 @@ def _rgb_log_kernel(rgb, k, scale, q, inv_den, dec, bins, thr, sat, tbuf, cbuf, 
                 ubuf[x] = np.float32(1.0) + q * v
             _split(ubits, mbits, ebuf)
             for x in range(w):
-                ebuf[x] = _log_level(mbuf[x], ebuf[x], ubuf[x], _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale,
-                                     q) * inv_den * lmax + np.float32(0.5)
-            _rgb_row(rgb, y, k, ebuf, dec, bins, thr, sat, tbuf[c], cbuf[c], out)
+                lev[c, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale,
+                                       q) * inv_den * lmax + np.float32(0.5)
+            _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, tbuf, cbuf, out)
 
 
 def srgb_eotf(v):
@@ -1142,15 +1144,16 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
         raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
     _check_tone(white, contrast)
     k = np.array([*gains, *LUMA_BT709], np.float32)
-    bufs = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), 3, w), np.float32),
-                                                  np.empty((min(h, 64), 3, w), np.int32)))
-    colour = (*_srgb_tables(), np.float32(saturation), *bufs)
+    lev, fbuf, ibuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
+                                                             np.empty((min(h, 64), 3, w), np.float32),
+                                                             np.empty((min(h, 64), 3, w), np.int32)))
+    colour = (*_srgb_tables(), np.float32(saturation), fbuf, ibuf)
     if operator == "local":
         (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0, colour,
                                                           out)
     else:
         _rgb_log_kernel(v, k, np.float32(2.0 ** exposure_stops / white), np.float32(contrast),
-                        np.float32(1.0 / math.log1p(contrast)), *colour, out)
+                        np.float32(1.0 / math.log1p(contrast)), lev, *colour, out)
     return out
 
 
