@@ -407,8 +407,8 @@ def _local_position(ra, rb, lv, cx, j, c0, g1, k0, lo, steps):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _local_levels(l, ca, cb, y, ra, rb, t, c0, g1, k0, lut, out_max):
-    """Row y's display levels (code + 0.5, float32) into `t`: `_local_apply`'s row for `_rgb_local_apply`."""
+def _local_levels(l, ca, cb, y, ra, rb, t, c, c0, g1, k0, lut, out_max):
+    """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`."""
     w = l.shape[1]
     hc, wc = ca.shape
     n = lut.shape[0]
@@ -431,14 +431,14 @@ def _local_levels(l, ca, cb, y, ra, rb, t, c0, g1, k0, lut, out_max):
     for cx in range(full):
         for j in range(cell):
             x = cx * cell + j
-            t[x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+            t[c, x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
     for x in range(full * cell, w):
-        t[x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+        t[c, x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
     for x in range(w):
-        tv = min(max(t[x], np.float32(0.0)), top)        # (l is finite)
+        tv = min(max(t[c, x], np.float32(0.0)), top)        # (l is finite)
         i = min(int(tv), n - 2)
         ft = tv - np.float32(i)
-        t[x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+        t[c, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -496,9 +496,8 @@ def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, 
     h, w = l.shape
     nch = tbuf.shape[0]
     for c in prange(nch):
-        t = tbuf[c]
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            _local_levels(l, ca, cb, y, rows[c, 0], rows[c, 1], t, c0, g1, k0, lut, np.float32(65535.0))
+            _local_levels(l, ca, cb, y, rows[c, 0], rows[c, 1], tbuf, c, c0, g1, k0, lut, np.float32(65535.0))
             _rgb_row(rgb, y, k, tbuf, c, dec, bins, thr, sat, fbuf, ibuf, out)
 
 
@@ -1006,16 +1005,15 @@ def _luminance(rgb, y, x, k0, k1, k2, kr, kb):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _into_gamut(t0, t1, t2, yd, tb, x):
-    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into column x of `tb`, clamped to
-    [0, 1]."""
+def _into_gamut(t0, t1, t2, yd, tb, c, x):
+    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into tb[c, :, x], clamped to [0, 1]."""
     one = np.float32(1.0)
     zero = np.float32(0.0)
     mx = max(t0, max(t1, t2))
     f = (one - yd) / (mx - yd) if mx > one else one
-    tb[0, x] = min(max(yd + (t0 - yd) * f, zero), one)
-    tb[1, x] = min(max(yd + (t1 - yd) * f, zero), one)
-    tb[2, x] = min(max(yd + (t2 - yd) * f, zero), one)
+    tb[c, 0, x] = min(max(yd + (t0 - yd) * f, zero), one)
+    tb[c, 1, x] = min(max(yd + (t1 - yd) * f, zero), one)
+    tb[c, 2, x] = min(max(yd + (t2 - yd) * f, zero), one)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1038,9 +1036,9 @@ def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, ib, out):
             if L > zero:
                 _into_gamut((_channel(rgb[0, y, x], wr) / L) ** sat * yd,
                             (_channel(rgb[1, y, x], wg) / L) ** sat * yd,
-                            (_channel(rgb[2, y, x], wb) / L) ** sat * yd, yd, fb[c], x)
+                            (_channel(rgb[2, y, x], wb) / L) ** sat * yd, yd, fb, c, x)
             else:
-                _into_gamut(yd, yd, yd, yd, fb[c], x)
+                _into_gamut(yd, yd, yd, yd, fb, c, x)
     else:
         for x in range(npx):
             r = _channel(rgb[0, y, x], wr)
