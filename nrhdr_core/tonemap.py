@@ -394,20 +394,20 @@ def _mean_contrast(slope, wgt, vb, vd, cov, free, c, g):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _local_position(ra, rb, lv, cx, j, c0, g1, k0, lo, steps):
-    """LUT position of pixel j (0..3) of cell cx: a, b interpolated along the row (`ra`, `rb` edge-extended
-    by one cell), o = c base + (1 + (g - 1)(1 - a)) detail + k0."""
+def _local_position(rows, c, lv, cx, j, c0, g1, k0, lo, steps):
+    """LUT position of pixel j (0..3) of cell cx: a, b interpolated along the row (`rows[c, 0]`, `rows[c, 1]`,
+    edge-extended by one cell), o = c base + (1 + (g - 1)(1 - a)) detail + k0."""
     i0 = cx + (j >> 1)
     fx = np.float32(0.625 + 0.25 * j - (j >> 1))
-    av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
-    bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
+    av = rows[c, 0, i0] + fx * (rows[c, 0, i0 + 1] - rows[c, 0, i0])
+    bv = rows[c, 1, i0] + fx * (rows[c, 1, i0 + 1] - rows[c, 1, i0])
     base = av * lv + bv
     gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
     return ((c0 * base + gain * (lv - base) + k0) - lo) * steps
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _local_levels(l, ca, cb, y, ra, rb, t, c, c0, g1, k0, lut, out_max):
+def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
     """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`."""
     w = l.shape[1]
     hc, wc = ca.shape
@@ -421,19 +421,19 @@ def _local_levels(l, ca, cb, y, ra, rb, t, c, c0, g1, k0, lut, out_max):
     y1 = min(y0 + 1, hc - 1)
     fy = f - y0
     for cx in range(wc):
-        ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
-        rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
-    ra[0], rb[0] = ra[1], rb[1]
-    ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
-    lrow = l[y]
+        rows[c, 0, cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+        rows[c, 1, cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+    for i in range(2):
+        rows[c, i, 0] = rows[c, i, 1]
+        rows[c, i, wc + 1] = rows[c, i, wc]
     # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
     full = w // cell
     for cx in range(full):
         for j in range(cell):
             x = cx * cell + j
-            t[c, x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+            t[c, x] = _local_position(rows, c, l[y, x], cx, j, c0, g1, k0, lo, steps)
     for x in range(full * cell, w):
-        t[c, x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+        t[c, x] = _local_position(rows, c, l[y, x], full, x - full * cell, c0, g1, k0, lo, steps)
     for x in range(w):
         tv = min(max(t[c, x], np.float32(0.0)), top)        # (l is finite)
         i = min(int(tv), n - 2)
@@ -477,9 +477,9 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
             for cx in range(full):
                 for j in range(cell):
                     x = cx * cell + j
-                    t[x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+                    t[x] = _local_position(rows, c, lrow[x], cx, j, c0, g1, k0, lo, steps)
             for x in range(full * cell, w):
-                t[x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+                t[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
             for x in range(w):
                 tv = t[x]
                 tv = tv if tv > np.float32(0.0) else np.float32(0.0)
@@ -497,7 +497,7 @@ def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, 
     nch = tbuf.shape[0]
     for c in prange(nch):
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            _local_levels(l, ca, cb, y, rows[c, 0], rows[c, 1], tbuf, c, c0, g1, k0, lut, np.float32(65535.0))
+            _local_levels(l, ca, cb, y, rows, tbuf, c, c0, g1, k0, lut, np.float32(65535.0))
             _rgb_row(rgb, y, k, tbuf, c, dec, bins, thr, sat, fbuf, ibuf, out)
 
 
