@@ -189,34 +189,51 @@ def _put(out, offset, value):
     out[offset + 1] = np.uint8(value >> 8)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ycc_row(codes, y, kr, kb, shift, out, offset, yrow, cbuf, crbuf):
+    """Row y: Y' codes (into `out` at `offset` when `yrow`) and the float Cb, Cr of each pixel into `cbuf`,
+    `crbuf`."""
+    for x in range(codes.shape[2]):
+        yy, cb, cr = _ycc(codes, y, x, kr, kb, shift)
+        cbuf[x] = cb
+        crbuf[x] = cr
+        if yrow:
+            code = int(math.floor(64.0 + 876.0 * yy + 0.5))
+            _put(out, offset + 2 * x, min(max(code, 4), 1019))
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _ycbcr_kernel(codes, kr, kb, shift, out, offsets, strides, ch, cw):
     """R'G'B' codes (3, H, W) -> 10-bit narrow-range Y' (H, W) and Cb, Cr planes (ch x cw) as little-endian
     words at byte `offsets` with row `strides` in the frame's bytes `out`: full size, or (4:2:0) sited as
     HEVC's default chroma location (type 0: horizontally co-sited, vertically between the rows): Cb, Cr of
-    rows 2i and 2i + 1 averaged, filtered [1, 2, 1] / 4 along the row."""
+    rows 2i and 2i + 1 averaged, filtered [1, 2, 1] / 4 along the row. One chroma row (and its one or two
+    luma rows) at a time, each pixel's Y'CbCr computed once."""
     h, w = codes.shape[1:]
-    for y in prange(h):
-        for x in range(w):
-            yy, cb, cr = _ycc(codes, y, x, kr, kb, shift)
-            code = int(math.floor(64.0 + 876.0 * yy + 0.5))
-            _put(out, offsets[0] + y * strides[0] + 2 * x, min(max(code, 4), 1019))
     full = ch == h and cw == w
-    for i in prange(ch):
-        for j in range(cw):
+    nch = min(ch, 64)
+    for c in prange(nch):
+        buf = np.empty((4, w), np.float64)
+        for i in range((c * ch) // nch, ((c + 1) * ch) // nch):
             if full:
-                _, cb, cr = _ycc(codes, i, j, kr, kb, shift)
-            else:
+                _ycc_row(codes, i, kr, kb, shift, out, offsets[0] + i * strides[0], True, buf[0], buf[2])
+                for j in range(cw):
+                    _put(out, offsets[1] + i * strides[1] + 2 * j, _chroma_code(buf[0, j]))
+                    _put(out, offsets[2] + i * strides[2] + 2 * j, _chroma_code(buf[2, j]))
+                continue
+            y1 = min(2 * i + 1, h - 1)
+            _ycc_row(codes, 2 * i, kr, kb, shift, out, offsets[0] + 2 * i * strides[0], True, buf[0], buf[2])
+            _ycc_row(codes, y1, kr, kb, shift, out, offsets[0] + y1 * strides[0], y1 > 2 * i, buf[1], buf[3])
+            for j in range(cw):
                 cb = 0.0
                 cr = 0.0
-                for y in (2 * i, min(2 * i + 1, h - 1)):
+                for r in range(2):
                     for dx, wt in ((-1, 0.125), (0, 0.25), (1, 0.125)):
                         x = min(max(2 * j + dx, 0), w - 1)
-                        _, b1, r1 = _ycc(codes, y, x, kr, kb, shift)
-                        cb += wt * b1
-                        cr += wt * r1
-            _put(out, offsets[1] + i * strides[1] + 2 * j, _chroma_code(cb))
-            _put(out, offsets[2] + i * strides[2] + 2 * j, _chroma_code(cr))
+                        cb += wt * buf[r, x]
+                        cr += wt * buf[2 + r, x]
+                _put(out, offsets[1] + i * strides[1] + 2 * j, _chroma_code(cb))
+                _put(out, offsets[2] + i * strides[2] + 2 * j, _chroma_code(cr))
 
 
 MATRICES = {"bt2020": LUMA_BT2020, "bt709": LUMA_BT709}

@@ -394,21 +394,21 @@ def _mean_contrast(slope, wgt, vb, vd, cov, free, c, g):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _local_position(ra, rb, lv, cx, j, c0, g1, k0, lo, steps):
-    """LUT position of pixel j (0..3) of cell cx: a, b interpolated along the row (`ra`, `rb` edge-extended
-    by one cell), o = c base + (1 + (g - 1)(1 - a)) detail + k0."""
+def _local_position(rows, c, lv, cx, j, c0, g1, k0, lo, steps):
+    """LUT position of pixel j (0..3) of cell cx: a, b interpolated along the row (`rows[c, 0]`, `rows[c, 1]`,
+    edge-extended by one cell), o = c base + (1 + (g - 1)(1 - a)) detail + k0."""
     i0 = cx + (j >> 1)
     fx = np.float32(0.625 + 0.25 * j - (j >> 1))
-    av = ra[i0] + fx * (ra[i0 + 1] - ra[i0])
-    bv = rb[i0] + fx * (rb[i0 + 1] - rb[i0])
+    av = rows[c, 0, i0] + fx * (rows[c, 0, i0 + 1] - rows[c, 0, i0])
+    bv = rows[c, 1, i0] + fx * (rows[c, 1, i0 + 1] - rows[c, 1, i0])
     base = av * lv + bv
     gain = np.float32(1.0) + g1 * (np.float32(1.0) - av)
     return ((c0 * base + gain * (lv - base) + k0) - lo) * steps
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _local_levels(l, ca, cb, y, ra, rb, t, c0, g1, k0, lut, out_max):
-    """Row y's display levels (code + 0.5, float32) into `t`: `_local_apply`'s row for `_rgb_local_apply`."""
+def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
+    """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`."""
     w = l.shape[1]
     hc, wc = ca.shape
     n = lut.shape[0]
@@ -421,24 +421,24 @@ def _local_levels(l, ca, cb, y, ra, rb, t, c0, g1, k0, lut, out_max):
     y1 = min(y0 + 1, hc - 1)
     fy = f - y0
     for cx in range(wc):
-        ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
-        rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
-    ra[0], rb[0] = ra[1], rb[1]
-    ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
-    lrow = l[y]
+        rows[c, 0, cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+        rows[c, 1, cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+    for i in range(2):
+        rows[c, i, 0] = rows[c, i, 1]
+        rows[c, i, wc + 1] = rows[c, i, wc]
     # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
     full = w // cell
     for cx in range(full):
         for j in range(cell):
             x = cx * cell + j
-            t[x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+            t[c, x] = _local_position(rows, c, l[y, x], cx, j, c0, g1, k0, lo, steps)
     for x in range(full * cell, w):
-        t[x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+        t[c, x] = _local_position(rows, c, l[y, x], full, x - full * cell, c0, g1, k0, lo, steps)
     for x in range(w):
-        tv = min(max(t[x], np.float32(0.0)), top)        # (l is finite)
+        tv = min(max(t[c, x], np.float32(0.0)), top)        # (l is finite)
         i = min(int(tv), n - 2)
         ft = tv - np.float32(i)
-        t[x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+        t[c, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -477,9 +477,9 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
             for cx in range(full):
                 for j in range(cell):
                     x = cx * cell + j
-                    t[x] = _local_position(ra, rb, lrow[x], cx, j, c0, g1, k0, lo, steps)
+                    t[x] = _local_position(rows, c, lrow[x], cx, j, c0, g1, k0, lo, steps)
             for x in range(full * cell, w):
-                t[x] = _local_position(ra, rb, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+                t[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
             for x in range(w):
                 tv = t[x]
                 tv = tv if tv > np.float32(0.0) else np.float32(0.0)
@@ -496,10 +496,9 @@ def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, 
     h, w = l.shape
     nch = tbuf.shape[0]
     for c in prange(nch):
-        t = tbuf[c]
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            _local_levels(l, ca, cb, y, rows[c, 0], rows[c, 1], t, c0, g1, k0, lut, np.float32(65535.0))
-            _rgb_row(rgb, y, k, t, dec, bins, thr, sat, fbuf[c], ibuf[c], out)
+            _local_levels(l, ca, cb, y, rows, tbuf, c, c0, g1, k0, lut, np.float32(65535.0))
+            _rgb_row(rgb, y, k, tbuf, c, dec, bins, thr, sat, fbuf, ibuf, out)
 
 
 def _display(o):
@@ -1006,26 +1005,26 @@ def _luminance(rgb, y, x, k0, k1, k2, kr, kb):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _into_gamut(t0, t1, t2, yd, tb, x):
-    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into column x of `tb`, clamped to
-    [0, 1]."""
+def _into_gamut(t0, t1, t2, yd, tb, c, x):
+    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into tb[c, :, x], clamped to [0, 1]."""
     one = np.float32(1.0)
     zero = np.float32(0.0)
     mx = max(t0, max(t1, t2))
     f = (one - yd) / (mx - yd) if mx > one else one
-    tb[0, x] = min(max(yd + (t0 - yd) * f, zero), one)
-    tb[1, x] = min(max(yd + (t1 - yd) * f, zero), one)
-    tb[2, x] = min(max(yd + (t2 - yd) * f, zero), one)
+    tb[c, 0, x] = min(max(yd + (t0 - yd) * f, zero), one)
+    tb[c, 1, x] = min(max(yd + (t1 - yd) * f, zero), one)
+    tb[c, 2, x] = min(max(yd + (t2 - yd) * f, zero), one)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rgb_row(rgb, y, k, levels, dec, bins, thr, sat, fb, ib, out):
+def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, ib, out):
     """Row y of the colour display codes (H, W, 3) from the grey operator's 16-bit levels of its luminance
-    (`levels`: code + 0.5, float32): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
+    (`lev[c]`: code + 0.5, float32): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
     (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the code at the linear
     bin's start, plus one from the next code's threshold on (a bin holds at most one threshold: exact rounding
-    in the encoded domain). `fb`, `ib` (3, w): the row's channels and codes."""
-    npx = levels.shape[0]
+    in the encoded domain). `fb[c]`, `ib[c]` (3, w): the row's channels and codes. Every
+    array indexed in full (no slices): the loops vectorise."""
+    npx = lev.shape[1]
     zero = np.float32(0.0)
     one = np.float32(1.0)
     nb = np.float32(bins.shape[0] - 1)
@@ -1033,20 +1032,20 @@ def _rgb_row(rgb, y, k, levels, dec, bins, thr, sat, fb, ib, out):
     if sat != one:
         for x in range(npx):
             L = _luminance(rgb, y, x, wr, wg, wb, kr, kb)
-            yd = dec[np.int32(levels[x])]
+            yd = dec[np.int32(lev[c, x])]
             if L > zero:
                 _into_gamut((_channel(rgb[0, y, x], wr) / L) ** sat * yd,
                             (_channel(rgb[1, y, x], wg) / L) ** sat * yd,
-                            (_channel(rgb[2, y, x], wb) / L) ** sat * yd, yd, fb, x)
+                            (_channel(rgb[2, y, x], wb) / L) ** sat * yd, yd, fb, c, x)
             else:
-                _into_gamut(yd, yd, yd, yd, fb, x)
+                _into_gamut(yd, yd, yd, yd, fb, c, x)
     else:
         for x in range(npx):
             r = _channel(rgb[0, y, x], wr)
             g = _channel(rgb[1, y, x], wg)
             b = _channel(rgb[2, y, x], wb)
             L = g + kr * (r - g) + kb * (b - g)
-            yd = dec[np.int32(levels[x])]
+            yd = dec[np.int32(lev[c, x])]
             lit = L > zero
             kf = yd / (L if lit else one)
             t0 = r * kf if lit else yd
@@ -1056,24 +1055,25 @@ def _rgb_row(rgb, y, k, levels, dec, bins, thr, sat, fb, ib, out):
             over = mx > one
             mix = (one - yd) / (mx - yd if over else one)
             mix = mix if over else one
-            fb[0, x] = min(max(yd + (t0 - yd) * mix, zero), one)
-            fb[1, x] = min(max(yd + (t1 - yd) * mix, zero), one)
-            fb[2, x] = min(max(yd + (t2 - yd) * mix, zero), one)
+            fb[c, 0, x] = min(max(yd + (t0 - yd) * mix, zero), one)
+            fb[c, 1, x] = min(max(yd + (t1 - yd) * mix, zero), one)
+            fb[c, 2, x] = min(max(yd + (t2 - yd) * mix, zero), one)
     for ch in range(3):
         for x in range(npx):
-            lin = fb[ch, x]
+            lin = fb[c, ch, x]
             sc = bins[np.int32(lin * nb)]
-            ib[ch, x] = sc + 1 if lin >= thr[sc] else sc
+            ib[c, ch, x] = sc + 1 if lin >= thr[sc] else sc
     for x in range(npx):
-        out[y, x, 0] = ib[0, x]
-        out[y, x, 1] = ib[1, x]
-        out[y, x, 2] = ib[2, x]
+        out[y, x, 0] = ib[c, 0, x]
+        out[y, x, 1] = ib[c, 1, x]
+        out[y, x, 2] = ib[c, 2, x]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _rgb_log_kernel(rgb, k, scale, q, inv_den, dec, bins, thr, sat, tbuf, cbuf, out):
-    """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels),
-    shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `tbuf`, `cbuf` (chunks, 3, w) its rows."""
+def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, tbuf, cbuf, out):
+    """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels
+    into `lev` (chunks, w)), shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `tbuf`, `cbuf` (chunks,
+    3, w) its rows."""
     h, w = out.shape[0], out.shape[1]
     nch = tbuf.shape[0]
     k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
@@ -1092,9 +1092,9 @@ def _rgb_log_kernel(rgb, k, scale, q, inv_den, dec, bins, thr, sat, tbuf, cbuf, 
                 ubuf[x] = np.float32(1.0) + q * v
             _split(ubits, mbits, ebuf)
             for x in range(w):
-                ebuf[x] = _log_level(mbuf[x], ebuf[x], ubuf[x], _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale,
-                                     q) * inv_den * lmax + np.float32(0.5)
-            _rgb_row(rgb, y, k, ebuf, dec, bins, thr, sat, tbuf[c], cbuf[c], out)
+                lev[c, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale,
+                                       q) * inv_den * lmax + np.float32(0.5)
+            _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, tbuf, cbuf, out)
 
 
 def srgb_eotf(v):
@@ -1142,15 +1142,16 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
         raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
     _check_tone(white, contrast)
     k = np.array([*gains, *LUMA_BT709], np.float32)
-    bufs = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), 3, w), np.float32),
-                                                  np.empty((min(h, 64), 3, w), np.int32)))
-    colour = (*_srgb_tables(), np.float32(saturation), *bufs)
+    lev, fbuf, ibuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
+                                                             np.empty((min(h, 64), 3, w), np.float32),
+                                                             np.empty((min(h, 64), 3, w), np.int32)))
+    colour = (*_srgb_tables(), np.float32(saturation), fbuf, ibuf)
     if operator == "local":
         (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0, colour,
                                                           out)
     else:
         _rgb_log_kernel(v, k, np.float32(2.0 ** exposure_stops / white), np.float32(contrast),
-                        np.float32(1.0 / math.log1p(contrast)), *colour, out)
+                        np.float32(1.0 / math.log1p(contrast)), lev, *colour, out)
     return out
 
 
@@ -1178,48 +1179,143 @@ def _hdr_code(e, code_max):
     return np.uint16((code if code < code_max else code_max) << 6)
 
 
+# Colour HDR codes by threshold tables: a channel's code is a non-decreasing function f(v) of its linear value,
+# so code(v) = f(0) + #{c : thr[c] <= v} with thr[c] the smallest float64 v where f reaches c, found by bisection
+# on the bit patterns with the very formulas of `_hdr_kernel` (the same codes, not an approximation). Bins of
+# 2^_TAB_BITS per octave (on the float64 bit pattern) give the code at each bin's start; the thresholds inside
+# a bin are stepped over.
+_TAB_BITS = 8
+_TAB_SHIFT = 52 - _TAB_BITS
+_TAB_VMAX = 16.0               # above every clamp of the transfers (HLG's roll-off: E^1.2 / 10 <= 1)
+_TAB_VMIN = 2.0 ** -80
+_TABLES: dict = {}
+
+
+@njit(cache=True, nogil=True)
+def _code_at(v, kind, transfer, src_pq, ks, max_lum, code_max):
+    """The 10-bit code of `_hdr_rgb_kernel` for a channel value v: kind 0 a channel's own (PQ / HLG, no
+    roll-off), 1 the largest channel's through the roll-off; kind 2: 1 if the roll-off changes v, else 0."""
+    if kind == 0:
+        e = _hdr_signal(v, transfer)
+    else:
+        e, rolled = _rolled_off(v, transfer, src_pq, ks, max_lum)
+        if kind == 2:
+            return 1 if rolled else 0
+        if transfer == 1:
+            e = _hdr_signal(_hlg_from_pq(e), 1)
+    code = int(64.0 + 876.0 * e + 0.5)
+    return code if code < code_max else code_max
+
+
+@njit(cache=True, nogil=True)
+def _thresholds(kind, transfer, src_pq, ks, max_lum, code_max, thr):
+    """thr[c] = the smallest float64 v in [0, _TAB_VMAX] with `_code_at` >= c (inf where none); returns
+    (f(0), f(_TAB_VMAX))."""
+    bits = np.empty(1, np.int64)
+    val = bits.view(np.float64)
+    val[0] = _TAB_VMAX
+    top_bits = bits[0]
+    lo_code = _code_at(0.0, kind, transfer, src_pq, ks, max_lum, code_max)
+    hi_code = _code_at(_TAB_VMAX, kind, transfer, src_pq, ks, max_lum, code_max)
+    thr[:] = np.inf
+    for c in range(lo_code + 1, hi_code + 1):
+        lo, hi = 0, top_bits              # f(lo) < c <= f(hi)
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            bits[0] = mid
+            if _code_at(val[0], kind, transfer, src_pq, ks, max_lum, code_max) >= c:
+                hi = mid
+            else:
+                lo = mid
+        bits[0] = hi
+        thr[c] = val[0]
+    return lo_code, hi_code
+
+
+def _code_table(kind, transfer, src_pq, ks, max_lum, code_max):
+    """(base bit pattern >> _TAB_SHIFT, codes at the bins' starts (int32), thresholds (float64, by code), top
+    code) for `_table_code`, kept per setting."""
+    key = (kind, transfer, src_pq, ks, max_lum, code_max)
+    if key not in _TABLES:
+        thr = np.empty(1026, np.float64)
+        lo_code, hi_code = _thresholds(kind, transfer, src_pq, ks, max_lum, code_max, thr)
+        finite = thr[np.isfinite(thr)]
+        vmin = max(float(finite.min()) if finite.size else _TAB_VMAX, _TAB_VMIN)
+        base = int(np.array(vmin).view(np.int64)) >> _TAB_SHIFT
+        top = int(np.array(_TAB_VMAX).view(np.int64)) >> _TAB_SHIFT
+        starts = (np.arange(base, top + 1, dtype=np.int64) << _TAB_SHIFT).view(np.float64).copy()
+        starts[0] = 0.0
+        bins = (lo_code + np.searchsorted(np.sort(finite), starts, side="right")).astype(np.int32)
+        if len(_TABLES) > 32:
+            _TABLES.clear()
+        _TABLES[key] = (np.int64(base), bins, thr, np.int64(hi_code))
+    return _TABLES[key]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _table_code(v, vbits, base, bins, thr, top):
+    """`_code_at` of v (its float64 bit pattern `vbits`) from a `_code_table`."""
+    if not (v > 0.0):
+        return bins[0]
+    if v >= _TAB_VMAX:
+        return top
+    i = (vbits >> _TAB_SHIFT) - base
+    code = bins[i if i > 0 else 0]
+    while code < top and v >= thr[code + 1]:
+        code += 1
+    return code
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_max, out):
+def _hdr_rgb_kernel(rgb, gains, d, scale, transfer, src_pq, ks, max_lum, code_max, knee, tab, tabm, out):
     """Colour `_hdr_kernel`: channels times `gains`, primaries converted as c + d[k, 0] (R - B) + d[k, 1]
-    (G - B) (M - I with rows summing to 0: exact for grey), times `scale`, then PQ / HLG per channel. With
-    src_pq > 0 the BT.2390 EETF maps m = max(R, G, B) (display light; HLG: of the reference display) and the
-    channels are scaled by m' / m (the largest channel takes the EETF's signal directly)."""
+    (G - B) (M - I with rows summing to 0: exact for grey), times `scale`, then PQ / HLG per channel (codes
+    from the table `tab`). With src_pq > 0 the BT.2390 EETF maps m = max(R, G, B) (display light; HLG: of the
+    reference display; its code from `tabm`) and the channels are scaled by m' / m; below the knee of PQ's
+    roll-off (m < `knee`) m' = m."""
     h, w = rgb.shape[1:]
     cap = _CHANNEL_CAP
-    for y in prange(h):
-        for x in range(w):
-            r = rgb[0, y, x] * gains[0]
-            g = rgb[1, y, x] * gains[1]
-            b = rgb[2, y, x] * gains[2]
-            r = min(r if r > 0.0 else 0.0, cap)
-            g = min(g if g > 0.0 else 0.0, cap)
-            b = min(b if b > 0.0 else 0.0, cap)
-            v0 = (r + d[0, 0] * (r - b) + d[0, 1] * (g - b)) * scale
-            v1 = (g + d[1, 0] * (r - b) + d[1, 1] * (g - b)) * scale
-            v2 = (b + d[2, 0] * (r - b) + d[2, 1] * (g - b)) * scale
-            if src_pq > 0.0:
-                m = max(v0, max(v1, v2))
-                if not (m > 0.0):
-                    m = 0.0
-                e, rolled = _rolled_off(m, transfer, src_pq, ks, max_lum)
-                if transfer == 1:
-                    lm = _hlg_from_pq(e)
-                    e = _hdr_signal(lm, 1)
-                elif rolled:
-                    lm = _pq_light(e)                                # the rolled-off light / L_p
+    b0, b1, bt, t0 = tab
+    m0, m1, mt, tm = tabm
+    nch = min(h, 64)
+    for c in prange(nch):
+        vb = np.empty(4, np.float64)
+        ib = vb.view(np.int64)
+        for y in range((c * h) // nch, ((c + 1) * h) // nch):
+            for x in range(w):
+                r = rgb[0, y, x] * gains[0]
+                g = rgb[1, y, x] * gains[1]
+                b = rgb[2, y, x] * gains[2]
+                r = min(r if r > 0.0 else 0.0, cap)
+                g = min(g if g > 0.0 else 0.0, cap)
+                b = min(b if b > 0.0 else 0.0, cap)
+                vb[0] = (r + d[0, 0] * (r - b) + d[0, 1] * (g - b)) * scale
+                vb[1] = (g + d[1, 0] * (r - b) + d[1, 1] * (g - b)) * scale
+                vb[2] = (b + d[2, 0] * (r - b) + d[2, 1] * (g - b)) * scale
+                if src_pq > 0.0:
+                    m = max(vb[0], max(vb[1], vb[2]))
+                    if not (m > 0.0):
+                        m = 0.0
+                    vb[3] = m
+                    cm = _table_code(m, ib[3], m0, m1, mt, tm)
+                    if transfer == 1 or m >= knee:
+                        e, rolled = _rolled_off(m, transfer, src_pq, ks, max_lum)
+                        if transfer == 1:
+                            lm = _hlg_from_pq(e)
+                        elif rolled:
+                            lm = _pq_light(e)                        # the rolled-off light / L_p
+                        else:
+                            lm = m
+                        k = lm / m if m > 0.0 else 0.0
+                        for ch in range(3):
+                            if vb[ch] < m:
+                                vb[ch] *= k
+                    for ch in range(3):
+                        code = cm if vb[ch] >= m else _table_code(vb[ch], ib[ch], b0, b1, bt, t0)
+                        out[ch, y, x] = np.uint16(code << 6)
                 else:
-                    lm = m                                           # below the knee: unchanged
-                k = lm / m if m > 0.0 else 0.0
-                e0 = e if v0 >= m else _hdr_signal(v0 * k, transfer)
-                ea = e if v1 >= m else _hdr_signal(v1 * k, transfer)
-                eb = e if v2 >= m else _hdr_signal(v2 * k, transfer)
-            else:
-                e0 = _hdr_signal(v0, transfer)
-                ea = _hdr_signal(v1, transfer)
-                eb = _hdr_signal(v2, transfer)
-            out[0, y, x] = _hdr_code(e0, code_max)
-            out[1, y, x] = _hdr_code(ea, code_max)
-            out[2, y, x] = _hdr_code(eb, code_max)
+                    for ch in range(3):
+                        out[ch, y, x] = np.uint16(_table_code(vb[ch], ib[ch], b0, b1, bt, t0) << 6)
 
 
 PRIMARIES_OUT = ("bt2020", "bt709")
@@ -1249,5 +1345,11 @@ def hdr_encode_rgb(rgb: np.ndarray, diffuse_white: float, transfer: str = "pq", 
     m = primaries_matrix("bt709", primaries) if primaries != "bt709" else np.eye(3)
     d = m - np.eye(3)
     d = np.ascontiguousarray(d[:, :2] + 0.0)      # M - I: column B is -(R + G) (rows of M sum to 1)
-    _hdr_rgb_kernel(v, gains, d, *args, out)
+    scale, tr, src_pq, ks, max_lum, code_max = args
+    tab = _code_table(0, tr, src_pq, ks, max_lum, code_max)
+    tabm, knee = tab, _TAB_VMAX
+    if src_pq > 0.0:
+        tabm = _code_table(1, tr, src_pq, ks, max_lum, code_max)
+        knee = float(_code_table(2, tr, src_pq, ks, max_lum, 1)[2][1])    # the smallest m the EETF changes
+    _hdr_rgb_kernel(v, gains, d, *args, knee, tab, tabm, out)
     return out
