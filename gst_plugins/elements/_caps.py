@@ -49,8 +49,8 @@ def hdr_template_caps(strict: bool = False, layouts=(HDR_LAYOUT,)) -> Gst.Caps:
     body = f"width={INT_RANGE}, height={INT_RANGE}, framerate={FPS_RANGE}"
     value = layouts[0] if len(layouts) == 1 else "{ " + ", ".join(layouts) + " }"
     text = f"{HDR_MEDIA_TYPE}, layout=(string){value}, {body}"
-    if not strict:
-        text += f"; {HDR_MEDIA_TYPE}, {body}"
+    if not strict:   # first, so that caps without the field stay fixed when intersected with the template
+        text = f"{HDR_MEDIA_TYPE}, {body}; {text}"
     return Gst.Caps.from_string(text)
 
 
