@@ -41,7 +41,7 @@ fi
 # source is newer than the stamp.
 warm=.venv/.nrhdr-warm
 if [ ! -f "$warm" ] || [ -n "$(find nrhdr_core -name '*.py' -newer "$warm" -print -quit)" ]; then
-  echo "setup: compiling the numba kernels once (nrhdr warmup)"
-  .venv/bin/nrhdr warmup
+  echo "setup: compiling the numba kernels once (nrhdr warmup --cfa rggb: the monochrome and the colour chain)"
+  .venv/bin/nrhdr warmup --cfa rggb
   touch "$warm"
 fi
