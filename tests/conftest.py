@@ -19,6 +19,15 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("NRHDR_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
 
+def load_benchmark(name: str, module_name: str | None = None):
+    """The script benchmarks/<name>.py as a module (benchmarks/ is not a package)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(module_name or f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def shared_data(*parts) -> Path:
     """Path under ../shared/data; skip (or fail under CI=true) when it is missing."""
     p = SHARED_DATA.joinpath(*parts)

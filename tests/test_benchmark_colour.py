@@ -1,21 +1,15 @@
 """benchmarks/colour.py: its ND layouts, and a `--quick` run at a tiny size on a shared HDR scene and a Kodak image
 (every camera, both scene kinds where the shared data is present, the zone plate, frames/s, the goals table)."""
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import shared_data
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_benchmark, shared_data
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_colour", ROOT / "benchmarks" / "colour.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_benchmark("colour", "bench_colour")
     return mod
 
 

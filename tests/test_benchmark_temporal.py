@@ -1,21 +1,16 @@
 """benchmarks/temporal.py: its flicker measure on frames of known error, and a `--quick` run at a tiny size
 (every clip kind, every output, the tables)."""
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_temporal", ROOT / "benchmarks" / "temporal.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_benchmark("temporal", "bench_temporal")
     return mod
 
 

@@ -1,19 +1,14 @@
 """`make validate-crosstalk` (benchmarks/crosstalk_validation.py) never replaces the committed results with
 a partial run: without natural scenes, with --quick or a subset of sensors it writes elsewhere,
 and it refuses to overwrite an explicit output that exists."""
-import importlib.util
-from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_benchmark
 
 
 @pytest.fixture
 def bench(tmp_path, monkeypatch):
-    spec = importlib.util.spec_from_file_location("xt_validation", ROOT / "benchmarks" / "crosstalk_validation.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_benchmark("crosstalk_validation", "xt_validation")
     (tmp_path / "noscenes").mkdir()
     committed = tmp_path / "results" / "crosstalk_validation.json"
     committed.parent.mkdir()
