@@ -9,8 +9,7 @@ from conftest import load_benchmark, shared_data
 
 @pytest.fixture(scope="module")
 def bench():
-    mod = load_benchmark("colour", "bench_colour")
-    return mod
+    return load_benchmark("colour", "bench_colour")
 
 
 def test_cameras_layouts_over_the_cfa(bench):

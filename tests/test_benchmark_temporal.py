@@ -10,8 +10,7 @@ from conftest import load_benchmark
 
 @pytest.fixture(scope="module")
 def bench():
-    mod = load_benchmark("temporal", "bench_temporal")
-    return mod
+    return load_benchmark("temporal", "bench_temporal")
 
 
 def test_flicker_is_the_rms_change_of_the_log2_error_outside_bright(bench):
