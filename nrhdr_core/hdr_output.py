@@ -15,7 +15,8 @@ import numpy as np
 from numba import njit, prange
 
 from .tonemap import (HLG_NOMINAL_PEAK, HLG_SYSTEM_GAMMA, L_P, LUMA_BT709, LUMA_BT2020, REFERENCE_WHITE_NITS,
-                      RGB_PRIMARIES, TRANSFERS, WHITE_D65, eotf_ST2084, oetf_inverse_HLG, peak_luminance)
+                      RGB_PRIMARIES, TRANSFERS, WHITE_D65, eotf_inverse_ST2084, eotf_ST2084, oetf_HLG,
+                      oetf_inverse_HLG, peak_luminance)
 
 # CIE 1931 xy of the mastering display primaries (R, G, B): BT.2020 (ITU-R BT.2020 Table 3), P3-D65 (SMPTE
 # EG 432-1); D65 white
@@ -81,12 +82,35 @@ def code_luminance(transfer: str = "pq") -> np.ndarray:
     """Display light (cd/m^2) of each 10-bit narrow-range code 0..1023 (codes outside 64..940 clamp):
     pq: the ST 2084 EOTF; hlg: the BT.2100 reference OOTF on the 1000 cd/m^2 display, L = 1000 E^1.2
     (grey: R = G = B)."""
+    return code_light(np.arange(1024), transfer)
+
+
+def _check_transfer(transfer: str) -> None:
     if transfer not in TRANSFERS:
         raise ValueError(f"HDR transfer must be one of {', '.join(TRANSFERS)}, got {transfer!r}")
-    sig = np.clip((np.arange(1024) - 64.0) / 876.0, 0.0, 1.0)
+
+
+def code_light(codes, transfer: str = "pq") -> np.ndarray:
+    """Display light (cd/m^2, float64) of 10-bit narrow-range code values, whole or fractional (a decoder's
+    R'G'B'), as `code_luminance` gives it for whole codes: pq the ST 2084 EOTF, hlg the 1000 cd/m^2 reference
+    display's L = 1000 E^1.2 of the channel (the grey OOTF); codes outside 64..940 clamp."""
+    _check_transfer(transfer)
+    sig = np.clip((np.asarray(codes, np.float64) - 64.0) / 876.0, 0.0, 1.0)
     if transfer == "pq":
         return eotf_ST2084(sig)
     return HLG_NOMINAL_PEAK * oetf_inverse_HLG(sig) ** HLG_SYSTEM_GAMMA
+
+
+def light_code(light, transfer: str = "pq") -> np.ndarray:
+    """The exact (unrounded) 10-bit narrow-range code of display light (cd/m^2): the inverse of `code_light`,
+    64 + 876 E' (BT.2100 Table 9) with E' the ST 2084 inverse EOTF (pq) or the HLG OETF of (L / 1000)^(1/1.2)."""
+    _check_transfer(transfer)
+    L = np.maximum(np.nan_to_num(np.asarray(light, np.float64), nan=0.0), 0.0)
+    if transfer == "pq":
+        sig = eotf_inverse_ST2084(L)
+    else:
+        sig = oetf_HLG((np.minimum(L, HLG_NOMINAL_PEAK) / HLG_NOMINAL_PEAK) ** (1.0 / HLG_SYSTEM_GAMMA))
+    return 64.0 + 876.0 * sig
 
 
 class LightLevels:
@@ -291,6 +315,156 @@ def display_reference(values: np.ndarray, diffuse_white: float, transfer: str = 
     if peak > 0:
         L = eetf_BT2390(L, min(source_peak, L_P), peak)
     return np.minimum(L, HLG_NOMINAL_PEAK) if transfer == "hlg" else L
+
+
+def display_reference_rgb(rgb: np.ndarray, diffuse_white: float, transfer: str = "pq",
+                          white_balance=(1.0, 1.0, 1.0), primaries: str = "bt2020",
+                          reference_white: float = REFERENCE_WHITE_NITS, exposure_stops: float = 0.0,
+                          peak: float = 0.0, source_peak: float = 0.0) -> np.ndarray:
+    """The display light per channel (cd/m^2, float64 (3, H, W)) that `tonemap.hdr_encode_rgb` encodes, before
+    10-bit quantisation: channels times `white_balance`, BT.709 -> `primaries` (`tonemap.primaries_matrix`),
+    each channel's light as in `display_reference` (hlg: the grey OOTF per channel, 1000 E^1.2); with
+    `peak` > 0 the BT.2390 EETF maps max(R, G, B) and the channels are scaled alike (hlg: in scene light E).
+    The reference for measuring a colour encode (`code_light` of the decoded R'G'B')."""
+    from .tonemap import eetf_BT2390, hlg_reference_E, primaries_matrix
+    _check_transfer(transfer)
+    v = np.asarray(rgb, np.float32).astype(np.float64)      # the kernel's float32 input
+    gains = np.asarray(white_balance, np.float64).reshape(-1)
+    if v.ndim != 3 or v.shape[0] != 3 or gains.shape != (3,):
+        raise ValueError(f"display_reference_rgb: need planar RGB (3, H, W) and three gains, got shape {v.shape} "
+                         f"and {white_balance!r}")
+    c = np.clip(np.nan_to_num(v * gains[:, None, None], nan=0.0, posinf=1e30), 0.0, 1e30)
+    m = primaries_matrix("bt709", primaries) if primaries != "bt709" else np.eye(3)
+    t = np.tensordot(m, c, axes=1)
+    gain = 2.0 ** exposure_stops / diffuse_white
+    if transfer == "pq":
+        L = np.minimum(t * (gain * reference_white), L_P)
+        if peak > 0:
+            top = L.max(axis=0)
+            k = np.divide(eetf_BT2390(top, min(source_peak, L_P), peak), top, out=np.zeros_like(top),
+                          where=top > 0)
+            L = L * k
+        return L
+    E = np.minimum(t * (gain * hlg_reference_E(reference_white)), 1e30)
+    if peak > 0:
+        top = E.max(axis=0)
+        lm = np.minimum(HLG_NOMINAL_PEAK * top ** HLG_SYSTEM_GAMMA, L_P)
+        em = np.minimum((eetf_BT2390(lm, min(source_peak, L_P), peak) / HLG_NOMINAL_PEAK)
+                        ** (1.0 / HLG_SYSTEM_GAMMA), 1.0)
+        E = E * np.divide(em, top, out=np.zeros_like(top), where=top > 0)
+    return HLG_NOMINAL_PEAK * np.minimum(E, 1.0) ** HLG_SYSTEM_GAMMA
+
+
+def _upsample(c: np.ndarray, n: int, axis: int, offset: float) -> np.ndarray:
+    """Linear interpolation of the chroma samples along `axis` (sample i at luma position 2 i + offset) at
+    the n luma positions; the edge samples extend outwards."""
+    pos = np.clip((np.arange(n) - offset) / 2.0, 0.0, c.shape[axis] - 1)
+    i0 = np.floor(pos).astype(np.intp)
+    i1 = np.minimum(i0 + 1, c.shape[axis] - 1)
+    f = pos - i0
+    shape = [1] * c.ndim
+    shape[axis] = n
+    f = f.reshape(shape)
+    return np.take(c, i0, axis=axis) * (1.0 - f) + np.take(c, i1, axis=axis) * f
+
+
+def rgb_from_ycbcr420(y: np.ndarray, cb: np.ndarray, cr: np.ndarray, matrix: str = "bt2020") -> np.ndarray:
+    """What a player shows of 10-bit narrow-range Y' (H, W) and 4:2:0 Cb, Cr (ceil(H/2), ceil(W/2)) codes: the
+    chroma interpolated linearly to every pixel at HEVC's default siting (type 0, as `ycbcr_frame` writes it:
+    horizontally co-sited, vertically between the two rows), then the inverse of `matrix`'s Y'CbCr
+    (R' = Y' + (2 - 2 Kr) Cr, B' = Y' + (2 - 2 Kb) Cb, G' from Y'): R'G'B' code values (3, H, W), float64."""
+    if matrix not in MATRICES:
+        raise ValueError(f"Y'CbCr matrix must be one of {', '.join(MATRICES)}, got {matrix!r}")
+    y = np.asarray(y, np.float64)
+    h, w = y.shape
+    if np.shape(cb) != ((h + 1) // 2, (w + 1) // 2) or np.shape(cr) != np.shape(cb):
+        raise ValueError(f"4:2:0 chroma of a {w}x{h} picture must be {(w + 1) // 2}x{(h + 1) // 2}, got Cb "
+                         f"{np.shape(cb)}, Cr {np.shape(cr)}")
+    kr, kb = MATRICES[matrix]
+    yy = (y - 64.0) / 876.0
+    chroma = []
+    for c in (cb, cr):
+        c = (np.asarray(c, np.float64) - 512.0) / 896.0
+        chroma.append(_upsample(_upsample(c, h, 0, 0.5), w, 1, 0.0))
+    r = yy + (2.0 - 2.0 * kr) * chroma[1]
+    b = yy + (2.0 - 2.0 * kb) * chroma[0]
+    g = (yy - kr * r - kb * b) / (1.0 - kr - kb)
+    return 64.0 + 876.0 * np.stack([r, g, b])
+
+
+def ycbcr420_planes(codes: np.ndarray, shift: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Y', Cb, Cr) code planes of the 4:2:0 frame `ycbcr_frame` makes of R'G'B' codes (3, H, W) (<< shift):
+    what the encoder is given."""
+    h, w = np.shape(codes)[1:]
+    cw, ch = (w + 1) // 2, (h + 1) // 2
+    frame = np.zeros(2 * (h * w + 2 * ch * cw), np.uint8)
+    ycbcr_frame(np.asarray(codes, np.uint16), frame, (0, 2 * h * w, 2 * (h * w + ch * cw)), (2 * w, 2 * cw, 2 * cw),
+                shift=shift)
+    words = frame.view("<u2")
+    return (words[:h * w].reshape(h, w), words[h * w:h * w + ch * cw].reshape(ch, cw),
+            words[h * w + ch * cw:].reshape(ch, cw))
+
+
+def luminance_light(light: np.ndarray) -> np.ndarray:
+    """BT.2020 luminance (cd/m^2) of BT.2020 display light per channel, channels first: 0.2627 R + 0.6780 G +
+    0.0593 B (ITU-R BT.2020 Table 4)."""
+    kr, kb = LUMA_BT2020
+    return kr * light[0] + (1.0 - kr - kb) * light[1] + kb * light[2]
+
+
+def light_scores(reference, test, transfer: str = "pq") -> dict:
+    """`test` display light (cd/m^2) against `reference` (same shape, any number of frames): PU21-PSNR
+    (`metrics.pu21_psnr` of the light as luminance) and log2 PSNR (`metrics.log2_psnr`, 0.1 cd/m^2 floor) in
+    dB, and the error of its 10-bit code values against the reference's exact codes (`light_code`): mean,
+    mean absolute, largest absolute."""
+    from . import metrics
+    ref = np.asarray(reference, np.float64)
+    tst = np.asarray(test, np.float64)
+    if ref.shape != tst.shape:
+        raise ValueError(f"the test light has shape {tst.shape}, the reference {ref.shape}")
+    err = light_code(tst, transfer) - light_code(ref, transfer)
+    return {"pu21_psnr": float(metrics.pu21_psnr(ref, tst, white=1.0, peak_nits=1.0)),
+            "log2_psnr": float(metrics.log2_psnr(ref, tst, floor=0.1)),
+            "code_error_mean": float(err.mean()), "code_error_abs_mean": float(np.abs(err).mean()),
+            "code_error_abs_max": float(np.abs(err).max())}
+
+
+def ciede2000_scores(reference, test, reference_white: float = REFERENCE_WHITE_NITS) -> dict:
+    """CIEDE2000 (`metrics.ciede2000`) of BT.2020 display light `test` against `reference` (cd/m^2, channels
+    on axis -3: (3, H, W) or (N, 3, H, W)). CIELAB's white is D65 at `reference_white` cd/m^2 (the diffuse
+    white, BT.2408); only pixels whose reference luminance is at most that white are scored (CIELAB's range,
+    L* <= 100; the highlights above it are scored per channel). Returns the mean, the 95th percentile and
+    the share of the pixels scored (None where no pixel is)."""
+    from . import metrics
+    from .tonemap import rgb_to_xyz_matrix
+    ref = np.moveaxis(np.asarray(reference, np.float64), -3, 0)
+    tst = np.moveaxis(np.asarray(test, np.float64), -3, 0)
+    if ref.shape != tst.shape or ref.shape[0] != 3:
+        raise ValueError(f"CIEDE2000 needs two colour pictures of one shape (3 channels), got {ref.shape} and "
+                         f"{tst.shape}")
+    m = rgb_to_xyz_matrix("bt2020")
+    white = m.sum(axis=1) * float(reference_white)
+    inside = luminance_light(ref) <= reference_white
+    if not inside.any():
+        return {"mean": None, "p95": None, "share": 0.0}
+    lab = [metrics.xyz_to_lab(np.tensordot(m, x[:, inside], axes=1), white) for x in (ref, tst)]
+    de = metrics.ciede2000(lab[0], lab[1])
+    return {"mean": float(de.mean()), "p95": float(np.percentile(de, 95)), "share": float(inside.mean())}
+
+
+def quality_report(reference, test, transfer: str = "pq", reference_white: float = REFERENCE_WHITE_NITS) -> dict:
+    """The `nrhdr hdr10 --report` figures of `test` display light against `reference` (cd/m^2): grey frames
+    (N, H, W): {"Y": light_scores}; colour (N, 3, H, W) in BT.2020: per channel "R", "G", "B", the BT.2020
+    luminance "Y" (`luminance_light`) and "ciede2000" (`ciede2000_scores`)."""
+    ref = np.asarray(reference, np.float64)
+    tst = np.asarray(test, np.float64)
+    if ref.ndim != 4:
+        return {"Y": light_scores(ref, tst, transfer)}
+    rep = {name: light_scores(ref[:, i], tst[:, i], transfer) for i, name in enumerate("RGB")}
+    rep["Y"] = light_scores(luminance_light(np.moveaxis(ref, 1, 0)), luminance_light(np.moveaxis(tst, 1, 0)),
+                            transfer)
+    rep["ciede2000"] = ciede2000_scores(ref, tst, reference_white)
+    return rep
 
 
 def encoder_caps(transfer: str, mastering: MasteringDisplay | None = None,

@@ -9,7 +9,10 @@ A colour clip (the profile's cfa is a Bayer phase) is reconstructed in colour (`
 `demosaic.reconstruct_cfa`),
 white balanced (--white-balance), converted from BT.709 camera RGB to BT.2020 primaries, encoded per channel
 (`tonemap.hdr_encode_rgb`) and written as BT.2020 non-constant-luminance Y'CbCr 4:2:0
-(`hdr_output.ycbcr_frame`); MaxCLL / MaxFALL from max(R, G, B) per pixel; stills are RGB PNG."""
+(`hdr_output.ycbcr_frame`); MaxCLL / MaxFALL from max(R, G, B) per pixel; stills are RGB PNG.
+
+--report decodes the video with ffmpeg and scores it (nrhdr_core.hdr_output.quality_report): grey clips in
+display light, colour clips per BT.2020 channel, in luminance and in CIEDE2000 (white: the reference white)."""
 from __future__ import annotations
 
 import argparse
@@ -82,8 +85,9 @@ def add_hdr10(sub) -> None:
     g.add_argument("--force", action="store_true", help="replace an existing OUT (or its PNG frames)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     g.add_argument("--report", action="store_true",
-                   help="decode the video with ffmpeg and print its quality against the chain's linear frames "
-                        "(PU21-PSNR and log2 PSNR of the display light, beside the 10-bit codes' own)")
+                   help="decode the video with ffmpeg and print its quality against the chain's display light "
+                        "and the simulator's truth (PU21-PSNR, log2 PSNR, 10-bit code error; colour: per R, G, B "
+                        "and luminance, and CIEDE2000; docs/HDR-OUTPUT.md)")
     add_allow_outside(p)
     p.set_defaults(func=cmd_hdr10)
 
@@ -101,11 +105,12 @@ def _need_elements(Gst, names) -> None:
                          f"(x265enc, h265parse) and gstreamer1.0-plugins-good (mp4mux, matroskamux, capssetter)")
 
 
-def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, reference=None):
+def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, reference=None, gains_used=None):
     """Every frame through the chain and hdr_encode (colour clips: hdr_encode_rgb); codes
     appended to `codes_path` (uint16 << 6; colour: R'G'B' planes), or PNG stills written into `pngs`; returns
     the measured LightLevels. `reference`: a list that gets each frame's display light before quantisation
-    (hdr_output.display_reference, float32; monochrome)."""
+    (hdr_output.display_reference / display_reference_rgb, float32); `gains_used`: a list that gets each
+    colour frame's white-balance gains."""
     import numpy as np
     from nrhdr_core import batch, cfa, chain, hdr_output, io, tonemap
     diffuse, white = float(prof.regular_white), float(prof.white)
@@ -125,6 +130,12 @@ def first_pass(src, prof, settings, a, codes_path, progress, pngs=None, referenc
                          tuple(prof.white_balance) if wb == "profile" else (1.0, 1.0, 1.0))
                 tonemap.hdr_encode_rgb(values, diffuse, a.transfer, gains, "bt2020", a.reference_white, a.exposure,
                                        out=out, peak=a.peak, source_peak=source_peak)
+                if reference is not None:
+                    reference.append(hdr_output.display_reference_rgb(
+                        values, diffuse, a.transfer, gains, "bt2020", a.reference_white, a.exposure, a.peak,
+                        source_peak).astype(np.float32))
+                if gains_used is not None:
+                    gains_used.append(gains)
             else:
                 tonemap.hdr_encode(values, diffuse, a.transfer, reference_white=a.reference_white,
                                    exposure_stops=a.exposure, out=out, peak=a.peak, source_peak=source_peak)
@@ -248,8 +259,11 @@ def cmd_hdr10(a) -> int:
     if (prof.width, prof.height) != (src.width, src.height):
         raise ValueError(f"{src.profile}: a {prof.width}x{prof.height} profile for {src.width}x{src.height} frames")
     colour = cfa.is_colour(getattr(prof, "cfa", "none"))
-    if colour and a.report:
-        raise ValueError(f"--report scores monochrome clips; {src.profile} is a colour profile (cfa {prof.cfa})")
+    if a.report:
+        if container is None:
+            raise ValueError(f"--report scores a video decoded by ffmpeg; {out} names a folder of PNG stills "
+                             f"(give OUT.mp4 or OUT.mkv)")
+        need_ffmpeg()
     fps = a.fps
     if fps is None:
         fps = 30
@@ -274,10 +288,11 @@ def cmd_hdr10(a) -> int:
             codes = outputs.temp_path(out, ".codes")
             part = Path(f"{out}.part")             # the video being encoded (the lock is ours)
             try:
-                reference = [] if a.report else None
-                levels = first_pass(src, prof, settings, a, codes, progress, reference=reference)
+                reference, gains = ([], []) if a.report else (None, None)
+                levels = first_pass(src, prof, settings, a, codes, progress, reference=reference, gains_used=gains)
                 if a.report:
-                    quantised = np.fromfile(codes, np.uint16).reshape(src.frames, src.height, src.width) >> 6
+                    quantised = np.fromfile(codes, np.uint16).reshape(
+                        (src.frames,) + ((3,) if colour else ()) + (src.height, src.width)) >> 6
                 cll = levels.values()
                 if a.max_cll is not None or a.max_fall is not None:
                     cll = (a.max_cll if a.max_cll is not None else cll[0],
@@ -304,23 +319,93 @@ def cmd_hdr10(a) -> int:
           f"{a.transfer.upper()}, crf {a.crf:g}, {a.speed_preset}): {kbps:.0f} kbit/s, {bpp:.4f} bit/pixel; "
           f"{meta_text}; encoded at {src.frames / enc_s:.2f} frames/s ({enc_cpu / src.frames:.3f} CPU s per frame)")
     if a.report:
-        decoded = decode_codes(out, src.width, src.height)
-        q_codes, q_dec = report(reference, quantised, a.transfer), report(reference, decoded, a.transfer)
-        print(f"quality against the chain's display light (PU21-PSNR / log2 PSNR, dB): 10-bit codes "
-              f"{q_codes[0]:.2f} / {q_codes[1]:.2f}, decoded {q_dec[0]:.2f} / {q_dec[1]:.2f}")
-        truth = truth_reference(a, src, prof)
-        if truth is not None:
-            t_chain = report(truth, None, a.transfer, test=reference)
-            t_dec = report(truth, decoded, a.transfer)
-            print(f"against the simulator's truth (PU21-PSNR / log2 PSNR, dB): the chain {t_chain[0]:.2f} / "
-                  f"{t_chain[1]:.2f}, decoded {t_dec[0]:.2f} / {t_dec[1]:.2f}")
+        print_report(quality(a, src, prof, out, reference, gains, quantised, colour), a.reference_white)
     return 0
 
 
-def truth_reference(a, src, prof):
-    """The display light of the simulator's truth frames (clip.json `truth`) through the same mapping, or
-    None when the input has none."""
+def need_ffmpeg() -> None:
+    """--report decodes the video with ffmpeg: refused before any work when it is not installed."""
+    import shutil
+    if shutil.which("ffmpeg") is None:
+        raise ValueError("--report decodes the video with ffmpeg, which is not installed (Debian: ffmpeg)")
+
+
+def decode_planes(path, width: int, height: int):
+    """(Y', Cb, Cr) code planes of a 10-bit 4:2:0 video decoded by ffmpeg (yuv420p10le: the codes as coded):
+    (N, H, W) and (N, ceil(H/2), ceil(W/2)) twice."""
+    import subprocess
+    import numpy as np
+    need_ffmpeg()
+    raw = subprocess.run(["ffmpeg", "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "yuv420p10le",
+                          "-"], capture_output=True, check=True).stdout
+    cw, ch = (width + 1) // 2, (height + 1) // 2
+    n = width * height
+    frames = np.frombuffer(raw, "<u2").reshape(-1, n + 2 * cw * ch)
+    return (frames[:, :n].reshape(-1, height, width), frames[:, n:n + cw * ch].reshape(-1, ch, cw),
+            frames[:, n + cw * ch:].reshape(-1, ch, cw))
+
+
+def quality(a, src, prof, out, reference, gains, quantised, colour: bool) -> list:
+    """The --report figures (hdr_output.quality_report) as sections [(title, [(row, report)])]: the 10-bit codes
+    (colour: also the 4:2:0 Y'CbCr the encoder was given, as a player converts it back) and ffmpeg's decode of
+    `out` against the chain's display light before quantisation (`reference`); with the simulator's truth, the
+    chain and the decode against the truth through the same mapping (colour: each frame's `gains`)."""
+    import numpy as np
+    from nrhdr_core import hdr_output
+    ref = np.stack(reference)
+    y, cb, cr = decode_planes(out, src.width, src.height)
+    if len(y) != len(ref):
+        raise ValueError(f"{out}: the decoded video has {len(y)} frames, the clip {len(ref)}")
+
+    def light(codes):
+        return hdr_output.code_light(codes, a.transfer)
+
+    if colour:
+        sent = np.stack([hdr_output.rgb_from_ycbcr420(*hdr_output.ycbcr420_planes(q, shift=0)) for q in quantised])
+        decoded = np.stack([hdr_output.rgb_from_ycbcr420(*p) for p in zip(y, cb, cr)])
+        rows = [("10-bit R'G'B'", light(quantised)), ("4:2:0 Y'CbCr", light(sent)), ("decoded", light(decoded))]
+    else:
+        rows = [("10-bit codes", light(quantised)), ("decoded", light(y))]
+
+    def score(r, t):
+        return hdr_output.quality_report(r, t, a.transfer, a.reference_white)
+
+    sections = [("against the chain's display light before quantisation", [(n, score(ref, t)) for n, t in rows])]
+    truth = truth_reference(a, src, prof, gains if colour else None)
+    if truth is not None:
+        truth = np.stack(truth)
+        sections.append(("against the simulator's truth through the same mapping",
+                         [("the chain", score(truth, ref)), ("decoded", score(truth, rows[-1][1]))]))
+    return sections
+
+
+def print_report(sections, reference_white: float) -> None:
+    """The --report lines: per row and channel (R, G, B, luminance Y; grey clips: Y) PU21-PSNR / log2 PSNR of
+    the display light and the error of the 10-bit code values; colour: CIEDE2000."""
+    print("nrhdr hdr10 --report: PU21-PSNR / log2 PSNR (dB) of the display light (cd/m2; colour: BT.2020 R, G, "
+          "B and luminance Y); error of the 10-bit code values mean / mean |e| / max |e|")
+    for title, rows in sections:
+        print(f"{title}:")
+        for name, rep in rows:
+            for ch in ("R", "G", "B", "Y"):
+                if ch in rep:
+                    s = rep[ch]
+                    print(f"  {name:<14} {ch}  {s['pu21_psnr']:6.2f} / {s['log2_psnr']:6.2f} dB   code error "
+                          f"{s['code_error_mean']:+.3f} / {s['code_error_abs_mean']:.3f} / {s['code_error_abs_max']:.3f}")
+            de = rep.get("ciede2000")
+            if de is not None:
+                text = ("no pixel" if de["mean"] is None else
+                        f"mean {de['mean']:.3f}, 95th percentile {de['p95']:.3f} over {100 * de['share']:.1f} % of "
+                        f"the pixels")
+                print(f"  {name:<14} CIEDE2000 {text} (luminance at most the reference white "
+                      f"{reference_white:g} cd/m2, its CIELAB white)")
+
+
+def truth_reference(a, src, prof, gains=None):
+    """The display light of the simulator's truth frames (clip.json `truth`) through the same mapping
+    (colour: `gains`, each frame's white balance), or None when the input has none."""
     import json
+    import numpy as np
     from nrhdr_core import hdr_output, io, tonemap
     cj = Path(a.input) / "clip.json"
     if not cj.is_file():
@@ -336,35 +421,13 @@ def truth_reference(a, src, prof):
         if not f.is_file():
             return None
         v, _ = io.read_exr(f, shape=(src.height, src.width))
-        out.append(hdr_output.display_reference(v, diffuse, a.transfer, a.reference_white, a.exposure, a.peak,
-                                                source_peak))
-    return out
-
-
-def decode_codes(path, width: int, height: int):
-    """The Y planes of a 10-bit video decoded by ffmpeg (yuv420p10le: the codes as coded), (N, H, W)."""
-    import shutil
-    import subprocess
-    import numpy as np
-    if shutil.which("ffmpeg") is None:
-        raise ValueError("--report decodes with ffmpeg, which is not installed (Debian: ffmpeg)")
-    raw = subprocess.run(["ffmpeg", "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "yuv420p10le",
-                          "-"], capture_output=True, check=True).stdout
-    cw, ch = (width + 1) // 2, (height + 1) // 2
-    frames = np.frombuffer(raw, "<u2").reshape(-1, width * height + 2 * cw * ch)
-    return frames[:, :width * height].reshape(-1, height, width)
-
-
-def report(reference, codes, transfer: str, test=None) -> tuple[float, float]:
-    """(PU21-PSNR, log2 PSNR) in dB of the display light of `codes` (or `test`, cd/m^2) against `reference`
-    (cd/m^2) over all frames; log2 with a 0.1 cd/m^2 floor."""
-    import numpy as np
-    from nrhdr_core import hdr_output, metrics
-    n = len(codes) if test is None else len(test)
-    if n != len(reference):
-        raise ValueError(f"the decoded video has {n} frames, the clip {len(reference)}")
-    ref = np.stack(reference).astype(np.float64)
-    test = hdr_output.code_luminance(transfer)[codes] if test is None else np.stack(test).astype(np.float64)
-    return (metrics.pu21_psnr(ref, test, white=1.0, peak_nits=1.0),
-            metrics.log2_psnr(ref, test, floor=0.1))
-
+        if (v.ndim == 3) != (gains is not None):
+            raise ValueError(f"{f}: a {'colour' if v.ndim == 3 else 'grey'} truth frame for a "
+                             f"{'colour' if gains is not None else 'monochrome'} profile ({src.profile})")
+        if gains is not None:
+            out.append(hdr_output.display_reference_rgb(v, diffuse, a.transfer, gains[i], "bt2020",
+                                                        a.reference_white, a.exposure, a.peak, source_peak))
+        else:
+            out.append(hdr_output.display_reference(v, diffuse, a.transfer, a.reference_white, a.exposure, a.peak,
+                                                    source_peak))
+    return np.asarray(out, np.float32) if out else None
