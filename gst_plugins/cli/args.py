@@ -45,3 +45,23 @@ def add_allow_outside(p) -> None:
     p.add_argument("--allow-outside-paths", action="store_true",
                    help="accept files named by a profile, clip.json or exposures.csv outside that file's folder "
                         "(absolute paths, '..', links out of it); only for files you trust")
+
+
+def check_clip_cfa(clip, prof) -> None:
+    """ValueError naming both files when clip folder `clip`'s clip.json records another CFA (`cfa`; absent:
+    none, monochrome) than the camera profile `prof` the frames are to be read with (a --profile given
+    beside the clip): a Bayer mosaic read as a monochrome frame, or the reverse, would be wrong pixel by pixel."""
+    import json
+    from pathlib import Path
+    cj = Path(clip) / "clip.json"
+    if not cj.is_file():
+        return
+    try:
+        recorded = json.loads(cj.read_text()).get("cfa", "none") or "none"
+    except (ValueError, AttributeError):
+        return                      # clip.json itself is checked where the clip is opened
+    have = getattr(prof, "cfa", "none")
+    if recorded != have:
+        what = f"a Bayer {recorded} mosaic" if recorded != "none" else "a monochrome clip"
+        raise ValueError(f"--profile {prof.path or prof.name}: cfa {have!r}, but {cj} records {what} "
+                         f"(cfa {recorded!r}): use a profile of that sensor")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .args import add_allow_outside, number
+from .args import add_allow_outside, check_clip_cfa, number
 
 EPILOG = """\
 examples:
@@ -113,10 +113,20 @@ def cmd_batch(a) -> int:
                     allow_outside=a.allow_outside_paths,
                     chunk=batch.DEFAULT_CHUNK if a.chunk is None else a.chunk,
                     overlap=batch.DEFAULT_OVERLAP if a.overlap is None else a.overlap)
-    if job.profile.cfa != "none":    # a colour mosaic takes the colour methods only: refuse before any frame
+    if a.profile:
+        check_clip_cfa(a.input, job.profile)
+    if job.profile.cfa != "none":    # a colour mosaic: refuse what the colour chain does not do before any frame
         chain.check_colour(settings, job.profile.cfa)
+        if a.png:
+            raise ValueError(f"--png writes GRAY8 PNGs of monochrome frames; {job.profile.path} is a colour "
+                             f"profile (cfa {job.profile.cfa}): the EXR frames are RGB, tone map them with "
+                             f"nrtonemap (docs/COLOUR.md)")
     if job.xt_profile is not None:   # another sensor's calibration would correct the wrong pixels
         profile.check_same_sensor(job.xt_profile, job.profile)
+        if job.xt_profile.cfa != job.profile.cfa:
+            raise ValueError(f"--crosstalk-profile {job.xt_profile.path}: cfa {job.xt_profile.cfa!r}, but the "
+                             f"stream's profile {job.profile.path} has cfa {job.profile.cfa!r}: crosstalk "
+                             f"calibrated for another colour filter array")
     # the stop signals raise outputs.Interrupted once (later ones are ignored, so the clean-up is not
     # broken off); the lock refuses a second run into the same folder
     with outputs.stop_on_signals(ends_process=True), outputs.lock(job.out_dir):

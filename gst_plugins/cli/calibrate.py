@@ -23,8 +23,28 @@ def _light(text: str):
     return v
 
 
+def check_sweep_cfa(folder, cfa: str, option: str = "FLATS") -> None:
+    """ValueError when a sweep's truth.json (written by `nrhdr simulate-flats`) records another CFA than `cfa`
+    (--cfa): a Bayer mosaic calibrated as a monochrome sensor, or the reverse. Sweeps without truth.json (a
+    real camera's) carry no CFA to check."""
+    t = Path(folder) / "truth.json"
+    if not t.is_file():
+        return
+    try:
+        recorded = json.loads(t.read_text()).get("cfa", "none") or "none"
+    except (ValueError, AttributeError):
+        return
+    if recorded != cfa:
+        what = f"a Bayer {recorded} sensor" if recorded != "none" else "a monochrome sensor"
+        raise ValueError(f"{option} {folder}: its {t.name} records a sweep of {what} (cfa {recorded}), --cfa "
+                         f"is {cfa}: give --cfa {recorded}")
+
+
 def cmd_calibrate(a) -> int:
     from nrhdr_core import calibration, flats, io
+    check_sweep_cfa(a.flats, a.cfa)
+    for folder in a.colour_flats or ():
+        check_sweep_cfa(folder, a.cfa, "--colour-flats")
     find = None if a.mask else flats.finder(a.clip_code, a.bit_depth, a.accept_low_confidence, cfa=a.cfa)
     try:
         s = calibration.run_calibrate(a.flats, a.mask, a.output, nd_nominal=a.nd_nominal, l_min=a.l_min,

@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from .args import add_allow_outside, number
+from .args import add_allow_outside, check_clip_cfa, number
 
 EPILOG = """\
 examples:
@@ -258,6 +258,8 @@ def cmd_hdr10(a) -> int:
     prof = profile.load(src.profile, allow_outside=a.allow_outside_paths)
     if (prof.width, prof.height) != (src.width, src.height):
         raise ValueError(f"{src.profile}: a {prof.width}x{prof.height} profile for {src.width}x{src.height} frames")
+    if a.profile:
+        check_clip_cfa(a.input, prof)
     colour = cfa.is_colour(getattr(prof, "cfa", "none"))
     if a.report:
         if container is None:
