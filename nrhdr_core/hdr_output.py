@@ -444,7 +444,7 @@ def ciede2000_scores(reference, test, reference_white: float = REFERENCE_WHITE_N
                          f"{tst.shape}")
     m = rgb_to_xyz_matrix("bt2020")
     white = m.sum(axis=1) * float(reference_white)
-    inside = luminance_light(ref) <= reference_white
+    inside = luminance_light(ref) <= reference_white * (1.0 + 1e-9)      # (the white itself, not its rounding)
     if not inside.any():
         return {"mean": None, "p95": None, "share": 0.0}
     lab = [metrics.xyz_to_lab(np.tensordot(m, x[:, inside], axes=1), white) for x in (ref, tst)]
