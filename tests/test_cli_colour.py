@@ -78,7 +78,7 @@ def test_batch_refuses_a_profile_or_calibration_of_another_cfa(colour_clip, mono
     --crosstalk-profile of the same sensor for a colour stream: refused, naming both."""
     out = tmp_path / "exr"
     refused(capsys, ["batch", colour_clip, "-o", out, "--profile", mono_twin, "--workers", "0", "--no-progress"],
-            f"--profile {mono_twin}", "cfa 'none'", "clip.json records a Bayer rggb mosaic")
+            f"--profile {mono_twin}", "cfa 'none'", "clip.json records a Bayer rggb clip")
     refused(capsys, ["batch", colour_clip, "-o", out, "--crosstalk-profile", mono_twin, "--workers", "0",
                      "--no-progress"], f"--crosstalk-profile {mono_twin}", "cfa 'rggb'")
     assert not list(out.glob("frame_*")) if out.exists() else True
@@ -90,7 +90,7 @@ def test_hdr10_refuses_a_monochrome_method_or_profile_for_a_colour_clip(colour_c
     refused(capsys, ["hdr10", colour_clip, out, "--method", "nearest", "--no-progress"], "method 'nearest'",
             "cfa rggb")
     refused(capsys, ["hdr10", colour_clip, out, "--profile", mono_twin, "--no-progress"],
-            "clip.json records a Bayer rggb mosaic")
+            "clip.json records a Bayer rggb clip")
     assert not list(tmp_path.iterdir())
 
 

@@ -177,8 +177,8 @@ def encode_decode(tmp_path, codes, name):
 
 def test_lossless_video_scores_near_zero_and_an_offset_shows_in_its_channel(tmp_path):
     """Uniform colour frames through ffmpeg losslessly score within the Y'CbCr rounding (1.5 codes, mean
-    under half a code), 8 codes more green a visible colour difference; random colours with G 8 codes higher show +8 in G and nothing in R and B, beside the
-    same pictures without the offset."""
+    under half a code), 8 codes more green a visible colour difference; random colours with G 8 codes higher
+    show +8 in G and nothing in R and B, beside the same pictures without the offset."""
     need("ffmpeg", "Debian: ffmpeg")
     colours = np.array([[700, 300, 500], [200, 600, 400], [512, 512, 512]])
     codes = np.broadcast_to(colours[:, :, None, None], (3, 3, 16, 24)).astype(np.float64)

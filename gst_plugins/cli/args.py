@@ -47,21 +47,32 @@ def add_allow_outside(p) -> None:
                         "(absolute paths, '..', links out of it); only for files you trust")
 
 
-def check_clip_cfa(clip, prof) -> None:
-    """ValueError naming both files when clip folder `clip`'s clip.json records another CFA (`cfa`; absent:
-    none, monochrome) than the camera profile `prof` the frames are to be read with (a --profile given
-    beside the clip): a Bayer mosaic read as a monochrome frame, or the reverse, would be wrong pixel by pixel."""
+
+def recorded_cfa(path) -> str | None:
+    """The CFA a JSON file written by nrhdr records (clip.json, a flat sweep's truth.json): its `cfa`, "none"
+    where it has none (monochrome), None where the file is missing or unreadable (checked where it is read)."""
     import json
     from pathlib import Path
-    cj = Path(clip) / "clip.json"
-    if not cj.is_file():
-        return
+    p = Path(path)
+    if not p.is_file():
+        return None
     try:
-        recorded = json.loads(cj.read_text()).get("cfa", "none") or "none"
-    except (ValueError, AttributeError):
-        return                      # clip.json itself is checked where the clip is opened
-    have = getattr(prof, "cfa", "none")
-    if recorded != have:
-        what = f"a Bayer {recorded} mosaic" if recorded != "none" else "a monochrome clip"
-        raise ValueError(f"--profile {prof.path or prof.name}: cfa {have!r}, but {cj} records {what} "
-                         f"(cfa {recorded!r}): use a profile of that sensor")
+        return json.loads(p.read_text()).get("cfa", "none") or "none"
+    except (ValueError, AttributeError, OSError):
+        return None
+
+
+def sensor_kind(cfa: str) -> str:
+    return f"a Bayer {cfa}" if cfa != "none" else "a monochrome"
+
+
+def check_clip_cfa(clip, prof) -> None:
+    """ValueError naming both files when clip folder `clip`'s clip.json records another CFA than the camera
+    profile `prof` the frames are to be read with (a --profile given beside the clip): a Bayer mosaic read as
+    a monochrome frame, or the reverse, would be wrong pixel by pixel."""
+    from pathlib import Path
+    cj = Path(clip) / "clip.json"
+    recorded, have = recorded_cfa(cj), getattr(prof, "cfa", "none")
+    if recorded is not None and recorded != have:
+        raise ValueError(f"--profile {prof.path or prof.name}: cfa {have!r}, but {cj} records "
+                         f"{sensor_kind(recorded)} clip (cfa {recorded!r}): use a profile of that sensor")

@@ -106,7 +106,8 @@ def cmd_batch(a) -> int:
     settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk,
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion,
-                                   temporal=a.temporal, operator=a.operator, white=a.white, exposure=a.exposure, contrast=a.contrast)
+                                   temporal=a.temporal, operator=a.operator, white=a.white, exposure=a.exposure,
+                                   contrast=a.contrast)
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames, allow_outside=a.allow_outside_paths,
                             start_index=a.start_index)
     job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile,

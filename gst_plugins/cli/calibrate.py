@@ -8,7 +8,7 @@ from pathlib import Path
 
 from nrhdr_core.cfa import CFAS
 
-from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number
+from .args import CODE_LEVEL, ND, SEED, SIZE, add_allow_outside, number, recorded_cfa, sensor_kind
 
 
 def _light(text: str):
@@ -27,17 +27,10 @@ def check_sweep_cfa(folder, cfa: str, option: str = "FLATS") -> None:
     """ValueError when a sweep's truth.json (written by `nrhdr simulate-flats`) records another CFA than `cfa`
     (--cfa): a Bayer mosaic calibrated as a monochrome sensor, or the reverse. Sweeps without truth.json (a
     real camera's) carry no CFA to check."""
-    t = Path(folder) / "truth.json"
-    if not t.is_file():
-        return
-    try:
-        recorded = json.loads(t.read_text()).get("cfa", "none") or "none"
-    except (ValueError, AttributeError):
-        return
-    if recorded != cfa:
-        what = f"a Bayer {recorded} sensor" if recorded != "none" else "a monochrome sensor"
-        raise ValueError(f"{option} {folder}: its {t.name} records a sweep of {what} (cfa {recorded}), --cfa "
-                         f"is {cfa}: give --cfa {recorded}")
+    recorded = recorded_cfa(Path(folder) / "truth.json")
+    if recorded is not None and recorded != cfa:
+        raise ValueError(f"{option} {folder}: its truth.json records a sweep of {sensor_kind(recorded)} sensor "
+                         f"(cfa {recorded}), --cfa is {cfa}: give --cfa {recorded}")
 
 
 def cmd_calibrate(a) -> int:

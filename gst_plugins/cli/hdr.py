@@ -280,8 +280,9 @@ def cmd_hdr10(a) -> int:
             owned = io.owned_by_patterns(r"frame_\d{5}\.png")
             with outputs.staged_folder(out, force=a.force, owned=owned) as stage:
                 levels = first_pass(src, prof, settings, a, None, progress, pngs=stage)
-            print(f"nrhdr hdr10: {src.frames} frames -> {out}/frame_NNNNN.png (16-bit{' RGB' if colour else ''}, cICP BT.2020/"
-                  f"{a.transfer.upper()}, full range); MaxCLL {levels.max_cll}, MaxFALL {levels.max_fall_int} cd/m2")
+            print(f"nrhdr hdr10: {src.frames} frames -> {out}/frame_NNNNN.png (16-bit{' RGB' if colour else ''}, "
+                  f"cICP BT.2020/{a.transfer.upper()}, full range); MaxCLL {levels.max_cll}, MaxFALL "
+                  f"{levels.max_fall_int} cd/m2")
             return 0
         with outputs.lock(out):
             outputs.remove_leftovers(out)
@@ -393,7 +394,8 @@ def print_report(sections, reference_white: float) -> None:
                 if ch in rep:
                     s = rep[ch]
                     print(f"  {name:<14} {ch}  {s['pu21_psnr']:6.2f} / {s['log2_psnr']:6.2f} dB   code error "
-                          f"{s['code_error_mean']:+.3f} / {s['code_error_abs_mean']:.3f} / {s['code_error_abs_max']:.3f}")
+                          f"{s['code_error_mean']:+.3f} / {s['code_error_abs_mean']:.3f} / "
+                          f"{s['code_error_abs_max']:.3f}")
             de = rep.get("ciede2000")
             if de is not None:
                 text = ("no pixel" if de["mean"] is None else
