@@ -1,7 +1,7 @@
-"""`nrhdr batch`: reprocess recorded raw clips or raw still sequences into an OpenEXR sequence (Y + state),
-frame-parallel on Dask, or in chunks of consecutive frames with the temporal reconstruction
-(nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames
-failed (each reported by number and file), 2 bad input or a refused output folder, 130 interrupted."""
+"""`nrhdr batch`: reprocess recorded raw clips or raw still sequences into an OpenEXR sequence (Y + state; a
+colour profile: R, G, B + state), frame-parallel on Dask, or in chunks of consecutive frames with the temporal
+reconstruction (nrhdr_core.batch; docs/BATCH.md). Exit status: 0 all frames written, 1 some frames failed (each
+reported by number and file), 2 bad input or a refused output folder, 130 interrupted."""
 from __future__ import annotations
 
 import argparse
@@ -62,7 +62,8 @@ def add_batch(sub) -> None:
     g.add_argument("--temporal", choices=chain.TEMPORAL_MODES, default="off",
                    help="nrreconstruct temporal (on: the previous frames as a prior; frames are computed in "
                         "chunks of consecutive frames, see --chunk, --overlap)")
-    g.add_argument("--png", action="store_true", help="also write tone-mapped GRAY8 PNGs (nrtonemap)")
+    g.add_argument("--png", action="store_true",
+                   help="also write tone-mapped GRAY8 PNGs (nrtonemap; monochrome clips)")
     g.add_argument("--operator", choices=chain.SDR_OPERATORS, default="local",
                    help="nrtonemap operator of the PNGs (docs/TONEMAP.md); local: each frame's own statistics "
                         "(the element smooths them over the stream)")
