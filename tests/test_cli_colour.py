@@ -78,10 +78,28 @@ def test_batch_refuses_a_profile_or_calibration_of_another_cfa(colour_clip, mono
     --crosstalk-profile of the same sensor for a colour stream: refused, naming both."""
     out = tmp_path / "exr"
     refused(capsys, ["batch", colour_clip, "-o", out, "--profile", mono_twin, "--workers", "0", "--no-progress"],
-            f"--profile {mono_twin}", "cfa 'none'", "clip.json records a Bayer rggb clip")
+            f"--profile {mono_twin}", "cfa 'none'", "clip.json records a Bayer rggb sensor")
     refused(capsys, ["batch", colour_clip, "-o", out, "--crosstalk-profile", mono_twin, "--workers", "0",
                      "--no-progress"], f"--crosstalk-profile {mono_twin}", "cfa 'rggb'")
     assert not list(out.glob("frame_*")) if out.exists() else True
+
+
+def test_batch_refuses_a_monochrome_profile_for_colour_stills(colour_clip, mono_twin, tmp_path, capsys):
+    """A still sequence whose folder's camera.json is a colour profile, given a monochrome --profile: refused
+    naming both (a folder and a file pattern); with its own profile it is reconstructed in colour."""
+    stills = tmp_path / "stills"
+    stills.mkdir()
+    src = batch.open_source(colour_clip)
+    for i in range(N):
+        io.write_image(stills / f"frame_{i:05d}.png", batch.read_frame(src.raw, W, H, i), np.uint16)
+    profiles.save(profiles.load(colour_clip / "camera.json"), stills / "camera.json")
+    out = tmp_path / "exr"
+    for loc in (stills, stills / "frame_%05d.png"):
+        refused(capsys, ["batch", loc, "-o", out, "--profile", mono_twin, "--workers", "0", "--no-progress"],
+                f"--profile {mono_twin}", f"{stills / 'camera.json'} records a Bayer rggb sensor")
+    assert not out.exists() or not list(out.glob("frame_*"))
+    assert main(["batch", str(stills), "-o", str(out), "--workers", "0", "--method", "preview", "--no-progress"]) == 0
+    assert io.read_exr(out / "frame_00000.exr")[0].shape == (3, H, W)
 
 
 # ---- hdr10 ---------------------------------------------------------------------------------------------------
@@ -90,7 +108,7 @@ def test_hdr10_refuses_a_monochrome_method_or_profile_for_a_colour_clip(colour_c
     refused(capsys, ["hdr10", colour_clip, out, "--method", "nearest", "--no-progress"], "method 'nearest'",
             "cfa rggb")
     refused(capsys, ["hdr10", colour_clip, out, "--profile", mono_twin, "--no-progress"],
-            "clip.json records a Bayer rggb clip")
+            "clip.json records a Bayer rggb sensor")
     assert not list(tmp_path.iterdir())
 
 

@@ -66,13 +66,21 @@ def sensor_kind(cfa: str) -> str:
     return f"a Bayer {cfa}" if cfa != "none" else "a monochrome"
 
 
-def check_clip_cfa(clip, prof) -> None:
-    """ValueError naming both files when clip folder `clip`'s clip.json records another CFA than the camera
-    profile `prof` the frames are to be read with (a --profile given beside the clip): a Bayer mosaic read as
-    a monochrome frame, or the reverse, would be wrong pixel by pixel."""
+def check_clip_cfa(source, prof) -> None:
+    """ValueError naming both files when the input `source` records another CFA than the camera profile `prof`
+    its frames are to be read with (a --profile given beside it): a clip folder's clip.json, else the
+    camera.json of a still sequence's folder (a folder, or a file pattern's folder). A Bayer mosaic read as a
+    monochrome frame, or the reverse, would be wrong pixel by pixel. A raw file records nothing."""
     from pathlib import Path
-    cj = Path(clip) / "clip.json"
-    recorded, have = recorded_cfa(cj), getattr(prof, "cfa", "none")
+    p = Path(source)
+    folder = p if p.is_dir() else p.parent if "%" in p.name else None
+    if folder is None:
+        return
+    for name in ("clip.json", "camera.json"):
+        recorded = recorded_cfa(folder / name)
+        if recorded is not None:
+            break
+    have = getattr(prof, "cfa", "none")
     if recorded is not None and recorded != have:
-        raise ValueError(f"--profile {prof.path or prof.name}: cfa {have!r}, but {cj} records "
-                         f"{sensor_kind(recorded)} clip (cfa {recorded!r}): use a profile of that sensor")
+        raise ValueError(f"--profile {prof.path or prof.name}: cfa {have!r}, but {folder / name} records "
+                         f"{sensor_kind(recorded)} sensor (cfa {recorded!r}): use a profile of that sensor")
