@@ -171,6 +171,24 @@ def test_calibrate_refuses_a_sweep_of_another_cfa(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_simulate_flats_colour_sweep(colour_clip, tmp_path, capsys):
+    """simulate-flats --cfa --light writes a sweep whose truth.json and printed calibrate command carry the cfa;
+    with a colour --profile the cfa comes from it, another --cfa is refused."""
+    out = tmp_path / "fl"
+    assert main(["simulate-flats", str(out), "--cfa", "grbg", "--light", "1,0.5,0.25", "--width", "8", "--height",
+                 "8", "--exposures", "6", "--frames", "2", "-q"]) == 0
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["cfa"] == "grbg" and truth["light"] == [1.0, 0.5, 0.25]
+    assert "--cfa grbg" in capsys.readouterr().out
+    prof = colour_clip / "camera.json"
+    assert main(["simulate-flats", str(tmp_path / "p"), "--profile", str(prof), "--exposures", "6", "--frames", "2",
+                 "-q"]) == 0
+    assert json.loads((tmp_path / "p" / "truth.json").read_text())["cfa"] == "rggb"
+    refused(capsys, ["simulate-flats", tmp_path / "q", "--profile", prof, "--cfa", "bggr", "-q"], "--cfa bggr",
+            "'rggb'")
+    assert not (tmp_path / "q").exists()
+
+
 def test_simulate_flats_refuses_coloured_light_for_a_monochrome_sensor(tmp_path, capsys):
     refused(capsys, ["simulate-flats", tmp_path / "fl", "--light", "1,0.2,0.1", "--width", 8, "--height", 8, "-q"],
             "coloured light", "cfa is 'none'")
