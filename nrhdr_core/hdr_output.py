@@ -1,7 +1,9 @@
 """HDR10 / HLG delivery metadata (docs/HDR-OUTPUT.md): the SMPTE ST 2086 mastering display and the CTA-861.3
 content light levels (MaxCLL, MaxFALL) measured from the 10-bit codes a clip is encoded with, their text forms
 (the `mastering-display-info` / `content-light-level` caps fields of GStreamer video caps and x265's options),
-and the encoder settings chosen by measurement (docs/BENCHMARKS.md, "HDR10 encoding").
+and the encoder settings chosen by measurement (docs/BENCHMARKS.md, "HDR10 encoding"); the Y'CbCr frames the
+encoder is given; and the measurement of an encode (`nrhdr hdr10 --report`, docs/HDR-OUTPUT.md "Measuring an
+encode"): the display light before quantisation, a player's R'G'B' of decoded 4:2:0 and the scores.
 
 Codes are BT.2100 10-bit narrow range (64..940), as `tonemap.hdr_encode` writes them (<< 6 in uint16).
 """

@@ -6,10 +6,9 @@ BT.2020 non-constant luminance / limited range, ST 2086 and CTA-861.3 SEI) into 
 instead of OUT.mp4 / OUT.mkv gets 16-bit PNG frames with a cICP chunk.
 
 A colour clip (the profile's cfa is a Bayer phase) is reconstructed in colour (`chain.process_frame`:
-`demosaic.reconstruct_cfa`),
-white balanced (--white-balance), converted from BT.709 camera RGB to BT.2020 primaries, encoded per channel
-(`tonemap.hdr_encode_rgb`) and written as BT.2020 non-constant-luminance Y'CbCr 4:2:0
-(`hdr_output.ycbcr_frame`); MaxCLL / MaxFALL from max(R, G, B) per pixel; stills are RGB PNG.
+`demosaic.reconstruct_cfa`), white balanced (--white-balance), converted from BT.709 camera RGB to BT.2020
+primaries, encoded per channel (`tonemap.hdr_encode_rgb`) and written as BT.2020 non-constant-luminance Y'CbCr
+4:2:0 (`hdr_output.ycbcr_frame`); MaxCLL / MaxFALL from max(R, G, B) per pixel; stills are RGB PNG.
 
 --report decodes the video with ffmpeg and scores it (nrhdr_core.hdr_output.quality_report): grey clips in
 display light, colour clips per BT.2020 channel, in luminance and in CIEDE2000 (white: the reference white)."""
