@@ -21,7 +21,8 @@ def add_compare(sub) -> None:
                    help="the clip's truth/ folder (nrhdr simulate): frames of the same names")
     p.add_argument("--profile", required=True,
                    help="the ND camera's profile JSON: its l_min x ND and regular clip split the regions, "
-                        "its white caps both")
+                        "its white caps both; with a Bayer cfa the frames are camera RGB, scored on their "
+                        "luminance")
     p.add_argument("--frames", type=number(0, 10 ** 9, integer=True), default=0,
                    help="score only every k-th frame so that about this many are read (0: all)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
