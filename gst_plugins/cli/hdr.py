@@ -362,22 +362,23 @@ def quality(a, src, prof, out, reference, gains, quantised, colour: bool) -> lis
     def light(codes):
         return hdr_output.code_light(codes, a.transfer)
 
-    if colour:
-        sent = np.stack([hdr_output.rgb_from_ycbcr420(*hdr_output.ycbcr420_planes(q, shift=0)) for q in quantised])
-        decoded = np.stack([hdr_output.rgb_from_ycbcr420(*p) for p in zip(y, cb, cr)])
-        rows = [("10-bit R'G'B'", light(quantised)), ("4:2:0 Y'CbCr", light(sent)), ("decoded", light(decoded))]
+    if colour:      # code values (float32), each row's light computed when it is scored
+        sent = np.stack([hdr_output.rgb_from_ycbcr420(*hdr_output.ycbcr420_planes(q, shift=0)).astype(np.float32)
+                         for q in quantised])
+        decoded = np.stack([hdr_output.rgb_from_ycbcr420(*p).astype(np.float32) for p in zip(y, cb, cr)])
+        rows = [("10-bit R'G'B'", quantised), ("4:2:0 Y'CbCr", sent), ("decoded", decoded)]
     else:
-        rows = [("10-bit codes", light(quantised)), ("decoded", light(y))]
+        rows = [("10-bit codes", quantised), ("decoded", y)]
 
     def score(r, t):
         return hdr_output.quality_report(r, t, a.transfer, a.reference_white)
 
-    sections = [("against the chain's display light before quantisation", [(n, score(ref, t)) for n, t in rows])]
+    sections = [("against the chain's display light before quantisation",
+                 [(n, score(ref, light(c))) for n, c in rows])]
     truth = truth_reference(a, src, prof, gains if colour else None)
     if truth is not None:
-        truth = np.stack(truth)
         sections.append(("against the simulator's truth through the same mapping",
-                         [("the chain", score(truth, ref)), ("decoded", score(truth, rows[-1][1]))]))
+                         [("the chain", score(truth, ref)), ("decoded", score(truth, light(rows[-1][1])))]))
     return sections
 
 
