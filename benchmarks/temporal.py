@@ -88,10 +88,12 @@ def renderer(kind, scenes, j, prof, frames, seed):
                                  other if cut_frame is not None else None)
 
 
-def temporal():
-    """The temporal state for `SETTINGS`' reconstruction."""
+def temporal(budget=None):
+    """The temporal state for `SETTINGS`' reconstruction (`budget`: blocks per frame; None: the chain's default,
+    as nrreconstruct temporal-budget)."""
     return TemporalReconstructor(method=SETTINGS.method, preset=SETTINGS.preset, use_bounds=SETTINGS.use_bounds,
-                                 fusion=SETTINGS.noise_fusion)
+                                 fusion=SETTINGS.noise_fusion,
+                                 budget=SETTINGS.temporal_budget if budget is None else budget)
 
 
 def capture_pair(truths, prof, seed):
@@ -238,6 +240,98 @@ def speed(scene_list, h, w, frames, seed, repeat):
     return res
 
 
+QUALITY_TOL = 0.1     # dB: a frame of the budgeted shot within this of the unbounded temporal output has its quality
+LIVE_FPS, LIVE_FRAMES = 30.0, 150     # the live source: frames a second, frames (5 s)
+
+
+def live_lost(ms, fps=LIVE_FPS, frames=LIVE_FRAMES) -> int:
+    """Frames a live source of `fps` loses in `frames` frames before a stage that takes ms[k] ms for the
+    k-th frame it processes (the last value for the later ones), behind a leaky queue of one buffer (a new
+    frame replaces the one waiting; the stage takes the waiting frame when it is free)."""
+    period = 1e3 / fps
+    free, waiting, done, lost = 0.0, None, 0, 0
+    for i in range(frames):
+        t = i * period
+        while waiting is not None and free <= t:          # the stage takes the waiting frame
+            start = max(free, waiting)
+            free = start + ms[min(done, len(ms) - 1)]
+            done += 1
+            waiting = None
+        if free <= t:                                       # idle: processed at once
+            free = t + ms[min(done, len(ms) - 1)]
+            done += 1
+        else:
+            lost += waiting is not None                     # the older waiting frame is dropped
+            waiting = t
+    return lost
+
+
+def shot(scene_list, h, w, frames, seed, repeat, budget):
+    """A static shot from its first frame at h x w (the first scene): per frame the reconstruction stage's ms
+    (best of `repeat` after an untimed pass) and log2 PSNR (all pixels) against the truth, for preview,
+    fse fast, fse fast with the temporal state under `budget` (blocks per frame; the default) and without a
+    bound (budget 0), back to back on each frame. Returns {config: {"ms", "psnr", "mean", "worst", "steady",
+    "lost"}} and "frames_to_quality": the first frame from which the budgeted shot stays within QUALITY_TOL
+    dB of the unbounded one."""
+    prof = profile.default(h, w, seed=3)
+    configs = [("preview", PREVIEW, None), ("off", SETTINGS, None), ("on", SETTINGS, temporal(budget)),
+               ("unbounded", SETTINGS, temporal(0))]
+    r = renderer("static", scene_list, 0, prof, frames, seed)
+    truths = [r.flux(i) for i in range(frames)]
+    raws, _, _ = capture_pair(truths, prof, seed)
+    classified = [validity.classify(raw, prof, mode=SETTINGS.mode, l_min=SETTINGS.l_min,
+                                    dark_policy=SETTINGS.dark_policy) for raw in raws]
+    best = {name: [float("inf")] * frames for name, _, _ in configs}
+    psnr = {name: [0.0] * frames for name, _, _ in configs}
+    for rep in range(repeat + 1):
+        for _, _, tr in configs:
+            if tr is not None:
+                tr.reset()
+        for i, (v0, s0) in enumerate(classified):
+            for name, st, tr in configs:
+                v, s = v0.copy(), s0.copy()
+                t0 = time.perf_counter()
+                if tr is None:
+                    reconstruction.reconstruct_frame(v, s, method=st.method, preset=st.preset,
+                                                     use_bounds=st.use_bounds, noise=prof, fusion=st.noise_fusion)
+                else:
+                    tr.process(v, s, noise=prof)
+                dt = (time.perf_counter() - t0) * 1e3
+                if rep:
+                    best[name][i] = min(best[name][i], dt)
+                else:
+                    psnr[name][i] = frame_regions(truths[i], v, prof)["all"]
+    res = {name: {"ms": ms, "psnr": psnr[name], "mean": float(np.mean(ms)), "worst": float(np.max(ms)),
+                  "worst_frame": int(np.argmax(ms)), "steady": float(np.median(ms[frames // 2:])),
+                  "lost": live_lost(ms)} for name, ms in best.items()}
+    gap = np.array(psnr["on"]) < np.array(psnr["unbounded"]) - QUALITY_TOL
+    res["frames_to_quality"] = int(np.flatnonzero(gap)[-1] + 1) if gap.any() else 0
+    res["budget"] = budget
+    print("  shot: " + ", ".join(f"{k} {res[k]['mean']:.1f} ms mean, {res[k]['worst']:.1f} worst"
+                                 for k in ("preview", "off", "on", "unbounded")), flush=True)
+    return res
+
+
+def shot_table(res, h, w, frames) -> str:
+    """The static shot from its first frame: ms mean / worst / steady, frames a live 30 fps source loses,
+    log2 PSNR of the first and the last frame."""
+    cols = [("preview", "preview (anchor)"), ("off", "fse fast"),
+            ("on", f"fse fast, temporal on (budget {res['budget']})"), ("unbounded", "fse fast, temporal on, budget 0")]
+    rows = [("ms per frame, mean over the shot", lambda r: f"{r['mean']:.1f}"),
+            ("worst frame, ms (frame)", lambda r: f"{r['worst']:.1f} ({r['worst_frame']})"),
+            ("steady, ms (median of the second half)", lambda r: f"{r['steady']:.1f}"),
+            (f"frames lost of {LIVE_FRAMES} at a live {LIVE_FPS:.0f} fps source (leaky queue of one)",
+             lambda r: str(r["lost"])),
+            ("log2 PSNR all, first / last frame (dB)", lambda r: f"{r['psnr'][0]:.2f} / {r['psnr'][-1]:.2f}")]
+    lines = [f"| static shot, {w} x {h}, {frames} frames from the first | " + " | ".join(c[1] for c in cols) + " |",
+             "|---" * (len(cols) + 1) + "|"]
+    for label, f in rows:
+        lines.append(f"| {label} | " + " | ".join(f(res[c]) for c, _ in cols) + " |")
+    lines.append(f"\ntemporal on reaches the unbounded temporal quality (within {QUALITY_TOL} dB, log2 PSNR all) "
+                 f"from frame {res['frames_to_quality']} on.")
+    return "\n".join(lines)
+
+
 LABELS = {"off": "single-frame (temporal off)", "on": "temporal on", "camera": "unmodified camera, same noise"}
 
 
@@ -294,6 +388,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fps-size", type=size, default=None, help="frames/s at WIDTHxHEIGHT (default 1920x1080)")
     ap.add_argument("--fps-frames", type=int, default=None, help="frames per timed clip (default 8)")
     ap.add_argument("--repeat", type=int, default=2, help="timed passes per configuration (best counts)")
+    ap.add_argument("--shot-frames", type=int, default=None,
+                    help="frames of the static shot timed from its first frame (default 30; --quick 6)")
     ap.add_argument("--no-fps", action="store_true", help="quality only")
     ap.add_argument("--fps-scene", default=None, help="scene of the frames/s clips (default: the first scene)")
     ap.add_argument("--scenes", nargs="+", default=None,
@@ -306,8 +402,9 @@ def main(argv=None) -> int:
     frames = a.frames or (4 if a.quick else 8)
     (fw, fh) = a.fps_size or ((320, 180) if a.quick else (1920, 1080))
     fframes = a.fps_frames or (3 if a.quick else 8)
-    if min(frames, fframes, a.repeat) < 1:
-        ap.error("--frames, --fps-frames and --repeat must be >= 1")
+    sframes = a.shot_frames or (6 if a.quick else 30)
+    if min(frames, fframes, a.repeat, sframes) < 1:
+        ap.error("--frames, --fps-frames, --shot-frames and --repeat must be >= 1")
     paths = a.scenes or default_scenes()
     if a.quick and not a.scenes:
         paths = paths[:2]
@@ -334,7 +431,7 @@ def main(argv=None) -> int:
         worse = [r for r in per_frame if r["delta"] < 0]
         text += (f"\nper frame and region, temporal on below off: {len(worse)} of {len(per_frame)}; the "
                  f"furthest:\n" + worst_frames(per_frame) + "\n")
-    sp = None
+    sp = sh = None
     if not a.no_fps:
         fscenes = list(scenes)
         fname = names[0]
@@ -347,12 +444,18 @@ def main(argv=None) -> int:
         sp = speed(fscenes, fh, fw, fframes, a.seed, a.repeat)
         text += (f"\nreconstruction stage, {fname}, ms per frame (best of {a.repeat} per frame, configurations back "
                  f"to back):\n\n" + speed_table(sp, fh, fw, fframes) + "\n")
+        if TemporalReconstructor is not None:
+            print(f"static shot: {fw} x {fh}, {sframes} frames from the first, {fname}", flush=True)
+            sh = shot(fscenes, fh, fw, sframes, a.seed, a.repeat, SETTINGS.temporal_budget)
+            text += (f"\nstatic shot from its first frame, {fname}, reconstruction stage (best of {a.repeat} per "
+                     f"frame, configurations back to back):\n\n" + shot_table(sh, fh, fw, sframes) + "\n")
     total = time.perf_counter() - t_start
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     info = {"quick": a.quick, "size": [w, h], "frames": frames, "scenes": names, "seed": a.seed,
             "temporal": TemporalReconstructor is not None, "quality": q, "fps_size": [fw, fh],
-            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "per_frame": per_frame,
+            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "shot": sh,
+            "per_frame": per_frame,
             "seconds": total}
     (out / "results.json").write_text(json.dumps(info, indent=1) + "\n")
     (out / "results.md").write_text(text)
