@@ -96,6 +96,22 @@ def temporal(budget=None):
                                  budget=SETTINGS.temporal_budget if budget is None else budget)
 
 
+class Recorded:
+    """A temporal state that keeps the report of every frame (`chain.process_frame` calls `process`)."""
+
+    def __init__(self, tr):
+        self.tr, self.reports = tr, []
+
+    def reset(self):
+        self.tr.reset()
+        self.reports = []
+
+    def process(self, values, state, noise=None):
+        r = self.tr.process(values, state, noise=noise)
+        self.reports.append(r)
+        return r
+
+
 def capture_pair(truths, prof, seed):
     """Raw frames of the ND camera and of the unmodified camera; the regular pixels share their codes."""
     p0 = profile.make(np.zeros((prof.height, prof.width), bool))
@@ -175,11 +191,16 @@ def quality(scenes, names, h, w, frames, seed, configs):
             truths = [renderer(kind, scenes, j, prof, frames, seed).flux(i) for i in range(frames)]
             nd, cam, p0 = capture_pair(truths, prof, seed + 100 * j)
             by = {}
+            starts = set()
             for c in configs:
                 if c == "camera":
                     outs = camera(cam, p0)
+                elif c == "on":
+                    rec = Recorded(temporal())
+                    outs = run_chain(nd, prof, SETTINGS, rec)
+                    starts = {i for i, r in enumerate(rec.reports) if r.get("start") == "preview"}
                 else:
-                    outs = run_chain(nd, prof, SETTINGS, temporal() if c == "on" else None)
+                    outs = run_chain(nd, prof, SETTINGS, None)
                 by[c] = outs
                 pairs[c] += zip(truths, outs)
                 flick[c].add_clip(truths, outs)
@@ -187,7 +208,8 @@ def quality(scenes, names, h, w, frames, seed, configs):
                 for i, t in enumerate(truths):
                     on, off = frame_regions(t, by["on"][i], prof), frame_regions(t, by["off"][i], prof)
                     per_frame += [{"clip": kind, "scene": names[j], "frame": i, "region": k, "on": on[k],
-                                   "off": off[k], "delta": on[k] - off[k]} for k in metrics.REGIONS
+                                   "off": off[k], "delta": on[k] - off[k], "preview": i in starts}
+                                  for k in metrics.REGIONS
                                   if on[k] is not None and off[k] is not None]
             print(f"  {kind}, {names[j]}: {time.perf_counter() - t0:.1f} s", flush=True)
         res[kind] = {}
@@ -431,6 +453,11 @@ def main(argv=None) -> int:
         worse = [r for r in per_frame if r["delta"] < 0]
         text += (f"\nper frame and region, temporal on below off: {len(worse)} of {len(per_frame)}; the "
                  f"furthest:\n" + worst_frames(per_frame) + "\n")
+        later = [r for r in per_frame if not r["preview"]]
+        if len(later) < len(per_frame):       # the budget started shots (and cuts) from the preview
+            text += (f"\nthe same outside the frames that start from the preview (a shot's first, a cut's; "
+                     f"temporal-budget {SETTINGS.temporal_budget}): {sum(r['delta'] < 0 for r in later)} of "
+                     f"{len(later)}; the furthest:\n" + worst_frames(later) + "\n")
     sp = sh = None
     if not a.no_fps:
         fscenes = list(scenes)
