@@ -34,6 +34,7 @@ Writes bench_out/temporal/results.json and results.md.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -417,9 +418,17 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="+", default=None,
                     help="HDR scene files, or 'synthetic' (default: GoldenGate, memorial, venice_sunset in the "
                          "shared data where present, else all of its HDR scenes)")
+    ap.add_argument("--temporal-budget", type=int, default=None,
+                    help=f"temporal on: blocks a frame (nrreconstruct temporal-budget; default "
+                         f"{chain.TEMPORAL_BUDGET}, 0 = no bound)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default=str(OUT))
     a = ap.parse_args(argv)
+    global SETTINGS
+    if a.temporal_budget is not None and a.temporal_budget < 0:
+        ap.error("--temporal-budget must be >= 0")
+    SETTINGS = dataclasses.replace(chain.ChainSettings(), temporal_budget=chain.TEMPORAL_BUDGET
+                                   if a.temporal_budget is None else a.temporal_budget)
     (w, h) = a.size or ((96, 72) if a.quick else (384, 288))
     frames = a.frames or (4 if a.quick else 8)
     (fw, fh) = a.fps_size or ((320, 180) if a.quick else (1920, 1080))
@@ -447,7 +456,8 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     q, per_frame = quality(scenes, names, h, w, frames, a.seed, configs)
     text = (note + f"{w} x {h}, {frames} frames per clip, scenes {', '.join(names)}, shot and read noise, "
-            "chain defaults (weighted, fse fast); log2 PSNR all / dark / mid / bright dB; flicker in stops\n\n"
+            f"chain defaults (weighted, fse fast; temporal-budget {SETTINGS.temporal_budget}); log2 PSNR all / dark / "
+            "mid / bright dB; flicker in stops\n\n"
             + quality_table(q, configs) + "\n")
     if per_frame:
         worse = [r for r in per_frame if r["delta"] < 0]

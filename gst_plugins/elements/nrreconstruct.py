@@ -69,11 +69,12 @@ PROPERTIES = PropertyTable("GstNrReconstruct", [
          "recursive average (docs/TEMPORAL.md). Restarts on flush, seek, caps change and "
          "stop. Monochrome streams only", playing=True),
     Prop("temporal-budget", int, TEMPORAL_BUDGET, "Temporal budget",
-         "temporal=on: 16 x 16 blocks per frame the method may refine in a still shot. A shot's first frame "
-         "(and a cut's) is a preview; from its fifth frame on this many of the blocks still at preview quality "
-         "are reconstructed by the method each frame, most needed first, and then kept, so that a frame "
-         "costs at most about the preview's (docs/TEMPORAL.md). Counted in blocks, not time: the output "
-         "does not depend on the machine. 0 = no bound (every block that needs it, every frame)",
+         "temporal=on: 16 x 16 blocks a frame the method may refine in a still shot. A shot's first frame "
+         "(and a cut's) is the preview; from the next frame on this many of the still blocks below their "
+         "temporal quality are reconstructed by the method each frame, most needed first, and kept once their "
+         "measured pixels average 4 frames, so that a static shot costs at most about the preview from its "
+         "first frame (docs/TEMPORAL.md). Counted in blocks, not time: the output does not depend on the "
+         "machine. 0 = no bound (the first frame by the method, every block that needs it every frame)",
          minimum=0, maximum=MAX_TEMPORAL_BUDGET, playing=True),
     Prop("post-stats", bool, False, "Post statistics",
          "Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing = fraction of pixels "
