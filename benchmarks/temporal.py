@@ -221,6 +221,38 @@ def quality(scenes, names, h, w, frames, seed, configs):
     return res, per_frame
 
 
+def timed(raws, prof, configs, repeat, truths=None):
+    """The reconstruction stage alone on the classified raw frames, in sequence: ({config: ms per frame},
+    {config: log2 PSNR all per frame against `truths`, or None}). `configs`: (name, settings, temporal state
+    or None: `reconstruct_frame`); each frame timed for every configuration back to back (the same moment
+    of the shared machine's load), best of `repeat` passes after an untimed pass (it compiles, fills the
+    caches and scores the outputs)."""
+    classified = [validity.classify(raw, prof, mode=SETTINGS.mode, l_min=SETTINGS.l_min,
+                                    dark_policy=SETTINGS.dark_policy) for raw in raws]
+    n = len(raws)
+    best = {name: [float("inf")] * n for name, _, _ in configs}
+    psnr = {name: [0.0] * n for name, _, _ in configs} if truths is not None else None
+    for rep in range(repeat + 1):
+        for _, _, tr in configs:
+            if tr is not None:
+                tr.reset()
+        for i, (v0, s0) in enumerate(classified):
+            for name, st, tr in configs:
+                v, s = v0.copy(), s0.copy()
+                t0 = time.perf_counter()
+                if tr is None:
+                    reconstruction.reconstruct_frame(v, s, method=st.method, preset=st.preset,
+                                                     use_bounds=st.use_bounds, noise=prof, fusion=st.noise_fusion)
+                else:
+                    tr.process(v, s, noise=prof)
+                dt = (time.perf_counter() - t0) * 1e3
+                if rep:
+                    best[name][i] = min(best[name][i], dt)
+                elif psnr is not None:
+                    psnr[name][i] = frame_regions(truths[i], v, prof)["all"]
+    return best, psnr
+
+
 def speed(scene_list, h, w, frames, seed, repeat):
     """{clip kind: {config: {"ms": [per frame], "steady": ms, "mean": ms}}} at h x w on the first scene: the
     reconstruction stage alone (`reconstruct_frame` for preview and fse fast, the temporal state's `process`
@@ -236,26 +268,7 @@ def speed(scene_list, h, w, frames, seed, repeat):
     for kind in CLIPS:
         r = renderer(kind, scene_list, 0, prof, frames, seed)
         raws, _, _ = capture_pair([r.flux(i) for i in range(frames)], prof, seed)
-        classified = [validity.classify(raw, prof, mode=SETTINGS.mode, l_min=SETTINGS.l_min,
-                                        dark_policy=SETTINGS.dark_policy) for raw in raws]
-        best = {name: [float("inf")] * frames for name, _, _ in configs}
-        for rep in range(repeat + 1):                    # the first pass untimed: compiles, fills caches
-            for _, _, tr in configs:
-                if tr is not None:
-                    tr.reset()
-            for i, (v0, s0) in enumerate(classified):
-                for name, st, tr in configs:
-                    v, s = v0.copy(), s0.copy()
-                    t0 = time.perf_counter()
-                    if tr is None:
-                        reconstruction.reconstruct_frame(v, s, method=st.method, preset=st.preset,
-                                                         use_bounds=st.use_bounds, noise=prof,
-                                                         fusion=st.noise_fusion)
-                    else:
-                        tr.process(v, s, noise=prof)
-                    dt = (time.perf_counter() - t0) * 1e3
-                    if rep:
-                        best[name][i] = min(best[name][i], dt)
+        best, _ = timed(raws, prof, configs, repeat)
         res[kind] = {name: {"ms": ms, "steady": float(np.median(ms[frames // 2:])), "mean": float(np.mean(ms))}
                      for name, ms in best.items()}
         print(f"  {kind}: " + ", ".join(f"{k} {v['steady']:.1f} ms steady, {v['mean']:.1f} ms mean"
@@ -302,28 +315,7 @@ def shot(scene_list, h, w, frames, seed, repeat, budget):
     r = renderer("static", scene_list, 0, prof, frames, seed)
     truths = [r.flux(i) for i in range(frames)]
     raws, _, _ = capture_pair(truths, prof, seed)
-    classified = [validity.classify(raw, prof, mode=SETTINGS.mode, l_min=SETTINGS.l_min,
-                                    dark_policy=SETTINGS.dark_policy) for raw in raws]
-    best = {name: [float("inf")] * frames for name, _, _ in configs}
-    psnr = {name: [0.0] * frames for name, _, _ in configs}
-    for rep in range(repeat + 1):
-        for _, _, tr in configs:
-            if tr is not None:
-                tr.reset()
-        for i, (v0, s0) in enumerate(classified):
-            for name, st, tr in configs:
-                v, s = v0.copy(), s0.copy()
-                t0 = time.perf_counter()
-                if tr is None:
-                    reconstruction.reconstruct_frame(v, s, method=st.method, preset=st.preset,
-                                                     use_bounds=st.use_bounds, noise=prof, fusion=st.noise_fusion)
-                else:
-                    tr.process(v, s, noise=prof)
-                dt = (time.perf_counter() - t0) * 1e3
-                if rep:
-                    best[name][i] = min(best[name][i], dt)
-                else:
-                    psnr[name][i] = frame_regions(truths[i], v, prof)["all"]
+    best, psnr = timed(raws, prof, configs, repeat, truths)
     res = {name: {"ms": ms, "psnr": psnr[name], "mean": float(np.mean(ms)), "worst": float(np.max(ms)),
                   "worst_frame": int(np.argmax(ms)), "steady": float(np.median(ms[frames // 2:])),
                   "lost": live_lost(ms)} for name, ms in best.items()}

@@ -27,6 +27,11 @@ Per frame (`TemporalReconstructor.process`):
 5. untrusted blocks (motion the candidates do not explain, occlusion, a block with outliers) are
    reconstructed alone.
 
+Under a budget (option ``budget``: blocks a frame, `TemporalReconstructor._select`) a restart is the
+preview's frame alone with placeholders for its missing pixels, and only ``budget`` of the still blocks
+whose missing pixels are not settled are refined a frame, the fewest reconstructions first, then in scan
+order; the others are reused as they are (docs/TEMPORAL.md "Budget").
+
 The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
 stream; `reset` on a seek, flush or caps change.
 """
@@ -112,8 +117,10 @@ class TemporalReconstructor:
         their recursive average. `noise`: the noise model (gain, read_noise, nd: a CameraProfile; None =
         the default sensor's). Returns the work done: "missing" (pixels filled, as `reconstruct_frame`
         returns), "blocks", the shares "fresh", "refreshed", "reused", "no_prior", "no_evidence" of the
-        blocks, "motion" (dy, dx): the motion most trusted blocks took (the global estimate where none),
-        "cut" and "reset" (True when the frame was reconstructed alone)."""
+        blocks, "refined" (the share reconstructed by the method this frame), "pending" (the share reused
+        before reaching their temporal quality), "chosen" (the share `_select` chose), "motion" (dy, dx):
+        the motion most trusted blocks took (the global estimate where none), "cut", "reset" (True when
+        the frame was reconstructed alone) and "start" (then "preview" or "method")."""
         from . import validity
         o = self.options
         if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
@@ -130,8 +137,8 @@ class TemporalReconstructor:
         bs = int(o["block"])
         nby, nbx = (h + bs - 1) // bs, (w + bs - 1) // bs
         report = {"missing": 0, "blocks": nby * nbx, "fresh": 1.0, "refreshed": 0.0, "reused": 0.0,
-                  "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True, "refined": 0.0, "pending": 0.0,
-                  "chosen": 0.0, "start": None}
+                  "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True,
+                  "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None}
         if self._prev is not None and self._prev.shape != values.shape:
             self.reset()
         known, lower, upper, work, pv, pvar, pc, dec, cand, fast = _planes(h, w, nby, nbx)
@@ -860,9 +867,9 @@ def _reuse_row(values, state, prev, var, cnt, work, y, fm, use_bounds, g, floor,
                la, lv, lc):
     """Row y of the still REUSE blocks (fm[x] = 1 at their pixels) finished in place, branch-free: their
     past and output become the numbers `_prepare_px` and `_finish` give (measured and NOISY pixels
-    averaged with their past, an outlier or a pixel with a placeholder past restarted from its measurement, the others their past within
-    their bounds, RECONSTRUCTED; a clipped pixel at least its own value: the neighbours' bound was
-    applied when it was reconstructed); `work` keeps the row's input values. The whole row is computed
+    averaged with their past, an outlier or a pixel whose past is a placeholder restarted from its
+    measurement, the others their past within their bounds, RECONSTRUCTED; a clipped pixel at least its
+    own value: the neighbours' bound was applied when it was reconstructed); `work` keeps the row's input values. The whole row is computed
     into the scratch lanes la, lv, lc (the caller's, the row's length), then selected, so that both loops
     are long and vectorise. Returns the pixels not VALID written."""
     zero = np.float32(0.0)
