@@ -34,6 +34,7 @@ Writes bench_out/temporal/results.json and results.md.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -88,10 +89,28 @@ def renderer(kind, scenes, j, prof, frames, seed):
                                  other if cut_frame is not None else None)
 
 
-def temporal():
-    """The temporal state for `SETTINGS`' reconstruction."""
+def temporal(budget=None):
+    """The temporal state for `SETTINGS`' reconstruction (`budget`: blocks per frame; None: the chain's default,
+    as nrreconstruct temporal-budget)."""
     return TemporalReconstructor(method=SETTINGS.method, preset=SETTINGS.preset, use_bounds=SETTINGS.use_bounds,
-                                 fusion=SETTINGS.noise_fusion)
+                                 fusion=SETTINGS.noise_fusion,
+                                 budget=SETTINGS.temporal_budget if budget is None else budget)
+
+
+class Recorded:
+    """A temporal state that keeps the report of every frame (`chain.process_frame` calls `process`)."""
+
+    def __init__(self, tr):
+        self.tr, self.reports = tr, []
+
+    def reset(self):
+        self.tr.reset()
+        self.reports = []
+
+    def process(self, values, state, noise=None):
+        r = self.tr.process(values, state, noise=noise)
+        self.reports.append(r)
+        return r
 
 
 def capture_pair(truths, prof, seed):
@@ -173,11 +192,16 @@ def quality(scenes, names, h, w, frames, seed, configs):
             truths = [renderer(kind, scenes, j, prof, frames, seed).flux(i) for i in range(frames)]
             nd, cam, p0 = capture_pair(truths, prof, seed + 100 * j)
             by = {}
+            starts = set()
             for c in configs:
                 if c == "camera":
                     outs = camera(cam, p0)
+                elif c == "on":
+                    rec = Recorded(temporal())
+                    outs = run_chain(nd, prof, SETTINGS, rec)
+                    starts = {i for i, r in enumerate(rec.reports) if r.get("start") == "preview"}
                 else:
-                    outs = run_chain(nd, prof, SETTINGS, temporal() if c == "on" else None)
+                    outs = run_chain(nd, prof, SETTINGS, None)
                 by[c] = outs
                 pairs[c] += zip(truths, outs)
                 flick[c].add_clip(truths, outs)
@@ -185,7 +209,8 @@ def quality(scenes, names, h, w, frames, seed, configs):
                 for i, t in enumerate(truths):
                     on, off = frame_regions(t, by["on"][i], prof), frame_regions(t, by["off"][i], prof)
                     per_frame += [{"clip": kind, "scene": names[j], "frame": i, "region": k, "on": on[k],
-                                   "off": off[k], "delta": on[k] - off[k]} for k in metrics.REGIONS
+                                   "off": off[k], "delta": on[k] - off[k], "preview": i in starts}
+                                  for k in metrics.REGIONS
                                   if on[k] is not None and off[k] is not None]
             print(f"  {kind}, {names[j]}: {time.perf_counter() - t0:.1f} s", flush=True)
         res[kind] = {}
@@ -194,6 +219,38 @@ def quality(scenes, names, h, w, frames, seed, configs):
             r["flicker"] = flick[c].value()
             res[kind][c] = r
     return res, per_frame
+
+
+def timed(raws, prof, configs, repeat, truths=None):
+    """The reconstruction stage alone on the classified raw frames, in sequence: ({config: ms per frame},
+    {config: log2 PSNR all per frame against `truths`, or None}). `configs`: (name, settings, temporal state
+    or None: `reconstruct_frame`); each frame timed for every configuration back to back (the same moment
+    of the shared machine's load), best of `repeat` passes after an untimed pass (it compiles, fills the
+    caches and scores the outputs)."""
+    classified = [validity.classify(raw, prof, mode=SETTINGS.mode, l_min=SETTINGS.l_min,
+                                    dark_policy=SETTINGS.dark_policy) for raw in raws]
+    n = len(raws)
+    best = {name: [float("inf")] * n for name, _, _ in configs}
+    psnr = {name: [0.0] * n for name, _, _ in configs} if truths is not None else None
+    for rep in range(repeat + 1):
+        for _, _, tr in configs:
+            if tr is not None:
+                tr.reset()
+        for i, (v0, s0) in enumerate(classified):
+            for name, st, tr in configs:
+                v, s = v0.copy(), s0.copy()
+                t0 = time.perf_counter()
+                if tr is None:
+                    reconstruction.reconstruct_frame(v, s, method=st.method, preset=st.preset,
+                                                     use_bounds=st.use_bounds, noise=prof, fusion=st.noise_fusion)
+                else:
+                    tr.process(v, s, noise=prof)
+                dt = (time.perf_counter() - t0) * 1e3
+                if rep:
+                    best[name][i] = min(best[name][i], dt)
+                elif psnr is not None:
+                    psnr[name][i] = frame_regions(truths[i], v, prof)["all"]
+    return best, psnr
 
 
 def speed(scene_list, h, w, frames, seed, repeat):
@@ -211,31 +268,83 @@ def speed(scene_list, h, w, frames, seed, repeat):
     for kind in CLIPS:
         r = renderer(kind, scene_list, 0, prof, frames, seed)
         raws, _, _ = capture_pair([r.flux(i) for i in range(frames)], prof, seed)
-        classified = [validity.classify(raw, prof, mode=SETTINGS.mode, l_min=SETTINGS.l_min,
-                                        dark_policy=SETTINGS.dark_policy) for raw in raws]
-        best = {name: [float("inf")] * frames for name, _, _ in configs}
-        for rep in range(repeat + 1):                    # the first pass untimed: compiles, fills caches
-            for _, _, tr in configs:
-                if tr is not None:
-                    tr.reset()
-            for i, (v0, s0) in enumerate(classified):
-                for name, st, tr in configs:
-                    v, s = v0.copy(), s0.copy()
-                    t0 = time.perf_counter()
-                    if tr is None:
-                        reconstruction.reconstruct_frame(v, s, method=st.method, preset=st.preset,
-                                                         use_bounds=st.use_bounds, noise=prof,
-                                                         fusion=st.noise_fusion)
-                    else:
-                        tr.process(v, s, noise=prof)
-                    dt = (time.perf_counter() - t0) * 1e3
-                    if rep:
-                        best[name][i] = min(best[name][i], dt)
+        best, _ = timed(raws, prof, configs, repeat)
         res[kind] = {name: {"ms": ms, "steady": float(np.median(ms[frames // 2:])), "mean": float(np.mean(ms))}
                      for name, ms in best.items()}
         print(f"  {kind}: " + ", ".join(f"{k} {v['steady']:.1f} ms steady, {v['mean']:.1f} ms mean"
                                         for k, v in res[kind].items()), flush=True)
     return res
+
+
+QUALITY_TOL = 0.1     # dB: a frame of the budgeted shot within this of the unbounded temporal output has its quality
+LIVE_FPS, LIVE_FRAMES = 30.0, 150     # the live source: frames a second, frames (5 s)
+
+
+def live_lost(ms, fps=LIVE_FPS, frames=LIVE_FRAMES) -> int:
+    """Frames a live source of `fps` loses in `frames` frames before a stage that takes ms[k] ms for the
+    k-th frame it processes (the last value for the later ones), behind a leaky queue of one buffer (a new
+    frame replaces the one waiting; the stage takes the waiting frame when it is free)."""
+    period = 1e3 / fps
+    free, waiting, done, lost = 0.0, None, 0, 0
+    for i in range(frames):
+        t = i * period
+        while waiting is not None and free <= t:          # the stage takes the waiting frame
+            start = max(free, waiting)
+            free = start + ms[min(done, len(ms) - 1)]
+            done += 1
+            waiting = None
+        if free <= t:                                       # idle: processed at once
+            free = t + ms[min(done, len(ms) - 1)]
+            done += 1
+        else:
+            lost += waiting is not None                     # the older waiting frame is dropped
+            waiting = t
+    return lost
+
+
+def shot(scene_list, h, w, frames, seed, repeat, budget):
+    """A static shot from its first frame at h x w (the first scene): per frame the reconstruction stage's ms
+    (best of `repeat` after an untimed pass) and log2 PSNR (all pixels) against the truth, for preview,
+    fse fast, fse fast with the temporal state under `budget` (blocks per frame; the default) and without a
+    bound (budget 0), back to back on each frame. Returns {config: {"ms", "psnr", "mean", "worst", "steady",
+    "lost"}} and "frames_to_quality": the first frame from which the budgeted shot stays within QUALITY_TOL
+    dB of the unbounded one."""
+    prof = profile.default(h, w, seed=3)
+    configs = [("preview", PREVIEW, None), ("off", SETTINGS, None), ("on", SETTINGS, temporal(budget)),
+               ("unbounded", SETTINGS, temporal(0))]
+    r = renderer("static", scene_list, 0, prof, frames, seed)
+    truths = [r.flux(i) for i in range(frames)]
+    raws, _, _ = capture_pair(truths, prof, seed)
+    best, psnr = timed(raws, prof, configs, repeat, truths)
+    res = {name: {"ms": ms, "psnr": psnr[name], "mean": float(np.mean(ms)), "worst": float(np.max(ms)),
+                  "worst_frame": int(np.argmax(ms)), "steady": float(np.median(ms[frames // 2:])),
+                  "lost": live_lost(ms)} for name, ms in best.items()}
+    gap = np.array(psnr["on"]) < np.array(psnr["unbounded"]) - QUALITY_TOL
+    res["frames_to_quality"] = int(np.flatnonzero(gap)[-1] + 1) if gap.any() else 0
+    res["budget"] = budget
+    print("  shot: " + ", ".join(f"{k} {res[k]['mean']:.1f} ms mean, {res[k]['worst']:.1f} worst"
+                                 for k in ("preview", "off", "on", "unbounded")), flush=True)
+    return res
+
+
+def shot_table(res, h, w, frames) -> str:
+    """The static shot from its first frame: ms mean / worst / steady, frames a live 30 fps source loses,
+    log2 PSNR of the first and the last frame."""
+    cols = [("preview", "preview (anchor)"), ("off", "fse fast"),
+            ("on", f"fse fast, temporal on (budget {res['budget']})"), ("unbounded", "fse fast, temporal on, budget 0")]
+    rows = [("ms per frame, mean over the shot", lambda r: f"{r['mean']:.1f}"),
+            ("worst frame, ms (frame)", lambda r: f"{r['worst']:.1f} ({r['worst_frame']})"),
+            ("steady, ms (median of the second half)", lambda r: f"{r['steady']:.1f}"),
+            (f"frames lost of {LIVE_FRAMES} at a live {LIVE_FPS:.0f} fps source (leaky queue of one)",
+             lambda r: str(r["lost"])),
+            ("log2 PSNR all, first / last frame (dB)", lambda r: f"{r['psnr'][0]:.2f} / {r['psnr'][-1]:.2f}")]
+    lines = [f"| static shot, {w} x {h}, {frames} frames from the first | " + " | ".join(c[1] for c in cols) + " |",
+             "|---" * (len(cols) + 1) + "|"]
+    for label, f in rows:
+        lines.append(f"| {label} | " + " | ".join(f(res[c]) for c, _ in cols) + " |")
+    lines.append(f"\ntemporal on reaches the unbounded temporal quality (within {QUALITY_TOL} dB, log2 PSNR all) "
+                 f"from frame {res['frames_to_quality']} on.")
+    return "\n".join(lines)
 
 
 LABELS = {"off": "single-frame (temporal off)", "on": "temporal on", "camera": "unmodified camera, same noise"}
@@ -294,20 +403,31 @@ def main(argv=None) -> int:
     ap.add_argument("--fps-size", type=size, default=None, help="frames/s at WIDTHxHEIGHT (default 1920x1080)")
     ap.add_argument("--fps-frames", type=int, default=None, help="frames per timed clip (default 8)")
     ap.add_argument("--repeat", type=int, default=2, help="timed passes per configuration (best counts)")
+    ap.add_argument("--shot-frames", type=int, default=None,
+                    help="frames of the static shot timed from its first frame (default 30; --quick 6)")
     ap.add_argument("--no-fps", action="store_true", help="quality only")
     ap.add_argument("--fps-scene", default=None, help="scene of the frames/s clips (default: the first scene)")
     ap.add_argument("--scenes", nargs="+", default=None,
                     help="HDR scene files, or 'synthetic' (default: GoldenGate, memorial, venice_sunset in the "
                          "shared data where present, else all of its HDR scenes)")
+    ap.add_argument("--temporal-budget", type=int, default=None,
+                    help=f"temporal on: blocks a frame (nrreconstruct temporal-budget; default "
+                         f"{chain.TEMPORAL_BUDGET}, 0 = no bound)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default=str(OUT))
     a = ap.parse_args(argv)
+    global SETTINGS
+    if a.temporal_budget is not None and a.temporal_budget < 0:
+        ap.error("--temporal-budget must be >= 0")
+    SETTINGS = dataclasses.replace(chain.ChainSettings(), temporal_budget=chain.TEMPORAL_BUDGET
+                                   if a.temporal_budget is None else a.temporal_budget)
     (w, h) = a.size or ((96, 72) if a.quick else (384, 288))
     frames = a.frames or (4 if a.quick else 8)
     (fw, fh) = a.fps_size or ((320, 180) if a.quick else (1920, 1080))
     fframes = a.fps_frames or (3 if a.quick else 8)
-    if min(frames, fframes, a.repeat) < 1:
-        ap.error("--frames, --fps-frames and --repeat must be >= 1")
+    sframes = a.shot_frames or (6 if a.quick else 30)
+    if min(frames, fframes, a.repeat, sframes) < 1:
+        ap.error("--frames, --fps-frames, --shot-frames and --repeat must be >= 1")
     paths = a.scenes or default_scenes()
     if a.quick and not a.scenes:
         paths = paths[:2]
@@ -328,13 +448,19 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     q, per_frame = quality(scenes, names, h, w, frames, a.seed, configs)
     text = (note + f"{w} x {h}, {frames} frames per clip, scenes {', '.join(names)}, shot and read noise, "
-            "chain defaults (weighted, fse fast); log2 PSNR all / dark / mid / bright dB; flicker in stops\n\n"
+            f"chain defaults (weighted, fse fast; temporal-budget {SETTINGS.temporal_budget}); log2 PSNR all / dark / "
+            "mid / bright dB; flicker in stops\n\n"
             + quality_table(q, configs) + "\n")
     if per_frame:
         worse = [r for r in per_frame if r["delta"] < 0]
         text += (f"\nper frame and region, temporal on below off: {len(worse)} of {len(per_frame)}; the "
                  f"furthest:\n" + worst_frames(per_frame) + "\n")
-    sp = None
+        later = [r for r in per_frame if not r["preview"]]
+        if len(later) < len(per_frame):       # the budget started shots (and cuts) from the preview
+            text += (f"\nthe same outside the frames that start from the preview (a shot's first, a cut's; "
+                     f"temporal-budget {SETTINGS.temporal_budget}): {sum(r['delta'] < 0 for r in later)} of "
+                     f"{len(later)}; the furthest:\n" + worst_frames(later) + "\n")
+    sp = sh = None
     if not a.no_fps:
         fscenes = list(scenes)
         fname = names[0]
@@ -347,12 +473,18 @@ def main(argv=None) -> int:
         sp = speed(fscenes, fh, fw, fframes, a.seed, a.repeat)
         text += (f"\nreconstruction stage, {fname}, ms per frame (best of {a.repeat} per frame, configurations back "
                  f"to back):\n\n" + speed_table(sp, fh, fw, fframes) + "\n")
+        if TemporalReconstructor is not None:
+            print(f"static shot: {fw} x {fh}, {sframes} frames from the first, {fname}", flush=True)
+            sh = shot(fscenes, fh, fw, sframes, a.seed, a.repeat, SETTINGS.temporal_budget)
+            text += (f"\nstatic shot from its first frame, {fname}, reconstruction stage (best of {a.repeat} per "
+                     f"frame, configurations back to back):\n\n" + shot_table(sh, fh, fw, sframes) + "\n")
     total = time.perf_counter() - t_start
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     info = {"quick": a.quick, "size": [w, h], "frames": frames, "scenes": names, "seed": a.seed,
             "temporal": TemporalReconstructor is not None, "quality": q, "fps_size": [fw, fh],
-            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "per_frame": per_frame,
+            "fps_frames": fframes, "fps_scene": fname if sp else None, "fps": sp, "shot": sh,
+            "per_frame": per_frame,
             "seconds": total}
     (out / "results.json").write_text(json.dumps(info, indent=1) + "\n")
     (out / "results.md").write_text(text)

@@ -297,11 +297,18 @@ class Job:
         out = {"format": MANIFEST_FORMAT, "version": 1, "writer": "nrhdr batch",
                "input": dict(ident, width=s.width, height=s.height, frames=s.frames),
                "profile": prof(s.profile), "crosstalk_profile": prof(self.crosstalk_profile),
-               "settings": self.settings.as_dict(), "png": self.png,
+               "settings": self._settings(), "png": self.png,
                "files": {"exr": "frame_%05d.exr", "png": "frame_%05d.png" if self.png else None}}
         if self.temporal:     # a chunk's first frames depend on where it starts and on its warm-up
             out["chunks"] = {"chunk": int(self.chunk), "overlap": int(self.overlap)}
         return out
+
+    def _settings(self) -> dict:
+        """The settings the output depends on: temporal_budget only with the temporal reconstruction."""
+        d = self.settings.as_dict()
+        if not self.temporal:
+            d.pop("temporal_budget")
+        return d
 
 
 def _diff(a, b, prefix=""):

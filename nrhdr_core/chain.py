@@ -46,6 +46,8 @@ PRESETS = tuple(FSE_PRESETS)
 TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
 STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
 TEMPORAL_MODES = ("off", "on")           # nrreconstruct temporal
+TEMPORAL_BUDGET = 240                    # nrreconstruct temporal-budget: blocks per frame (docs/TEMPORAL.md)
+MAX_TEMPORAL_BUDGET = 1 << 20
 COLOUR_METHODS = ("preview", "fse")      # the reconstruction methods of a colour mosaic (demosaic.METHODS)
 
 
@@ -62,6 +64,7 @@ class ChainSettings:
     use_bounds: bool = True          # nrreconstruct use-bounds
     noise_fusion: str = "auto"       # nrreconstruct noise-fusion (NOISY pixels: auto, accurate or fast)
     temporal: str = "off"            # nrreconstruct temporal (on: `process_frame` needs a TemporalReconstructor)
+    temporal_budget: int = TEMPORAL_BUDGET   # nrreconstruct temporal-budget (blocks per frame; 0 = no bound)
     operator: str = "local"          # nrtonemap operator (tonemap.SDR_OPERATORS; docs/TONEMAP.md)
     white: float | None = None       # nrtonemap white (None = the profile's white, as in the caps)
     exposure: float = 0.0            # nrtonemap exposure (stops)
@@ -75,6 +78,9 @@ class ChainSettings:
             v = getattr(self, name)
             if v not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {v!r}")
+        b = self.temporal_budget
+        if isinstance(b, bool) or not isinstance(b, (int, np.integer)) or not 0 <= b <= MAX_TEMPORAL_BUDGET:
+            raise ValueError(f"temporal_budget must be an integer in 0..{MAX_TEMPORAL_BUDGET}, got {b!r}")
         if self.l_min is not None and not (0.0 <= float(self.l_min) <= 65535.0):
             raise ValueError(f"l_min must be in 0..65535 (or None for the profile's), got {self.l_min}")
         if self.white is not None and not (float(self.white) > 0 and np.isfinite(self.white)):
@@ -144,7 +150,8 @@ def temporal_for(settings: ChainSettings):
     """The `temporal.TemporalReconstructor` nrreconstruct temporal=on runs with `settings` (one per stream)."""
     from .temporal import TemporalReconstructor
     s = settings
-    return TemporalReconstructor(method=s.method, preset=s.preset, use_bounds=s.use_bounds, fusion=s.noise_fusion)
+    return TemporalReconstructor(method=s.method, preset=s.preset, use_bounds=s.use_bounds, fusion=s.noise_fusion,
+                                 budget=int(s.temporal_budget))
 
 
 def tonemap_frame(values: np.ndarray, profile, settings: ChainSettings = ChainSettings(),

@@ -27,6 +27,11 @@ Per frame (`TemporalReconstructor.process`):
 5. untrusted blocks (motion the candidates do not explain, occlusion, a block with outliers) are
    reconstructed alone.
 
+Under a budget (option ``budget``: blocks a frame, `TemporalReconstructor._select`) a restart is the
+preview's frame alone with placeholders for its missing pixels, and only ``budget`` of the still blocks
+whose missing pixels are not settled are refined a frame, the fewest reconstructions first, then in scan
+order; the others are reused as they are (docs/TEMPORAL.md "Budget").
+
 The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
 stream; `reset` on a seek, flush or caps change.
 """
@@ -48,6 +53,8 @@ REUSE = 2      # trusted and the past of every missing pixel settled: missing pi
 NO_PRIOR = 3   # trusted measurements but an outlier: measured pixels averaged per pixel, missing ones alone
 NO_EVIDENCE = 4  # too few measured pixels to judge: reconstructed alone, not counted for a cut
 
+FAST = {"arcp", "contract", "nsz"}   # numba fastmath flags of the per-pixel passes (no nnan / ninf: NaN and inf
+                                    # are tested for)
 SNAP = 0.1            # pixels: a global shift this close to an integer is taken as that integer
 Z_OUT = 16.0          # z beyond this (4 sigma) is an outlier: its pixel restarts, its block keeps no prior
 DEFAULTS = dict(
@@ -64,6 +71,7 @@ DEFAULTS = dict(
     rec_tol=0.03,      # ... plus (rec_tol x level)^2: the model error averaging does not remove
     rec_texture=0.5,   # ... plus rec_texture x (half the 3 x 3 range)^2: larger at edges and in texture
     min_evidence=8,    # measured pixels a block needs to be judged
+    budget=0,          # blocks per frame FSE refines in a still shot (0: every block that needs it; docs/TEMPORAL.md)
 )
 
 
@@ -83,20 +91,23 @@ class TemporalReconstructor:
         if bad:
             raise TypeError(f"temporal reconstruction: unknown option {bad[0]!r}; known: {sorted(DEFAULTS)}")
         o = dict(DEFAULTS, **options)
-        for k in ("block", "search", "max_frames", "reuse_frames", "min_evidence"):
-            if not (isinstance(o[k], (int, np.integer)) and not isinstance(o[k], bool) and o[k] >= 1):
-                raise ValueError(f"temporal reconstruction: option {k} must be an integer >= 1, got {o[k]!r}")
+        for k in ("block", "search", "max_frames", "reuse_frames", "min_evidence", "budget"):
+            lo = 0 if k == "budget" else 1
+            if not (isinstance(o[k], (int, np.integer)) and not isinstance(o[k], bool) and o[k] >= lo):
+                raise ValueError(f"temporal reconstruction: option {k} must be an integer >= {lo}, got {o[k]!r}")
         for k in ("z_mean", "outliers", "tol", "shift_error", "cut_share", "rec_noise", "rec_tol", "rec_texture"):
             if not (isinstance(o[k], (int, float)) and math.isfinite(o[k]) and o[k] >= 0):
                 raise ValueError(f"temporal reconstruction: option {k} must be a finite number >= 0, got {o[k]!r}")
         self.method, self.preset, self.use_bounds, self.fusion = method, preset, bool(use_bounds), fusion
         self.options = o
         self._prev = self._var = self._cnt = None
+        self._level = self._uns = None
         self.frames = 0          # frames since the last reset
 
     def reset(self) -> None:
         """Forget the past: the next frame is reconstructed alone."""
         self._prev = self._var = self._cnt = None
+        self._level = self._uns = None
         self.frames = 0
 
     # ---- one frame ------------------------------------------------------------------------------------
@@ -106,8 +117,10 @@ class TemporalReconstructor:
         their recursive average. `noise`: the noise model (gain, read_noise, nd: a CameraProfile; None =
         the default sensor's). Returns the work done: "missing" (pixels filled, as `reconstruct_frame`
         returns), "blocks", the shares "fresh", "refreshed", "reused", "no_prior", "no_evidence" of the
-        blocks, "motion" (dy, dx): the motion most trusted blocks took (the global estimate where none),
-        "cut" and "reset" (True when the frame was reconstructed alone)."""
+        blocks, "refined" (the share reconstructed by the method this frame), "pending" (the share reused
+        before reaching their temporal quality), "chosen" (the share `_select` chose), "motion" (dy, dx):
+        the motion most trusted blocks took (the global estimate where none), "cut", "reset" (True when
+        the frame was reconstructed alone) and "start" (then "preview" or "method")."""
         from . import validity
         o = self.options
         if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
@@ -124,7 +137,8 @@ class TemporalReconstructor:
         bs = int(o["block"])
         nby, nbx = (h + bs - 1) // bs, (w + bs - 1) // bs
         report = {"missing": 0, "blocks": nby * nbx, "fresh": 1.0, "refreshed": 0.0, "reused": 0.0,
-                  "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True}
+                  "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True,
+                  "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None}
         if self._prev is not None and self._prev.shape != values.shape:
             self.reset()
         known, lower, upper, work, pv, pvar, pc, dec, cand, fast = _planes(h, w, nby, nbx)
@@ -135,16 +149,16 @@ class TemporalReconstructor:
             return self._alone(values, state, noise, report, g, floor, nd)
         # 1. global motion
         dy, dx = global_motion(values, state, self._prev, int(o["search"]))
-        # 2. per-block consistency; with no motion, settled still blocks are finished in the same pass (their
-        # past and output; undone on a cut)
+        # 2. per-block consistency; with no motion, settled still blocks (and, under a budget, the unsettled
+        # ones not chosen for refinement) are finished in the same pass (their past and output; undone on a cut)
         cy, cx, cmis = _candidates(dy, dx, float(o["shift_error"]))
-        if self.use_bounds:
-            _clip_lower_rows(values, state, lower)
+        sel = planes("temporal.sel", (nby, nbx), lambda: np.empty((nby, nbx), np.uint8))
+        chosen = self._select(sel)
         n_kept, n_unknown, n_flagged, n_bad, n = _judge_blocks(
-            values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand, fast, lower, work, g, floor,
+            values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand, fast, work, g, floor,
             nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]), np.float32(Z_OUT),
             int(o["min_evidence"]), np.float32(o["reuse_frames"]), cmis, self.use_bounds,
-            np.float32(o["max_frames"]), cy.size == 1)
+            np.float32(o["max_frames"]), cy.size == 1, sel, self._uns)
         if n_flagged or n_bad:
             # pixels filled upstream or non-finite measurements: the general single-frame path judges them
             _undo_fast(values, state, work, fast, bs)
@@ -164,58 +178,133 @@ class TemporalReconstructor:
             method, preset = method(n_unknown / float(h * w)) if n_unknown else ("preview", preset)
         lo_a = lower if self.use_bounds else _EMPTY
         up_a = upper if self.use_bounds else _EMPTY
+        if self.use_bounds:        # the clipped-neighbour bounds where blocks are prepared (`work`: the input)
+            _clip_lower_rows(work, state, lower, (fast == 0).any(axis=1).astype(np.uint8), bs)
         # 3. the other blocks: measured pixels averaged, settled missing pixels reused, the rest reconstructed
         blocks = np.argwhere(fast == 0).astype(np.int32)
+        n_todo = 0
         if len(blocks):
             left = np.zeros(len(blocks), np.int64)
             _prepare_blocks(blocks, values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
                             known, lo_a, up_a, self.use_bounds, work, pv, pvar, pc, left, g, floor, nd,
                             np.float32(o["tol"]), np.float32(Z_OUT), np.float32(o["max_frames"]), cmis)
             todo = blocks[left > 0]
-            if len(todo):
+            n_todo = len(todo)
+            if n_todo:
                 self._reconstruct_left(todo, fast, work, known, lower if self.use_bounds else None,
                                        upper if self.use_bounds else None, state, noise, method, preset)
         # 4. fused with the past, written back, kept as the next frame's past
         n += _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, fast, bs, lo_a, up_a,
                     self.use_bounds, g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]),
                     np.float32(o["reuse_frames"]), floor, np.float32(o["rec_texture"]), nd, np.float32(Z_OUT))
+        if self._budgeted(dec.size) and self.frames + 1 >= int(o["reuse_frames"]):
+            # a chosen block's reconstruction from measured pixels that average `reuse_frames` frames settles it
+            _settle(state, self._cnt, ((sel != 0) & (dec == REFRESH)).astype(np.uint8), bs,
+                    np.uint8(min(int(o["reuse_frames"]), 255)))
+        # the reconstructions each block's missing pixels average: alone 1, fused with the past one more,
+        # reused as they were
+        lv = self._level
+        lv[(dec == FRESH) | (dec == NO_PRIOR) | (dec == NO_EVIDENCE)] = 1
+        np.minimum(lv.astype(np.int32) + (dec == REFRESH), 255, out=lv, casting="unsafe")
         self.frames += 1
         tot = float(dec.size)
         report.update(missing=int(n), reset=False, fresh=counts[FRESH] / tot, refreshed=counts[REFRESH] / tot,
                       reused=counts[REUSE] / tot, no_prior=counts[NO_PRIOR] / tot,
-                      no_evidence=counts[NO_EVIDENCE] / tot)
+                      no_evidence=counts[NO_EVIDENCE] / tot, refined=n_todo / tot,
+                      pending=float(np.count_nonzero((self._uns > 0) & (dec == REUSE))) / tot,
+                      chosen=chosen / tot)
         return report
+
+    def _budgeted(self, blocks: int) -> bool:
+        """True when the budget bounds the work of a frame of `blocks` blocks (0, or at least every block:
+        no bound)."""
+        b = int(self.options["budget"])
+        return 0 < b < blocks
+
+    def _select(self, sel) -> int:
+        """sel = 1 at the blocks that may be refined this frame (reconstructed by the method and fused with
+        their past when they are still and trusted): without a budget every block; with one, `budget` of
+        the blocks whose missing pixels are not settled
+        (`_uns`, as the last judgement counted them), the fewest reconstructions averaged first (`_level`),
+        then in scan order (deterministic: the same frames give the same choice). Returns how many blocks
+        with unsettled pixels were chosen."""
+        uns = self._uns.ravel()
+        if not self._budgeted(sel.size):
+            sel[...] = 1
+            return int(np.count_nonzero(uns))
+        b = int(self.options["budget"])
+        sel[...] = 0
+        cand = np.flatnonzero(uns > 0)
+        if len(cand) > b:
+            key = self._level.ravel()[cand].astype(np.int64) * sel.size + cand
+            cand = cand[np.argpartition(key, b - 1)[:b]]
+        sel.ravel()[cand] = 1
+        return len(cand)
 
     def _reconstruct_left(self, todo, fast, work, known, lower, upper, state, noise, method, preset) -> None:
         """`reconstruction.reconstruct` of the pixels left unknown in the blocks `todo` ((by, bx) rows), in
-        place in `work`: on the whole frame, or, when they are at most MOSAIC_SHARE of the blocks, on a
-        mosaic of those blocks, each with MARGIN pixels of context (cost follows change: the
-        reconstruction's passes run over those blocks only). Blocks finished in the judgement (`fast`)
+        place in `work`, over as few pixels as it takes (cost follows change): each run of consecutive
+        block rows of `todo` as a band (the full width, MARGIN rows of context above and below) where that
+        is smaller than a mosaic of its blocks (each with MARGIN pixels of context), the other blocks as
+        one mosaic; the whole frame when that is not smaller. Blocks finished in the judgement (`fast`)
         enter as known context: their new past."""
-        from . import reconstruction
         h, w = work.shape
         bs = int(self.options["block"])
         side = bs + 2 * MARGIN
         nby, nbx = fast.shape
-        if len(todo) > MOSAIC_SHARE * fast.size or h < side or w < side:
-            _fill_fast(np.argwhere(fast != 0).astype(np.int32), self._prev, bs, work, known,
-                       lower if lower is not None else _EMPTY, upper if upper is not None else _EMPTY,
-                       lower is not None)
-            noisy = ((state & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~known
-            noisy = noisy if noisy.any() else None
-            reconstruction.reconstruct(work, known, method=method, preset=preset, lower=lower, upper=upper,
-                                       out=work, noisy=noisy, noise=noise if noisy is not None else None,
-                                       fusion=self.fusion)
-            return
-        # each block's context window (side x side, moved inside the frame), stacked into one column
-        ys = np.clip(todo[:, 0] * bs - MARGIN, 0, h - side)
-        xs = np.clip(todo[:, 1] * bs - MARGIN, 0, w - side)
-        near = np.zeros((nby, nbx), np.bool_)            # the finished blocks the windows reach into
+        if h < side or w < side:
+            self._fill(fast != 0, work, known, lower, upper)
+            return self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
+        rows = np.unique(todo[:, 0])
+        bands, rest = [], []
+        for run in np.split(rows, np.flatnonzero(np.diff(rows) > 1) + 1):
+            inside = (todo[:, 0] >= run[0]) & (todo[:, 0] <= run[-1])
+            y0, y1 = max(int(run[0]) * bs - MARGIN, 0), min(int(run[-1]) * bs + bs + MARGIN, h)
+            if (y1 - y0) * w < int(inside.sum()) * side * side:
+                bands.append((y0, y1))
+            else:
+                rest.append(todo[inside])
+        rest = np.concatenate(rest) if rest else todo[:0]
+        if sum((y1 - y0) * w for y0, y1 in bands) + len(rest) * side * side >= h * w:
+            self._fill(fast != 0, work, known, lower, upper)
+            return self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
+        near = np.zeros((nby, nbx), np.bool_)            # the finished blocks the bands and windows reach into
+        for y0, y1 in bands:
+            near[y0 // bs:(y1 - 1) // bs + 1, :] = True
+        ys = np.clip(rest[:, 0] * bs - MARGIN, 0, h - side)
+        xs = np.clip(rest[:, 1] * bs - MARGIN, 0, w - side)
         for y0, x0 in zip(ys, xs):
             near[y0 // bs:(y0 + side - 1) // bs + 1, x0 // bs:(x0 + side - 1) // bs + 1] = True
-        _fill_fast(np.argwhere(near & (fast != 0)).astype(np.int32), self._prev, bs, work, known,
+        self._fill(near & (fast != 0), work, known, lower, upper)
+        for y0, y1 in bands:
+            self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, y0, y1)
+        if len(rest):
+            self._reconstruct_mosaic(rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
+
+    def _fill(self, blocks, work, known, lower, upper) -> None:
+        """The blocks `blocks` (a (by, bx) mask) finished in the judgement as known context (`_fill_fast`)."""
+        _fill_fast(np.argwhere(blocks).astype(np.int32), self._prev, int(self.options["block"]), work, known,
                    lower if lower is not None else _EMPTY, upper if upper is not None else _EMPTY,
                    lower is not None)
+
+    def _reconstruct_rows(self, work, known, lower, upper, state, noise, method, preset, y0, y1) -> None:
+        """`reconstruction.reconstruct` of rows y0..y1-1 of `work`, in place."""
+        from . import reconstruction
+        sub, k, st = work[y0:y1], known[y0:y1], state[y0:y1]
+        lo = None if lower is None else lower[y0:y1]
+        up = None if upper is None else upper[y0:y1]
+        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+        noisy = noisy if noisy.any() else None
+        reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub, noisy=noisy,
+                                   noise=noise if noisy is not None else None, fusion=self.fusion)
+
+    def _reconstruct_mosaic(self, todo, ys, xs, side, work, known, lower, upper, state, noise, method,
+                            preset) -> None:
+        """The blocks `todo` reconstructed as one mosaic of their context windows (side x side at (ys, xs)),
+        stacked into one column; their pixels written back into `work`."""
+        from . import reconstruction
+        h, w = work.shape
+        bs = int(self.options["block"])
         rows = (ys[:, None] + np.arange(side)[None, :])[:, :, None]
         cols = (xs[:, None] + np.arange(side)[None, :])[:, None, :]
         n = len(todo)
@@ -237,25 +326,38 @@ class TemporalReconstructor:
             work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
 
     def _alone(self, values, state, noise, report, g, floor, nd) -> dict:
-        """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it."""
+        """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it.
+        Under a budget (`_budgeted`) by the preview method: its missing pixels are placeholders (no
+        variance, no frame averaged) that the budgeted refinement replaces block by block."""
         from . import reconstruction
+        o = self.options
+        bs = int(o["block"])
+        h, w = values.shape
+        nby, nbx = (h + bs - 1) // bs, (w + bs - 1) // bs
+        preview = self._budgeted(nby * nbx)
         report["missing"] = int(reconstruction.reconstruct_frame(
-            values, state, method=self.method, preset=self.preset, use_bounds=self.use_bounds, noise=noise,
-            fusion=self.fusion))
+            values, state, method="preview" if preview else self.method, preset=self.preset,
+            use_bounds=self.use_bounds, noise=noise, fusion=self.fusion))
         if self._prev is None or self._prev.shape != values.shape:
             self._prev = np.empty_like(values)
             self._var = np.empty_like(values)
             self._cnt = np.empty(values.shape, np.uint8)
-        o = self.options
+            self._level = np.empty((nby, nbx), np.uint8)
+            self._uns = np.empty((nby, nbx), np.int32)
         _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
-                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]))
+                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]), preview)
+        self._level[...] = 0 if preview else 1
+        _block_unsettled(state, self._cnt, bs, np.float32(o["reuse_frames"]), self._uns)
         self.frames = 1
+        tot = float(nby * nbx)
+        has = float(np.count_nonzero(self._uns)) / tot
+        report.update(refined=0.0 if preview else has, pending=has if preview else 0.0, chosen=0.0,
+                      start="preview" if preview else "method")
         return report
 
 
 _EMPTY = np.full((1, 1), np.nan, np.float32)
 MARGIN = 16          # pixels of context around a block reconstructed in a mosaic (FSE's support: 16 or 32)
-MOSAIC_SHARE = 0.15  # at most this share of the blocks left to reconstruct: a mosaic of them, else the frame
 
 
 def _planes(h, w, nby, nbx):
@@ -302,20 +404,58 @@ def _tex_var(img, y, x, h, w, rec_tex):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex):
+def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex, placeholder):
     """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
-    the others with a fresh reconstruction's, each the average of 1 frame."""
+    the others with a fresh reconstruction's, each the average of 1 frame; with `placeholder` (a preview
+    start) the missing pixels that are not NOISY as no frame averaged (variance inf, count 0): the first
+    reconstruction of their block replaces them."""
     h, w = values.shape
+    inf = np.float32(np.inf)
     for y in prange(h):
         for x in range(w):
             v = values[y, x]
             cnt[y, x] = 1
             st = state[y, x]
             prev[y, x] = v
-            if (st & REASON_MASK) == VALID:
+            r = st & REASON_MASK
+            if r == VALID:
                 var[y, x] = _meas_var(v, (st & ATTENUATED) != 0, g, floor, nd)
+            elif placeholder and r != NOISY:
+                var[y, x] = inf
+                cnt[y, x] = 0
             else:
                 var[y, x] = _rec_var(v, g, floor, rec_noise, rec_tol) + _tex_var(values, y, x, h, w, rec_tex)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _settle(state, cnt, blocks, bs, n):
+    """The pixels not VALID of the blocks `blocks` marks average at least n frames (settled)."""
+    h, w = state.shape
+    nby, nbx = blocks.shape
+    for by in prange(nby):
+        for bx in range(nbx):
+            if blocks[by, bx] == 0:
+                continue
+            for y in range(by * bs, min(by * bs + bs, h)):
+                for x in range(bx * bs, min(bx * bs + bs, w)):
+                    c = cnt[y, x]
+                    if (state[y, x] & REASON_MASK) != VALID and c < n:
+                        cnt[y, x] = n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _block_unsettled(state, cnt, bs, reuse_frames, uns):
+    """uns[by, bx] = the block's pixels not VALID whose past averages fewer than `reuse_frames` frames (as
+    `_still_rows` counts them)."""
+    h, w = state.shape
+    nby, nbx = uns.shape
+    for by in prange(nby):
+        for bx in range(nbx):
+            c = 0
+            for y in range(by * bs, min(by * bs + bs, h)):
+                for x in range(bx * bs, min(bx * bs + bs, w)):
+                    c += np.int32(((state[y, x] & REASON_MASK) != VALID) & (cnt[y, x] < reuse_frames))
+            uns[by, bx] = c
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -530,16 +670,17 @@ def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lower, work, g, floor, nd, z_mean,
-                  out_share, tol, z_out, min_ev, reuse_frames, cmis, use_bounds, max_frames, allow_fast):
+def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, work, g, floor, nd, z_mean,
+                  out_share, tol, z_out, min_ev, reuse_frames, cmis, use_bounds, max_frames, allow_fast, sel, uns):
     """Per block: the candidate motion (`_candidates`: (cy[c], cx[c])) that explains the measured pixels
     (VALID and NOISY) best, and the decision (FRESH, REFRESH, REUSE, NO_PRIOR, NO_EVIDENCE). With
     `allow_fast` (no motion: the only candidate is none; every read is of the block's own pixels) a REUSE
     block without pixels filled upstream or non-finite measurements is finished right here, in cache
-    (`_reuse_row` once the block row is judged: its past and its output, its input values kept in `work`
-    for `_undo_fast`), fast = 1;
-    the general path skips it. With `use_bounds` `lower` holds the clipped-neighbour bound at clipped
-    regular pixels (`_clip_lower_rows`; elsewhere scratch). Returns the blocks trusted on their bounds
+    (`_reuse_row` once the block row is judged: its past and its output), fast = 1; `work` = the input
+    values of every row (for `_undo_fast` and the bounds of the blocks prepared after);
+    the general path skips it. A still trusted block whose missing pixels are not settled is reused as it
+    is unless sel[by, bx] chose it for refinement; uns[by, bx] = its unsettled pixels (`_still_rows`).
+    Returns the blocks trusted on their bounds
     alone, the pixels not VALID, those of them already RECONSTRUCTED, the VALID pixels that are not
     finite, and the pixels not VALID written."""
     h, w = values.shape
@@ -551,13 +692,15 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
     n_bad = 0
     n_written = 0
     for by in prange(nby):
-        zl = np.empty(bs, np.float32)       # the still fit's per-column sums (`_still_fit`)
-        il = np.empty((6, bs), np.int32)
+        zl = np.empty(w, np.float32)        # the still fit's per-column sums over the block row (`_still_rows`)
+        il = np.empty((6, w), np.int32)
         la = np.empty(w, np.float32)        # the reused blocks' rows (`_reuse_row`)
         lv = np.empty(w, np.float32)
         lc = np.empty(w, np.uint8)
         fm = np.zeros(w, np.uint8)
         c_written = 0
+        _still_rows(values, state, prev, var, cnt, by * bs, min(by * bs + bs, h), g, floor, nd, tol, z_out,
+                    reuse_frames, zl, il)
         for bx in range(nbx):
             y0 = by * bs
             x0 = bx * bs
@@ -580,8 +723,7 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
                 no = 0
                 if c == 0:
                     # still: the past at the same pixel, branch-free (the mask is random)
-                    zr, n, no, nu, nf, nb, unsettled = _still_fit(
-                        values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol, z_out, reuse_frames, zl, il)
+                    zr, n, no, nu, nf, nb, unsettled = _lane_sums(zl, il, x0, x1)
                     zs = zr
                     n_unknown += nu
                     n_flagged += nf
@@ -616,6 +758,7 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
                 if mr < np.float32(0.6) * z_mean and no == 0:
                     break          # explained well: the later candidates are not tried
             cand[by, bx] = best_c
+            uns[by, bx] = unsettled
             kept = False
             if best_n < min_ev:
                 # too few measurements (a saturated or black area): still, when the past keeps every
@@ -639,43 +782,46 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, lo
                 # noisy measurements)
                 # (only where nothing moved: a past moved by a whole-pixel estimate of a motion that is
                 # not would be copied with its position error, frame after frame)
-                reuse = (best_c == 0) & (unsettled == 0)
+                # (or not chosen for refinement this frame: `sel`)
+                reuse = (best_c == 0) & ((unsettled == 0) | (sel[by, bx] == 0))
                 dec[by, bx] = REUSE if reuse else REFRESH
                 if reuse & allow_fast & (blk_bad == 0):
                     fast[by, bx] = 1
                     fm[x0:x1] = 1
         if fm.any():
             for y in range(by * bs, min(by * bs + bs, h)):
-                c_written += _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g, floor,
+                c_written += _reuse_row(values, state, prev, var, cnt, work, y, fm, use_bounds, g, floor,
                                         nd, tol, z_out, max_frames, la, lv, lc)
+        else:
+            for y in range(by * bs, min(by * bs + bs, h)):
+                work[y, :] = values[y, :]
         n_written += c_written
     return n_kept, n_unknown, n_flagged, n_bad, n_written
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol, z_out, reuse_frames, zl, il):
-    """(sum of min(z, z_out), count, outliers) of the block's measured pixels against the past at the
-    same pixels (`_judge_blocks`' still candidate); the block's pixels not VALID, those of them already
-    RECONSTRUCTED, the VALID ones that are not finite, and the missing pixels (neither VALID nor NOISY:
-    NOISY ones are measured every frame) whose past averages fewer than `reuse_frames` frames.
-    Branch-free, summed per column in the scratch lanes zl (float32) and il (int32, 6 rows), at least
-    x1 - x0 long, so that the loop vectorises."""
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FAST)
+def _still_rows(values, state, prev, var, cnt, y0, y1, g, floor, nd, tol, z_out, reuse_frames, zl, il):
+    """Per column of rows y0..y1-1, the still candidate's terms of `_judge_blocks` (the past at the same
+    pixel): zl = the sum of min(z, z_out) over the measured (VALID, NOISY) pixels, il[0] their count,
+    il[1] their outliers (z > z_out), il[2] the pixels not VALID, il[3] those of them already
+    RECONSTRUCTED, il[4] the VALID ones that are not finite, il[5] the pixels not VALID whose past averages
+    fewer than `reuse_frames` frames (unsettled). Branch-free over whole rows, so that it vectorises."""
     zero = np.float32(0.0)
-    nw = x1 - x0
+    w = values.shape[1]
     ndg = nd * g
     ndf = nd * nd * floor
-    for i in range(nw):
-        zl[i] = zero
-        for k in range(6):
-            il[k, i] = 0
+    for x in range(w):
+        zl[x] = zero
+    for k in range(6):
+        for x in range(w):
+            il[k, x] = 0
     for y in range(y0, y1):
         vr = values[y]
         sr = state[y]
         pr = prev[y]
         qr = var[y]
         cr = cnt[y]
-        for i in range(nw):
-            x = x0 + i
+        for x in range(w):
             st = sr[x]
             r = st & REASON_MASK
             m = (r == VALID) | (r == NOISY)
@@ -689,17 +835,23 @@ def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol,
             base = vm + qr[x] + t * t
             z = d * d / base
             zc = z if z < z_out else z_out
-            zl[i] += zc if m else zero
+            zl[x] += zc if m else zero
             u = r != VALID
-            il[0, i] += np.int32(m)
-            il[1, i] += np.int32(m & (d * d > z_out * base))
-            il[2, i] += np.int32(u)
-            il[3, i] += np.int32(u & ((st & RECONSTRUCTED) != 0))
-            il[4, i] += np.int32((r == VALID) & (not (abs(v) < np.inf)))
-            il[5, i] += np.int32(u & (cr[x] < reuse_frames))
-    zs = zero
+            il[0, x] += np.int32(m)
+            il[1, x] += np.int32(m & (d * d > z_out * base))
+            il[2, x] += np.int32(u)
+            il[3, x] += np.int32(u & ((st & RECONSTRUCTED) != 0))
+            il[4, x] += np.int32((r == VALID) & (not (abs(v) < np.inf)))
+            il[5, x] += np.int32(u & (cr[x] < reuse_frames))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lane_sums(zl, il, x0, x1):
+    """The block x0..x1-1's sums of the lanes of `_still_rows`: (sum of min(z, z_out), measured, outliers,
+    not VALID, of them RECONSTRUCTED, VALID not finite, unsettled)."""
+    zs = np.float32(0.0)
     c0 = c1 = c2 = c3 = c4 = c5 = 0
-    for i in range(nw):
+    for i in range(x0, x1):
         zs += zl[i]
         c0 += il[0, i]
         c1 += il[1, i]
@@ -710,13 +862,14 @@ def _still_fit(values, state, prev, var, cnt, y0, y1, x0, x1, g, floor, nd, tol,
     return (zs, np.int64(c0), np.int64(c1), np.int64(c2), np.int64(c3), np.int64(c4), np.int64(c5))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g, floor, nd, tol, z_out, max_frames,
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=FAST)
+def _reuse_row(values, state, prev, var, cnt, work, y, fm, use_bounds, g, floor, nd, tol, z_out, max_frames,
                la, lv, lc):
     """Row y of the still REUSE blocks (fm[x] = 1 at their pixels) finished in place, branch-free: their
     past and output become the numbers `_prepare_px` and `_finish` give (measured and NOISY pixels
-    averaged with their past, an outlier restarted from its measurement, the others their past within
-    their bounds, RECONSTRUCTED); `work` keeps the input values (`_undo_fast`). The whole row is computed
+    averaged with their past, an outlier or a pixel whose past is a placeholder restarted from its
+    measurement, the others their past within their bounds, RECONSTRUCTED; a clipped pixel at least its
+    own value: the neighbours' bound was applied when it was reconstructed); `work` keeps the row's input values. The whole row is computed
     into the scratch lanes la, lv, lc (the caller's, the row's length), then selected, so that both loops
     are long and vectorise. Returns the pixels not VALID written."""
     zero = np.float32(0.0)
@@ -728,7 +881,6 @@ def _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g,
     pr = prev[y]
     qr = var[y]
     cr = cnt[y]
-    lr = lower[y]                             # (scratch without use_bounds: not used)
     wr = work[y]
     w = vr.shape[0]
     for x in range(w):
@@ -750,19 +902,18 @@ def _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g,
         nv = nv if nv > lim else lim
         d = v - p
         t = tol * p
-        out = meas & (d * d > z_out * (vm + vp + t * t))       # restarts from its measurement
+        fresh = not (vp < np.float32(np.inf))   # a placeholder past (a preview start): no frame averaged
+        out = meas & ((d * d > z_out * (vm + vp + t * t)) | fresh)       # restarts from its measurement
         vo = v if v > zero else zero
         nvo = (ndg * vo + ndf) if att else (g * vo + floor)
         q = p
-        m = lr[x]                             # the neighbours' bound of a clipped regular pixel
-        lb = m if ((st & (ATTENUATED | REASON_MASK)) == CLIPPED) & (m == m) & (m > v) else v
-        q = lb if use_bounds & (r == CLIPPED) & (lb == lb) & (lb > q) else q
+        q = v if use_bounds & (r == CLIPPED) & (v == v) & (v > q) else q
         q = v if use_bounds & (r == DARK) & (v == v) & (v < q) else q
         n1 = n0 + 1
         n1 = n1 if n1 < 255 else 255
         la[x] = v if out else (a if meas else q)
         lv[x] = nvo if out else (nv if meas else vp)
-        lc[x] = np.uint8((n0 if r == NOISY else 1) if out else (n1 if meas else n0))
+        lc[x] = np.uint8((n0 if (r == NOISY) & (not fresh) else 1) if out else (n1 if meas else n0))
     n = 0
     for x in range(w):
         f = fm[x] != 0
@@ -780,11 +931,11 @@ def _reuse_row(values, state, prev, var, cnt, lower, work, y, fm, use_bounds, g,
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _clip_lower_rows(values, state, lower):
+def _clip_lower_rows(values, state, lower, rows, bs):
     """lower[y, x] = the clipped-neighbour bound of the clipped regular pixels (`validity.clip_lower_row`,
-    in the rows that have one; elsewhere scratch)."""
+    in the rows of the block rows `rows` marks that have one; elsewhere scratch)."""
     for y in prange(state.shape[0]):
-        if row_has_clipped_regular(state, y):
+        if rows[y // bs] != 0 and row_has_clipped_regular(state, y):
             clip_lower_row(values, state, y, lower[y])
 
 
@@ -807,7 +958,7 @@ def _undo_fast(values, state, work, fast, bs):
 def _bounds_at(values, state, lower, y, x):
     """(lower, upper) bound of pixel (y, x) as `validity.bounds` gives them (NaN: none): a CLIPPED pixel
     at least its value, a clipped regular one at least its attenuated neighbours' smallest value when they
-    are all clipped (`lower[y, x]` as `_judge_blocks` leaves it); a DARK pixel at most its value."""
+    are all clipped (`lower[y, x]` as `_clip_lower_rows` leaves it); a DARK pixel at most its value."""
     nan = np.float32(np.nan)
     st = state[y, x]
     r = st & REASON_MASK

@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from nrhdr_core.chain import TEMPORAL_MODES
+from nrhdr_core.chain import MAX_TEMPORAL_BUDGET, TEMPORAL_BUDGET, TEMPORAL_MODES
 from nrhdr_core.fse import FSE_PRESETS
 from nrhdr_core.reconstruction import FUSIONS, METHODS
 
@@ -68,10 +68,19 @@ PROPERTIES = PropertyTable("GstNrReconstruct", [
          "it; blocks that did not change reuse their result; measured pixels of trusted blocks become their "
          "recursive average (docs/TEMPORAL.md). Restarts on flush, seek, caps change and "
          "stop. Monochrome streams only", playing=True),
+    Prop("temporal-budget", int, TEMPORAL_BUDGET, "Temporal budget",
+         "temporal=on: 16 x 16 blocks a frame the method may refine in a still shot. A shot's first frame "
+         "(and a cut's) is the preview; from the next frame on this many of the still blocks below their "
+         "temporal quality are reconstructed by the method each frame, most needed first, and kept once their "
+         "measured pixels average 4 frames, so that a static shot costs at most about the preview from its "
+         "first frame (docs/TEMPORAL.md). Counted in blocks, not time: the output does not depend on the "
+         "machine. 0 = no bound (the first frame by the method, every block that needs it every frame)",
+         minimum=0, maximum=MAX_TEMPORAL_BUDGET, playing=True),
     Prop("post-stats", bool, False, "Post statistics",
          "Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing = fraction of pixels "
          "reconstructed, method, seconds; with temporal=on also the blocks' shares reused, refreshed, fresh, "
-         "the global motion motion-x, motion-y and cut). Off by default: an application that never reads the "
+         "refined (reconstructed by the method), pending (reused at less than their temporal quality), the "
+         "global motion motion-x, motion-y and cut). Off by default: an application that never reads the "
          "bus would keep every message", playing=True),
     LATENCY_PROP,
 ])
@@ -118,7 +127,7 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
                  else [(s.method, s.preset)])
         self.nr_warmup(chain.warmup, [chain.ChainSettings(method=m, preset=p, use_bounds=s.use_bounds,
                                                           noise_fusion=s.noise_fusion, dark_policy=d,
-                                                          temporal=s.temporal)
+                                                          temporal=s.temporal, temporal_budget=s.temporal_budget)
                                       for m, p in rungs for d in chain.DARK_POLICIES],
                        stages=("reconstruction",), elements=True)
         self._auto = realtime.AutoController()
@@ -326,8 +335,9 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
             from nrhdr_core.temporal import TemporalReconstructor
             self._temporal = TemporalReconstructor(method="fse" if p.method == "auto" else p.method,
                                                    preset=p.preset, use_bounds=p.use_bounds,
-                                                   fusion=p.noise_fusion)
+                                                   fusion=p.noise_fusion, budget=p.temporal_budget)
             self._temporal_key = key
+        self._temporal.options["budget"] = int(p.temporal_budget)     # takes effect from this frame
         return self._temporal
 
     def _count_gap(self, buf) -> None:
@@ -367,7 +377,8 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         """Fields: the method (and fse preset) used for this frame, late frames QoS dropped before it,
         frames skipped upstream, and the processing latency answered to the LATENCY query; with temporal=on
         the work of `TemporalReconstructor.process`: shares of blocks reused, refreshed (reconstructed and
-        fused with their past), fresh (reconstructed alone), the global motion and whether the frame was a
+        fused with their past), fresh (reconstructed alone), refined (reconstructed by the method),
+        pending (reused before their temporal quality), the global motion and whether the frame was a
         cut."""
         s = Gst.Structure.new_empty(STATS_MESSAGE)
         s.set_value("frame", GObject.Value(GObject.TYPE_UINT64, self._frames))
@@ -383,6 +394,7 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         if work is not None:
             alone = work["fresh"] + work["no_prior"] + work["no_evidence"]
             for name, v in (("reused", work["reused"]), ("refreshed", work["refreshed"]), ("fresh", alone),
+                            ("refined", work["refined"]), ("pending", work["pending"]),
                             ("motion-x", work["motion"][1]), ("motion-y", work["motion"][0])):
                 s.set_value(name, GObject.Value(GObject.TYPE_DOUBLE, float(v)))
             s.set_value("cut", GObject.Value(GObject.TYPE_BOOLEAN, bool(work["cut"])))

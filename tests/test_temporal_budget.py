@@ -1,0 +1,198 @@
+"""Temporal reconstruction under a budget (`TemporalReconstructor(budget=...)`, nrreconstruct temporal-budget;
+docs/TEMPORAL.md "Budget"): a shot starts from the preview, at most `budget` blocks a frame are refined,
+the refinement is deterministic and converges to the unbounded temporal output on a static shot, cuts
+restart from the preview, the element equals the core and batch equals the element."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nrhdr_core import chain, profile, reconstruction, scene, sensor, simulate, validity
+from nrhdr_core.states import REASON_MASK, RECONSTRUCTED, VALID
+from nrhdr_core.temporal import TemporalReconstructor
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+H, W = 96, 128          # 6 x 8 = 48 blocks of 16 x 16
+BLOCKS = 48
+BUDGET = 6
+# the budgeted output of a settled static shot against the unbounded one, at the missing pixels: the median
+# and the 90th percentile of |log2 difference| (stops). The two are not the same numbers: the budgeted run
+# reconstructs a block once, from measured pixels averaged over at least 4 frames, the unbounded one
+# averages the reconstructions of the first 4 frames (their clipped pixels differ most, the budgeted ones
+# nearer the truth)
+CONVERGED_MEDIAN, CONVERGED_P90 = 0.01, 0.05
+
+
+@pytest.fixture(scope="module")
+def prof():
+    return profile.default(H, W, seed=5)
+
+
+@pytest.fixture(scope="module")
+def fluxes(prof):
+    """Two unrelated synthetic scenes (linear DN) of the frame's size."""
+    out = []
+    for seed in (7, 11):
+        sc = scene.synthetic_hdr_scene(H, W, seed=seed).astype(np.float32)
+        out.append(sc * np.float32(simulate.exposure_scale(sc, prof, 0.0)))
+    return out
+
+
+def frames(prof, flux, n, seed=3):
+    """n classified frames of a static shot of `flux` (noise differs per frame)."""
+    rng = np.random.default_rng(seed)
+    return [validity.classify(sensor.capture(flux, prof, rng), prof, dark_policy="weighted") for _ in range(n)]
+
+
+def run(tr, clip, prof):
+    """Outputs and reports of `tr` over the classified frames `clip` (copies: the inputs stay)."""
+    outs, reps = [], []
+    for v, s in clip:
+        v, s = v.copy(), s.copy()
+        reps.append(tr.process(v, s, noise=prof))
+        outs.append((v, s))
+    return outs, reps
+
+
+def log_err(truth, out, prof):
+    return (np.log2(np.clip(out, 1.0, prof.white)) - np.log2(np.clip(truth, 1.0, prof.white))) ** 2
+
+
+def test_a_budgeted_run_is_deterministic_and_keeps_its_budget(prof, fluxes):
+    clip = frames(prof, fluxes[0], 10)
+    a, ra = run(TemporalReconstructor(budget=BUDGET), clip, prof)
+    b, rb = run(TemporalReconstructor(budget=BUDGET), clip, prof)
+    for (va, sa), (vb, sb) in zip(a, b):
+        np.testing.assert_array_equal(va.view(np.uint32), vb.view(np.uint32))
+        np.testing.assert_array_equal(sa, sb)
+    assert ra == rb
+    assert all(round(r["chosen"] * BLOCKS) <= BUDGET for r in ra)
+    for v, s in a:
+        miss = (s & REASON_MASK) != VALID
+        assert np.isfinite(v).all() and np.all(s[miss] & RECONSTRUCTED)
+
+
+def test_a_shot_starts_from_the_preview_alone(prof, fluxes):
+    """The first frame under a budget is `reconstruct_frame` by the preview method, bit for bit."""
+    (v, s), = frames(prof, fluxes[0], 1)
+    v1, s1 = v.copy(), s.copy()
+    rep = TemporalReconstructor(budget=BUDGET).process(v, s, noise=prof)
+    assert rep["reset"] and rep["start"] == "preview" and rep["pending"] > 0.5 and rep["refined"] == 0.0
+    reconstruction.reconstruct_frame(v1, s1, method="preview", noise=prof)
+    np.testing.assert_array_equal(v, v1)
+    np.testing.assert_array_equal(s, s1)
+
+
+def test_a_budget_of_every_block_is_no_bound(prof, fluxes):
+    clip = frames(prof, fluxes[0], 6)
+    a, ra = run(TemporalReconstructor(budget=BLOCKS), clip, prof)
+    b, _ = run(TemporalReconstructor(budget=0), clip, prof)
+    assert ra[0]["start"] == "method"
+    for (va, sa), (vb, sb) in zip(a, b):
+        np.testing.assert_array_equal(va, vb)
+        np.testing.assert_array_equal(sa, sb)
+
+
+def test_refinement_converges_to_the_unbounded_output_of_a_static_shot(prof, fluxes):
+    """Blocks wait at preview quality until refined, `budget` a frame; then nothing is pending, no block is
+    refined any more, and the output equals the unbounded run's within CONVERGED_MEDIAN / CONVERGED_P90 and
+    is no further from the truth."""
+    n = 24
+    clip = frames(prof, fluxes[0], n)
+    a, ra = run(TemporalReconstructor(budget=BUDGET), clip, prof)
+    b, _ = run(TemporalReconstructor(budget=0), clip, prof)
+    pending = [r["pending"] for r in ra]
+    assert pending[1] > 0.5
+    assert all(p1 <= p0 + 1e-9 for p0, p1 in zip(pending[1:], pending[2:]))     # never more to do
+    done = next(i for i, p in enumerate(pending) if p == 0 and i > 0)
+    assert done <= 4 + BLOCKS // BUDGET + 2, pending
+    assert all(r["refined"] == 0 and r["chosen"] == 0 for r in ra[-3:])          # settled: no reconstruction
+    e_a, e_b = [], []
+    for (va, sa), (vb, _) in zip(a[-4:], b[-4:]):
+        miss = (sa & REASON_MASK) != VALID
+        d = np.abs(np.log2(np.maximum(va[miss], 1.0)) - np.log2(np.maximum(vb[miss], 1.0)))
+        assert np.median(d) < CONVERGED_MEDIAN and np.percentile(d, 90) < CONVERGED_P90
+        e_a.append(log_err(fluxes[0], va, prof).mean())
+        e_b.append(log_err(fluxes[0], vb, prof).mean())
+    assert np.mean(e_a) <= 1.05 * np.mean(e_b)
+
+
+def test_a_cut_restarts_from_the_preview(prof, fluxes):
+    tr = TemporalReconstructor(budget=BUDGET)
+    run(tr, frames(prof, fluxes[0], 14), prof)
+    clip = frames(prof, fluxes[1], 3, seed=9)
+    v, s = clip[0][0].copy(), clip[0][1].copy()
+    rep = tr.process(v, s, noise=prof)
+    assert rep["cut"] and rep["reset"] and rep["start"] == "preview"
+    v1, s1 = clip[0][0].copy(), clip[0][1].copy()
+    reconstruction.reconstruct_frame(v1, s1, method="preview", noise=prof)
+    np.testing.assert_array_equal(v, v1)
+    np.testing.assert_array_equal(s, s1)
+    _, reps = run(tr, clip[1:], prof)
+    assert not any(r["cut"] for r in reps) and reps[0]["pending"] > 0.5       # the new shot refines again
+
+
+def test_bad_budgets_are_refused():
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="budget"):
+            TemporalReconstructor(budget=bad)
+        with pytest.raises(ValueError, match="temporal_budget"):
+            chain.ChainSettings(temporal="on", temporal_budget=bad)
+
+
+def test_element_budget_matches_core_and_posts_the_refinement(gst, prof, fluxes):
+    from conftest import hdr_buffer, run_appsrc
+    sec = gst.SECOND
+    clip = frames(prof, fluxes[0], 6, seed=6)
+    bufs = [hdr_buffer(v.copy(), s.copy(), pts=i * sec // 30, duration=sec // 30) for i, (v, s) in enumerate(clip)]
+    r = run_appsrc(f"nrreconstruct name=r method=fse preset=fast temporal=on temporal-budget={BUDGET} "
+                   "post-stats=true", f"other/x-nrhdr,width={W},height={H},framerate=30/1", bufs, lockstep=True)
+    assert r.error is None, r.error_text
+    st = r.element_messages("nrhdr-frame-stats")
+    core, reps = run(TemporalReconstructor(method="fse", preset="fast", budget=BUDGET), clip,
+                     validity.default_noise())
+    assert len(st) == len(clip)
+    for i, (v, s) in enumerate(core):
+        np.testing.assert_array_equal(r.samples[i][3][0], v)
+        np.testing.assert_array_equal(r.samples[i][3][1], s)
+        assert st[i].get_value("refined") == pytest.approx(reps[i]["refined"])
+        assert st[i].get_value("pending") == pytest.approx(reps[i]["pending"])
+    assert st[0].get_value("pending") > 0.5
+
+
+@pytest.mark.gst
+def test_the_element_pipeline_equals_batch_under_the_default_budget(tmp_path, gst_subprocess_env):
+    """A steady shot with more blocks than the default budget (272 x 240: 255 blocks): `... ! nrreconstruct
+    temporal=on ! nrexrsink` == nrhdr batch --temporal on, every pixel's bits and state byte, and the
+    budget bounded the work (the first frame is the preview)."""
+    from test_batch import assert_same_exr, exr_frames, nrhdr_batch
+    from test_batch_temporal import sequential
+    h, w = 240, 272
+    assert (h // 16) * (w // 16) > chain.TEMPORAL_BUDGET
+    prof = profile.default(h, w, seed=5)
+    d = tmp_path / "steady"
+    simulate.simulate_clip(scene.synthetic_hdr_scene(2 * h, 2 * w, seed=3), d, prof, frames=4, seed=5,
+                           motion=simulate.Motion(pan=0.0, tilt=0.0, zoom=1.0, fov=0.8), progress=False)
+    prof = profile.load(d / "camera.json")
+    raws = np.fromfile(d / "clip.raw", "<u2").reshape(4, h, w)
+    _, reports = sequential(raws, prof)
+    assert reports[0]["start"] == "preview" and reports[1]["pending"] > 0
+    rc, log = nrhdr_batch(d, "-o", tmp_path / "batch", "--workers", "0", "--temporal", "on", "--chunk", "10",
+                          env=gst_subprocess_env)
+    assert rc == 0, log
+    cmd = [sys.executable, "-m", "gst_plugins.cli", "launch", "-q", "filesrc", f"location={d / 'clip.raw'}",
+           "!", "rawvideoparse", "format=gray16-le", f"width={w}", f"height={h}", "framerate=30/1",
+           f"plane-strides=<{2 * w}>", "!", "nrvalidity", f"profile={d / 'camera.json'}", "!", "nrcrosstalk",
+           "!", "nrreconstruct", "method=fse", "preset=fast", "temporal=on", "!", "nrexrsink",
+           "write-state=true", f"location={tmp_path / 'gst'}/frame_%05d.exr"]
+    p = subprocess.run(cmd, env=gst_subprocess_env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout + p.stderr
+    a, b = exr_frames(tmp_path / "batch"), exr_frames(tmp_path / "gst")
+    assert [f.name for f in a] == [f.name for f in b] == [f"frame_{i:05d}.exr" for i in range(4)]
+    for fa, fb in zip(a, b):
+        assert_same_exr(fa, fb)
