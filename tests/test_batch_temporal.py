@@ -22,9 +22,9 @@ from test_batch import assert_same_exr, exr_frames, nrhdr_batch  # noqa: E402
 H, W = 48, 64
 
 
-def settings():
+def settings(**kw):
     from nrhdr_core import chain
-    return chain.ChainSettings(temporal="on")
+    return chain.ChainSettings(temporal="on", **kw)
 
 
 class Recording:
@@ -40,10 +40,11 @@ class Recording:
         return r
 
 
-def sequential(raws, prof, start=0):
-    """nrreconstruct temporal=on over frames start.. in order: [(values, state)], [report]."""
+def sequential(raws, prof, start=0, **kw):
+    """nrreconstruct temporal=on (other settings: `kw`) over frames start.. in order: [(values, state)],
+    [report]."""
     from nrhdr_core import chain
-    s = settings()
+    s = settings(**kw)
     rec = Recording(chain.temporal_for(s))
     out = [chain.process_frame(raws[i], prof, s, temporal=rec) for i in range(start, len(raws))]
     return out, rec.reports
@@ -308,3 +309,25 @@ if __name__ == "__main__":
         for k, (n, share, mx, rms, e_c, e_s) in chunking_table(kind).items():
             print(f"overlap {k:2d} ({n} chunks): " + " | ".join(
                 f"{100 * share[j]:.0f}% {mx[j]:.2f} {rms[j]:.3f} {e_c[j]:.3f}:{e_s[j]:.3f}" for j in range(len(share))))
+
+
+def test_temporal_budget_reaches_the_reconstructor(steady, tmp_path):
+    """--temporal-budget 2 (of the 64x48 frame's 12 blocks) = nrreconstruct temporal=on temporal-budget=2's
+    core over the clip, bit for bit; it bounds the refinement (no frame chooses more than 2 blocks to refine) and
+    its frames differ from the default budget's, which covers the whole frame; without --temporal on it is
+    refused before any frame."""
+    d, prof, raws = steady
+    seq, reports = sequential(raws, prof, temporal_budget=2)
+    assert all(r["chosen"] * r["blocks"] <= 2 + 1e-9 for r in reports)
+    assert any(r["chosen"] > 0 for r in reports)
+    rc, log = nrhdr_batch(d, "-o", tmp_path / "b2", "--workers", "0", "--temporal", "on", "--chunk", "100",
+                          "--temporal-budget", "2")
+    assert rc == 0, log
+    out = read_out(tmp_path / "b2", len(raws))
+    for i, f in enumerate(out):
+        assert same(f, seq[i]), i
+    default, _ = sequential(raws, prof)
+    assert not all(same(a, b) for a, b in zip(seq, default))
+    rc, log = nrhdr_batch(d, "-o", tmp_path / "off", "--workers", "0", "--temporal-budget", "2")
+    assert rc == 2 and "--temporal-budget" in log and "--temporal on" in log, log
+    assert not (tmp_path / "off").exists() or not any((tmp_path / "off").iterdir())

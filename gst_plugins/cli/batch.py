@@ -62,6 +62,9 @@ def add_batch(sub) -> None:
     g.add_argument("--temporal", choices=chain.TEMPORAL_MODES, default="off",
                    help="nrreconstruct temporal (on: the previous frames as a prior; frames are computed in "
                         "chunks of consecutive frames, see --chunk, --overlap)")
+    g.add_argument("--temporal-budget", type=number(0, chain.MAX_TEMPORAL_BUDGET, integer=True), default=None,
+                   help=f"nrreconstruct temporal-budget: blocks per frame that FSE refines after a shot's preview "
+                        f"start (default {chain.TEMPORAL_BUDGET}; 0 = no bound; docs/TEMPORAL.md)")
     g.add_argument("--png", action="store_true",
                    help="also write tone-mapped GRAY8 PNGs (nrtonemap; monochrome clips)")
     g.add_argument("--operator", choices=chain.SDR_OPERATORS, default="local",
@@ -103,12 +106,16 @@ def cmd_batch(a) -> int:
     if a.temporal != "on" and (a.chunk is not None or a.overlap is not None):
         raise ValueError(f"{'--chunk' if a.chunk is not None else '--overlap'} is for the temporal "
                          f"reconstruction's chunks: add --temporal on (without it every frame is computed alone)")
+    if a.temporal != "on" and a.temporal_budget is not None:
+        raise ValueError("--temporal-budget bounds the temporal reconstruction's refinement: add --temporal on")
     from nrhdr_core import chain, profile
     settings = chain.ChainSettings(mode=a.mode, l_min=a.l_min, dark_policy=a.dark_policy, crosstalk=a.crosstalk,
                                    crosstalk_lut=a.crosstalk_lut, method=a.method,
                                    preset=a.preset, use_bounds=not a.no_bounds, noise_fusion=a.noise_fusion,
                                    temporal=a.temporal, operator=a.operator, white=a.white, exposure=a.exposure,
-                                   contrast=a.contrast)
+                                   contrast=a.contrast,
+                                   temporal_budget=(chain.TEMPORAL_BUDGET if a.temporal_budget is None
+                                                    else a.temporal_budget))
     src = batch.open_source(a.input, a.profile, a.width, a.height, a.frames, allow_outside=a.allow_outside_paths,
                             start_index=a.start_index)
     job = batch.Job(src, a.output, settings, png=a.png, crosstalk_profile=a.crosstalk_profile,
