@@ -309,6 +309,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
+    _chroma_filter(out, state, blk, pos, c, rng, crow, use_bounds and bool(cnt[_N_CLIP]))
 
 
 def _unkey(key) -> float:
@@ -760,3 +761,191 @@ def warmup() -> None:
     for method in METHODS:
         for v in (vals, ro):
             reconstruct_cfa(v, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
+
+
+# ---- colour-difference median (docs/COLOUR.md "Colour-difference median") ---------------------------------
+# Freeman's median of colour differences (US patent 4,724,395, 1988; the log-domain form: the median of the
+# ratio (x + c) / (G + c) is 2^ of the median of the log difference, the logarithm being monotonic), 3 x 3, once,
+# after the colour pass and the noise fusion: each photosite keeps its own channel and takes the other two
+# from it and the medians of the ratios R : G and B : G around it.
+
+_CM_LO, _CM_MI, _CM_HI, _CM_MR, _CM_MB, _CM_ONE = 6, 7, 8, 9, 10, 11     # row buffers after the ratio ring (0-5)
+_CM_ROWS = 12
+
+
+def _chroma_scratch(h, w):
+    """The calling thread's planes of the colour-difference median (`scratch.planes`): per chunk of rows a
+    ring of three ratio rows per difference and row buffers (`_CM_*`), the ratio rows beside each chunk
+    (`bnd`: the row above and the row below) and the green plane's range per row."""
+    def make():
+        rows = np.zeros((_CHUNKS, _CM_ROWS, w), np.float32)
+        rows[:, _CM_ONE] = 1.0
+        return dict(rows=rows, bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
+    return planes("demosaic.chroma", (h, w), make)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ratio_row(out, y, c, dr, db):
+    """dr, db = the ratios (max(R, 0) + c) / (max(G, 0) + c) and likewise for B in row y of `out`."""
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    r = out[0, y]
+    g = out[1, y]
+    b = out[2, y]
+    for x in range(r.shape[0]):
+        gv = g[x]
+        rv = r[x]
+        bv = b[x]
+        q = one / ((gv if gv > zero else zero) + c)
+        dr[x] = ((rv if rv > zero else zero) + c) * q
+        db[x] = ((bv if bv > zero else zero) + c) * q
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _chroma_edges(out, c, bnd, gmm):
+    """Before any row changes: `bnd[k]` = the ratio rows just above and just below chunk k of `_chroma_median`
+    (edge rows replicated) and gmm[y] = (min, max) of green in row y."""
+    h = out.shape[1]
+    nch = bnd.shape[0]
+    for k in prange(nch):
+        y0 = k * h // nch
+        y1 = (k + 1) * h // nch
+        if y1 > y0:
+            ya = y0 - 1 if y0 > 0 else y0
+            yb = y1 if y1 < h else h - 1
+            _ratio_row(out, ya, c, bnd[k, 0, 0], bnd[k, 0, 1])
+            _ratio_row(out, yb, c, bnd[k, 1, 0], bnd[k, 1, 1])
+        for y in range(y0, y1):
+            g = out[1, y]
+            lo = _BIG
+            hi = -_BIG
+            for x in range(g.shape[0]):
+                lo = min(lo, g[x])
+                hi = max(hi, g[x])
+            gmm[y, 0] = lo
+            gmm[y, 1] = hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sort3(a, b, c):
+    lo = min(a, b)
+    hi = max(a, b)
+    return min(lo, c), max(lo, min(hi, c)), max(hi, c)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _med3(a, b, c):
+    return max(min(a, b), min(max(a, b), c))
+
+
+@njit(cache=True, nogil=True)
+def _median3_row(a, b, c, lo, mi, hi, m):
+    """m[x] = the median of the 3 x 3 window of the rows a, b, c around column x (edge columns replicated):
+    each column sorted, then the median of the largest low, the median of the middles and the smallest high
+    (exact for 9 values)."""
+    w = a.shape[0]
+    for x in range(w):
+        lo[x], mi[x], hi[x] = _sort3(a[x], b[x], c[x])
+    for x in range(1, w - 1):
+        m[x] = _med3(max(max(lo[x - 1], lo[x]), lo[x + 1]), _med3(mi[x - 1], mi[x], mi[x + 1]),
+                     min(min(hi[x - 1], hi[x]), hi[x + 1]))
+    for x in (0, w - 1):
+        xl = x - 1 if x > 0 else x
+        xr = x + 1 if x + 1 < w else x
+        m[x] = _med3(max(max(lo[xl], lo[x]), lo[xr]), _med3(mi[xl], mi[x], mi[xr]),
+                     min(min(hi[xl], hi[x]), hi[xr]))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rebuild_row(a, o1, o2, q, m1, m2, x0, c, lo1, hi1, lo2, hi2, inv):
+    """The photosites x0, x0 + 2, ... of a row from their own channel `a`: with A = (max(a, 0) + c) / q
+    (q: the own channel's median ratio, ones for green) o1 = A - c (`inv`: o1 is green) or A m1 - c, and
+    o2 = A m2 - c, within [lo, hi] (a non-finite result: hi)."""
+    zero = np.float32(0.0)
+    for x in range(x0, a.shape[0], 2):
+        v = a[x]
+        gc = ((v if v > zero else zero) + c) / q[x]
+        e1 = gc - c if inv else gc * m1[x] - c
+        e2 = gc * m2[x] - c
+        e1 = e1 if e1 - e1 == zero else hi1
+        e2 = e2 if e2 - e2 == zero else hi2
+        o1[x] = min(max(e1, lo1), hi1)
+        o2[x] = min(max(e2, lo2), hi2)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _chroma_median(out, blk, c, lim, bnd, rows):
+    """Row by row in chunks: the 3 x 3 medians of the ratios R : G and B : G (a ring of three ratio rows per
+    chunk, read from rows not yet changed; the rows beside the chunk from `bnd`), then each photosite's other
+    two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel)."""
+    h = out.shape[1]
+    nch = rows.shape[0]
+    rlo, rhi, glo, ghi, blo, bhi = lim[0, 0], lim[0, 1], lim[1, 0], lim[1, 1], lim[2, 0], lim[2, 1]
+    for k in prange(nch):
+        buf = rows[k]
+        y0 = k * h // nch
+        y1 = (k + 1) * h // nch
+        if y1 <= y0:
+            continue
+        for i in range(2):
+            buf[i] = bnd[k, 0, i]                   # ring slot of row y0 - 1
+        _ratio_row(out, y0, c, buf[2], buf[3])      # slot of row y0
+        s0, s1, s2 = 0, 2, 4                         # ring slots of rows y - 1, y, y + 1
+        for y in range(y0, y1):
+            if y + 1 < y1:
+                _ratio_row(out, y + 1, c, buf[s2], buf[s2 + 1])
+            else:
+                for i in range(2):
+                    buf[s2 + i] = bnd[k, 1, i]
+            for i in range(2):
+                _median3_row(buf[s0 + i], buf[s1 + i], buf[s2 + i], buf[_CM_LO], buf[_CM_MI], buf[_CM_HI],
+                             buf[_CM_MR + i])
+            mr = buf[_CM_MR]
+            mb = buf[_CM_MB]
+            for px in range(2):
+                own = blk[y & 1, px]
+                if own == 1:
+                    _rebuild_row(out[1, y], out[0, y], out[2, y], buf[_CM_ONE], mr, mb, px, c, rlo, rhi, blo, bhi,
+                                 False)
+                elif own == 0:
+                    _rebuild_row(out[0, y], out[1, y], out[2, y], mr, mr, mb, px, c, glo, ghi, blo, bhi, True)
+                else:
+                    _rebuild_row(out[2, y], out[1, y], out[0, y], mb, mb, mr, px, c, glo, ghi, rlo, rhi, True)
+            s0, s1, s2 = s1, s2, s0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _relift(state, pos, crow, rows, out):
+    """In the rows `crow`: the clipped-neighbour lower bounds of `_colour` (green, red and blue in their own
+    rows) and `_clipped_around` again, after the colour-difference median."""
+    h = state.shape[0]
+    nch = rows.shape[0]
+    for k in prange(nch):
+        for y in range(k * h // nch, (k + 1) * h // nch):
+            if crow[y]:
+                b0 = rows[k, 0]
+                b1 = rows[k, 1]
+                gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
+                _lift_row(out[1, y], out[1], state, y, 1 - gx, True, True, False, b0, b1)
+                for ch in (0, 2):
+                    if pos[ch, 0] == (y & 1):
+                        _lift_row(out[ch, y], out[ch], state, y, 1 - pos[ch, 1], True, False, False, b0, b1)
+                _clipped_row(state, pos, out, y, b0, b1)
+
+
+def _chroma_filter(out, state, blk, pos, c, rng, crow, relift):
+    """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
+    (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
+    channel's range (`rng`: R, B as `_colour`; green within the green plane's range) and, with `relift`, the
+    clipped-neighbour lower bounds in the rows `crow` again."""
+    h, w = state.shape
+    sc = _chroma_scratch(h, w)
+    c = np.float32(c)
+    _chroma_edges(out, c, sc["bnd"], sc["gmm"])
+    lim = np.empty((3, 2), np.float32)
+    lim[:, 0] = rng[:, 0]
+    lim[:, 1] = rng[:, 2]
+    lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
+    _chroma_median(out, blk, c, lim, sc["bnd"], sc["rows"])
+    if relift:
+        _relift(state, pos, crow, sc["rows"], out)
