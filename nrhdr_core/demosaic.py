@@ -309,7 +309,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
-    _chroma_filter(out, state, blk, pos, c, rng, crow, use_bounds and bool(cnt[_N_CLIP]))
+    _chroma_filter(out, state, blk, pos, c, rng, crow)
 
 
 def _unkey(key) -> float:
@@ -874,10 +874,12 @@ def _rebuild_row(a, o1, o2, q, m1, m2, x0, c, lo1, hi1, lo2, hi2, inv):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _chroma_median(out, blk, c, lim, bnd, rows):
+def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
     """Row by row in chunks: the 3 x 3 medians of the ratios R : G and B : G (a ring of three ratio rows per
     chunk, read from rows not yet changed; the rows beside the chunk from `bnd`), then each photosite's other
-    two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel)."""
+    two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel); in the rows `crow` then the
+    clipped-neighbour lower bounds of `_colour` and `_clipped_around` again (they read own channels only,
+    which stay as they are)."""
     h = out.shape[1]
     nch = rows.shape[0]
     rlo, rhi, glo, ghi, blo, bhi = lim[0, 0], lim[0, 1], lim[1, 0], lim[1, 1], lim[2, 0], lim[2, 1]
@@ -911,33 +913,23 @@ def _chroma_median(out, blk, c, lim, bnd, rows):
                     _rebuild_row(out[0, y], out[1, y], out[2, y], mr, mr, mb, px, c, glo, ghi, blo, bhi, True)
                 else:
                     _rebuild_row(out[2, y], out[1, y], out[0, y], mb, mb, mr, px, c, glo, ghi, rlo, rhi, True)
-            s0, s1, s2 = s1, s2, s0
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _relift(state, pos, crow, rows, out):
-    """In the rows `crow`: the clipped-neighbour lower bounds of `_colour` (green, red and blue in their own
-    rows) and `_clipped_around` again, after the colour-difference median."""
-    h = state.shape[0]
-    nch = rows.shape[0]
-    for k in prange(nch):
-        for y in range(k * h // nch, (k + 1) * h // nch):
             if crow[y]:
-                b0 = rows[k, 0]
-                b1 = rows[k, 1]
+                b0 = buf[_CM_LO]
+                b1 = buf[_CM_MI]
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
                 _lift_row(out[1, y], out[1], state, y, 1 - gx, True, True, False, b0, b1)
                 for ch in (0, 2):
                     if pos[ch, 0] == (y & 1):
                         _lift_row(out[ch, y], out[ch], state, y, 1 - pos[ch, 1], True, False, False, b0, b1)
                 _clipped_row(state, pos, out, y, b0, b1)
+            s0, s1, s2 = s1, s2, s0
 
 
-def _chroma_filter(out, state, blk, pos, c, rng, crow, relift):
+def _chroma_filter(out, state, blk, pos, c, rng, crow):
     """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
     (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
-    channel's range (`rng`: R, B as `_colour`; green within the green plane's range) and, with `relift`, the
-    clipped-neighbour lower bounds in the rows `crow` again."""
+    channel's range (`rng`: R, B as `_colour`; green within the green plane's range), the clipped-neighbour
+    lower bounds in the rows `crow` (`_near_clipped`) again."""
     h, w = state.shape
     sc = _chroma_scratch(h, w)
     c = np.float32(c)
@@ -946,6 +938,4 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow, relift):
     lim[:, 0] = rng[:, 0]
     lim[:, 1] = rng[:, 2]
     lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
-    _chroma_median(out, blk, c, lim, sc["bnd"], sc["rows"])
-    if relift:
-        _relift(state, pos, crow, sc["rows"], out)
+    _chroma_median(out, state, blk, pos, c, lim, sc["bnd"], crow, sc["rows"])
