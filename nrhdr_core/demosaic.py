@@ -13,6 +13,8 @@ reconstruction):
    1 of the pull-push pyramid with the monochrome preview's neighbour fill, or an FSE image of half size in
    the linear domain), turned into ratios 2^d, interpolated bilinearly to every photosite:
    R = (max(G, 0) + c) 2^d_R - c, B likewise.
+4. the colour-difference median (`_chroma_filter`): the other two channels of each photosite rebuilt from
+   its own one and the 3 x 3 medians of the ratios 2^d_R, 2^d_B (Freeman 1988).
 
 The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its value
 kept bit for bit; a missing photosite's own channel clamped to its channel's data range [min(known min, 0),
@@ -769,8 +771,8 @@ def warmup() -> None:
 # after the colour pass and the noise fusion: each photosite keeps its own channel and takes the other two
 # from it and the medians of the ratios R : G and B : G around it.
 
-_CM_LO, _CM_MI, _CM_HI, _CM_MR, _CM_MB, _CM_ONE = 6, 7, 8, 9, 10, 11     # row buffers after the ratio ring (0-5)
-_CM_ROWS = 12
+_CM_LO, _CM_MI, _CM_HI, _CM_MR, _CM_MB = 6, 7, 8, 9, 10     # row buffers after the ratio ring (0-5)
+_CM_ROWS = 11
 
 
 def _chroma_scratch(h, w):
@@ -778,9 +780,7 @@ def _chroma_scratch(h, w):
     ring of three ratio rows per difference and row buffers (`_CM_*`), the ratio rows beside each chunk
     (`bnd`: the row above and the row below) and the green plane's range per row."""
     def make():
-        rows = np.zeros((_CHUNKS, _CM_ROWS, w), np.float32)
-        rows[:, _CM_ONE] = 1.0
-        return dict(rows=rows, bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
+        return dict(rows=np.zeros((_CHUNKS, _CM_ROWS, w), np.float32), bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
     return planes("demosaic.chroma", (h, w), make)
 
 
@@ -857,20 +857,29 @@ def _median3_row(a, b, c, lo, mi, hi, m):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rebuild_row(a, o1, o2, q, m1, m2, x0, c, lo1, hi1, lo2, hi2, inv):
-    """The photosites x0, x0 + 2, ... of a row from their own channel `a`: with A = (max(a, 0) + c) / q
-    (q: the own channel's median ratio, ones for green) o1 = A - c (`inv`: o1 is green) or A m1 - c, and
-    o2 = A m2 - c, within [lo, hi] (a non-finite result: hi)."""
+def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
+    """A row of green photosites (columns of parity gp) and photosites of one other colour s (t: the third
+    channel; ms, mt: their median ratios), each rebuilt from its own channel a: with A = (max(a, 0) + c) / q
+    (q = 1 at green, ms at s) green = A - c, s = A ms - c, t = A mt - c where not its own, within
+    [lo, hi] (a non-finite result: hi). Contiguous and branch-free (it vectorises)."""
     zero = np.float32(0.0)
-    for x in range(x0, a.shape[0], 2):
-        v = a[x]
-        gc = ((v if v > zero else zero) + c) / q[x]
-        e1 = gc - c if inv else gc * m1[x] - c
-        e2 = gc * m2[x] - c
-        e1 = e1 if e1 - e1 == zero else hi1
-        e2 = e2 if e2 - e2 == zero else hi2
-        o1[x] = min(max(e1, lo1), hi1)
-        o2[x] = min(max(e2, lo2), hi2)
+    one = np.float32(1.0)
+    for x in range(g.shape[0]):
+        isg = (x & 1) == gp
+        g0 = g[x]
+        s0 = s[x]
+        a = g0 if isg else s0
+        q = one if isg else ms[x]
+        gc = ((a if a > zero else zero) + c) / q
+        eg = gc - c
+        es = gc * ms[x] - c
+        et = gc * mt[x] - c
+        eg = eg if eg - eg == zero else ghi
+        es = es if es - es == zero else shi
+        et = et if et - et == zero else thi
+        g[x] = g0 if isg else min(max(eg, glo), ghi)
+        s[x] = min(max(es, slo), shi) if isg else s0
+        t[x] = min(max(et, tlo), thi)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -904,15 +913,11 @@ def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
                              buf[_CM_MR + i])
             mr = buf[_CM_MR]
             mb = buf[_CM_MB]
-            for px in range(2):
-                own = blk[y & 1, px]
-                if own == 1:
-                    _rebuild_row(out[1, y], out[0, y], out[2, y], buf[_CM_ONE], mr, mb, px, c, rlo, rhi, blo, bhi,
-                                 False)
-                elif own == 0:
-                    _rebuild_row(out[0, y], out[1, y], out[2, y], mr, mr, mb, px, c, glo, ghi, blo, bhi, True)
-                else:
-                    _rebuild_row(out[2, y], out[1, y], out[0, y], mb, mb, mr, px, c, glo, ghi, rlo, rhi, True)
+            gp = 0 if blk[y & 1, 0] == 1 else 1
+            if blk[y & 1, 1 - gp] == 0:
+                _rebuild_row(out[1, y], out[0, y], out[2, y], mr, mb, gp, c, glo, ghi, rlo, rhi, blo, bhi)
+            else:
+                _rebuild_row(out[1, y], out[2, y], out[0, y], mb, mr, gp, c, glo, ghi, blo, bhi, rlo, rhi)
             if crow[y]:
                 b0 = buf[_CM_LO]
                 b1 = buf[_CM_MI]
