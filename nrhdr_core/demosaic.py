@@ -828,6 +828,7 @@ def _chroma_edges(out, c, bnd, gmm):
 
 @njit(cache=True, nogil=True, inline="always")
 def _sort3(a, b, c):
+    """(a, b, c) in ascending order."""
     lo = min(a, b)
     hi = max(a, b)
     return min(lo, c), max(lo, min(hi, c)), max(hi, c)
@@ -835,6 +836,7 @@ def _sort3(a, b, c):
 
 @njit(cache=True, nogil=True, inline="always")
 def _med3(a, b, c):
+    """The median of three values."""
     return max(min(a, b), min(max(a, b), c))
 
 
