@@ -13,6 +13,8 @@ reconstruction):
    1 of the pull-push pyramid with the monochrome preview's neighbour fill, or an FSE image of half size in
    the linear domain), turned into ratios 2^d, interpolated bilinearly to every photosite:
    R = (max(G, 0) + c) 2^d_R - c, B likewise.
+4. the colour-difference median (`_chroma_filter`): the other two channels of each photosite rebuilt from
+   its own one and the 3 x 3 medians of the ratios 2^d_R, 2^d_B (Freeman 1988).
 
 The rules of the monochrome chain hold per photosite, for its own channel: known = reason VALID and its value
 kept bit for bit; a missing photosite's own channel clamped to its channel's data range [min(known min, 0),
@@ -309,6 +311,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
+    _chroma_filter(out, state, blk, pos, c, rng, crow)
 
 
 def _unkey(key) -> float:
@@ -760,3 +763,186 @@ def warmup() -> None:
     for method in METHODS:
         for v in (vals, ro):
             reconstruct_cfa(v, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
+
+
+# ---- colour-difference median (docs/COLOUR.md "Colour-difference median") ---------------------------------
+# Freeman's median of colour differences (US patent 4,724,395, 1988; the log-domain form: the median of the
+# ratio (x + c) / (G + c) is 2^ of the median of the log difference, the logarithm being monotonic), 3 x 3, once,
+# after the colour pass and the noise fusion: each photosite keeps its own channel and takes the other two
+# from it and the medians of the ratios R : G and B : G around it.
+
+_CM_LO, _CM_MI, _CM_HI, _CM_MR, _CM_MB = 6, 7, 8, 9, 10     # row buffers after the ratio ring (0-5)
+_CM_ROWS = 11
+
+
+def _chroma_scratch(h, w):
+    """The calling thread's planes of the colour-difference median (`scratch.planes`): per chunk of rows a
+    ring of three ratio rows per difference and row buffers (`_CM_*`), the ratio rows beside each chunk
+    (`bnd`: the row above and the row below) and the green plane's range per row."""
+    def make():
+        return dict(rows=np.zeros((_CHUNKS, _CM_ROWS, w), np.float32), bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
+    return planes("demosaic.chroma", (h, w), make)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ratio_row(out, y, c, dr, db):
+    """dr, db = the ratios (max(R, 0) + c) / (max(G, 0) + c) and likewise for B in row y of `out`."""
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    r = out[0, y]
+    g = out[1, y]
+    b = out[2, y]
+    for x in range(r.shape[0]):
+        gv = g[x]
+        rv = r[x]
+        bv = b[x]
+        q = one / ((gv if gv > zero else zero) + c)
+        dr[x] = ((rv if rv > zero else zero) + c) * q
+        db[x] = ((bv if bv > zero else zero) + c) * q
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _chroma_edges(out, c, bnd, gmm):
+    """Before any row changes: `bnd[k]` = the ratio rows just above and just below chunk k of `_chroma_median`
+    (edge rows replicated) and gmm[y] = (min, max) of green in row y."""
+    h = out.shape[1]
+    nch = bnd.shape[0]
+    for k in prange(nch):
+        y0 = k * h // nch
+        y1 = (k + 1) * h // nch
+        if y1 > y0:
+            ya = y0 - 1 if y0 > 0 else y0
+            yb = y1 if y1 < h else h - 1
+            _ratio_row(out, ya, c, bnd[k, 0, 0], bnd[k, 0, 1])
+            _ratio_row(out, yb, c, bnd[k, 1, 0], bnd[k, 1, 1])
+        for y in range(y0, y1):
+            g = out[1, y]
+            lo = _BIG
+            hi = -_BIG
+            for x in range(g.shape[0]):
+                lo = min(lo, g[x])
+                hi = max(hi, g[x])
+            gmm[y, 0] = lo
+            gmm[y, 1] = hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sort3(a, b, c):
+    """(a, b, c) in ascending order."""
+    lo = min(a, b)
+    hi = max(a, b)
+    return min(lo, c), max(lo, min(hi, c)), max(hi, c)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _med3(a, b, c):
+    """The median of three values."""
+    return max(min(a, b), min(max(a, b), c))
+
+
+@njit(cache=True, nogil=True)
+def _median3_row(a, b, c, lo, mi, hi, m):
+    """m[x] = the median of the 3 x 3 window of the rows a, b, c around column x (edge columns replicated):
+    each column sorted, then the median of the largest low, the median of the middles and the smallest high
+    (exact for 9 values)."""
+    w = a.shape[0]
+    for x in range(w):
+        lo[x], mi[x], hi[x] = _sort3(a[x], b[x], c[x])
+    for x in range(1, w - 1):
+        m[x] = _med3(max(max(lo[x - 1], lo[x]), lo[x + 1]), _med3(mi[x - 1], mi[x], mi[x + 1]),
+                     min(min(hi[x - 1], hi[x]), hi[x + 1]))
+    for x in (0, w - 1):
+        xl = x - 1 if x > 0 else x
+        xr = x + 1 if x + 1 < w else x
+        m[x] = _med3(max(max(lo[xl], lo[x]), lo[xr]), _med3(mi[xl], mi[x], mi[xr]),
+                     min(min(hi[xl], hi[x]), hi[xr]))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
+    """A row of green photosites (columns of parity gp) and photosites of one other colour s (t: the third
+    channel; ms, mt: their median ratios), each rebuilt from its own channel a: with A = (max(a, 0) + c) / q
+    (q = 1 at green, ms at s) green = A - c, s = A ms - c, t = A mt - c where not its own, within
+    [lo, hi] (a non-finite result: hi). Contiguous and branch-free (it vectorises)."""
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for x in range(g.shape[0]):
+        isg = (x & 1) == gp
+        g0 = g[x]
+        s0 = s[x]
+        a = g0 if isg else s0
+        q = one if isg else ms[x]
+        gc = ((a if a > zero else zero) + c) / q
+        eg = gc - c
+        es = gc * ms[x] - c
+        et = gc * mt[x] - c
+        eg = eg if eg - eg == zero else ghi
+        es = es if es - es == zero else shi
+        et = et if et - et == zero else thi
+        g[x] = g0 if isg else min(max(eg, glo), ghi)
+        s[x] = min(max(es, slo), shi) if isg else s0
+        t[x] = min(max(et, tlo), thi)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
+    """Row by row in chunks: the 3 x 3 medians of the ratios R : G and B : G (a ring of three ratio rows per
+    chunk, read from rows not yet changed; the rows beside the chunk from `bnd`), then each photosite's other
+    two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel); in the rows `crow` then the
+    clipped-neighbour lower bounds of `_colour` and `_clipped_around` again (they read own channels only,
+    which stay as they are)."""
+    h = out.shape[1]
+    nch = rows.shape[0]
+    rlo, rhi, glo, ghi, blo, bhi = lim[0, 0], lim[0, 1], lim[1, 0], lim[1, 1], lim[2, 0], lim[2, 1]
+    for k in prange(nch):
+        buf = rows[k]
+        y0 = k * h // nch
+        y1 = (k + 1) * h // nch
+        if y1 <= y0:
+            continue
+        for i in range(2):
+            buf[i] = bnd[k, 0, i]                   # ring slot of row y0 - 1
+        _ratio_row(out, y0, c, buf[2], buf[3])      # slot of row y0
+        s0, s1, s2 = 0, 2, 4                         # ring slots of rows y - 1, y, y + 1
+        for y in range(y0, y1):
+            if y + 1 < y1:
+                _ratio_row(out, y + 1, c, buf[s2], buf[s2 + 1])
+            else:
+                for i in range(2):
+                    buf[s2 + i] = bnd[k, 1, i]
+            for i in range(2):
+                _median3_row(buf[s0 + i], buf[s1 + i], buf[s2 + i], buf[_CM_LO], buf[_CM_MI], buf[_CM_HI],
+                             buf[_CM_MR + i])
+            mr = buf[_CM_MR]
+            mb = buf[_CM_MB]
+            gp = 0 if blk[y & 1, 0] == 1 else 1
+            if blk[y & 1, 1 - gp] == 0:
+                _rebuild_row(out[1, y], out[0, y], out[2, y], mr, mb, gp, c, glo, ghi, rlo, rhi, blo, bhi)
+            else:
+                _rebuild_row(out[1, y], out[2, y], out[0, y], mb, mr, gp, c, glo, ghi, blo, bhi, rlo, rhi)
+            if crow[y]:
+                b0 = buf[_CM_LO]
+                b1 = buf[_CM_MI]
+                gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
+                _lift_row(out[1, y], out[1], state, y, 1 - gx, True, True, False, b0, b1)
+                for ch in (0, 2):
+                    if pos[ch, 0] == (y & 1):
+                        _lift_row(out[ch, y], out[ch], state, y, 1 - pos[ch, 1], True, False, False, b0, b1)
+                _clipped_row(state, pos, out, y, b0, b1)
+            s0, s1, s2 = s1, s2, s0
+
+
+def _chroma_filter(out, state, blk, pos, c, rng, crow):
+    """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
+    (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
+    channel's range (`rng`: R, B as `_colour`; green within the green plane's range), the clipped-neighbour
+    lower bounds in the rows `crow` (`_near_clipped`) again."""
+    h, w = state.shape
+    sc = _chroma_scratch(h, w)
+    c = np.float32(c)
+    _chroma_edges(out, c, sc["bnd"], sc["gmm"])
+    lim = np.empty((3, 2), np.float32)
+    lim[:, 0] = rng[:, 0]
+    lim[:, 1] = rng[:, 2]
+    lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
+    _chroma_median(out, state, blk, pos, c, lim, sc["bnd"], crow, sc["rows"])
