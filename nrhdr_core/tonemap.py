@@ -406,9 +406,11 @@ def _local_position(rows, c, lv, cx, j, c0, g1, k0, lo, steps):
     return ((c0 * base + gain * (lv - base) + k0) - lo) * steps
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
-    """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`."""
+    """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`
+    (row views, an unsigned LUT index). Called, not inlined: inlined beside `_rgb_row` the pair runs at half
+    the speed (numba 0.68, znver3)."""
     w = l.shape[1]
     hc, wc = ca.shape
     n = lut.shape[0]
@@ -416,29 +418,33 @@ def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
     lo = np.float32(_LUT_LO)
     top = np.float32(n - 1)
     cell = LOCAL_CELL
+    ra = rows[c, 0]
+    rb = rows[c, 1]
+    tr = t[c]
     f = max((y + 0.5) / cell - 0.5, 0.0)
     y0 = min(int(f), hc - 1)
     y1 = min(y0 + 1, hc - 1)
     fy = f - y0
     for cx in range(wc):
-        rows[c, 0, cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
-        rows[c, 1, cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
-    for i in range(2):
-        rows[c, i, 0] = rows[c, i, 1]
-        rows[c, i, wc + 1] = rows[c, i, wc]
+        ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+        rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+    ra[0], rb[0] = ra[1], rb[1]
+    ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
+    lrow = l[y]
     # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
     full = w // cell
     for cx in range(full):
         for j in range(cell):
             x = cx * cell + j
-            t[c, x] = _local_position(rows, c, l[y, x], cx, j, c0, g1, k0, lo, steps)
+            tr[x] = _local_position(rows, c, lrow[x], cx, j, c0, g1, k0, lo, steps)
     for x in range(full * cell, w):
-        t[c, x] = _local_position(rows, c, l[y, x], full, x - full * cell, c0, g1, k0, lo, steps)
+        tr[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+    last = np.uint32(n - 2)
     for x in range(w):
-        tv = min(max(t[c, x], np.float32(0.0)), top)        # (l is finite)
-        i = min(int(tv), n - 2)
+        tv = min(max(tr[x], np.float32(0.0)), top)        # (l is finite)
+        i = min(np.uint32(tv), last)
         ft = tv - np.float32(i)
-        t[c, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+        tr[x] = (lut[i] + ft * (lut[i + np.uint32(1)] - lut[i])) * out_max + np.float32(0.5)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -1019,7 +1025,7 @@ def _into_gamut(t0, t1, t2, yd, tb, c, x):
 @njit(cache=True, nogil=True, inline="always")
 def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, out):
     """Row y of the colour display codes (H, W, 3) from the grey operator's 16-bit levels of its luminance
-    (`lev[c]`: code + 0.5, float32): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
+    (`lev[c]`: code + 0.5, float32; replaced by Y'): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
     (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the code at the linear
     bin's start (`bins`, uint8), plus one from the next code's threshold on (a bin holds at most one threshold:
     exact rounding in the encoded domain). `fb[c]` (3, w): the row's channels. Every array indexed in full (no
@@ -1030,10 +1036,12 @@ def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, out):
     one = np.float32(1.0)
     nb = np.float32(bins.shape[0] - 1)
     wr, wg, wb, kr, kb = k[0], k[1], k[2], k[3], k[4]
+    for x in range(npx):
+        lev[c, x] = dec[np.uint32(lev[c, x])]          # the look-up on its own: the next loop vectorises
     if sat != one:
         for x in range(npx):
             L = _luminance(rgb, y, x, wr, wg, wb, kr, kb)
-            yd = dec[np.uint32(lev[c, x])]
+            yd = lev[c, x]
             if L > zero:
                 _into_gamut((_channel(rgb[0, y, x], wr) / L) ** sat * yd,
                             (_channel(rgb[1, y, x], wg) / L) ** sat * yd,
@@ -1046,7 +1054,7 @@ def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, out):
             g = _channel(rgb[1, y, x], wg)
             b = _channel(rgb[2, y, x], wb)
             L = g + kr * (r - g) + kb * (b - g)
-            yd = dec[np.uint32(lev[c, x])]
+            yd = lev[c, x]
             lit = L > zero
             kf = yd / (L if lit else one)
             t0 = r * kf if lit else yd
