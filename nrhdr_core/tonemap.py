@@ -406,9 +406,11 @@ def _local_position(rows, c, lv, cx, j, c0, g1, k0, lo, steps):
     return ((c0 * base + gain * (lv - base) + k0) - lo) * steps
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
-    """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`."""
+    """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`
+    (row views, an unsigned LUT index). Called, not inlined: inlined beside `_rgb_row`, the pair compiles to
+    code that takes about twice the time per row."""
     w = l.shape[1]
     hc, wc = ca.shape
     n = lut.shape[0]
@@ -416,29 +418,33 @@ def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
     lo = np.float32(_LUT_LO)
     top = np.float32(n - 1)
     cell = LOCAL_CELL
+    ra = rows[c, 0]
+    rb = rows[c, 1]
+    tr = t[c]
     f = max((y + 0.5) / cell - 0.5, 0.0)
     y0 = min(int(f), hc - 1)
     y1 = min(y0 + 1, hc - 1)
     fy = f - y0
     for cx in range(wc):
-        rows[c, 0, cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
-        rows[c, 1, cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
-    for i in range(2):
-        rows[c, i, 0] = rows[c, i, 1]
-        rows[c, i, wc + 1] = rows[c, i, wc]
+        ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
+        rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
+    ra[0], rb[0] = ra[1], rb[1]
+    ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
+    lrow = l[y]
     # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
     full = w // cell
     for cx in range(full):
         for j in range(cell):
             x = cx * cell + j
-            t[c, x] = _local_position(rows, c, l[y, x], cx, j, c0, g1, k0, lo, steps)
+            tr[x] = _local_position(rows, c, lrow[x], cx, j, c0, g1, k0, lo, steps)
     for x in range(full * cell, w):
-        t[c, x] = _local_position(rows, c, l[y, x], full, x - full * cell, c0, g1, k0, lo, steps)
+        tr[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+    last = np.uint32(n - 2)
     for x in range(w):
-        tv = min(max(t[c, x], np.float32(0.0)), top)        # (l is finite)
-        i = min(int(tv), n - 2)
+        tv = min(max(tr[x], np.float32(0.0)), top)        # (l is finite)
+        i = min(np.uint32(tv), last)
         ft = tv - np.float32(i)
-        t[c, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+        tr[x] = (lut[i] + ft * (lut[i + np.uint32(1)] - lut[i])) * out_max + np.float32(0.5)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -490,15 +496,15 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, thr, sat, fbuf, ibuf, out):
+def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, thr, sat, fbuf, out):
     """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour (`_rgb_row`) into sRGB
-    `out` (H, W, 3); `fbuf`, `ibuf` (chunks, 3, w) its rows."""
+    `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows."""
     h, w = l.shape
     nch = tbuf.shape[0]
     for c in prange(nch):
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
             _local_levels(l, ca, cb, y, rows, tbuf, c, c0, g1, k0, lut, np.float32(65535.0))
-            _rgb_row(rgb, y, k, tbuf, c, dec, bins, thr, sat, fbuf, ibuf, out)
+            _rgb_row(rgb, y, k, tbuf, c, dec, bins, thr, sat, fbuf, out)
 
 
 def _display(o):
@@ -1017,22 +1023,25 @@ def _into_gamut(t0, t1, t2, yd, tb, c, x):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, ib, out):
+def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, out):
     """Row y of the colour display codes (H, W, 3) from the grey operator's 16-bit levels of its luminance
-    (`lev[c]`: code + 0.5, float32): level Y' = the sRGB EOTF of the code (`dec`), channel t = (c / L)^sat Y'
-    (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the code at the linear
-    bin's start, plus one from the next code's threshold on (a bin holds at most one threshold: exact rounding
-    in the encoded domain). `fb[c]`, `ib[c]` (3, w): the row's channels and codes. Every
-    array indexed in full (no slices): the loops vectorise."""
+    (`lev[c]`: code + 0.5, float32; replaced by Y'): level Y' = the sRGB EOTF of the code (`dec`), channel
+    t = (c / L)^sat Y' (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the
+    code at the linear bin's start (`bins`, uint8), plus one from the next code's threshold on (a bin holds at
+    most one threshold: exact rounding in the encoded domain). `fb[c]` (3, w): the row's channels. Every array
+    indexed in full (no slices), table indices unsigned (no negative-index wrap); the Y' look-up has a loop of
+    its own so that the arithmetic loop vectorises; the code tables (16 KB + 1 KB) stay in L1."""
     npx = lev.shape[1]
     zero = np.float32(0.0)
     one = np.float32(1.0)
     nb = np.float32(bins.shape[0] - 1)
     wr, wg, wb, kr, kb = k[0], k[1], k[2], k[3], k[4]
+    for x in range(npx):
+        lev[c, x] = dec[np.uint32(lev[c, x])]          # the look-up on its own: the next loop vectorises
     if sat != one:
         for x in range(npx):
             L = _luminance(rgb, y, x, wr, wg, wb, kr, kb)
-            yd = dec[np.int32(lev[c, x])]
+            yd = lev[c, x]
             if L > zero:
                 _into_gamut((_channel(rgb[0, y, x], wr) / L) ** sat * yd,
                             (_channel(rgb[1, y, x], wg) / L) ** sat * yd,
@@ -1045,7 +1054,7 @@ def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, ib, out):
             g = _channel(rgb[1, y, x], wg)
             b = _channel(rgb[2, y, x], wb)
             L = g + kr * (r - g) + kb * (b - g)
-            yd = dec[np.int32(lev[c, x])]
+            yd = lev[c, x]
             lit = L > zero
             kf = yd / (L if lit else one)
             t0 = r * kf if lit else yd
@@ -1058,24 +1067,20 @@ def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, ib, out):
             fb[c, 0, x] = min(max(yd + (t0 - yd) * mix, zero), one)
             fb[c, 1, x] = min(max(yd + (t1 - yd) * mix, zero), one)
             fb[c, 2, x] = min(max(yd + (t2 - yd) * mix, zero), one)
-    for ch in range(3):
-        for x in range(npx):
-            lin = fb[c, ch, x]
-            sc = bins[np.int32(lin * nb)]
-            ib[c, ch, x] = sc + 1 if lin >= thr[sc] else sc
     for x in range(npx):
-        out[y, x, 0] = ib[c, 0, x]
-        out[y, x, 1] = ib[c, 1, x]
-        out[y, x, 2] = ib[c, 2, x]
+        for ch in range(3):
+            lin = fb[c, ch, x]
+            code = np.uint32(bins[np.uint32(lin * nb)])
+            out[y, x, ch] = code + np.uint32(1) if lin >= thr[code] else code
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, tbuf, cbuf, out):
+def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, fbuf, out):
     """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels
-    into `lev` (chunks, w)), shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `tbuf`, `cbuf` (chunks,
-    3, w) its rows."""
+    into `lev` (chunks, w)), shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its
+    rows."""
     h, w = out.shape[0], out.shape[1]
-    nch = tbuf.shape[0]
+    nch = fbuf.shape[0]
     k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
     lmax = np.float32(65535.0)
     for c in prange(nch):
@@ -1086,15 +1091,15 @@ def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, tbuf, c
         mbits = mbuf.view(np.int32)
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
             for x in range(w):
-                v = _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale
-                v = v if v > np.float32(0.0) else np.float32(0.0)
+                a = _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale
+                lev[c, x] = a
+                v = a if a > np.float32(0.0) else np.float32(0.0)
                 v = v if v < np.float32(1.0) else np.float32(1.0)
                 ubuf[x] = np.float32(1.0) + q * v
             _split(ubits, mbits, ebuf)
             for x in range(w):
-                lev[c, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], _luminance(rgb, y, x, k0, k1, k2, kr, kb) * scale,
-                                       q) * inv_den * lmax + np.float32(0.5)
-            _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, tbuf, cbuf, out)
+                lev[c, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], lev[c, x], q) * inv_den * lmax + np.float32(0.5)
+            _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fbuf, out)
 
 
 def srgb_eotf(v):
@@ -1107,13 +1112,13 @@ _SRGB = []
 
 
 def _srgb_tables():
-    """(decode: float32 sRGB EOTF of each 16-bit level, bins: int32 first code of each of 16384 linear bins,
+    """(decode: float32 sRGB EOTF of each 16-bit level, bins: uint8 first code of each of 16384 linear bins,
     thr: float32 linear threshold between code k and k + 1)."""
     if not _SRGB:
         dec = srgb_eotf(np.arange(65536) / 65535.0).astype(np.float32)
         thr = np.append(srgb_eotf((np.arange(255) + 0.5) / 255.0), 2.0).astype(np.float32)
         edges = (np.arange(16385) / 16384.0).astype(np.float32)
-        bins = np.searchsorted(thr, edges, side="right").astype(np.int32)
+        bins = np.searchsorted(thr, edges, side="right").astype(np.uint8)
         _SRGB.append((dec, bins, thr))
     return _SRGB[0]
 
@@ -1142,10 +1147,9 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
         raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
     _check_tone(white, contrast)
     k = np.array([*gains, *LUMA_BT709], np.float32)
-    lev, fbuf, ibuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
-                                                             np.empty((min(h, 64), 3, w), np.float32),
-                                                             np.empty((min(h, 64), 3, w), np.int32)))
-    colour = (*_srgb_tables(), np.float32(saturation), fbuf, ibuf)
+    lev, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
+                                                       np.empty((min(h, 64), 3, w), np.float32)))
+    colour = (*_srgb_tables(), np.float32(saturation), fbuf)
     if operator == "local":
         (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0, colour,
                                                           out)
