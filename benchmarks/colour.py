@@ -30,9 +30,10 @@ against the tone-mapped truth (`tonemap.tonemap_rgb`, the profile's white, truth
 the zone plate (`metrics.false_colour_db`: 10 log10 of the mean squared CIELAB chroma error at the truth's
 luminance, on the rings). Frames/s at 1920 x 1080 on the first scene, in the same run: the colour preview
 chain (`validity.classify -> crosstalk.correct` (compact LUT of a synthetic calibration) `-> reconstruct_cfa
-(preview) -> tonemap_rgb`) against the monochrome preview chain of the same sensor (the same stages with
-`reconstruction.reconstruct_frame` (preview) and `chain.tonemap_frame`), ms per stage; tone map `--operator`
-(default `local`, nrtonemap's); passes interleaved, best of `--repeat`.
+(preview) -> LocalTonemap.rgb`) against the monochrome preview chain of the same sensor (the same stages with
+`reconstruction.reconstruct_frame` (preview) and `LocalTonemap`), ms per stage; tone map `--operator` (default
+`local`, nrtonemap's; one operator per stream and output buffers reused, as in the elements); passes
+interleaved, best of `--repeat`.
 Writes bench_out/colour/results.json and results.md.
 """
 from __future__ import annotations
@@ -215,20 +216,35 @@ def speed(scene_path, h, w, frames, repeat, operator, seed):
     raws_c = [sensor.capture(cfa.mosaic(truth, PATTERN), col, rng) for _ in range(frames)]
     crosstalk.compact_for(base)
     sm = chain.ChainSettings(method="preview", crosstalk="lut", operator=operator)
+    # as the elements do: one LocalTonemap per stream, output buffers reused (nrreconstruct's pool, nrtonemap's
+    # mapped output)
+    lt_m, lt_c = tonemap.LocalTonemap(), tonemap.LocalTonemap()
+    codes_m, codes_c = np.empty((h, w), np.uint8), np.empty((h, w, 3), np.uint8)
+    rgb_out = np.empty((3, h, w), np.float32)
+
+    def tone_mono(v):
+        if operator == "local":
+            return lt_m(v, mono.white, out=codes_m)
+        return tonemap.log_tonemap(v, mono.white, out=codes_m)
+
+    def tone_colour(rgb):
+        if operator == "local":
+            return lt_c.rgb(rgb, col.white, out=codes_c)
+        return tonemap.tonemap_rgb(rgb, col.white, "log", out=codes_c)
 
     def mono_frame(raw, t):
         v, s = _timed(t, 0, validity.classify, raw, mono, dark_policy=sm.dark_policy)
         v, s = _timed(t, 1, crosstalk.correct, v, s, mono, sm.crosstalk, lut=sm.crosstalk_lut)
         _timed(t, 2, reconstruction.reconstruct_frame, v, s, method=sm.method, preset=sm.preset, noise=mono,
                fusion=sm.noise_fusion)
-        _timed(t, 3, chain.tonemap_frame, v, mono, sm)
+        _timed(t, 3, tone_mono, v)
 
     def colour_frame(raw, t):
         v, s = _timed(t, 0, validity.classify, raw, col, dark_policy=sm.dark_policy)
         v, s = _timed(t, 1, crosstalk.correct, v, s, col, sm.crosstalk, lut=sm.crosstalk_lut)
         rgb = _timed(t, 2, demosaic.reconstruct_cfa, v, s, col.cfa, method=sm.method, preset=sm.preset, noise=col,
-                     fusion=sm.noise_fusion)
-        _timed(t, 3, tonemap_rgb, rgb, col.white, operator)
+                     fusion=sm.noise_fusion, out=rgb_out)
+        _timed(t, 3, tone_colour, rgb)
 
     chains = {"mono": (mono_frame, raws_m), "colour": (colour_frame, raws_c)}
     best = {k: (float("inf"), None) for k in chains}
