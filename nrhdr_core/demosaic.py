@@ -35,7 +35,8 @@ from numba import njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .reconstruction import _fill_row, _pull_push_levels, _pull_row, _pyramid
+from .reconstruction import (_FUSE_ROWS, _SERIAL_LEVEL, _fill_row, _pull, _pull_at, _pull_push_levels, _pull_row,
+                             _push, _push_at, _pyramid, _small_levels)
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import _clip_columns, _clip_lower_at_cfa, clip_lower_row
@@ -193,7 +194,10 @@ def _scratch(h, w):
         pv, _, hs, ws, _ = _pyramid(h, w)
         n = pv.size
         h1, w1 = int(hs[1]), int(ws[1])
-        return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
+        nfc = sum(_fuse_chunks(h))          # chunks of `_fuse_phases`
+        return dict(kg=np.empty((h, w), np.bool_), kz=np.empty((h, w), np.bool_),
+                    pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
+                    fc=np.zeros((nfc, 3, w), np.float64), fi=np.zeros((nfc, w), np.int64),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
                     rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
                     cnt=np.zeros((h1, _NCNT), np.int64),
@@ -207,56 +211,74 @@ def _first_pass(v32, state, blk, g_any):
     green's sources."""
     h, w = v32.shape
     sc = _scratch(h, w)
-    _, _, _, ws, off = _pyramid(h, w)
-    _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], sc["cnt"], g_any)
+    _, _, hs, ws, off = _pyramid(h, w)
+    deep = hs.shape[0] > 2
+    _stats(v32, state, blk, sc["kg"], sc["kz"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
+           ws[2] if deep else 1, deep, sc["cnt"], g_any)
     return sc["cnt"].sum(axis=0), sc["kg"]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
+def _stats(values, state, blk, kg, kz, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
-    known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
-    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`_pull_row`). Branch-free pixel loops."""
+    known photosite); kz = the NOISY photosites not yet RECONSTRUCTED (the noise fusion's); counts (missing,
+    NOISY, non-finite values, non-finite known values, known photosites per channel, CLIPPED photosites);
+    the green plane's pyramid level 1 (`_pull_row`) and, `deep`, level 2 (`_pull_at`, per pair of cell
+    rows). Branch-free pixel loops."""
     h, w = values.shape
+    h1 = cnt.shape[0]
     zero = np.float32(0.0)
-    for y1 in prange(cnt.shape[0]):
-        for i in range(_NCNT):
-            cnt[y1, i] = 0
-        for yy in range(2 * y1, min(2 * y1 + 2, h)):
-            cm = 0
-            cn = 0
-            cb = 0
-            cbk = 0
-            kn0 = 0
-            kn1 = 0
-            ccl = 0
-            b0 = blk[yy & 1, 0]
-            b1 = blk[yy & 1, 1]
-            g0 = (b0 == 1) | g_any
-            g1 = (b1 == 1) | g_any
-            for x in range(w):
-                st = state[yy, x]
-                k = (st & REASON_MASK) == VALID
-                odd = (x & 1) == 1
-                a = values[yy, x]
-                fin = a - a == zero
-                cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
-                cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
-                cb += np.int64(not fin)
-                cbk += np.int64(k & (not fin))
-                ccl += np.int64((st & REASON_MASK) == CLIPPED)
-                kn0 += np.int64(k & (not odd))
-                kn1 += np.int64(k & odd)
-                kk = k & (g1 if odd else g0)
-                kg[yy, x] = kk
-            cnt[y1, _N_MISS] += cm
-            cnt[y1, _N_NOISY] += cn
-            cnt[y1, _N_BAD] += cb
-            cnt[y1, _N_BAD_KNOWN] += cbk
-            cnt[y1, _N_CLIP] += ccl
-            cnt[y1, _N_KNOWN + b0] += kn0
-            cnt[y1, _N_KNOWN + b1] += kn1
-        _pull_row(values, kg, pv, pw, o1, w1, y1)
+    step = 2 if deep else 1
+    for q in prange((h1 + step - 1) // step):
+        for y1 in range(step * q, min(step * q + step, h1)):
+            _stats_cells(values, state, blk, kg, kz, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
+        if deep:
+            for x2 in range(w2):
+                _pull_at(pv, pw, o1, h1, w1, o2, w2, q, x2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _stats_cells(values, state, blk, kg, kz, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero):
+    """`_stats` of cell row y1."""
+    for i in range(_NCNT):
+        cnt[y1, i] = 0
+    for yy in range(2 * y1, min(2 * y1 + 2, h)):
+        cm = 0
+        cn = 0
+        cb = 0
+        cbk = 0
+        kn0 = 0
+        kn1 = 0
+        ccl = 0
+        b0 = blk[yy & 1, 0]
+        b1 = blk[yy & 1, 1]
+        g0 = (b0 == 1) | g_any
+        g1 = (b1 == 1) | g_any
+        for x in range(w):
+            st = state[yy, x]
+            k = (st & REASON_MASK) == VALID
+            odd = (x & 1) == 1
+            a = values[yy, x]
+            fin = a - a == zero
+            cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
+            nz = (st & (REASON_MASK | RECONSTRUCTED)) == NOISY
+            cn += np.int64(nz)
+            cb += np.int64(not fin)
+            cbk += np.int64(k & (not fin))
+            ccl += np.int64((st & REASON_MASK) == CLIPPED)
+            kn0 += np.int64(k & (not odd))
+            kn1 += np.int64(k & odd)
+            kk = k & (g1 if odd else g0)
+            kg[yy, x] = kk
+            kz[yy, x] = nz
+        cnt[y1, _N_MISS] += cm
+        cnt[y1, _N_NOISY] += cn
+        cnt[y1, _N_BAD] += cb
+        cnt[y1, _N_BAD_KNOWN] += cbk
+        cnt[y1, _N_CLIP] += ccl
+        cnt[y1, _N_KNOWN + b0] += kn0
+        cnt[y1, _N_KNOWN + b1] += kn1
+    _pull_row(values, kg, pv, pw, o1, w1, y1)
 
 
 def _positions(blk):
@@ -265,6 +287,20 @@ def _positions(blk):
     for py, px in ((1, 1), (1, 0), (0, 1), (0, 0)):
         pos[int(blk[py, px])] = (py, px)
     return pos
+
+
+def _levels_from(pv, pw, hs, ws, off, first):
+    """`reconstruction._pull_push_levels` from level `first` (pulled already) to the top and back to it:
+    big levels in parallel regions, the small ones in one serial call."""
+    levels = hs.shape[0] - 1
+    small = first
+    while small < levels and hs[small] * ws[small] >= _SERIAL_LEVEL:
+        small += 1
+    for lv in range(first, small):
+        _pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+    _small_levels(pv, pw, hs, ws, off, small, levels)
+    for lv in range(small - 1, first - 1, -1):
+        _push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
 
 
 def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
@@ -276,32 +312,37 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     _, _, hs, ws, off = _pyramid(h, w)
     pos = _positions(blk)
     h1, w1 = int(hs[1]), int(ws[1])
-    # 1. green (its pyramid's top: the mean known green level, for the log offset)
-    _pull_push_levels(pv[0], pw[0], hs, ws, off)
+    deep = hs.shape[0] > 2          # a level above the lattice (frames larger than 2 x 2)
+    o2, w2 = (int(off[2]), int(ws[2])) if deep else (int(off[1]), w1)
+    # 1. green: its pyramid pulled to the top and pushed back to level 2 (`deep`: `_stats` pulled levels 1
+    # and 2, `_green` pushes level 1 row by row); the top: the mean known green level, for the log offset
+    if deep:
+        _levels_from(pv[0], pw[0], hs, ws, off, 2)
+    else:
+        _pull_push_levels(pv[0], pw[0], hs, ws, off)
     top = int(off[hs.shape[0] - 1])
     c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
     gsrc = np.zeros((1, 1), np.float32)
     fst = sc["fst"]
-    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
+    fuse = noise is not None and cnt[_N_NOISY] > 0
+    noisy = _noisy_phases(state) if fuse and fusion != "fast" else None
     if method != "preview":
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
-    # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
-    _green(v32, state, chan, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1],
-           pw[1], pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
+    # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2;
+    # `deep`: level 2 pulled)
+    _green(v32, state, chan, blk, kg, pv[0], pw[0], off[1], w1, o2, w2, deep, gsrc, method != "preview",
+           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
     rng = _ranges(fst, cnt)
     # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
+    lat = [pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1) for i in range(2)]
     if method == "preview":
-        _pull_push_levels(pv[1], pw[1], hs, ws, off)
-        _pull_push_levels(pv[2], pw[2], hs, ws, off)
-        deep = hs.shape[0] > 2          # a level above the lattice (frames larger than 2 x 2)
-        o2, w2 = (int(off[2]), int(ws[2])) if deep else (int(off[1]), w1)
-        for i in range(2):
-            lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
-            _lattice_fill(lat, kl[i], pv[1 + i], o2, w2, rl[i])
+        if not deep:
+            _pull_push_levels(pv[1], pw[1], hs, ws, off)
+            _pull_push_levels(pv[2], pw[2], hs, ws, off)
+        _lattice_fill(lat[0], lat[1], kl, pv, pw, hs, ws, off, 2 if deep else hs.shape[0] - 1, o2, w2, rl)
     else:
         for i in range(2):
-            lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
-            _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
+            _ratio(_fse_lattice(lat[i], kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
     crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
     _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], out)
@@ -309,6 +350,8 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
+    elif fuse:
+        _fuse_fast(out, v32, state, sc["kz"], blk, noise, sc["fc"], sc["fi"])
 
 
 def _unkey(key) -> float:
@@ -438,15 +481,42 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _green(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb, kl,
-           fst, ixs, gout):
+def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
+           pvb, pwb, kl, fst, ixs, gout):
     """Per cell row: the green plane into `gout` (the pull-push fill `reconstruction._fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
     colour differences (weight 1 where known, else 0) into level 1 of the d_R and d_B pyramids and `kl`,
     and the lattices' statistics `fst` (keys of the known min and max and the largest CLIPPED value;
     integer reductions vectorise, float ones do not). The logarithm only at
-    the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows)."""
+    the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
+    pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`_push_at`) row
+    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_at`) per pair of cell
+    rows."""
+    h, w = values.shape
+    h1 = (h + 1) // 2
+    nch = ixs.shape[0]
+    step = 2 if deep else 1
+    n2 = (h1 + step - 1) // step
+    for kc in prange(nch):
+        ix = ixs[kc]
+        for q in range(kc * n2 // nch, (kc + 1) * n2 // nch):
+            for y1 in range(step * q, min(step * q + step, h1)):
+                if deep and not from_src:
+                    for x1 in range(w1):
+                        _push_at(pv, pw, o1, w1, o2, w2, y1, x1)
+                _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
+                             pwr, pvb, pwb, kl, fst, ix, gout, y1)
+            if deep:
+                for x2 in range(w2):
+                    _pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
+                    _pull_at(pvb, pwb, o1, h1, w1, o2, w2, q, x2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb,
+                 kl, fst, ix, gout, y1):
+    """`_green` of cell row y1 (index buffer `ix`)."""
     h, w = values.shape
     zero = np.float32(0.0)
     one = np.float32(1.0)
@@ -454,69 +524,73 @@ def _green(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds,
     kmax = np.int32(0x7FFFFFFF)
     kmin = np.int32(-0x7FFFFFFF - 1)
     vi = values.view(np.int32)
-    h1 = (h + 1) // 2
-    nch = ixs.shape[0]
-    for kc in prange(nch):
-        ix = ixs[kc]
-        for y1 in range(kc * h1 // nch, (kc + 1) * h1 // nch):
-            for y in range(2 * y1, min(2 * y1 + 2, h)):
-                g = gout[y]
-                if from_src:
-                    for x in range(w):
-                        g[x] = gsrc[y, x]
-                else:
-                    _fill_row(values, kg, pv, o1, w1, y, g, True)
-                _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
-            base = o1 + y1 * w1
-            for i in range(2):
-                ch = 0 if i == 0 else 2
-                y = 2 * y1 + pos[ch, 0]
-                px = pos[ch, 1]
-                pvd = pvr if i == 0 else pvb
-                pwd = pwr if i == 0 else pwb
-                lo = kmax
-                hi = kmin
-                cl = kmin
-                n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
-                nk = 0
-                for x1 in range(n):
-                    x = 2 * x1 + px
-                    r = state[y, x] & REASON_MASK
-                    k = r == VALID
-                    key = f32_key(vi[y, x])
-                    lo = min(lo, key if k else kmax)
-                    hi = max(hi, key if k else kmin)
-                    cl = max(cl, key if (r == CLIPPED) else kmin)
-                    pvd[base + x1] = zero
-                    pwd[base + x1] = one if k else zero
-                    kl[i, y1, x1] = k
-                    ix[nk] = x1
-                    nk += 1 if k else 0
-                for q in range(nk):
-                    x1 = ix[q]
-                    x = 2 * x1 + px
-                    a = values[y, x]
-                    gv = gout[y, x]
-                    a = (a if a > zero else zero) + c
-                    gv = (gv if gv > zero else zero) + c
-                    pvd[base + x1] = np.log2(a / gv)
-                for x1 in range(n, w1):
-                    pvd[base + x1] = zero
-                    pwd[base + x1] = zero
-                    kl[i, y1, x1] = False
-                fst[y1, _F_LO + i] = lo
-                fst[y1, _F_HI + i] = hi
-                fst[y1, _F_CLIP + i] = cl
+    for y in range(2 * y1, min(2 * y1 + 2, h)):
+        g = gout[y]
+        if from_src:
+            for x in range(w):
+                g[x] = gsrc[y, x]
+        else:
+            _fill_row(values, kg, pv, o1, w1, y, g, True)
+        _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
+    base = o1 + y1 * w1
+    for i in range(2):
+        ch = 0 if i == 0 else 2
+        y = 2 * y1 + pos[ch, 0]
+        px = pos[ch, 1]
+        pvd = pvr if i == 0 else pvb
+        pwd = pwr if i == 0 else pwb
+        lo = kmax
+        hi = kmin
+        cl = kmin
+        n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
+        nk = 0
+        for x1 in range(n):
+            x = 2 * x1 + px
+            r = state[y, x] & REASON_MASK
+            k = r == VALID
+            key = f32_key(vi[y, x])
+            lo = min(lo, key if k else kmax)
+            hi = max(hi, key if k else kmin)
+            cl = max(cl, key if (r == CLIPPED) else kmin)
+            pvd[base + x1] = zero
+            pwd[base + x1] = one if k else zero
+            kl[i, y1, x1] = k
+            ix[nk] = x1
+            nk += 1 if k else 0
+        for q in range(nk):
+            x1 = ix[q]
+            x = 2 * x1 + px
+            a = values[y, x]
+            gv = gout[y, x]
+            a = (a if a > zero else zero) + c
+            gv = (gv if gv > zero else zero) + c
+            pvd[base + x1] = np.log2(a / gv)
+        for x1 in range(n, w1):
+            pvd[base + x1] = zero
+            pwd[base + x1] = zero
+            kl[i, y1, x1] = False
+        fst[y1, _F_LO + i] = lo
+        fst[y1, _F_HI + i] = hi
+        fst[y1, _F_CLIP + i] = cl
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _lattice_fill(lat, known, pv, o2, w2, ratio):
-    """A difference lattice after its pull-push: each cell its value where known, else the weighted mean of
-    its known 8-neighbours, else its parent's pushed value (`reconstruction._fill_row`, as the monochrome
-    preview fills level 0); stored as the ratio 2^d."""
-    for i in prange(lat.shape[0]):
-        r = ratio[i]
-        _fill_row(lat, known, pv, o2, w2, i, r, True)
+def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
+    """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
+    their pyramids pulled from level `first` to the top and pushed back to it (`_small_levels`, one
+    pyramid per thread), then each cell its value where known, else the weighted mean of its known
+    8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `reconstruction._fill_row`, as
+    the monochrome preview fills level 0); stored as the ratio 2^d."""
+    levels = hs.shape[0] - 1
+    for i in prange(2):
+        if first < levels:
+            _small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
+    h1 = known.shape[1]
+    for q in prange(2 * h1):
+        i = q // h1
+        y = q - i * h1
+        r = ratio[i, y]
+        _fill_row(lat0 if i == 0 else lat1, known[i], pv[1 + i], o2, w2, y, r, True)
         for j in range(r.shape[0]):
             r[j] = np.exp2(r[j])
 
@@ -743,6 +817,96 @@ def _fuse(out, v32, blk, noisy, noise, fusion):
     for (py, px), m in noisy.items():
         if m is not None:
             fuse_noisy(out[int(blk[py, px])][py::2, px::2], v32[py::2, px::2], m[0], m[1], noise, setting=fusion)
+
+
+def _fuse_chunks(h):
+    """(chunks of the even rows, chunks of the odd rows) of `_fuse_phases`: _FUSE_ROWS rows of a Bayer
+    phase each, as `reconstruction.fuse_noisy` slides its window sums."""
+    return ((h + 1) // 2 + _FUSE_ROWS - 1) // _FUSE_ROWS, (h // 2 + _FUSE_ROWS - 1) // _FUSE_ROWS
+
+
+def _fuse_fast(out, v32, state, kz, blk, noise, csum, idx):
+    """NOISY photosites (`kz`) fused by `reconstruction.fuse_noisy` with setting "fast" on each Bayer
+    phase apart (its bits), in one pass over the four phases (`_fuse_phases`)."""
+    g = float(noise.gain)
+    floor = g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0
+    n0, n1 = _fuse_chunks(v32.shape[0])
+    _fuse_phases(out, v32, state, kz, blk, np.float32(g), np.float32(floor), np.float32(noise.nd), np.float32(1.0),
+                 2, _FUSE_ROWS, n0, n1, csum, idx)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _phase_add_row(values, state, y, sgn, c):
+    """`reconstruction._fuse_add_row` (the texture window's column sums, known = reason VALID) of
+    photosite row y: add (sgn = 1) or remove (-1) it; column x holds the sums of its Bayer phase."""
+    for x in range(values.shape[1]):
+        kf = np.float64((state[y, x] & REASON_MASK) == VALID)
+        ka = kf * np.float64(values[y, x])
+        c[0, x] += sgn * kf
+        c[1, x] += sgn * ka
+        c[2, x] += sgn * ka * np.float64(values[y, x])
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _fuse_phases(out, values, state, kz, blk, gain, floor, nd, texture, r, rows, n0, n1, csum, idx):
+    """`reconstruction._fuse_kernel` with joint False (the "fast" fusion) on each Bayer phase (py, px) of
+    the mosaic, own channel out[blk[py, px]]: chunks of `rows` phase rows (n0 of the even photosite rows,
+    n1 of the odd ones; each chunk both phases of its rows, column sums of the phase's photosites in
+    `csum` at their columns, sliding down by two photosite rows), in one parallel loop; noisy photosites
+    (`kz`) compacted in `idx`. The sums of `_fuse_kernel` in its order, so its bits."""
+    h, w = values.shape
+    for t in prange(n0 + n1):
+        py = np.int64(0) if t < n0 else np.int64(1)
+        ci = np.int64(t) - py * n0
+        hp = (h - py + 1) // 2
+        c = csum[t]
+        ix = idx[t]
+        ya = ci * rows
+        yb = min(ya + rows, hp)
+        for k in range(3):
+            for x in range(w):
+                c[k, x] = 0.0
+        for yp in range(ya, yb):
+            if yp == ya:
+                for yy in range(max(ya - r, 0), min(ya + r + 1, hp)):
+                    _phase_add_row(values, state, py + 2 * yy, 1.0, c)
+            else:
+                if yp + r < hp:
+                    _phase_add_row(values, state, py + 2 * (yp + r), 1.0, c)
+                if yp - r - 1 >= 0:
+                    _phase_add_row(values, state, py + 2 * (yp - r - 1), -1.0, c)
+            y = py + 2 * yp
+            k = 0
+            for x in range(w):
+                ix[k] = x
+                k += 1 if kz[y, x] else 0
+            for q in range(k):
+                x = ix[q]
+                px = x & 1
+                j = x >> 1
+                wp = (w - px + 1) // 2
+                n = 0.0
+                t1 = 0.0
+                t2 = 0.0
+                for jj in range(max(j - r, 0), min(j + r + 1, wp)):
+                    xx = px + 2 * jj
+                    n += c[0, xx]
+                    t1 += c[1, xx]
+                    t2 += c[2, xx]
+                ch = blk[py, px]
+                mv = np.float64(values[y, x])
+                gv = np.float64(out[ch, y, x])
+                gp = max(gv, 0.0)
+                var_r = gain * gp + floor
+                var_m = nd * gain * gp + nd * nd * floor
+                excess = 0.0
+                if n > 0.5:
+                    mean = t1 / n
+                    excess = max(t2 / n - mean * mean - (gain * max(mean, 0.0) + floor), 0.0)
+                var_e = var_r / 4.0 + texture * excess
+                wgt = var_e / (var_e + var_m)
+                f = gv + wgt * (mv - gv)
+                out[ch, y, x] = np.float32(f if f > 0.0 else 0.0)
 
 
 def warmup() -> None:
