@@ -36,7 +36,7 @@ from numba import njit, prange
 from . import cfa as _cfa
 from .fse import f32_key
 from .reconstruction import (_FUSE_ROWS, _SERIAL_LEVEL, _fill_row, _pull, _pull_at, _pull_push_levels, _pull_row,
-                             _push, _push_at, _pyramid, _small_levels)
+                             _push, _pyramid, _small_levels)
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import _clip_columns, _clip_lower_at_cfa, clip_lower_row
@@ -197,7 +197,7 @@ def _scratch(h, w):
         nfc = sum(_fuse_chunks(h))          # chunks of `_fuse_phases`
         return dict(kg=np.empty((h, w), np.bool_), kz=np.empty((h, w), np.bool_),
                     pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
-                    fc=np.zeros((nfc, 3, w), np.float64), fi=np.zeros((nfc, w), np.int64),
+                    fc=np.zeros((nfc, 6, w), np.float64), fi=np.zeros((nfc, w), np.int64),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
                     rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
                     cnt=np.zeros((h1, _NCNT), np.int64),
@@ -503,14 +503,28 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
         for q in range(kc * n2 // nch, (kc + 1) * n2 // nch):
             for y1 in range(step * q, min(step * q + step, h1)):
                 if deep and not from_src:
-                    for x1 in range(w1):
-                        _push_at(pv, pw, o1, w1, o2, w2, y1, x1)
+                    _push_row(pv, pw, o1, w1, o2, w2, y1)
                 _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
                              pwr, pvb, pwb, kl, fst, ix, gout, y1)
             if deep:
                 for x2 in range(w2):
                     _pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
                     _pull_at(pvb, pwb, o1, h1, w1, o2, w2, q, x2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push_row(pv, pw, o1, w1, o2, w2, y1):
+    """`reconstruction._push_at` of row y1 of level 1 from level 2, branch-free."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    b1 = o1 + y1 * w1
+    b2 = o2 + (y1 // 2) * w2
+    for x1 in range(w1):
+        a = pv[b2 + x1 // 2]
+        c = pw[b2 + x1 // 2]
+        p = a / c if c > zero else zero
+        pv[b1 + x1] = p if pw[b1 + x1] < one else pv[b1 + x1]
+        pw[b1 + x1] = one
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -637,7 +651,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
             near = crow[y]
             if near:
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3])
+                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3], True)
             for i in range(2):
                 ch = 0 if i == 0 else 2
                 eh = ext[ch, 0]
@@ -658,7 +672,8 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                 if pos[ch, 0] == (y & 1):
                     _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
                     if near:
-                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3])
+                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3],
+                                  True)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -668,25 +683,26 @@ def _cv(own, state, y, x):
 
 
 @njit(cache=True, nogil=True)
-def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1):
+def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh):
     """o[x] (x = x0, x0 + 2, ...) at least the smallest own-channel value `own` of its neighbours in the
     frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED: a
     neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
-    minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise)."""
+    minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
+    else those of the previous call in the same row and channel)."""
     h, w = state.shape
     big = _BIG
     up = y - 1 if y > 0 else y
     dn = y + 1 if y + 1 < h else y
     bu = np.float32(-big) if y > 0 else big          # + a value: the row's own, or +_BIG outside
     bd = np.float32(-big) if y + 1 < h else big
-    if vt or dg:
+    if fresh and (vt or dg):
         for x in range(w):
             a = _cv(own, state, up, x)
             a = a if bu < 0 else big
             c = _cv(own, state, dn, x)
             c = c if bd < 0 else big
             b0[x] = min(a, c)
-    if hz:
+    if fresh and hz:
         for x in range(w):
             b1[x] = _cv(own, state, y, x)
     for x in range(x0, w, 2):
@@ -712,8 +728,8 @@ def _clipped_row(state, pos, out, y, b0, b1):
         o = out[ch, y]
         px = pos[ch, 1]
         if (y & 1) != pos[ch, 0]:
-            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1)
-            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1)
+            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1, True)
+            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1, False)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -853,7 +869,8 @@ def _fuse_phases(out, values, state, kz, blk, gain, floor, nd, texture, r, rows,
     the mosaic, own channel out[blk[py, px]]: chunks of `rows` phase rows (n0 of the even photosite rows,
     n1 of the odd ones; each chunk both phases of its rows, column sums of the phase's photosites in
     `csum` at their columns, sliding down by two photosite rows), in one parallel loop; noisy photosites
-    (`kz`) compacted in `idx`. The sums of `_fuse_kernel` in its order, so its bits."""
+    (`kz`) compacted in `idx`; with r = 2 the window sums of a row's columns at once where the window is
+    inside the frame (csum[3:6]; x + 0.0 is x, so the same sums). The sums of `_fuse_kernel` in its order, so its bits."""
     h, w = values.shape
     for t in prange(n0 + n1):
         py = np.int64(0) if t < n0 else np.int64(1)
@@ -880,19 +897,32 @@ def _fuse_phases(out, values, state, kz, blk, gain, floor, nd, texture, r, rows,
             for x in range(w):
                 ix[k] = x
                 k += 1 if kz[y, x] else 0
+            if k == 0:
+                continue
+            # r = 2: the window sums where the window lies in the frame (columns 4 .. w - 5), vectorised
+            inner = 4 if r == 2 else w
+            for i in range(3):
+                for x in range(inner, w - 4):
+                    c[3 + i, x] = c[i, x - 4] + c[i, x - 2] + c[i, x] + c[i, x + 2] + c[i, x + 4]
             for q in range(k):
                 x = ix[q]
+                if x >= inner and x < w - 4:
+                    n = c[3, x]
+                    t1 = c[4, x]
+                    t2 = c[5, x]
+                else:
+                    px = x & 1
+                    j = x >> 1
+                    wp = (w - px + 1) // 2
+                    n = 0.0
+                    t1 = 0.0
+                    t2 = 0.0
+                    for jj in range(max(j - r, 0), min(j + r + 1, wp)):
+                        xx = px + 2 * jj
+                        n += c[0, xx]
+                        t1 += c[1, xx]
+                        t2 += c[2, xx]
                 px = x & 1
-                j = x >> 1
-                wp = (w - px + 1) // 2
-                n = 0.0
-                t1 = 0.0
-                t2 = 0.0
-                for jj in range(max(j - r, 0), min(j + r + 1, wp)):
-                    xx = px + 2 * jj
-                    n += c[0, xx]
-                    t1 += c[1, xx]
-                    t2 += c[2, xx]
                 ch = blk[py, px]
                 mv = np.float64(values[y, x])
                 gv = np.float64(out[ch, y, x])
