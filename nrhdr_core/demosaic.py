@@ -557,7 +557,6 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
         hi = kmin
         cl = kmin
         n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
-        nk = 0
         for x1 in range(n):
             x = 2 * x1 + px
             r = state[y, x] & REASON_MASK
@@ -569,8 +568,10 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
             pvd[base + x1] = zero
             pwd[base + x1] = one if k else zero
             kl[i, y1, x1] = k
+        nk = 0
+        for x1 in range(n):                         # compaction apart: the loop above vectorises
             ix[nk] = x1
-            nk += 1 if k else 0
+            nk += 1 if kl[i, y1, x1] else 0
         for q in range(nk):
             x1 = ix[q]
             x = 2 * x1 + px
