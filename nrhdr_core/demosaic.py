@@ -35,7 +35,7 @@ from numba import njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .reconstruction import (_FUSE_ROWS, _SERIAL_LEVEL, _fill_row, _pull, _pull_at, _pull_push_levels, _pull_row,
+from .reconstruction import (_SERIAL_LEVEL, _fill_row, _pull, _pull_at, _pull_push_levels, _pull_row,
                              _push, _pyramid, _small_levels)
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
@@ -194,10 +194,7 @@ def _scratch(h, w):
         pv, _, hs, ws, _ = _pyramid(h, w)
         n = pv.size
         h1, w1 = int(hs[1]), int(ws[1])
-        nfc = sum(_fuse_chunks(h))          # chunks of `_fuse_phases`
-        return dict(kg=np.empty((h, w), np.bool_), kz=np.empty((h, w), np.bool_),
-                    pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
-                    fc=np.zeros((nfc, 6, w), np.float64), fi=np.zeros((nfc, w), np.int64),
+        return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
                     rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
                     cnt=np.zeros((h1, _NCNT), np.int64),
@@ -213,16 +210,15 @@ def _first_pass(v32, state, blk, g_any):
     sc = _scratch(h, w)
     _, _, hs, ws, off = _pyramid(h, w)
     deep = hs.shape[0] > 2
-    _stats(v32, state, blk, sc["kg"], sc["kz"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
+    _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
            ws[2] if deep else 1, deep, sc["cnt"], g_any)
     return sc["cnt"].sum(axis=0), sc["kg"]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _stats(values, state, blk, kg, kz, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
+def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
-    known photosite); kz = the NOISY photosites not yet RECONSTRUCTED (the noise fusion's); counts (missing,
-    NOISY, non-finite values, non-finite known values, known photosites per channel, CLIPPED photosites);
+    known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites per channel, CLIPPED photosites);
     the green plane's pyramid level 1 (`_pull_row`) and, `deep`, level 2 (`_pull_at`, per pair of cell
     rows). Branch-free pixel loops."""
     h, w = values.shape
@@ -231,14 +227,14 @@ def _stats(values, state, blk, kg, kz, pv, pw, o1, w1, o2, w2, deep, cnt, g_any)
     step = 2 if deep else 1
     for q in prange((h1 + step - 1) // step):
         for y1 in range(step * q, min(step * q + step, h1)):
-            _stats_cells(values, state, blk, kg, kz, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
+            _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
         if deep:
             for x2 in range(w2):
                 _pull_at(pv, pw, o1, h1, w1, o2, w2, q, x2)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _stats_cells(values, state, blk, kg, kz, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero):
+def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero):
     """`_stats` of cell row y1."""
     for i in range(_NCNT):
         cnt[y1, i] = 0
@@ -261,8 +257,7 @@ def _stats_cells(values, state, blk, kg, kz, pv, pw, o1, w1, cnt, g_any, y1, h, 
             a = values[yy, x]
             fin = a - a == zero
             cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
-            nz = (st & (REASON_MASK | RECONSTRUCTED)) == NOISY
-            cn += np.int64(nz)
+            cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
             cb += np.int64(not fin)
             cbk += np.int64(k & (not fin))
             ccl += np.int64((st & REASON_MASK) == CLIPPED)
@@ -270,7 +265,6 @@ def _stats_cells(values, state, blk, kg, kz, pv, pw, o1, w1, cnt, g_any, y1, h, 
             kn1 += np.int64(k & odd)
             kk = k & (g1 if odd else g0)
             kg[yy, x] = kk
-            kz[yy, x] = nz
         cnt[y1, _N_MISS] += cm
         cnt[y1, _N_NOISY] += cn
         cnt[y1, _N_BAD] += cb
@@ -324,8 +318,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
     gsrc = np.zeros((1, 1), np.float32)
     fst = sc["fst"]
-    fuse = noise is not None and cnt[_N_NOISY] > 0
-    noisy = _noisy_phases(state) if fuse and fusion != "fast" else None
+    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
     if method != "preview":
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
     # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2;
@@ -350,8 +343,6 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
-    elif fuse:
-        _fuse_fast(out, v32, state, sc["kz"], blk, noise, sc["fc"], sc["fi"])
 
 
 def _unkey(key) -> float:
@@ -834,110 +825,6 @@ def _fuse(out, v32, blk, noisy, noise, fusion):
     for (py, px), m in noisy.items():
         if m is not None:
             fuse_noisy(out[int(blk[py, px])][py::2, px::2], v32[py::2, px::2], m[0], m[1], noise, setting=fusion)
-
-
-def _fuse_chunks(h):
-    """(chunks of the even rows, chunks of the odd rows) of `_fuse_phases`: _FUSE_ROWS rows of a Bayer
-    phase each, as `reconstruction.fuse_noisy` slides its window sums."""
-    return ((h + 1) // 2 + _FUSE_ROWS - 1) // _FUSE_ROWS, (h // 2 + _FUSE_ROWS - 1) // _FUSE_ROWS
-
-
-def _fuse_fast(out, v32, state, kz, blk, noise, csum, idx):
-    """NOISY photosites (`kz`) fused by `reconstruction.fuse_noisy` with setting "fast" on each Bayer
-    phase apart (its bits), in one pass over the four phases (`_fuse_phases`)."""
-    g = float(noise.gain)
-    floor = g * g * float(noise.read_noise) ** 2 + 1.0 / 12.0
-    n0, n1 = _fuse_chunks(v32.shape[0])
-    _fuse_phases(out, v32, state, kz, blk, np.float32(g), np.float32(floor), np.float32(noise.nd), np.float32(1.0),
-                 2, _FUSE_ROWS, n0, n1, csum, idx)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _phase_add_row(values, state, y, sgn, c):
-    """`reconstruction._fuse_add_row` (the texture window's column sums, known = reason VALID) of
-    photosite row y: add (sgn = 1) or remove (-1) it; column x holds the sums of its Bayer phase."""
-    for x in range(values.shape[1]):
-        kf = np.float64((state[y, x] & REASON_MASK) == VALID)
-        ka = kf * np.float64(values[y, x])
-        c[0, x] += sgn * kf
-        c[1, x] += sgn * ka
-        c[2, x] += sgn * ka * np.float64(values[y, x])
-
-
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _fuse_phases(out, values, state, kz, blk, gain, floor, nd, texture, r, rows, n0, n1, csum, idx):
-    """`reconstruction._fuse_kernel` with joint False (the "fast" fusion) on each Bayer phase (py, px) of
-    the mosaic, own channel out[blk[py, px]]: chunks of `rows` phase rows (n0 of the even photosite rows,
-    n1 of the odd ones; each chunk both phases of its rows, column sums of the phase's photosites in
-    `csum` at their columns, sliding down by two photosite rows), in one parallel loop; noisy photosites
-    (`kz`) compacted in `idx`; with r = 2 the window sums of a row's columns at once where the window is
-    inside the frame (csum[3:6]; x + 0.0 is x, so the same sums). The sums of `_fuse_kernel` in its order, so its bits."""
-    h, w = values.shape
-    for t in prange(n0 + n1):
-        py = np.int64(0) if t < n0 else np.int64(1)
-        ci = np.int64(t) - py * n0
-        hp = (h - py + 1) // 2
-        c = csum[t]
-        ix = idx[t]
-        ya = ci * rows
-        yb = min(ya + rows, hp)
-        for k in range(3):
-            for x in range(w):
-                c[k, x] = 0.0
-        for yp in range(ya, yb):
-            if yp == ya:
-                for yy in range(max(ya - r, 0), min(ya + r + 1, hp)):
-                    _phase_add_row(values, state, py + 2 * yy, 1.0, c)
-            else:
-                if yp + r < hp:
-                    _phase_add_row(values, state, py + 2 * (yp + r), 1.0, c)
-                if yp - r - 1 >= 0:
-                    _phase_add_row(values, state, py + 2 * (yp - r - 1), -1.0, c)
-            y = py + 2 * yp
-            k = 0
-            for x in range(w):
-                ix[k] = x
-                k += 1 if kz[y, x] else 0
-            if k == 0:
-                continue
-            # r = 2: the window sums where the window lies in the frame (columns 4 .. w - 5), vectorised
-            inner = 4 if r == 2 else w
-            for i in range(3):
-                for x in range(inner, w - 4):
-                    c[3 + i, x] = c[i, x - 4] + c[i, x - 2] + c[i, x] + c[i, x + 2] + c[i, x + 4]
-            for q in range(k):
-                x = ix[q]
-                if x >= inner and x < w - 4:
-                    n = c[3, x]
-                    t1 = c[4, x]
-                    t2 = c[5, x]
-                else:
-                    px = x & 1
-                    j = x >> 1
-                    wp = (w - px + 1) // 2
-                    n = 0.0
-                    t1 = 0.0
-                    t2 = 0.0
-                    for jj in range(max(j - r, 0), min(j + r + 1, wp)):
-                        xx = px + 2 * jj
-                        n += c[0, xx]
-                        t1 += c[1, xx]
-                        t2 += c[2, xx]
-                px = x & 1
-                ch = blk[py, px]
-                mv = np.float64(values[y, x])
-                gv = np.float64(out[ch, y, x])
-                gp = max(gv, 0.0)
-                var_r = gain * gp + floor
-                var_m = nd * gain * gp + nd * nd * floor
-                excess = 0.0
-                if n > 0.5:
-                    mean = t1 / n
-                    excess = max(t2 / n - mean * mean - (gain * max(mean, 0.0) + floor), 0.0)
-                var_e = var_r / 4.0 + texture * excess
-                wgt = var_e / (var_e + var_m)
-                f = gv + wgt * (mv - gv)
-                out[ch, y, x] = np.float32(f if f > 0.0 else 0.0)
 
 
 def warmup() -> None:
