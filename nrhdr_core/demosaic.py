@@ -299,7 +299,7 @@ def _levels_from(pv, pw, hs, ws, off, first):
 
 def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
     """Steps 1-3 of the module docstring and the noise fusion, into `out` (`chan`: the channel plane,
-    green sources `kg`, level 1 of their pyramid pulled); sets the RECONSTRUCTED bits."""
+    green sources `kg`, levels 1 and 2 of their pyramid pulled by `_stats`); sets the RECONSTRUCTED bits."""
     h, w = v32.shape
     sc = _scratch(h, w)
     pv, pw, kl, rl = sc["pv"], sc["pw"], sc["kl"], sc["rl"]
