@@ -218,9 +218,9 @@ def _first_pass(v32, state, blk, g_any):
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
-    known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites per channel, CLIPPED photosites);
-    the green plane's pyramid level 1 (`_pull_row`) and, `deep`, level 2 (`_pull_at`, per pair of cell
-    rows). Branch-free pixel loops."""
+    known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
+    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`_pull_row`) and, `deep`, level 2
+    (`_pull_at`, per pair of cell rows). Branch-free pixel loops."""
     h, w = values.shape
     h1 = cnt.shape[0]
     zero = np.float32(0.0)
