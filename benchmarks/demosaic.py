@@ -7,9 +7,10 @@ Kodak images (docs/COLOUR.md "Joint reconstruction").
 --speed: one 1920 x 1080 frame of an HDR scene (../shared/data/hdr/MtTamWest.exr, else the synthetic scene)
 captured by the sensor model and classified (dark policy weighted, noise fused with the profile) is read as
 an RGGB mosaic; `reconstruct_cfa(method="preview")` and the monochrome `reconstruction.reconstruct_frame(
-method="preview")` run on it in the same process, interleaved call by call (median ms of --repeat warm calls;
-each call gets a fresh copy of the frame, untimed); --fse: the same for method "fse" with each preset, one
-warm call each.
+method="preview")` run on it in the same process, interleaved call by call (median wall ms of --repeat warm
+calls, and the least process CPU time of one call: on a loaded machine the CPU times and their ratio vary less
+than the wall times; each call gets a fresh copy of the frame, untimed); --fse: the same for method "fse" with
+each preset, one warm call each.
 --quality: Kodak images mosaicked (RGGB), a share --missing of the photosites DISCARDED at random; PSNR (dB,
 8-bit peak) of a plain bilinear per-channel demosaic of the known photosites (normalised convolution),
 the preview and FSE (--presets).
@@ -65,21 +66,25 @@ def speed(a):
         np.copyto(sm, state)
         np.copyto(sc, state)
     ts = {"mono": [], "colour": []}
+    cpu = {"mono": [], "colour": []}
     for i in range(a.repeat + 1):
         for name, fn in (("mono", mono), ("colour", colour)):
             reset()
             t0 = time.perf_counter()
+            c0 = time.process_time()
             fn()
             if i:
+                cpu[name].append(time.process_time() - c0)
                 ts[name].append(time.perf_counter() - t0)
     from numba import get_num_threads
     known = float(np.mean(state == VALID))
     mm, mc = (1e3 * float(np.median(ts[k])) for k in ("mono", "colour"))
+    cm, cc = (1e3 * float(np.min(cpu[k])) for k in ("mono", "colour"))
     print(f"{w}x{h} {Path(a.scene).name if Path(a.scene).is_file() else 'synthetic'}, {known:.1%} known, "
           f"numba threads {get_num_threads()}, load {os.getloadavg()[0]:.1f}, median of {a.repeat}")
-    print(f"  mono preview   (reconstruct_frame)  {mm:8.2f} ms  {1e3 / mm:6.1f} frames/s")
-    print(f"  colour preview (reconstruct_cfa)    {mc:8.2f} ms  {1e3 / mc:6.1f} frames/s  "
-          f"{mm / mc:.0%} of the mono frame rate")
+    print(f"  mono preview   (reconstruct_frame)  {mm:8.2f} ms  {1e3 / mm:6.1f} frames/s  CPU {cm:7.2f} ms")
+    print(f"  colour preview (reconstruct_cfa)    {mc:8.2f} ms  {1e3 / mc:6.1f} frames/s  CPU {cc:7.2f} ms  "
+          f"{mm / mc:.0%} of the mono frame rate; time ratio colour / mono {mc / mm:.2f}, CPU {cc / cm:.2f}")
     for preset in [p for p in a.fse.split(",") if p]:
         t = {}
         for name, fn in (("mono", lambda: reconstruction.reconstruct_frame(vm, sm, method="fse", preset=preset,

@@ -37,7 +37,8 @@ from numba import njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .reconstruction import _fill_row, _pull_push_levels, _pull_row, _pyramid
+from .reconstruction import (_SERIAL_LEVEL, _fill_row, _pull, _pull_at, _pull_push_levels, _pull_row,
+                             _push, _pyramid, _small_levels)
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import _clip_columns, _clip_lower_at_cfa, clip_lower_row
@@ -209,56 +210,71 @@ def _first_pass(v32, state, blk, g_any):
     green's sources."""
     h, w = v32.shape
     sc = _scratch(h, w)
-    _, _, _, ws, off = _pyramid(h, w)
-    _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], sc["cnt"], g_any)
+    _, _, hs, ws, off = _pyramid(h, w)
+    deep = hs.shape[0] > 2
+    _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
+           ws[2] if deep else 1, deep, sc["cnt"], g_any)
     return sc["cnt"].sum(axis=0), sc["kg"]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _stats(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any):
+def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
-    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`_pull_row`). Branch-free pixel loops."""
+    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`_pull_row`) and, `deep`, level 2
+    (`_pull_at`, per pair of cell rows). Branch-free pixel loops."""
     h, w = values.shape
+    h1 = cnt.shape[0]
     zero = np.float32(0.0)
-    for y1 in prange(cnt.shape[0]):
-        for i in range(_NCNT):
-            cnt[y1, i] = 0
-        for yy in range(2 * y1, min(2 * y1 + 2, h)):
-            cm = 0
-            cn = 0
-            cb = 0
-            cbk = 0
-            kn0 = 0
-            kn1 = 0
-            ccl = 0
-            b0 = blk[yy & 1, 0]
-            b1 = blk[yy & 1, 1]
-            g0 = (b0 == 1) | g_any
-            g1 = (b1 == 1) | g_any
-            for x in range(w):
-                st = state[yy, x]
-                k = (st & REASON_MASK) == VALID
-                odd = (x & 1) == 1
-                a = values[yy, x]
-                fin = a - a == zero
-                cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
-                cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
-                cb += np.int64(not fin)
-                cbk += np.int64(k & (not fin))
-                ccl += np.int64((st & REASON_MASK) == CLIPPED)
-                kn0 += np.int64(k & (not odd))
-                kn1 += np.int64(k & odd)
-                kk = k & (g1 if odd else g0)
-                kg[yy, x] = kk
-            cnt[y1, _N_MISS] += cm
-            cnt[y1, _N_NOISY] += cn
-            cnt[y1, _N_BAD] += cb
-            cnt[y1, _N_BAD_KNOWN] += cbk
-            cnt[y1, _N_CLIP] += ccl
-            cnt[y1, _N_KNOWN + b0] += kn0
-            cnt[y1, _N_KNOWN + b1] += kn1
-        _pull_row(values, kg, pv, pw, o1, w1, y1)
+    step = 2 if deep else 1
+    for q in prange((h1 + step - 1) // step):
+        for y1 in range(step * q, min(step * q + step, h1)):
+            _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
+        if deep:
+            for x2 in range(w2):
+                _pull_at(pv, pw, o1, h1, w1, o2, w2, q, x2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero):
+    """`_stats` of cell row y1."""
+    for i in range(_NCNT):
+        cnt[y1, i] = 0
+    for yy in range(2 * y1, min(2 * y1 + 2, h)):
+        cm = 0
+        cn = 0
+        cb = 0
+        cbk = 0
+        kn0 = 0
+        kn1 = 0
+        ccl = 0
+        b0 = blk[yy & 1, 0]
+        b1 = blk[yy & 1, 1]
+        g0 = (b0 == 1) | g_any
+        g1 = (b1 == 1) | g_any
+        for x in range(w):
+            st = state[yy, x]
+            k = (st & REASON_MASK) == VALID
+            odd = (x & 1) == 1
+            a = values[yy, x]
+            fin = a - a == zero
+            cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
+            cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
+            cb += np.int64(not fin)
+            cbk += np.int64(k & (not fin))
+            ccl += np.int64((st & REASON_MASK) == CLIPPED)
+            kn0 += np.int64(k & (not odd))
+            kn1 += np.int64(k & odd)
+            kk = k & (g1 if odd else g0)
+            kg[yy, x] = kk
+        cnt[y1, _N_MISS] += cm
+        cnt[y1, _N_NOISY] += cn
+        cnt[y1, _N_BAD] += cb
+        cnt[y1, _N_BAD_KNOWN] += cbk
+        cnt[y1, _N_CLIP] += ccl
+        cnt[y1, _N_KNOWN + b0] += kn0
+        cnt[y1, _N_KNOWN + b1] += kn1
+    _pull_row(values, kg, pv, pw, o1, w1, y1)
 
 
 def _positions(blk):
@@ -269,17 +285,37 @@ def _positions(blk):
     return pos
 
 
+def _levels_from(pv, pw, hs, ws, off, first):
+    """`reconstruction._pull_push_levels` from level `first` (pulled already) to the top and back to it:
+    big levels in parallel regions, the small ones in one serial call."""
+    levels = hs.shape[0] - 1
+    small = first
+    while small < levels and hs[small] * ws[small] >= _SERIAL_LEVEL:
+        small += 1
+    for lv in range(first, small):
+        _pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+    _small_levels(pv, pw, hs, ws, off, small, levels)
+    for lv in range(small - 1, first - 1, -1):
+        _push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+
+
 def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
     """Steps 1-3 of the module docstring and the noise fusion, into `out` (`chan`: the channel plane,
-    green sources `kg`, level 1 of their pyramid pulled); sets the RECONSTRUCTED bits."""
+    green sources `kg`, levels 1 and 2 of their pyramid pulled by `_stats`); sets the RECONSTRUCTED bits."""
     h, w = v32.shape
     sc = _scratch(h, w)
     pv, pw, kl, rl = sc["pv"], sc["pw"], sc["kl"], sc["rl"]
     _, _, hs, ws, off = _pyramid(h, w)
     pos = _positions(blk)
     h1, w1 = int(hs[1]), int(ws[1])
-    # 1. green (its pyramid's top: the mean known green level, for the log offset)
-    _pull_push_levels(pv[0], pw[0], hs, ws, off)
+    deep = hs.shape[0] > 2          # a level above the lattice (frames larger than 2 x 2)
+    o2, w2 = (int(off[2]), int(ws[2])) if deep else (int(off[1]), w1)
+    # 1. green: its pyramid pulled to the top and pushed back to level 2 (`deep`: `_stats` pulled levels 1
+    # and 2, `_green` pushes level 1 row by row); the top: the mean known green level, for the log offset
+    if deep:
+        _levels_from(pv[0], pw[0], hs, ws, off, 2)
+    else:
+        _pull_push_levels(pv[0], pw[0], hs, ws, off)
     top = int(off[hs.shape[0] - 1])
     c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
     gsrc = np.zeros((1, 1), np.float32)
@@ -287,23 +323,21 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
     if method != "preview":
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
-    # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2)
-    _green(v32, state, chan, blk, kg, pv[0], off[1], w1, gsrc, method != "preview", use_bounds, pos, c, pv[1],
-           pw[1], pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
+    # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2;
+    # `deep`: level 2 pulled)
+    _green(v32, state, chan, blk, kg, pv[0], pw[0], off[1], w1, o2, w2, deep, gsrc, method != "preview",
+           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
     rng = _ranges(fst, cnt)
     # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
+    lat = [pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1) for i in range(2)]
     if method == "preview":
-        _pull_push_levels(pv[1], pw[1], hs, ws, off)
-        _pull_push_levels(pv[2], pw[2], hs, ws, off)
-        deep = hs.shape[0] > 2          # a level above the lattice (frames larger than 2 x 2)
-        o2, w2 = (int(off[2]), int(ws[2])) if deep else (int(off[1]), w1)
-        for i in range(2):
-            lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
-            _lattice_fill(lat, kl[i], pv[1 + i], o2, w2, rl[i])
+        if not deep:
+            _pull_push_levels(pv[1], pw[1], hs, ws, off)
+            _pull_push_levels(pv[2], pw[2], hs, ws, off)
+        _lattice_fill(lat[0], lat[1], kl, pv, pw, hs, ws, off, 2 if deep else hs.shape[0] - 1, o2, w2, rl)
     else:
         for i in range(2):
-            lat = pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1)
-            _ratio(_fse_lattice(lat, kl[i], preset), rl[i])
+            _ratio(_fse_lattice(lat[i], kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
     crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
     _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], out)
@@ -441,15 +475,56 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _green(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb, kl,
-           fst, ixs, gout):
+def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
+           pvb, pwb, kl, fst, ixs, gout):
     """Per cell row: the green plane into `gout` (the pull-push fill `reconstruction._fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
     colour differences (weight 1 where known, else 0) into level 1 of the d_R and d_B pyramids and `kl`,
     and the lattices' statistics `fst` (keys of the known min and max and the largest CLIPPED value;
     integer reductions vectorise, float ones do not). The logarithm only at
-    the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows)."""
+    the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
+    pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`_push_at`) row
+    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_at`) per pair of cell
+    rows."""
+    h, w = values.shape
+    h1 = (h + 1) // 2
+    nch = ixs.shape[0]
+    step = 2 if deep else 1
+    n2 = (h1 + step - 1) // step
+    for kc in prange(nch):
+        ix = ixs[kc]
+        for q in range(kc * n2 // nch, (kc + 1) * n2 // nch):
+            for y1 in range(step * q, min(step * q + step, h1)):
+                if deep and not from_src:
+                    _push_row(pv, pw, o1, w1, o2, w2, y1)
+                _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
+                             pwr, pvb, pwb, kl, fst, ix, gout, y1)
+            if deep:
+                for x2 in range(w2):
+                    _pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
+                    _pull_at(pvb, pwb, o1, h1, w1, o2, w2, q, x2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push_row(pv, pw, o1, w1, o2, w2, y1):
+    """`reconstruction._push_at` of row y1 of level 1 from level 2, branch-free."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    b1 = o1 + y1 * w1
+    b2 = o2 + (y1 // 2) * w2
+    for x1 in range(w1):
+        a = pv[b2 + x1 // 2]
+        c = pw[b2 + x1 // 2]
+        p = a / c if c > zero else zero
+        pv[b1 + x1] = p if pw[b1 + x1] < one else pv[b1 + x1]
+        pw[b1 + x1] = one
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb,
+                 kl, fst, ix, gout, y1):
+    """`_green` of cell row y1 (index buffer `ix`)."""
     h, w = values.shape
     zero = np.float32(0.0)
     one = np.float32(1.0)
@@ -457,69 +532,74 @@ def _green(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds,
     kmax = np.int32(0x7FFFFFFF)
     kmin = np.int32(-0x7FFFFFFF - 1)
     vi = values.view(np.int32)
-    h1 = (h + 1) // 2
-    nch = ixs.shape[0]
-    for kc in prange(nch):
-        ix = ixs[kc]
-        for y1 in range(kc * h1 // nch, (kc + 1) * h1 // nch):
-            for y in range(2 * y1, min(2 * y1 + 2, h)):
-                g = gout[y]
-                if from_src:
-                    for x in range(w):
-                        g[x] = gsrc[y, x]
-                else:
-                    _fill_row(values, kg, pv, o1, w1, y, g, True)
-                _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
-            base = o1 + y1 * w1
-            for i in range(2):
-                ch = 0 if i == 0 else 2
-                y = 2 * y1 + pos[ch, 0]
-                px = pos[ch, 1]
-                pvd = pvr if i == 0 else pvb
-                pwd = pwr if i == 0 else pwb
-                lo = kmax
-                hi = kmin
-                cl = kmin
-                n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
-                nk = 0
-                for x1 in range(n):
-                    x = 2 * x1 + px
-                    r = state[y, x] & REASON_MASK
-                    k = r == VALID
-                    key = f32_key(vi[y, x])
-                    lo = min(lo, key if k else kmax)
-                    hi = max(hi, key if k else kmin)
-                    cl = max(cl, key if (r == CLIPPED) else kmin)
-                    pvd[base + x1] = zero
-                    pwd[base + x1] = one if k else zero
-                    kl[i, y1, x1] = k
-                    ix[nk] = x1
-                    nk += 1 if k else 0
-                for q in range(nk):
-                    x1 = ix[q]
-                    x = 2 * x1 + px
-                    a = values[y, x]
-                    gv = gout[y, x]
-                    a = (a if a > zero else zero) + c
-                    gv = (gv if gv > zero else zero) + c
-                    pvd[base + x1] = np.log2(a / gv)
-                for x1 in range(n, w1):
-                    pvd[base + x1] = zero
-                    pwd[base + x1] = zero
-                    kl[i, y1, x1] = False
-                fst[y1, _F_LO + i] = lo
-                fst[y1, _F_HI + i] = hi
-                fst[y1, _F_CLIP + i] = cl
+    for y in range(2 * y1, min(2 * y1 + 2, h)):
+        g = gout[y]
+        if from_src:
+            for x in range(w):
+                g[x] = gsrc[y, x]
+        else:
+            _fill_row(values, kg, pv, o1, w1, y, g, True)
+        _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
+    base = o1 + y1 * w1
+    for i in range(2):
+        ch = 0 if i == 0 else 2
+        y = 2 * y1 + pos[ch, 0]
+        px = pos[ch, 1]
+        pvd = pvr if i == 0 else pvb
+        pwd = pwr if i == 0 else pwb
+        lo = kmax
+        hi = kmin
+        cl = kmin
+        n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
+        for x1 in range(n):
+            x = 2 * x1 + px
+            r = state[y, x] & REASON_MASK
+            k = r == VALID
+            key = f32_key(vi[y, x])
+            lo = min(lo, key if k else kmax)
+            hi = max(hi, key if k else kmin)
+            cl = max(cl, key if (r == CLIPPED) else kmin)
+            pvd[base + x1] = zero
+            pwd[base + x1] = one if k else zero
+            kl[i, y1, x1] = k
+        nk = 0
+        for x1 in range(n):                         # compaction apart: the loop above vectorises
+            ix[nk] = x1
+            nk += 1 if kl[i, y1, x1] else 0
+        for q in range(nk):
+            x1 = ix[q]
+            x = 2 * x1 + px
+            a = values[y, x]
+            gv = gout[y, x]
+            a = (a if a > zero else zero) + c
+            gv = (gv if gv > zero else zero) + c
+            pvd[base + x1] = np.log2(a / gv)
+        for x1 in range(n, w1):
+            pvd[base + x1] = zero
+            pwd[base + x1] = zero
+            kl[i, y1, x1] = False
+        fst[y1, _F_LO + i] = lo
+        fst[y1, _F_HI + i] = hi
+        fst[y1, _F_CLIP + i] = cl
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _lattice_fill(lat, known, pv, o2, w2, ratio):
-    """A difference lattice after its pull-push: each cell its value where known, else the weighted mean of
-    its known 8-neighbours, else its parent's pushed value (`reconstruction._fill_row`, as the monochrome
-    preview fills level 0); stored as the ratio 2^d."""
-    for i in prange(lat.shape[0]):
-        r = ratio[i]
-        _fill_row(lat, known, pv, o2, w2, i, r, True)
+def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
+    """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
+    their pyramids pulled from level `first` to the top and pushed back to it (`_small_levels`, one
+    pyramid per thread), then each cell its value where known, else the weighted mean of its known
+    8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `reconstruction._fill_row`, as
+    the monochrome preview fills level 0); stored as the ratio 2^d."""
+    levels = hs.shape[0] - 1
+    for i in prange(2):
+        if first < levels:
+            _small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
+    h1 = known.shape[1]
+    for q in prange(2 * h1):
+        i = q // h1
+        y = q - i * h1
+        r = ratio[i, y]
+        _fill_row(lat0 if i == 0 else lat1, known[i], pv[1 + i], o2, w2, y, r, True)
         for j in range(r.shape[0]):
             r[j] = np.exp2(r[j])
 
@@ -566,7 +646,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
             near = crow[y]
             if near:
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3])
+                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3], True)
             for i in range(2):
                 ch = 0 if i == 0 else 2
                 eh = ext[ch, 0]
@@ -587,7 +667,8 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                 if pos[ch, 0] == (y & 1):
                     _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
                     if near:
-                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3])
+                        _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3],
+                                  True)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -597,25 +678,26 @@ def _cv(own, state, y, x):
 
 
 @njit(cache=True, nogil=True)
-def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1):
+def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh):
     """o[x] (x = x0, x0 + 2, ...) at least the smallest own-channel value `own` of its neighbours in the
     frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED: a
     neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
-    minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise)."""
+    minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
+    else those of the previous call in the same row and channel)."""
     h, w = state.shape
     big = _BIG
     up = y - 1 if y > 0 else y
     dn = y + 1 if y + 1 < h else y
     bu = np.float32(-big) if y > 0 else big          # + a value: the row's own, or +_BIG outside
     bd = np.float32(-big) if y + 1 < h else big
-    if vt or dg:
+    if fresh and (vt or dg):
         for x in range(w):
             a = _cv(own, state, up, x)
             a = a if bu < 0 else big
             c = _cv(own, state, dn, x)
             c = c if bd < 0 else big
             b0[x] = min(a, c)
-    if hz:
+    if fresh and hz:
         for x in range(w):
             b1[x] = _cv(own, state, y, x)
     for x in range(x0, w, 2):
@@ -641,8 +723,8 @@ def _clipped_row(state, pos, out, y, b0, b1):
         o = out[ch, y]
         px = pos[ch, 1]
         if (y & 1) != pos[ch, 0]:
-            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1)
-            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1)
+            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1, True)
+            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1, False)
 
 
 @njit(cache=True, nogil=True, parallel=True)
