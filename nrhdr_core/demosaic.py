@@ -1006,10 +1006,11 @@ def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
                 b0 = buf[_CM_LO]
                 b1 = buf[_CM_MI]
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(out[1, y], out[1], state, y, 1 - gx, True, True, False, b0, b1)
+                _lift_row(out[1, y], out[1], state, y, 1 - gx, True, True, False, b0, b1, True)
                 for ch in (0, 2):
                     if pos[ch, 0] == (y & 1):
-                        _lift_row(out[ch, y], out[ch], state, y, 1 - pos[ch, 1], True, False, False, b0, b1)
+                        _lift_row(out[ch, y], out[ch], state, y, 1 - pos[ch, 1], True, False, False, b0, b1,
+                                  True)
                 _clipped_row(state, pos, out, y, b0, b1)
             s0, s1, s2 = s1, s2, s0
 
