@@ -37,11 +37,11 @@ from numba import njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .reconstruction import (_SERIAL_LEVEL, _fill_row, _pull, _pull_at, _pull_push_levels, _pull_row,
-                             _push, _pyramid, _small_levels)
+from .pullpush import (SERIAL_LEVEL, fill_row, pull, pull_at, pull_push_levels, pull_row, push, pyramid,
+                       small_levels)
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
-from .validity import _clip_columns, _clip_lower_at_cfa, clip_lower_row
+from .validity import clip_columns, clip_lower_at_cfa, clip_lower_row
 
 METHODS = ("preview", "fse")
 # offset c of the log colour differences: OFFSET_SHARE x the mean known green level (scales with the data),
@@ -193,7 +193,7 @@ def _scratch(h, w):
     pull-push pyramids (green, d_R, d_B: values and weights), the lattices' known masks and ratios, row
     buffers of `_colour`, per cell row counts and statistics."""
     def make():
-        pv, _, hs, ws, _ = _pyramid(h, w)
+        pv, _, hs, ws, _ = pyramid(h, w)
         n = pv.size
         h1, w1 = int(hs[1]), int(ws[1])
         return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
@@ -210,7 +210,7 @@ def _first_pass(v32, state, blk, g_any):
     green's sources."""
     h, w = v32.shape
     sc = _scratch(h, w)
-    _, _, hs, ws, off = _pyramid(h, w)
+    _, _, hs, ws, off = pyramid(h, w)
     deep = hs.shape[0] > 2
     _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
            ws[2] if deep else 1, deep, sc["cnt"], g_any)
@@ -221,8 +221,8 @@ def _first_pass(v32, state, blk, g_any):
 def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
-    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`_pull_row`) and, `deep`, level 2
-    (`_pull_at`, per pair of cell rows). Branch-free pixel loops."""
+    per channel, CLIPPED photosites); the green plane's pyramid level 1 (`pull_row`) and, `deep`, level 2
+    (`pull_at`, per pair of cell rows). Branch-free pixel loops."""
     h, w = values.shape
     h1 = cnt.shape[0]
     zero = np.float32(0.0)
@@ -232,7 +232,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
             _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
         if deep:
             for x2 in range(w2):
-                _pull_at(pv, pw, o1, h1, w1, o2, w2, q, x2)
+                pull_at(pv, pw, o1, h1, w1, o2, w2, q, x2)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -274,7 +274,7 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
         cnt[y1, _N_CLIP] += ccl
         cnt[y1, _N_KNOWN + b0] += kn0
         cnt[y1, _N_KNOWN + b1] += kn1
-    _pull_row(values, kg, pv, pw, o1, w1, y1)
+    pull_row(values, kg, pv, pw, o1, w1, y1)
 
 
 def _positions(blk):
@@ -286,17 +286,17 @@ def _positions(blk):
 
 
 def _levels_from(pv, pw, hs, ws, off, first):
-    """`reconstruction._pull_push_levels` from level `first` (pulled already) to the top and back to it:
+    """`pullpush.pull_push_levels` from level `first` (pulled already) to the top and back to it:
     big levels in parallel regions, the small ones in one serial call."""
     levels = hs.shape[0] - 1
     small = first
-    while small < levels and hs[small] * ws[small] >= _SERIAL_LEVEL:
+    while small < levels and hs[small] * ws[small] >= SERIAL_LEVEL:
         small += 1
     for lv in range(first, small):
-        _pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
-    _small_levels(pv, pw, hs, ws, off, small, levels)
+        pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+    small_levels(pv, pw, hs, ws, off, small, levels)
     for lv in range(small - 1, first - 1, -1):
-        _push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+        push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
 
 
 def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
@@ -305,7 +305,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     h, w = v32.shape
     sc = _scratch(h, w)
     pv, pw, kl, rl = sc["pv"], sc["pw"], sc["kl"], sc["rl"]
-    _, _, hs, ws, off = _pyramid(h, w)
+    _, _, hs, ws, off = pyramid(h, w)
     pos = _positions(blk)
     h1, w1 = int(hs[1]), int(ws[1])
     deep = hs.shape[0] > 2          # a level above the lattice (frames larger than 2 x 2)
@@ -315,7 +315,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     if deep:
         _levels_from(pv[0], pw[0], hs, ws, off, 2)
     else:
-        _pull_push_levels(pv[0], pw[0], hs, ws, off)
+        pull_push_levels(pv[0], pw[0], hs, ws, off)
     top = int(off[hs.shape[0] - 1])
     c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
     gsrc = np.zeros((1, 1), np.float32)
@@ -332,8 +332,8 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     lat = [pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1) for i in range(2)]
     if method == "preview":
         if not deep:
-            _pull_push_levels(pv[1], pw[1], hs, ws, off)
-            _pull_push_levels(pv[2], pw[2], hs, ws, off)
+            pull_push_levels(pv[1], pw[1], hs, ws, off)
+            pull_push_levels(pv[2], pw[2], hs, ws, off)
         _lattice_fill(lat[0], lat[1], kl, pv, pw, hs, ws, off, 2 if deep else hs.shape[0] - 1, o2, w2, rl)
     else:
         for i in range(2):
@@ -371,12 +371,12 @@ def _ranges(fst, cnt):
 
 @njit(cache=True, nogil=True)
 def _green_lower_row(values, state, chan, y, x0, mrow):
-    """mrow[j] = the clipped-neighbour rule of `validity.bounds(..., cfa=)` (`validity._clip_lower_at_cfa`)
+    """mrow[j] = the clipped-neighbour rule of `validity.bounds(..., cfa=)` (`validity.clip_lower_at_cfa`)
     at the green photosite (y, x0 + 2 j) of a missing CLIPPED regular one (other entries: scratch), from
-    column aggregates (`validity._clip_columns`): the green photosites of its 5 x 5 window are those of its
+    column aggregates (`validity.clip_columns`): the green photosites of its 5 x 5 window are those of its
     own phase 2 apart (the phase's 3 x 3) and those of the other green phase diagonal to it (the other
     phase's rows y - 1, y + 1 and columns x - 1, x + 1); with no attenuated one among them, the 9 x 9 window
-    (`_clip_lower_at_cfa`, a scan: rare)."""
+    (`clip_lower_at_cfa`, a scan: rare)."""
     h, w = values.shape
     py = y & 1
     sv = values[py::2, x0::2]
@@ -390,13 +390,13 @@ def _green_lower_row(values, state, chan, y, x0, mrow):
     bad = np.zeros(wp, np.int32)
     mn = np.full(wp, np.inf, np.float32)
     for yy in range(max(yp - 1, 0), min(yp + 2, hp)):
-        _clip_columns(sv, ss, yy, natt, bad, mn)
+        clip_columns(sv, ss, yy, natt, bad, mn)
     qn = np.zeros(max(wq, 1), np.int32)
     qb = np.zeros(max(wq, 1), np.int32)
     qm = np.full(max(wq, 1), np.inf, np.float32)
     for yf in (y - 1, y + 1):
         if 0 <= yf < h and wq > 0:
-            _clip_columns(qv, qs, yf >> 1, qn, qb, qm)
+            clip_columns(qv, qs, yf >> 1, qn, qb, qm)
     for j in range(wp):
         x = x0 + 2 * j
         if (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) != CLIPPED:
@@ -415,7 +415,7 @@ def _green_lower_row(values, state, chan, y, x0, mrow):
                 bd |= qb[q]
                 m = qm[q] if qm[q] < m else m
         if n == 0:
-            mrow[j] = _clip_lower_at_cfa(values, state, chan, y, x, h, w)
+            mrow[j] = clip_lower_at_cfa(values, state, chan, y, x, h, w)
         else:
             mrow[j] = np.float32(np.nan) if bd != 0 else m
 
@@ -477,15 +477,15 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
            pvb, pwb, kl, fst, ixs, gout):
-    """Per cell row: the green plane into `gout` (the pull-push fill `reconstruction._fill_row` of the
+    """Per cell row: the green plane into `gout` (the pull-push fill `pullpush.fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
     colour differences (weight 1 where known, else 0) into level 1 of the d_R and d_B pyramids and `kl`,
     and the lattices' statistics `fst` (keys of the known min and max and the largest CLIPPED value;
     integer reductions vectorise, float ones do not). The logarithm only at
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
-    pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`_push_at`) row
-    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_at`) per pair of cell
+    pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`push_at`) row
+    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`pull_at`) per pair of cell
     rows."""
     h, w = values.shape
     h1 = (h + 1) // 2
@@ -502,13 +502,13 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
                              pwr, pvb, pwb, kl, fst, ix, gout, y1)
             if deep:
                 for x2 in range(w2):
-                    _pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
-                    _pull_at(pvb, pwb, o1, h1, w1, o2, w2, q, x2)
+                    pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
+                    pull_at(pvb, pwb, o1, h1, w1, o2, w2, q, x2)
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _push_row(pv, pw, o1, w1, o2, w2, y1):
-    """`reconstruction._push_at` of row y1 of level 1 from level 2, branch-free."""
+    """`pullpush.push_at` of row y1 of level 1 from level 2, branch-free."""
     one = np.float32(1.0)
     zero = np.float32(0.0)
     b1 = o1 + y1 * w1
@@ -538,7 +538,7 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
             for x in range(w):
                 g[x] = gsrc[y, x]
         else:
-            _fill_row(values, kg, pv, o1, w1, y, g, True)
+            fill_row(values, kg, pv, o1, w1, y, g, True)
         _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
     base = o1 + y1 * w1
     for i in range(2):
@@ -586,20 +586,20 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
     """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
-    their pyramids pulled from level `first` to the top and pushed back to it (`_small_levels`, one
+    their pyramids pulled from level `first` to the top and pushed back to it (`small_levels`, one
     pyramid per thread), then each cell its value where known, else the weighted mean of its known
-    8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `reconstruction._fill_row`, as
+    8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `pullpush.fill_row`, as
     the monochrome preview fills level 0); stored as the ratio 2^d."""
     levels = hs.shape[0] - 1
     for i in prange(2):
         if first < levels:
-            _small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
+            small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
     h1 = known.shape[1]
     for q in prange(2 * h1):
         i = q // h1
         y = q - i * h1
         r = ratio[i, y]
-        _fill_row(lat0 if i == 0 else lat1, known[i], pv[1 + i], o2, w2, y, r, True)
+        fill_row(lat0 if i == 0 else lat1, known[i], pv[1 + i], o2, w2, y, r, True)
         for j in range(r.shape[0]):
             r[j] = np.exp2(r[j])
 

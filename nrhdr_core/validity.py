@@ -168,7 +168,7 @@ def clip_lower_row(values, state, y, mrow):
     mn = np.full(w, np.inf, np.float32)
     n3 = np.empty(w, np.int32)
     for yy in range(max(y - 1, 0), min(y + 2, h)):
-        _clip_columns(values, state, yy, natt, bad, mn)
+        clip_columns(values, state, yy, natt, bad, mn)
     none = _clip_combine(state, y, natt, bad, mn, n3, mrow)
     x = 0
     while none and x < w:         # no attenuated pixel in the 3 x 3 (a few per row at most): 5 x 5
@@ -179,7 +179,7 @@ def clip_lower_row(values, state, y, mrow):
 
 
 @njit(cache=True, nogil=True)
-def _clip_columns(values, state, yy, natt, bad, mn):
+def clip_columns(values, state, yy, natt, bad, mn):
     """Add row yy to the column aggregates of `clip_lower_row` (branch-free)."""
     w = state.shape[1]
     for x in range(w):
@@ -272,16 +272,16 @@ def cfa_neighbour(chan, y, x, yy, xx):
 
 @njit(cache=True, nogil=True)
 def clip_lower_row_cfa(values, state, chan, y, mrow):
-    """`clip_lower_row` on a Bayer mosaic (`chan`: its channel plane): mrow[x] = `_clip_lower_at_cfa` for
+    """`clip_lower_row` on a Bayer mosaic (`chan`: its channel plane): mrow[x] = `clip_lower_at_cfa` for
     every clipped regular pixel of row y (other entries of mrow are left as they are)."""
     h, w = state.shape
     for x in range(w):
         if (state[y, x] & (ATTENUATED | REASON_MASK)) == CLIPPED:
-            mrow[x] = _clip_lower_at_cfa(values, state, chan, y, x, h, w)
+            mrow[x] = clip_lower_at_cfa(values, state, chan, y, x, h, w)
 
 
 @njit(cache=True, nogil=True)
-def _clip_lower_at_cfa(values, state, chan, y, x, h, w):
+def clip_lower_at_cfa(values, state, chan, y, x, h, w):
     """`_clip_lower_at` among same-colour pixels: the smallest lower bound of the attenuated photosites of
     (y, x)'s channel in the 5 x 5 window (the colour plane's 3 x 3), else the 9 x 9 (its 5 x 5) when the
     5 x 5 has none, when all of them are clipped; NaN when some is not clipped or none is near."""
