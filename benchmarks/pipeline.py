@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import re
 import shutil
 import statistics
 import sys
@@ -197,6 +198,9 @@ def main(argv=None) -> int:
     return 0
 
 
+_FRAME_LINE = re.compile(r" frame \d+ pts ")     # nrreconstruct's per-frame log line
+
+
 def launch_rate(desc: str, frames: int, skip: int = 2) -> float:
     """Frames/s of `desc` run by gst-launch-1.0 (as `nrhdr launch` and pipelines/*.sh run it) after
     start-up: from the timestamps of nrreconstruct's per-frame log lines (GST_DEBUG=nrreconstruct:6), the
@@ -216,7 +220,7 @@ def launch_rate(desc: str, frames: int, skip: int = 2) -> float:
         return float("nan")
     ts = []
     for line in r.stderr.splitlines():
-        if "nrreconstruct" in line and " frame " in line and "do_transform_ip" in line:
+        if "nrreconstruct" in line and _FRAME_LINE.search(line):
             h, m, sec = line.split()[0].split(":")
             ts.append(int(h) * 3600 + int(m) * 60 + float(sec))
     ts = ts[skip:]
