@@ -52,3 +52,17 @@ def test_quick_run_at_a_tiny_size(bench, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| static |" in out and "| cut |" in out and "preview (anchor)" in out
     assert (tmp_path / "results.md").read_text().count("| fast motion |") == 2
+
+
+def test_budget_sweep_at_a_tiny_size(capsys):
+    """benchmarks/temporal_budget.py: one row per configuration; under a budget the shot starts from the
+    preview, so its first frame scores the preview's log2 PSNR exactly."""
+    sweep = load_benchmark("temporal_budget", "bench_temporal_budget")
+    rc = sweep.main(["--size", "64x48", "--frames", "4", "--budgets", "1,0", "--repeat", "1", "--scene", "synthetic"])
+    assert rc == 0
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]]
+            for r in capsys.readouterr().out.splitlines() if r.startswith("| ") and not r.startswith("| configuration")}
+    assert list(rows) == ["preview", "budget 1", "budget 0"]
+    first = {k: v[-1].split(" / ")[0] for k, v in rows.items()}
+    assert first["budget 1"] == first["preview"]
+    assert all(float(v[0]) > 0 and int(v[3]) >= 0 for v in rows.values())
