@@ -54,6 +54,26 @@ def same(a, b) -> bool:
     return np.array_equal(a[0].view(np.uint32), b[0].view(np.uint32)) and np.array_equal(a[1], b[1])
 
 
+def element_exrs(clip, w, h, out, env, timeout=180) -> None:
+    """`nrhdr launch filesrc ! rawvideoparse ! nrvalidity ! nrcrosstalk ! nrreconstruct method=fse preset=fast
+    temporal=on ! nrexrsink write-state=true` over the clip folder's raw frames into `out`."""
+    cmd = [sys.executable, "-m", "gst_plugins.cli", "launch", "-q", "filesrc", f"location={clip / 'clip.raw'}",
+           "!", "rawvideoparse", "format=gray16-le", f"width={w}", f"height={h}", "framerate=30/1",
+           f"plane-strides=<{2 * w}>", "!", "nrvalidity", f"profile={clip / 'camera.json'}", "!", "nrcrosstalk",
+           "!", "nrreconstruct", "method=fse", "preset=fast", "temporal=on", "!", "nrexrsink",
+           "write-state=true", f"location={out}/frame_%05d.exr"]
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+    assert p.returncode == 0, p.stdout + p.stderr
+
+
+def assert_same_frames(a_dir, b_dir, n) -> None:
+    """Folders a_dir and b_dir hold frame_00000.exr .. frame_{n-1} with the same float32 bits and states."""
+    a, b = exr_frames(a_dir), exr_frames(b_dir)
+    assert [f.name for f in a] == [f.name for f in b] == [f"frame_{i:05d}.exr" for i in range(n)]
+    for fa, fb in zip(a, b):
+        assert_same_exr(fa, fb)
+
+
 def write_clip(out, raws, prof):
     """A clip folder (clip.raw, clip.json, camera.json) of the raw frames `raws`."""
     from nrhdr_core import io, profile
@@ -166,17 +186,8 @@ def test_the_element_pipeline_equals_batch(steady, tmp_path, gst_subprocess_env)
     rc, log = nrhdr_batch(d, "-o", tmp_path / "batch", "--workers", "1", "--temporal", "on", "--chunk", "2",
                           "--overlap", "6", env=gst_subprocess_env)
     assert rc == 0, log
-    cmd = [sys.executable, "-m", "gst_plugins.cli", "launch", "-q", "filesrc", f"location={d / 'clip.raw'}",
-           "!", "rawvideoparse", "format=gray16-le", f"width={W}", f"height={H}", "framerate=30/1",
-           f"plane-strides=<{2 * W}>", "!", "nrvalidity", f"profile={d / 'camera.json'}", "!", "nrcrosstalk",
-           "!", "nrreconstruct", "method=fse", "preset=fast", "temporal=on", "!", "nrexrsink",
-           "write-state=true", f"location={tmp_path / 'gst'}/frame_%05d.exr"]
-    p = subprocess.run(cmd, env=gst_subprocess_env, capture_output=True, text=True, timeout=180)
-    assert p.returncode == 0, p.stdout + p.stderr
-    a, b = exr_frames(tmp_path / "batch"), exr_frames(tmp_path / "gst")
-    assert [f.name for f in a] == [f.name for f in b] == [f"frame_{i:05d}.exr" for i in range(len(raws))]
-    for fa, fb in zip(a, b):
-        assert_same_exr(fa, fb)
+    element_exrs(d, W, H, tmp_path / "gst", gst_subprocess_env)
+    assert_same_frames(tmp_path / "batch", tmp_path / "gst", len(raws))
     seq, _ = sequential(raws, prof)
     assert not same(seq[-1], sequential(raws[-1:], prof)[0][0])     # the past changed the last frame
 

@@ -4,7 +4,6 @@ the refinement is deterministic and converges to the unbounded temporal output o
 restart from the preview, the element equals the core and batch equals the element."""
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -170,8 +169,8 @@ def test_the_element_pipeline_equals_batch_under_the_default_budget(tmp_path, gs
     """A steady shot with more blocks than the default budget (272 x 240: 255 blocks): `... ! nrreconstruct
     temporal=on ! nrexrsink` == nrhdr batch --temporal on, every pixel's bits and state byte, and the
     budget bounded the work (the first frame is the preview)."""
-    from test_batch import assert_same_exr, exr_frames, nrhdr_batch
-    from test_batch_temporal import sequential
+    from test_batch import nrhdr_batch
+    from test_batch_temporal import assert_same_frames, element_exrs, sequential
     h, w = 240, 272
     assert (h // 16) * (w // 16) > chain.TEMPORAL_BUDGET
     prof = profile.default(h, w, seed=5)
@@ -185,14 +184,5 @@ def test_the_element_pipeline_equals_batch_under_the_default_budget(tmp_path, gs
     rc, log = nrhdr_batch(d, "-o", tmp_path / "batch", "--workers", "0", "--temporal", "on", "--chunk", "10",
                           env=gst_subprocess_env)
     assert rc == 0, log
-    cmd = [sys.executable, "-m", "gst_plugins.cli", "launch", "-q", "filesrc", f"location={d / 'clip.raw'}",
-           "!", "rawvideoparse", "format=gray16-le", f"width={w}", f"height={h}", "framerate=30/1",
-           f"plane-strides=<{2 * w}>", "!", "nrvalidity", f"profile={d / 'camera.json'}", "!", "nrcrosstalk",
-           "!", "nrreconstruct", "method=fse", "preset=fast", "temporal=on", "!", "nrexrsink",
-           "write-state=true", f"location={tmp_path / 'gst'}/frame_%05d.exr"]
-    p = subprocess.run(cmd, env=gst_subprocess_env, capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0, p.stdout + p.stderr
-    a, b = exr_frames(tmp_path / "batch"), exr_frames(tmp_path / "gst")
-    assert [f.name for f in a] == [f.name for f in b] == [f"frame_{i:05d}.exr" for i in range(4)]
-    for fa, fb in zip(a, b):
-        assert_same_exr(fa, fb)
+    element_exrs(d, w, h, tmp_path / "gst", gst_subprocess_env, timeout=300)
+    assert_same_frames(tmp_path / "batch", tmp_path / "gst", 4)
