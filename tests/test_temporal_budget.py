@@ -15,9 +15,9 @@ from nrhdr_core.states import REASON_MASK, RECONSTRUCTED, VALID
 from nrhdr_core.temporal import TemporalReconstructor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_temporal import H, W, prof  # noqa: E402, F401  (the 96 x 128 frame and its profile fixture)
 
-H, W = 96, 128          # 6 x 8 = 48 blocks of 16 x 16
-BLOCKS = 48
+BLOCKS = (H // 16) * (W // 16)          # 6 x 8 = 48 blocks of 16 x 16
 BUDGET = 6
 # the budgeted output of a settled static shot against the unbounded one, at the missing pixels: the median
 # and the 90th percentile of |log2 difference| (stops). The two are not the same numbers: the budgeted run
@@ -25,11 +25,6 @@ BUDGET = 6
 # averages the reconstructions of the first 4 frames (their clipped pixels differ most, the budgeted ones
 # nearer the truth)
 CONVERGED_MEDIAN, CONVERGED_P90 = 0.01, 0.05
-
-
-@pytest.fixture(scope="module")
-def prof():
-    return profile.default(H, W, seed=5)
 
 
 @pytest.fixture(scope="module")
