@@ -862,7 +862,8 @@ def _chroma_scratch(h, w):
     ring of three ratio rows per difference and row buffers (`_CM_*`), the ratio rows beside each chunk
     (`bnd`: the row above and the row below) and the green plane's range per row."""
     def make():
-        return dict(rows=np.zeros((_CHUNKS, _CM_ROWS, w), np.float32), bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
+        return dict(rows=np.zeros((_CHUNKS, _CM_ROWS, w), np.float32),
+                    bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
     return planes("demosaic.chroma", (h, w), make)
 
 

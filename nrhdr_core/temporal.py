@@ -869,9 +869,9 @@ def _reuse_row(values, state, prev, var, cnt, work, y, fm, use_bounds, g, floor,
     past and output become the numbers `_prepare_px` and `_finish` give (measured and NOISY pixels
     averaged with their past, an outlier or a pixel whose past is a placeholder restarted from its
     measurement, the others their past within their bounds, RECONSTRUCTED; a clipped pixel at least its
-    own value: the neighbours' bound was applied when it was reconstructed); `work` keeps the row's input values. The whole row is computed
-    into the scratch lanes la, lv, lc (the caller's, the row's length), then selected, so that both loops
-    are long and vectorise. Returns the pixels not VALID written."""
+    own value: the neighbours' bound was applied when it was reconstructed); `work` keeps the row's input
+    values. The whole row is computed into the scratch lanes la, lv, lc (the caller's, the row's length),
+    then selected, so that both loops are long and vectorise. Returns the pixels not VALID written."""
     zero = np.float32(0.0)
     ndg = nd * g
     ndf = nd * nd * floor
