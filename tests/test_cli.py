@@ -83,8 +83,12 @@ def test_warmup_compiles_through_chain_warmup_only_and_never_suggests_itself(mon
     from nrhdr_core import chain
     calls = []
 
+    temporal = []
+
     def fake_warmup(settings, tone=False, calibrated=True, *, stages=chain.STAGES, transfers=(), elements=False):
         calls.append((tuple(stages), tuple(transfers), elements))
+        sets = [settings] if isinstance(settings, chain.ChainSettings) else list(settings)
+        temporal.extend((s.method, s.temporal_budget) for s in sets if s.temporal == "on")
 
         @njit
         def fresh(x):          # a cold cache: one compilation per stage
@@ -96,10 +100,13 @@ def test_warmup_compiles_through_chain_warmup_only_and_never_suggests_itself(mon
     assert cli.main(["warmup"]) == 0
     out, err = capfd.readouterr()
     lines = [x for x in out.splitlines() if x.startswith("nrhdr warmup: [")]
-    assert len(lines) == len(calls) == 7
+    assert len(lines) == len(calls) == 8
     assert all("1 function(s) compiled into the cache" in x for x in lines)
     assert "run 'nrhdr warmup'" not in out + err and "numba compiled" not in out + err
     assert {s for st, _, _ in calls for s in st} == set(chain.STAGES)
     assert {t for _, tr, _ in calls for t in tr} == set(chain.TRANSFERS)
     assert all(el for _, _, el in calls)
+    # nrreconstruct temporal=on with every method, with and without a refinement budget
+    assert {m for m, _ in temporal} == set(chain.METHODS)
+    assert {b == 0 for _, b in temporal} == {True, False}
     assert cli.main(["warmup", "--check"]) == 1       # each stage compiled: the cache was cold

@@ -416,13 +416,13 @@ def test_warmup_command_then_a_fresh_pipeline_compiles_nothing(gst_subprocess_en
     cmd = [sys.executable, "-m", "gst_plugins.cli", "warmup"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.count("nrhdr warmup: [") == 7
+    assert r.stdout.count("nrhdr warmup: [") == 8
     r = subprocess.run(cmd + ["--check"], env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr             # a fresh process: nothing left to compile
     assert "0 function(s) compiled" in r.stdout
     # the chain in a fresh gst-launch: every element finds its kernels in the cache (else it says so)
     clip, _prof, _raws = make_test_clip(tmp_path / "clip", width=80, height=64, frames=3, fps=25)
-    for method in ("auto", "fse preset=fast"):
+    for method in ("auto", "fse preset=fast", "fse preset=fast temporal=on"):
         r = subprocess.run(["gst-launch-1.0", "-m", "nrcamsrc", f"location={clip}", "is-live=false", "!",
                             "nrvalidity", f"profile={clip / 'camera.json'}", "!", "nrcrosstalk", "!",
                             "nrreconstruct", "post-stats=true", *f"method={method}".split(), "!", "nrtonemap", "!", "fakesink"],

@@ -8,6 +8,7 @@ With `--cfa` (a Bayer phase) the colour chain's kernels too: the stages on a mos
 INFO log + bus INFO message)."""
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import sys
 import time
@@ -38,6 +39,10 @@ def _stages(cfa: str = "none"):
         ("nrreconstruct", "pull-push preview", warm(("reconstruction",), recon(("preview",), ("fast",)))),
         ("nrreconstruct", "fse, every preset", warm(("reconstruction",), recon(("fse",), chain.PRESETS))),
         ("nrreconstruct", "nearest, linear", warm(("reconstruction",), recon(("nearest", "linear"), ("fast",)))),
+        ("nrreconstruct", "temporal on, every method, bounded and unbounded budget",
+         warm(("reconstruction",), [dataclasses.replace(s, temporal="on", temporal_budget=b)
+                                    for s in recon(chain.METHODS, ("fast",))
+                                    for b in (chain.TEMPORAL_BUDGET, 0)])),
         ("nrtonemap", "log tone map", warm(("tonemap",), S(), transfers=("log",))),
         ("nrtonemap", "HDR output " + ", ".join(t for t in chain.TRANSFERS if t != "log"),
          warm(("tonemap",), S(), transfers=tuple(t for t in chain.TRANSFERS if t != "log"))),
