@@ -8,7 +8,7 @@ demo: setup
 	.venv/bin/nrhdr demo --force
 
 test: setup
-	.venv/bin/python -m pytest -q -ra tests
+	.venv/bin/python -m pytest -q -ra --durations=25 tests
 
 bench: setup
 	.venv/bin/python benchmarks/reconstruction.py

@@ -489,8 +489,8 @@ def matroska_caps(mastering: MasteringDisplay) -> str:
 
 def warmup_rgb(transfers=TRANSFERS, elements: bool = False) -> None:
     """Compile (or load) the colour HDR kernels (`tonemap.hdr_encode_rgb`, with and without the roll-off, and
-    `ycbcr_frame` 4:2:0 and 4:4:4) on a tiny frame; `elements`: also a read-only input (nrtonemap's mapped
-    buffers)."""
+    `ycbcr_frame` 4:2:0 and 4:4:4, from writeable and read-only codes) on a tiny frame; `elements`: also a
+    read-only input (nrtonemap's mapped buffers)."""
     from .tonemap import hdr_encode_rgb
     h, w = 4, 6
     v = np.geomspace(1.0, 1e4, 3 * h * w).astype(np.float32).reshape(3, h, w)
@@ -504,5 +504,8 @@ def warmup_rgb(transfers=TRANSFERS, elements: bool = False) -> None:
             for peak in (0.0, DEFAULT_PEAK):
                 codes = hdr_encode_rgb(x, 1e3, transfer, peak=peak, source_peak=2 * peak)
     frame = np.zeros(3 * h * w * 2, np.uint8)
+    ro_codes = codes.copy()
+    ro_codes.setflags(write=False)          # `nrhdr hdr10` reads its codes from a read-only memory map
     for sub in (True, False):
-        ycbcr_frame(codes, frame, (0, h * w * 2, 2 * h * w * 2), (w * 2, w * 2, w * 2), subsample=sub)
+        for c in (codes, ro_codes):
+            ycbcr_frame(c, frame, (0, h * w * 2, 2 * h * w * 2), (w * 2, w * 2, w * 2), subsample=sub)

@@ -265,3 +265,26 @@ def run_appsrc(desc, caps, buffers, before_push=None, lockstep=False, timeout=90
         pipeline.set_state(Gst.State.NULL)
         drain_bus()
     return res
+
+
+# ---- NRHDR_JIT_REPORT=1: which tests compiled numba kernels in this process -------------------------------
+# After `nrhdr warmup` a test that compiles a chain kernel points at a signature the warm-up misses (or at a
+# kernel only tests, calibration or the simulator use); the summary lists them, most seconds first.
+
+if os.environ.get("NRHDR_JIT_REPORT"):
+    _JIT_TESTS = []
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        from nrhdr_core.realtime import JitWatch
+        snap = JitWatch.snapshot()
+        yield
+        n, sec, names = JitWatch.since(snap)
+        if n:
+            _JIT_TESTS.append((sec, n, item.nodeid, names))
+
+    def pytest_terminal_summary(terminalreporter):
+        tr = terminalreporter
+        tr.section(f"numba compilations in {len(_JIT_TESTS)} tests (NRHDR_JIT_REPORT)")
+        for sec, n, nodeid, names in sorted(_JIT_TESTS, reverse=True):
+            tr.write_line(f"{sec:7.1f} s {n:4d} {nodeid}: {', '.join(names)}")
