@@ -200,6 +200,7 @@ def _scratch(h, w):
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
                     rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
                     keys=np.zeros((h, w), np.float32), kb=np.zeros((_CHUNKS, 3, w), np.float32),
+                    fl=np.zeros((3, h, w), np.float32),
                     cnt=np.zeros((h1, _NCNT), np.int64),
                     fst=np.zeros((h1, _NF), np.int32))
     return planes("demosaic.preview", (h, w), make)
@@ -343,12 +344,12 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         for i in range(2):
             _ratio(_fse_lattice(lat[i], kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], keys, sc["kb"], out)
+    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], keys, sc["kb"], sc["fl"], out)
     if use_bounds and cnt[_N_CLIP]:
-        _clipped_around(state, pos, crow, sc["rows"], out)
+        _clipped_around(state, pos, crow, sc["rows"], sc["fl"], out)
     if noisy is not None:
         _fuse(out, v32, blk, noisy, noise, fusion)
-    _chroma_filter(out, state, blk, pos, c, rng, crow)
+    _chroma_filter(out, state, blk, pos, c, rng, crow, sc["fl"])
 
 
 def _unkey(key) -> float:
@@ -659,12 +660,13 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, keys, kbs, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, keys, kbs, fl, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
     channel's range; the red and blue photosites' own channel by `_own_row`. In the rows `crow` (near a
     CLIPPED photosite) first green, then red and blue from their own row, at least the smallest own value
-    of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there)."""
+    of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there; the bounds
+    into `fl`). `keys`, `kbs`: `_own_row`'s."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
@@ -675,7 +677,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
             near = crow[y]
             if near:
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3], True)
+                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3], True, fl[1, y])
             for i in range(2):
                 ch = 0 if i == 0 else 2
                 eh = ext[ch, 0]
@@ -697,7 +699,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                     _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False, keys, kbs[k])
                     if near:
                         _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3],
-                                  True)
+                                  True, fl[ch, y])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -707,12 +709,13 @@ def _cv(own, state, y, x):
 
 
 @njit(cache=True, nogil=True)
-def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh):
+def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     """o[x] (x = x0, x0 + 2, ...) at least the smallest own-channel value `own` of its neighbours in the
     frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED: a
     neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
     minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
-    else those of the previous call in the same row and channel)."""
+    else those of the previous call in the same row and channel). fl[x]: the bound found (< _BIG: one
+    applies), for `_floor_row`."""
     h, w = state.shape
     big = _BIG
     up = y - 1 if y > 0 else y
@@ -741,10 +744,11 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh):
             m = min(m, min(b0[xl] if x > 0 else big, b0[xr] if x + 1 < w else big))
         v = o[x]
         o[x] = m if ((m > v) & (m < big)) else v
+        fl[x] = m
 
 
 @njit(cache=True, nogil=True)
-def _clipped_row(state, pos, out, y, b0, b1):
+def _clipped_row(state, pos, out, y, b0, b1, fl):
     """`_clipped_around` in row y: red and blue outside their own rows (the neighbours in the rows above
     and below; green and the own rows' neighbours: `_colour`)."""
     y = np.int64(y)
@@ -752,23 +756,23 @@ def _clipped_row(state, pos, out, y, b0, b1):
         o = out[ch, y]
         px = pos[ch, 1]
         if (y & 1) != pos[ch, 0]:
-            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1, True)
-            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1, False)
+            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1, True, fl[ch, y])
+            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1, False, fl[ch, y])
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _clipped_around(state, pos, crow, rows, out):
+def _clipped_around(state, pos, crow, rows, fl, out):
     """A channel at a photosite of another colour whose adjacent photosites of that channel (green: the 4
     neighbours; red, blue: the 2 in its row or column, else the 4 diagonal ones) are all CLIPPED: at least
     the smallest of their own-channel values (each at least its lower bound), so that a saturated region
     comes out in one saturated colour. Only the rows `crow` (`_near_clipped`); row buffers `rows`, one
-    pair per chunk of rows."""
+    pair per chunk of rows; the bounds into `fl`."""
     h = state.shape[0]
     nch = rows.shape[0]
     for k in prange(nch):
         for y in range(k * h // nch, (k + 1) * h // nch):
             if crow[y]:
-                _clipped_row(state, pos, out, y, rows[k, 0], rows[k, 1])
+                _clipped_row(state, pos, out, y, rows[k, 0], rows[k, 1], fl)
 
 
 def _near_clipped(ccnt, use_bounds, h):
@@ -996,13 +1000,24 @@ def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
         t[x] = min(max(et, tlo), thi)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _floor_row(o, fl, x0, step):
+    """o[x] (x = x0, x0 + step, ...) at least fl[x] where fl[x] < _BIG: the clipped-neighbour lower bounds
+    `_lift_row` found for the same photosites."""
+    big = _BIG
+    for x in range(x0, o.shape[0], step):
+        m = fl[x]
+        v = o[x]
+        o[x] = m if ((m > v) & (m < big)) else v
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
+def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows):
     """Row by row in chunks: the 3 x 3 medians of the ratios R : G and B : G (a ring of three ratio rows per
     chunk, read from rows not yet changed; the rows beside the chunk from `bnd`), then each photosite's other
     two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel); in the rows `crow` then the
-    clipped-neighbour lower bounds of `_colour` and `_clipped_around` again (they read own channels only,
-    which stay as they are)."""
+    clipped-neighbour lower bounds `fl` that `_colour` and `_clipped_around` found (`_floor_row`; they
+    depend on own channels only, which stay as they are)."""
     h = out.shape[1]
     nch = rows.shape[0]
     rlo, rhi, glo, ghi, blo, bhi = lim[0, 0], lim[0, 1], lim[1, 0], lim[1, 1], lim[2, 0], lim[2, 1]
@@ -1033,23 +1048,19 @@ def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
             else:
                 _rebuild_row(out[1, y], out[2, y], out[0, y], mb, mr, gp, c, glo, ghi, blo, bhi, rlo, rhi)
             if crow[y]:
-                b0 = buf[_CM_LO]
-                b1 = buf[_CM_MI]
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(out[1, y], out[1], state, y, 1 - gx, True, True, False, b0, b1, True)
+                _floor_row(out[1, y], fl[1, y], 1 - gx, 2)
                 for ch in (0, 2):
-                    if pos[ch, 0] == (y & 1):
-                        _lift_row(out[ch, y], out[ch], state, y, 1 - pos[ch, 1], True, False, False, b0, b1,
-                                  True)
-                _clipped_row(state, pos, out, y, b0, b1)
+                    own = pos[ch, 0] == (y & 1)
+                    _floor_row(out[ch, y], fl[ch, y], 1 - pos[ch, 1] if own else 0, 2 if own else 1)
             s0, s1, s2 = s1, s2, s0
 
 
-def _chroma_filter(out, state, blk, pos, c, rng, crow):
+def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
     (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
     channel's range (`rng`: R, B as `_colour`; green within the green plane's range), the clipped-neighbour
-    lower bounds in the rows `crow` (`_near_clipped`) again."""
+    lower bounds `fl` (`_lift_row`) in the rows `crow` (`_near_clipped`) again."""
     h, w = state.shape
     sc = _chroma_scratch(h, w)
     c = np.float32(c)
@@ -1058,4 +1069,4 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow):
     lim[:, 0] = rng[:, 0]
     lim[:, 1] = rng[:, 2]
     lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
-    _chroma_median(out, state, blk, pos, c, lim, sc["bnd"], crow, sc["rows"])
+    _chroma_median(out, blk, pos, c, lim, sc["bnd"], crow, fl, sc["rows"])
