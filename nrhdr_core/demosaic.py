@@ -322,7 +322,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
     gsrc = np.zeros((1, 1), np.float32)
     fst = sc["fst"]
-    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
+    noisy = _noisy_phases(v32, state) if noise is not None and cnt[_N_NOISY] else None
     if method != "preview":
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
     # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2;
@@ -348,7 +348,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     if use_bounds and cnt[_N_CLIP]:
         _clipped_around(state, pos, crow, sc["rows"], sc["fl"], out)
     if noisy is not None:
-        _fuse(out, v32, blk, noisy, noise, fusion)
+        _fuse(out, blk, noisy, noise, fusion)
     _chroma_filter(out, state, blk, pos, c, rng, crow, sc["fl"])
 
 
@@ -841,26 +841,72 @@ def _fse_lattice(lat, known, preset):
                                     np.float32)
 
 
-def _noisy_phases(state):
-    """Per Bayer phase (py, px): (known, NOISY not yet RECONSTRUCTED) masks of its photosites, or None
-    where it has no such NOISY photosite."""
+def _noisy_phases(v32, state):
+    """Per Bayer phase (py, px): its (values, known mask, NOISY-not-yet-RECONSTRUCTED mask) as planes
+    (`_phase_split`, the calling thread's scratch), or None where it has no such NOISY photosite."""
+    h, w = state.shape
+    hp, wp = (h + 1) // 2, (w + 1) // 2
+
+    def make():
+        return (np.empty((2, 2, hp, wp), np.float32), np.empty((2, 2, hp, wp), np.bool_),
+                np.empty((2, 2, hp, wp), np.bool_), np.empty((2, 2), np.int64))
+    pv, pk, pn, cnt = planes("demosaic.phases", (h, w), make)
+    _phase_split(v32, state, pv, pk, pn, cnt)
     res = {}
     for py in range(2):
         for px in range(2):
-            ss = state[py::2, px::2]
-            noisy = (ss & (REASON_MASK | RECONSTRUCTED)) == NOISY
-            res[py, px] = ((ss & REASON_MASK) == VALID, noisy) if noisy.any() else None
+            sl = (py, px, slice(0, (h - py + 1) // 2), slice(0, (w - px + 1) // 2))
+            res[py, px] = (pv[sl], pk[sl], pn[sl]) if cnt[py, px] else None
     return res
 
 
-def _fuse(out, v32, blk, noisy, noise, fusion):
+@njit(cache=True, nogil=True, parallel=True)
+def _phase_split(values, state, pv, pk, pn, cnt):
+    """pv[py, px], pk[py, px], pn[py, px] = the values, the known mask and the NOISY-not-RECONSTRUCTED mask
+    of the Bayer phase (py, px) (one pass over the mosaic); cnt[py, px] = the count of those NOISY
+    photosites."""
+    h, w = values.shape
+    hp = pv.shape[2]
+    n00 = 0
+    n01 = 0
+    n10 = 0
+    n11 = 0
+    for y2 in prange(hp):
+        for py in range(2):
+            y = 2 * y2 + py
+            if y >= h:
+                continue
+            for px in range(2):
+                c = 0
+                v = pv[py, px, y2]
+                k = pk[py, px, y2]
+                z = pn[py, px, y2]
+                for x2 in range((w - px + 1) // 2):
+                    x = 2 * x2 + px
+                    st = state[y, x]
+                    nz = (st & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                    v[x2] = values[y, x]
+                    k[x2] = (st & REASON_MASK) == VALID
+                    z[x2] = nz
+                    c += np.int64(nz)
+                n00 += c if (py == 0) & (px == 0) else 0
+                n01 += c if (py == 0) & (px == 1) else 0
+                n10 += c if (py == 1) & (px == 0) else 0
+                n11 += c if (py == 1) & (px == 1) else 0
+    cnt[0, 0] = n00
+    cnt[0, 1] = n01
+    cnt[1, 0] = n10
+    cnt[1, 1] = n11
+
+
+def _fuse(out, blk, noisy, noise, fusion):
     """NOISY photosites: their own channel fused with their measurement (`reconstruction.fuse_noisy`) on
     each Bayer phase apart (neighbours of the same colour; `noisy`: `_noisy_phases`); the fused value
     replaces the estimate."""
     from .reconstruction import fuse_noisy
     for (py, px), m in noisy.items():
         if m is not None:
-            fuse_noisy(out[int(blk[py, px])][py::2, px::2], v32[py::2, px::2], m[0], m[1], noise, setting=fusion)
+            fuse_noisy(out[int(blk[py, px])][py::2, px::2], m[0], m[1], m[2], noise, setting=fusion)
 
 
 def warmup() -> None:
