@@ -849,9 +849,10 @@ def _noisy_phases(v32, state):
 
     def make():
         return (np.empty((2, 2, hp, wp), np.float32), np.empty((2, 2, hp, wp), np.bool_),
-                np.empty((2, 2, hp, wp), np.bool_), np.empty((2, 2), np.int64))
-    pv, pk, pn, cnt = planes("demosaic.phases", (h, w), make)
-    _phase_split(v32, state, pv, pk, pn, cnt)
+                np.empty((2, 2, hp, wp), np.bool_), np.empty((hp, 2, 2), np.int64))
+    pv, pk, pn, rc = planes("demosaic.phases", (h, w), make)
+    _phase_split(v32, state, pv, pk, pn, rc)
+    cnt = rc.sum(axis=0)
     res = {}
     for py in range(2):
         for px in range(2):
@@ -861,19 +862,16 @@ def _noisy_phases(v32, state):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _phase_split(values, state, pv, pk, pn, cnt):
+def _phase_split(values, state, pv, pk, pn, rc):
     """pv[py, px], pk[py, px], pn[py, px] = the values, the known mask and the NOISY-not-RECONSTRUCTED mask
-    of the Bayer phase (py, px) (one pass over the mosaic); cnt[py, px] = the count of those NOISY
-    photosites."""
+    of the Bayer phase (py, px) (one pass over the mosaic); rc[y2, py, px] = the count of those NOISY
+    photosites in its row y2."""
     h, w = values.shape
-    hp = pv.shape[2]
-    n00 = 0
-    n01 = 0
-    n10 = 0
-    n11 = 0
-    for y2 in prange(hp):
+    for y2 in prange(pv.shape[2]):
         for py in range(2):
             y = 2 * y2 + py
+            for px in range(2):
+                rc[y2, py, px] = 0
             if y >= h:
                 continue
             for px in range(2):
@@ -889,14 +887,7 @@ def _phase_split(values, state, pv, pk, pn, cnt):
                     k[x2] = (st & REASON_MASK) == VALID
                     z[x2] = nz
                     c += np.int64(nz)
-                n00 += c if (py == 0) & (px == 0) else 0
-                n01 += c if (py == 0) & (px == 1) else 0
-                n10 += c if (py == 1) & (px == 0) else 0
-                n11 += c if (py == 1) & (px == 1) else 0
-    cnt[0, 0] = n00
-    cnt[0, 1] = n01
-    cnt[1, 0] = n10
-    cnt[1, 1] = n11
+                rc[y2, py, px] = c
 
 
 def _fuse(out, blk, noisy, noise, fusion):
