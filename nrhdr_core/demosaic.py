@@ -41,7 +41,7 @@ from .pullpush import (SERIAL_LEVEL, fill_row, pull, pull_at, pull_push_levels, 
                        small_levels)
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
-from .validity import clip_columns, clip_lower_at_cfa, clip_lower_row
+from .validity import clip_lower_at_cfa
 
 METHODS = ("preview", "fse")
 # offset c of the log colour differences: OFFSET_SHARE x the mean known green level (scales with the data),
@@ -199,6 +199,8 @@ def _scratch(h, w):
         return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
                     rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
+                    keys=np.zeros((h, w), np.float32), kb=np.zeros((_CHUNKS, 3, w), np.float32),
+                    fl=np.zeros((3, h, w), np.float32),
                     cnt=np.zeros((h1, _NCNT), np.int64),
                     fst=np.zeros((h1, _NF), np.int32))
     return planes("demosaic.preview", (h, w), make)
@@ -320,13 +322,16 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     c = np.float32(log_offset(pv[0][top] / pw[0][top] if pw[0][top] > 0 else 0.0, noise))
     gsrc = np.zeros((1, 1), np.float32)
     fst = sc["fst"]
-    noisy = _noisy_phases(state) if noise is not None and cnt[_N_NOISY] else None
+    noisy = _noisy_phases(v32, state) if noise is not None and cnt[_N_NOISY] else None
     if method != "preview":
         gsrc = _fse_green(v32, state, blk, kg, preset, use_bounds)
     # 2. the green plane under the rules; the log differences on the lattices (level 1 of pyramids 1, 2;
     # `deep`: level 2 pulled)
+    crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
+    keys = sc["keys"]
+    _clip_keys(v32, state, crow, keys)
     _green(v32, state, chan, blk, kg, pv[0], pw[0], off[1], w1, o2, w2, deep, gsrc, method != "preview",
-           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], out[_cfa.G])
+           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], keys, sc["kb"], out[_cfa.G])
     rng = _ranges(fst, cnt)
     # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
     lat = [pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1) for i in range(2)]
@@ -339,13 +344,12 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         for i in range(2):
             _ratio(_fse_lattice(lat[i], kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
-    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], out)
+    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], keys, sc["kb"], sc["fl"], out)
     if use_bounds and cnt[_N_CLIP]:
-        _clipped_around(state, pos, crow, sc["rows"], out)
+        _clipped_around(state, pos, crow, sc["rows"], sc["fl"], out)
     if noisy is not None:
-        _fuse(out, v32, blk, noisy, noise, fusion)
-    _chroma_filter(out, state, blk, pos, c, rng, crow)
+        _fuse(out, blk, noisy, noise, fusion)
+    _chroma_filter(out, state, blk, pos, c, rng, crow, sc["fl"])
 
 
 def _unkey(key) -> float:
@@ -369,67 +373,98 @@ def _ranges(fst, cnt):
     return r
 
 
-@njit(cache=True, nogil=True)
-def _green_lower_row(values, state, chan, y, x0, mrow):
-    """mrow[j] = the clipped-neighbour rule of `validity.bounds(..., cfa=)` (`validity.clip_lower_at_cfa`)
-    at the green photosite (y, x0 + 2 j) of a missing CLIPPED regular one (other entries: scratch), from
-    column aggregates (`validity.clip_columns`): the green photosites of its 5 x 5 window are those of its
-    own phase 2 apart (the phase's 3 x 3) and those of the other green phase diagonal to it (the other
-    phase's rows y - 1, y + 1 and columns x - 1, x + 1); with no attenuated one among them, the 9 x 9 window
-    (`clip_lower_at_cfa`, a scan: rare)."""
-    h, w = values.shape
-    py = y & 1
-    sv = values[py::2, x0::2]
-    ss = state[py::2, x0::2]
-    qv = values[1 - py::2, 1 - x0::2]
-    qs = state[1 - py::2, 1 - x0::2]
-    hp, wp = sv.shape
-    wq = qv.shape[1]
-    yp = y >> 1
-    natt = np.zeros(wp, np.int32)
-    bad = np.zeros(wp, np.int32)
-    mn = np.full(wp, np.inf, np.float32)
-    for yy in range(max(yp - 1, 0), min(yp + 2, hp)):
-        clip_columns(sv, ss, yy, natt, bad, mn)
-    qn = np.zeros(max(wq, 1), np.int32)
-    qb = np.zeros(max(wq, 1), np.int32)
-    qm = np.full(max(wq, 1), np.inf, np.float32)
-    for yf in (y - 1, y + 1):
-        if 0 <= yf < h and wq > 0:
-            clip_columns(qv, qs, yf >> 1, qn, qb, qm)
-    for j in range(wp):
-        x = x0 + 2 * j
-        if (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) != CLIPPED:
-            continue
-        n = 0
-        bd = 0
-        m = np.float32(np.inf)
-        for jj in range(max(j - 1, 0), min(j + 2, wp)):
-            n += natt[jj]
-            bd |= bad[jj]
-            m = mn[jj] if mn[jj] < m else m
-        for xf in (x - 1, x + 1):
-            if 0 <= xf < w:
-                q = xf >> 1
-                n += qn[q]
-                bd |= qb[q]
-                m = qm[q] if qm[q] < m else m
-        if n == 0:
-            mrow[j] = clip_lower_at_cfa(values, state, chan, y, x, h, w)
-        else:
-            mrow[j] = np.float32(np.nan) if bd != 0 else m
+@njit(cache=True, nogil=True, parallel=True)
+def _clip_keys(values, state, crow, keys):
+    """keys[y, x] in the rows `crow`: the photosite's term in the clipped-neighbour rule of
+    `validity.bounds(..., cfa=)`: +inf not attenuated (no term), its value (a lower bound) attenuated and
+    CLIPPED, -inf attenuated and not CLIPPED (the rule does not hold). A window's minimum is then the rule:
+    -inf none, +inf no attenuated photosite in it, else the smallest lower bound."""
+    h, w = state.shape
+    inf = np.float32(np.inf)
+    for y in prange(h):
+        if crow[y]:
+            k = keys[y]
+            for x in range(w):
+                st = state[y, x]
+                att = (st & ATTENUATED) != 0
+                cl = (st & REASON_MASK) == CLIPPED
+                e = -inf if att else inf
+                k[x] = np.float32(values[y, x]) if (att & cl) else e
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
+def _key_at(keys, y, x, green):
+    """The minimum of `keys` over the same-colour photosites of the 5 x 5 window of (y, x) in the frame (the
+    colour plane's 3 x 3; `green`: and the 4 diagonal neighbours)."""
+    h, w = keys.shape
+    m = np.float32(np.inf)
+    for yy in range(max(y - 2, y & 1), min(y + 3, h), 2):
+        for xx in range(max(x - 2, x & 1), min(x + 3, w), 2):
+            m = min(m, keys[yy, xx])
+    if green:
+        for yy in (y - 1, y + 1):
+            for xx in (x - 1, x + 1):
+                if 0 <= yy < h and 0 <= xx < w:
+                    m = min(m, keys[yy, xx])
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _clip_rule_row(keys, values, state, chan, y, x0, green, buf):
+    """buf[2][x] (x = x0, x0 + 2, ... where the photosite is a missing CLIPPED regular one) = the
+    clipped-neighbour rule of `validity.bounds(..., cfa=)` among same-colour photosites
+    (`validity.clip_lower_at_cfa`): the minimum of `keys` (`_clip_keys`) over the 5 x 5 window's same-colour
+    photosites (red, blue: their Bayer phase's 3 x 3; green (`green`): its phase's 3 x 3 and the 4 diagonal
+    neighbours), NaN where one is attenuated and not CLIPPED; with no attenuated one among them the 9 x 9
+    window (`clip_lower_at_cfa`, a scan: rare). Column minima of rows y -+ 2 (buf[0]) and y -+ 1 (buf[1])
+    and the window minima in contiguous branch-free loops (they vectorise)."""
+    h, w = keys.shape
+    inf = np.float32(np.inf)
+    nan = np.float32(np.nan)
+    c3 = buf[0]
+    dg = buf[1]
+    m = buf[2]
+    k0 = keys[y]
+    ka = keys[y - 2] if y >= 2 else k0           # a repeated row leaves a minimum as it is
+    kb = keys[y + 2] if y + 2 < h else k0
+    for x in range(w):
+        c3[x] = min(min(ka[x], k0[x]), kb[x])
+    if green and h > 1:
+        ku = keys[y - 1] if y >= 1 else keys[y + 1]
+        kd = keys[y + 1] if y + 1 < h else keys[y - 1]
+        for x in range(w):
+            dg[x] = min(ku[x], kd[x])
+    elif green:
+        for x in range(w):
+            dg[x] = inf
+    for x in range(2, w - 2):
+        t = min(min(c3[x - 2], c3[x]), c3[x + 2])
+        d = min(dg[x - 1], dg[x + 1]) if green else inf
+        m[x] = min(t, d)
+    for x in (0, 1, w - 2, w - 1):
+        if 0 <= x < w and (x < 2 or x >= w - 2):
+            m[x] = _key_at(keys, y, x, green)
+    nscan = 0
+    for x in range(x0, w, 2):
+        t = m[x]
+        nscan += np.int64((t == inf) & ((state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED))
+        m[x] = nan if t == -inf else t
+    if nscan > 0:
+        for x in range(x0, w, 2):
+            if m[x] == inf and (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED:
+                m[x] = clip_lower_at_cfa(values, state, chan, y, x, h, w)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, buf):
     """The photosites x0, x0 + 2, ... of row y, whose own channel's estimate is o[x]: measured (VALID) or
     already RECONSTRUCTED: their value; missing: at most max(hi, lower bound), then within their bounds
     (CLIPPED: >= lower bound, DARK: <= the value), and the RECONSTRUCTED bit. Branch-free over the whole
     row (it vectorises). The missing CLIPPED regular photosites get their bit in a second loop, only in
     rows that have one, where the clipped-neighbour rule of `validity.bounds(..., cfa=)` (same-colour
     photosites; `chan`: the channel plane) raises their lower bound l to l' (max(min(a, max(hi, l')), l')
-    of the first result is the clamp with l'): for red and blue `validity.clip_lower_row` on their Bayer
-    phase's lattice (the same photosites), for green (`green`) `_green_lower_row`."""
+    of the first result is the clamp with l'): `_clip_rule_row` from `keys` (`green`: the green photosites'
+    window), row buffers `buf`."""
     w = values.shape[1]
     big = _BIG
     flag = np.uint8(RECONSTRUCTED)
@@ -453,17 +488,12 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
         state[y, x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
         ncr += np.int64(cr)
     if ncr > 0:
-        sv = values[y & 1::2, x0::2]
-        ss = state[y & 1::2, x0::2]
-        mrow = np.empty(sv.shape[1], np.float32)
-        if use_bounds and green:
-            _green_lower_row(values, state, chan, y, x0, mrow)
-        elif use_bounds:
-            clip_lower_row(sv, ss, y >> 1, mrow)
-        for j in range(sv.shape[1]):     # branch-free: selects (NaN m: no rule)
-            x = x0 + 2 * j
+        if use_bounds:
+            _clip_rule_row(keys, values, state, chan, y, x0, green, buf)
+        mrow = buf[2]
+        for x in range(x0, w, 2):     # branch-free: selects (NaN m: no rule)
             st = state[y, x]
-            m = mrow[j] if use_bounds else np.float32(np.nan)
+            m = mrow[x] if use_bounds else np.float32(np.nan)
             cr = (st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED
             ok = cr & (m == m) & (m > values[y, x])
             t = hi if hi > m else m
@@ -476,7 +506,7 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green):
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
-           pvb, pwb, kl, fst, ixs, gout):
+           pvb, pwb, kl, fst, ixs, keys, kbs, gout):
     """Per cell row: the green plane into `gout` (the pull-push fill `pullpush.fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
@@ -499,7 +529,7 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
                 if deep and not from_src:
                     _push_row(pv, pw, o1, w1, o2, w2, y1)
                 _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
-                             pwr, pvb, pwb, kl, fst, ix, gout, y1)
+                             pwr, pvb, pwb, kl, fst, ix, keys, kbs[kc], gout, y1)
             if deep:
                 for x2 in range(w2):
                     pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
@@ -523,8 +553,8 @@ def _push_row(pv, pw, o1, w1, o2, w2, y1):
 
 @njit(cache=True, nogil=True, inline="always")
 def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb,
-                 kl, fst, ix, gout, y1):
-    """`_green` of cell row y1 (index buffer `ix`)."""
+                 kl, fst, ix, keys, kb, gout, y1):
+    """`_green` of cell row y1 (index buffer `ix`; `keys`, row buffers `kb`: `_own_row`)."""
     h, w = values.shape
     zero = np.float32(0.0)
     one = np.float32(1.0)
@@ -539,7 +569,7 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
                 g[x] = gsrc[y, x]
         else:
             fill_row(values, kg, pv, o1, w1, y, g, True)
-        _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True)
+        _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True, keys, kb)
     base = o1 + y1 * w1
     for i in range(2):
         ch = 0 if i == 0 else 2
@@ -630,12 +660,13 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, keys, kbs, fl, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
     channel's range; the red and blue photosites' own channel by `_own_row`. In the rows `crow` (near a
     CLIPPED photosite) first green, then red and blue from their own row, at least the smallest own value
-    of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there)."""
+    of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there; the bounds
+    into `fl`). `keys`, `kbs`: `_own_row`'s."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
@@ -646,7 +677,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
             near = crow[y]
             if near:
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3], True)
+                _lift_row(g, out[1], state, y, 1 - gx, True, True, False, rows[k, 2], rows[k, 3], True, fl[1, y])
             for i in range(2):
                 ch = 0 if i == 0 else 2
                 eh = ext[ch, 0]
@@ -665,10 +696,10 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                     e = lo if e < lo else e
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
-                    _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False)
+                    _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False, keys, kbs[k])
                     if near:
                         _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3],
-                                  True)
+                                  True, fl[ch, y])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -678,12 +709,13 @@ def _cv(own, state, y, x):
 
 
 @njit(cache=True, nogil=True)
-def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh):
+def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     """o[x] (x = x0, x0 + 2, ...) at least the smallest own-channel value `own` of its neighbours in the
     frame (`hz`: (y, x -+ 1), `vt`: (y -+ 1, x), `dg`: (y -+ 1, x -+ 1)) when they are all CLIPPED: a
     neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
     minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
-    else those of the previous call in the same row and channel)."""
+    else those of the previous call in the same row and channel). fl[x]: the bound found (< _BIG: one
+    applies), for `_floor_row`."""
     h, w = state.shape
     big = _BIG
     up = y - 1 if y > 0 else y
@@ -712,10 +744,11 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh):
             m = min(m, min(b0[xl] if x > 0 else big, b0[xr] if x + 1 < w else big))
         v = o[x]
         o[x] = m if ((m > v) & (m < big)) else v
+        fl[x] = m
 
 
 @njit(cache=True, nogil=True)
-def _clipped_row(state, pos, out, y, b0, b1):
+def _clipped_row(state, pos, out, y, b0, b1, fl):
     """`_clipped_around` in row y: red and blue outside their own rows (the neighbours in the rows above
     and below; green and the own rows' neighbours: `_colour`)."""
     y = np.int64(y)
@@ -723,23 +756,23 @@ def _clipped_row(state, pos, out, y, b0, b1):
         o = out[ch, y]
         px = pos[ch, 1]
         if (y & 1) != pos[ch, 0]:
-            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1, True)
-            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1, False)
+            _lift_row(o, out[ch], state, y, px, False, True, False, b0, b1, True, fl[ch, y])
+            _lift_row(o, out[ch], state, y, 1 - px, False, False, True, b0, b1, False, fl[ch, y])
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _clipped_around(state, pos, crow, rows, out):
+def _clipped_around(state, pos, crow, rows, fl, out):
     """A channel at a photosite of another colour whose adjacent photosites of that channel (green: the 4
     neighbours; red, blue: the 2 in its row or column, else the 4 diagonal ones) are all CLIPPED: at least
     the smallest of their own-channel values (each at least its lower bound), so that a saturated region
     comes out in one saturated colour. Only the rows `crow` (`_near_clipped`); row buffers `rows`, one
-    pair per chunk of rows."""
+    pair per chunk of rows; the bounds into `fl`."""
     h = state.shape[0]
     nch = rows.shape[0]
     for k in prange(nch):
         for y in range(k * h // nch, (k + 1) * h // nch):
             if crow[y]:
-                _clipped_row(state, pos, out, y, rows[k, 0], rows[k, 1])
+                _clipped_row(state, pos, out, y, rows[k, 0], rows[k, 1], fl)
 
 
 def _near_clipped(ccnt, use_bounds, h):
@@ -808,26 +841,63 @@ def _fse_lattice(lat, known, preset):
                                     np.float32)
 
 
-def _noisy_phases(state):
-    """Per Bayer phase (py, px): (known, NOISY not yet RECONSTRUCTED) masks of its photosites, or None
-    where it has no such NOISY photosite."""
+def _noisy_phases(v32, state):
+    """Per Bayer phase (py, px): its (values, known mask, NOISY-not-yet-RECONSTRUCTED mask) as planes
+    (`_phase_split`, the calling thread's scratch), or None where it has no such NOISY photosite."""
+    h, w = state.shape
+    hp, wp = (h + 1) // 2, (w + 1) // 2
+
+    def make():
+        return (np.empty((2, 2, hp, wp), np.float32), np.empty((2, 2, hp, wp), np.bool_),
+                np.empty((2, 2, hp, wp), np.bool_), np.empty((hp, 2, 2), np.int64))
+    pv, pk, pn, rc = planes("demosaic.phases", (h, w), make)
+    _phase_split(v32, state, pv, pk, pn, rc)
+    cnt = rc.sum(axis=0)
     res = {}
     for py in range(2):
         for px in range(2):
-            ss = state[py::2, px::2]
-            noisy = (ss & (REASON_MASK | RECONSTRUCTED)) == NOISY
-            res[py, px] = ((ss & REASON_MASK) == VALID, noisy) if noisy.any() else None
+            sl = (py, px, slice(0, (h - py + 1) // 2), slice(0, (w - px + 1) // 2))
+            res[py, px] = (pv[sl], pk[sl], pn[sl]) if cnt[py, px] else None
     return res
 
 
-def _fuse(out, v32, blk, noisy, noise, fusion):
+@njit(cache=True, nogil=True, parallel=True)
+def _phase_split(values, state, pv, pk, pn, rc):
+    """pv[py, px], pk[py, px], pn[py, px] = the values, the known mask and the NOISY-not-RECONSTRUCTED mask
+    of the Bayer phase (py, px) (one pass over the mosaic); rc[y2, py, px] = the count of those NOISY
+    photosites in its row y2."""
+    h, w = values.shape
+    for y2 in prange(pv.shape[2]):
+        for py in range(2):
+            y = 2 * y2 + py
+            for px in range(2):
+                rc[y2, py, px] = 0
+            if y >= h:
+                continue
+            for px in range(2):
+                c = 0
+                v = pv[py, px, y2]
+                k = pk[py, px, y2]
+                z = pn[py, px, y2]
+                for x2 in range((w - px + 1) // 2):
+                    x = 2 * x2 + px
+                    st = state[y, x]
+                    nz = (st & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                    v[x2] = values[y, x]
+                    k[x2] = (st & REASON_MASK) == VALID
+                    z[x2] = nz
+                    c += np.int64(nz)
+                rc[y2, py, px] = c
+
+
+def _fuse(out, blk, noisy, noise, fusion):
     """NOISY photosites: their own channel fused with their measurement (`reconstruction.fuse_noisy`) on
     each Bayer phase apart (neighbours of the same colour; `noisy`: `_noisy_phases`); the fused value
     replaces the estimate."""
     from .reconstruction import fuse_noisy
     for (py, px), m in noisy.items():
         if m is not None:
-            fuse_noisy(out[int(blk[py, px])][py::2, px::2], v32[py::2, px::2], m[0], m[1], noise, setting=fusion)
+            fuse_noisy(out[int(blk[py, px])][py::2, px::2], m[0], m[1], m[2], noise, setting=fusion)
 
 
 def warmup() -> None:
@@ -967,13 +1037,24 @@ def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
         t[x] = min(max(et, tlo), thi)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _floor_row(o, fl, x0, step):
+    """o[x] (x = x0, x0 + step, ...) at least fl[x] where fl[x] < _BIG: the clipped-neighbour lower bounds
+    `_lift_row` found for the same photosites."""
+    big = _BIG
+    for x in range(x0, o.shape[0], step):
+        m = fl[x]
+        v = o[x]
+        o[x] = m if ((m > v) & (m < big)) else v
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
+def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows):
     """Row by row in chunks: the 3 x 3 medians of the ratios R : G and B : G (a ring of three ratio rows per
     chunk, read from rows not yet changed; the rows beside the chunk from `bnd`), then each photosite's other
     two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel); in the rows `crow` then the
-    clipped-neighbour lower bounds of `_colour` and `_clipped_around` again (they read own channels only,
-    which stay as they are)."""
+    clipped-neighbour lower bounds `fl` that `_colour` and `_clipped_around` found (`_floor_row`; they
+    depend on own channels only, which stay as they are)."""
     h = out.shape[1]
     nch = rows.shape[0]
     rlo, rhi, glo, ghi, blo, bhi = lim[0, 0], lim[0, 1], lim[1, 0], lim[1, 1], lim[2, 0], lim[2, 1]
@@ -1004,23 +1085,19 @@ def _chroma_median(out, state, blk, pos, c, lim, bnd, crow, rows):
             else:
                 _rebuild_row(out[1, y], out[2, y], out[0, y], mb, mr, gp, c, glo, ghi, blo, bhi, rlo, rhi)
             if crow[y]:
-                b0 = buf[_CM_LO]
-                b1 = buf[_CM_MI]
                 gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _lift_row(out[1, y], out[1], state, y, 1 - gx, True, True, False, b0, b1, True)
+                _floor_row(out[1, y], fl[1, y], 1 - gx, 2)
                 for ch in (0, 2):
-                    if pos[ch, 0] == (y & 1):
-                        _lift_row(out[ch, y], out[ch], state, y, 1 - pos[ch, 1], True, False, False, b0, b1,
-                                  True)
-                _clipped_row(state, pos, out, y, b0, b1)
+                    own = pos[ch, 0] == (y & 1)
+                    _floor_row(out[ch, y], fl[ch, y], 1 - pos[ch, 1] if own else 0, 2 if own else 1)
             s0, s1, s2 = s1, s2, s0
 
 
-def _chroma_filter(out, state, blk, pos, c, rng, crow):
+def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
     (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
     channel's range (`rng`: R, B as `_colour`; green within the green plane's range), the clipped-neighbour
-    lower bounds in the rows `crow` (`_near_clipped`) again."""
+    lower bounds `fl` (`_lift_row`) in the rows `crow` (`_near_clipped`) again."""
     h, w = state.shape
     sc = _chroma_scratch(h, w)
     c = np.float32(c)
@@ -1029,4 +1106,4 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow):
     lim[:, 0] = rng[:, 0]
     lim[:, 1] = rng[:, 2]
     lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
-    _chroma_median(out, state, blk, pos, c, lim, sc["bnd"], crow, sc["rows"])
+    _chroma_median(out, blk, pos, c, lim, sc["bnd"], crow, fl, sc["rows"])

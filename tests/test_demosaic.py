@@ -131,6 +131,32 @@ def test_bounds_respected(method, pattern):
         assert ((s & RECONSTRUCTED) != 0).sum() == (~known).sum()
 
 
+@pytest.mark.parametrize("pattern", cfa.PATTERNS)
+@pytest.mark.parametrize("shape", [(23, 37), (24, 36), (5, 9)])
+def test_clipped_rule_up_to_the_frame_edges(pattern, shape):
+    """Clipped photosites (ND and regular at their own clip levels) over most of a frame of odd or even size,
+    touching every edge, the known photosites dim: a missing green clipped photosite's estimate (a mean of
+    known dim greens) lies below its bound, so its own channel is exactly its lower bound of
+    `validity.bounds(..., cfa=)` (the clipped-neighbour rule among green photosites, edges included); red and
+    blue ones at least theirs."""
+    h, w = shape
+    rng = np.random.default_rng(sum(shape) + len(pattern))
+    att = rng.random((h, w)) < 0.5
+    clip = rng.random((h, w)) < 0.8
+    clip[h // 2, :] = False                                 # some known photosites in every column
+    vals = np.where(clip, np.where(att, 4000.0, 1000.0), rng.uniform(50.0, 100.0, (h, w))).astype(np.float32)
+    st = (np.where(att, ATTENUATED, 0) | np.where(clip, CLIPPED, VALID)).astype(np.uint8)
+    lo, _ = validity.bounds(vals, st, cfa=pattern)
+    out = demosaic.reconstruct_cfa(vals, st.copy(), pattern, method="preview")
+    own = _own(out, pattern)
+    idx = cfa.channel_index(pattern, h, w)
+    c = (st & REASON_MASK) == CLIPPED
+    g = c & (idx == cfa.G)
+    np.testing.assert_array_equal(own[g], lo[g])
+    assert (own[c] >= lo[c]).all()
+    assert (lo[c & ~att] > vals[c & ~att]).any()            # the rule raises some regular photosites
+
+
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("pattern", ("rggb", "grbg"))
 def test_clipped_disc_one_saturated_colour(method, pattern):
