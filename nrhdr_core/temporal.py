@@ -345,9 +345,9 @@ class TemporalReconstructor:
             self._level = np.empty((nby, nbx), np.uint8)
             self._uns = np.empty((nby, nbx), np.int32)
         _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
-                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]), preview)
+                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]), preview, bs,
+                 np.float32(o["reuse_frames"]), self._uns)
         self._level[...] = 0 if preview else 1
-        _block_unsettled(state, self._cnt, bs, np.float32(o["reuse_frames"]), self._uns)
         self.frames = 1
         tot = float(nby * nbx)
         has = float(np.count_nonzero(self._uns)) / tot
@@ -404,27 +404,81 @@ def _tex_var(img, y, x, h, w, rec_tex):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex, placeholder):
+def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex, placeholder, bs,
+             reuse_frames, uns):
     """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
-    the others with a fresh reconstruction's, each the average of 1 frame; with `placeholder` (a preview
-    start) the missing pixels that are not NOISY as no frame averaged (variance inf, count 0): the first
-    reconstruction of their block replaces them."""
+    the others with a fresh reconstruction's (+ `_tex_var`), each the average of 1 frame; with
+    `placeholder` (a preview start) the missing pixels that are not NOISY as no frame averaged (variance
+    inf, count 0): the first reconstruction of their block replaces them. uns[by, bx] = the block's
+    pixels not VALID whose past averages fewer than
+    `reuse_frames` frames (unsettled, as `_still_rows` counts them). One pass per block row, branch-free over whole
+    rows (it vectorises)."""
     h, w = values.shape
+    nby, nbx = uns.shape
     inf = np.float32(np.inf)
-    for y in prange(h):
-        for x in range(w):
-            v = values[y, x]
-            cnt[y, x] = 1
-            st = state[y, x]
-            prev[y, x] = v
-            r = st & REASON_MASK
-            if r == VALID:
-                var[y, x] = _meas_var(v, (st & ATTENUATED) != 0, g, floor, nd)
-            elif placeholder and r != NOISY:
-                var[y, x] = inf
-                cnt[y, x] = 0
-            else:
-                var[y, x] = _rec_var(v, g, floor, rec_noise, rec_tol) + _tex_var(values, y, x, h, w, rec_tex)
+    half = np.float32(0.5)
+    ndg = nd * g
+    ndf = nd * nd * floor
+    for by in prange(nby):
+        lo3 = np.empty(w, np.float32)       # the 3 x 1 column's min and max around each pixel of the row
+        hi3 = np.empty(w, np.float32)
+        tx = np.empty(w, np.float32)
+        ul = np.zeros(w, np.int32)          # unsettled pixels per column of the block row
+        for y in range(by * bs, min(by * bs + bs, h)):
+            ra = values[max(y - 1, 0)]
+            rb = values[y]
+            rc = values[min(y + 1, h - 1)]
+            for x in range(w):
+                a = ra[x]
+                b = rb[x]
+                c = rc[x]
+                lo = b
+                lo = a if a < lo else lo
+                lo = c if c < lo else lo
+                hi = b
+                hi = a if a > hi else hi
+                hi = c if c > hi else hi
+                lo3[x] = lo
+                hi3[x] = hi
+            for x in range(1, w - 1):        # the 3 x 3 range, then the texture term (`_tex_var`)
+                lo = lo3[x - 1]
+                lo = lo3[x] if lo3[x] < lo else lo
+                lo = lo3[x + 1] if lo3[x + 1] < lo else lo
+                hi = hi3[x - 1]
+                hi = hi3[x] if hi3[x] > hi else hi
+                hi = hi3[x + 1] if hi3[x + 1] > hi else hi
+                rr = half * (hi - lo)
+                tx[x] = rec_tex * rr * rr
+            for x in (0, w - 1):
+                lo = lo3[x]
+                hi = hi3[x]
+                for xx in range(max(x - 1, 0), min(x + 2, w)):
+                    lo = lo3[xx] if lo3[xx] < lo else lo
+                    hi = hi3[xx] if hi3[xx] > hi else hi
+                rr = half * (hi - lo)
+                tx[x] = rec_tex * rr * rr
+            sr = state[y]
+            pr = prev[y]
+            qr = var[y]
+            cr = cnt[y]
+            for x in range(w):
+                v = rb[x]
+                st = sr[x]
+                r = st & REASON_MASK
+                m = v if v > 0 else np.float32(0.0)
+                vm = (ndg * m + ndf) if (st & ATTENUATED) != 0 else (g * m + floor)
+                vr = rec_noise * (g * m + floor) + (rec_tol * m) * (rec_tol * m) + tx[x]
+                hold = placeholder & (r != VALID) & (r != NOISY)
+                pr[x] = v
+                qr[x] = vm if r == VALID else (inf if hold else vr)
+                c = np.uint8(0) if hold else np.uint8(1)
+                cr[x] = c
+                ul[x] += np.int32((r != VALID) & (np.float32(c) < reuse_frames))
+        for bx in range(nbx):
+            t = 0
+            for x in range(bx * bs, min(bx * bs + bs, w)):
+                t += ul[x]
+            uns[by, bx] = t
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -441,21 +495,6 @@ def _settle(state, cnt, blocks, bs, n):
                     c = cnt[y, x]
                     if (state[y, x] & REASON_MASK) != VALID and c < n:
                         cnt[y, x] = n
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _block_unsettled(state, cnt, bs, reuse_frames, uns):
-    """uns[by, bx] = the block's pixels not VALID whose past averages fewer than `reuse_frames` frames (as
-    `_still_rows` counts them)."""
-    h, w = state.shape
-    nby, nbx = uns.shape
-    for by in prange(nby):
-        for bx in range(nbx):
-            c = 0
-            for y in range(by * bs, min(by * bs + bs, h)):
-                for x in range(bx * bs, min(bx * bs + bs, w)):
-                    c += np.int32(((state[y, x] & REASON_MASK) != VALID) & (cnt[y, x] < reuse_frames))
-            uns[by, bx] = c
 
 
 @njit(cache=True, nogil=True, inline="always")
