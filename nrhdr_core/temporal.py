@@ -38,6 +38,8 @@ stream; `reset` on a seek, flush or caps change.
 from __future__ import annotations
 
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit, prange
@@ -247,7 +249,8 @@ class TemporalReconstructor:
         block rows of `todo` as a band (the full width, MARGIN rows of context above and below) where that
         is smaller than a mosaic of its blocks (each with MARGIN pixels of context), the other blocks as
         one mosaic; the whole frame when that is not smaller. Blocks finished in the judgement (`fast`)
-        enter as known context: their new past."""
+        enter as known context: their new past. Bands and mosaics are cut into PIECES independent parts
+        (`_pieces`) that run side by side."""
         h, w = work.shape
         bs = int(self.options["block"])
         side = bs + 2 * MARGIN
@@ -276,10 +279,63 @@ class TemporalReconstructor:
         for y0, x0 in zip(ys, xs):
             near[y0 // bs:(y0 + side - 1) // bs + 1, x0 // bs:(x0 + side - 1) // bs + 1] = True
         self._fill(near & (fast != 0), work, known, lower, upper)
+        self._pieces(bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
+
+    def _pieces(self, bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset) -> None:
+        """The bands ((y0, y1) rows of `work`) and the mosaic of the blocks `rest` (context windows side x
+        side at (ys, xs)) reconstructed in PIECES parts each: a band wider than PIECES x 4 blocks as column
+        ranges split at block boundaries (each with MARGIN columns of context across the cut), the mosaic
+        as PIECES mosaics of consecutive blocks. Every part reads its input before any part writes, so the
+        output does not depend on their order or the threads (the parts are fixed by the counts); they run
+        on `_POOL` (FSE runs a band of a few block rows on one thread)."""
+        h, w = work.shape
+        bs = int(self.options["block"])
+        nbx = (w + bs - 1) // bs
+        parts = []                  # (rows, write columns x0..x1 of the band) or (mosaic blocks, ys, xs)
         for y0, y1 in bands:
-            self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, y0, y1)
+            cuts = [0, w]
+            if nbx >= PIECES * 4:
+                cuts = [0] + [(nbx * i // PIECES) * bs for i in range(1, PIECES)] + [w]
+            parts += [("band", y0, y1, x0, x1, max(x0 - MARGIN, 0) if x0 else 0, min(x1 + MARGIN, w))
+                      for x0, x1 in zip(cuts[:-1], cuts[1:])]
         if len(rest):
-            self._reconstruct_mosaic(rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
+            for i in np.array_split(np.arange(len(rest)), min(PIECES, len(rest))):
+                parts.append(("mosaic", rest[i], ys[i], xs[i]))
+
+        def take(a, part):
+            if a is None:
+                return None
+            if part[0] == "band":
+                _, y0, y1, _, _, c0, c1 = part
+                return np.ascontiguousarray(a[y0:y1, c0:c1])
+            _, blocks, py, px = part
+            rr = (py[:, None] + np.arange(side)[None, :])[:, :, None]
+            cc = (px[:, None] + np.arange(side)[None, :])[:, None, :]
+            return np.ascontiguousarray(a[rr, cc].reshape(len(blocks) * side, side))
+
+        inputs = [tuple(take(a, part) for a in (work, known, state, lower, upper)) for part in parts]
+        outs = list(_run_parts(lambda args: self._reconstruct_part(*args, noise, method, preset), inputs))
+        for part, sub in zip(parts, outs):
+            if part[0] == "band":
+                _, y0, y1, x0, x1, c0, _ = part
+                work[y0:y1, x0:x1] = sub[:, x0 - c0:x1 - c0]
+                continue
+            _, blocks, py, px = part
+            sub = sub.reshape(len(blocks), side, side)
+            for i, (by, bx) in enumerate(blocks):
+                y0, x0 = by * bs, bx * bs
+                y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
+                oy, ox = y0 - py[i], x0 - px[i]
+                work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
+
+    def _reconstruct_part(self, sub, k, st, lo, up, noise, method, preset):
+        """`reconstruction.reconstruct` of one part of `_pieces` (its own arrays), in place; returns it."""
+        from . import reconstruction
+        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+        noisy = noisy if noisy.any() else None
+        return reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
+                                          noisy=noisy, noise=noise if noisy is not None else None,
+                                          fusion=self.fusion)
 
     def _fill(self, blocks, work, known, lower, upper) -> None:
         """The blocks `blocks` (a (by, bx) mask) finished in the judgement as known context (`_fill_fast`)."""
@@ -289,41 +345,9 @@ class TemporalReconstructor:
 
     def _reconstruct_rows(self, work, known, lower, upper, state, noise, method, preset, y0, y1) -> None:
         """`reconstruction.reconstruct` of rows y0..y1-1 of `work`, in place."""
-        from . import reconstruction
-        sub, k, st = work[y0:y1], known[y0:y1], state[y0:y1]
         lo = None if lower is None else lower[y0:y1]
         up = None if upper is None else upper[y0:y1]
-        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
-        noisy = noisy if noisy.any() else None
-        reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub, noisy=noisy,
-                                   noise=noise if noisy is not None else None, fusion=self.fusion)
-
-    def _reconstruct_mosaic(self, todo, ys, xs, side, work, known, lower, upper, state, noise, method,
-                            preset) -> None:
-        """The blocks `todo` reconstructed as one mosaic of their context windows (side x side at (ys, xs)),
-        stacked into one column; their pixels written back into `work`."""
-        from . import reconstruction
-        h, w = work.shape
-        bs = int(self.options["block"])
-        rows = (ys[:, None] + np.arange(side)[None, :])[:, :, None]
-        cols = (xs[:, None] + np.arange(side)[None, :])[:, None, :]
-        n = len(todo)
-
-        def mosaic(a):
-            return None if a is None else np.ascontiguousarray(a[rows, cols].reshape(n * side, side))
-
-        sub, k, st = mosaic(work), mosaic(known), mosaic(state)
-        lo, up = mosaic(lower), mosaic(upper)
-        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
-        noisy = noisy if noisy.any() else None
-        reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
-                                   noisy=noisy, noise=noise if noisy is not None else None, fusion=self.fusion)
-        sub = sub.reshape(n, side, side)
-        for i, (by, bx) in enumerate(todo):
-            y0, x0 = by * bs, bx * bs
-            y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
-            oy, ox = y0 - ys[i], x0 - xs[i]
-            work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
+        self._reconstruct_part(work[y0:y1], known[y0:y1], state[y0:y1], lo, up, noise, method, preset)
 
     def _alone(self, values, state, noise, report, g, floor, nd) -> dict:
         """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it.
@@ -358,6 +382,19 @@ class TemporalReconstructor:
 
 _EMPTY = np.full((1, 1), np.nan, np.float32)
 MARGIN = 16          # pixels of context around a block reconstructed in a mosaic (FSE's support: 16 or 32)
+PIECES = 2           # parts a band or mosaic is reconstructed in, side by side (`_pieces`; the 2-core target)
+_POOL = []           # the threads the parts run on (one executor, made on first use)
+_POOL_LOCK = threading.Lock()
+
+
+def _run_parts(fn, items):
+    """fn over items, side by side on `_POOL` (the calling thread alone for one item); results in order."""
+    if len(items) <= 1:
+        return [fn(x) for x in items]
+    with _POOL_LOCK:
+        if not _POOL:
+            _POOL.append(ThreadPoolExecutor(max_workers=PIECES, thread_name_prefix="nrhdr-temporal"))
+    return list(_POOL[0].map(fn, items))
 
 
 def _planes(h, w, nby, nbx):
@@ -1131,33 +1168,15 @@ def _fill_fast(blocks, prev, bs, work, known, lower, upper, use_bounds):
                     upper[y, x] = nan
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _ctx(work, prev, fast, bs, y, x):
-    """The reconstruction's value at (y, x): the new past in a block finished in the judgement."""
-    return prev[y, x] if fast[y // bs, x // bs] != 0 else work[y, x]
-
-
-@njit(cache=True, nogil=True)
-def _tex_var_ctx(work, prev, fast, bs, y, x, h, w, rec_tex):
-    """`_tex_var` of the reconstruction (`_ctx`)."""
-    lo = work[y, x]
-    hi = lo
-    for yy in range(max(y - 1, 0), min(y + 2, h)):
-        for xx in range(max(x - 1, 0), min(x + 2, w)):
-            a = _ctx(work, prev, fast, bs, yy, xx)
-            lo = a if a < lo else lo
-            hi = a if a > hi else hi
-    r = np.float32(0.5) * (hi - lo)
-    return rec_tex * r * r
-
-
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, fast, bs, lower, upper, use_bounds, g, rec_noise,
             rec_tol, reuse_frames, floor, rec_tex, nd, z_out):
     """Write the frame and keep it as the past, outside the blocks `_judge_blocks` finished (`fast`):
     measured pixels get their average, missing pixels the reconstruction fused by inverse
     variance with their aligned past (where they have one and it agrees within Z_OUT), within their
-    bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
+    bounds, with RECONSTRUCTED. The reconstruction's texture term (`_tex_var`) reads `work` around the
+    pixel: `_reconstruct_left` has put the new past of the finished blocks next to a reconstructed one
+    there. Returns the number of missing pixels written."""
     h, w = values.shape
     flag = np.uint8(RECONSTRUCTED)
     n = 0
@@ -1188,8 +1207,7 @@ def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, fast, bs, lower, 
                     var[y, x] = -vp
                     c += 1
                     continue
-                vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var_ctx(work, prev, fast, bs, y, x, h, w,
-                                                                              rec_tex)
+                vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var(work, y, x, h, w, rec_tex)
                 if r == NOISY:          # fused with its own measurement: no less certain than that
                     vm = _meas_var(a, True, g, floor, nd)
                     vr = vm if vm < vr else vr
