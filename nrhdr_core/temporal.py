@@ -23,7 +23,8 @@ Per frame (`TemporalReconstructor.process`):
    pixels averaged with their past, missing ones keep it; undone on a cut);
 4. in the other trusted blocks measured pixels are averaged with their aligned past by inverse variance
    (per pixel: an outlier restarts its pixel); the missing pixels are reconstructed from the averaged
-   values (the blocks as one mosaic when they are few) and fused with their past;
+   values (runs of block rows as bands, scattered blocks as one mosaic, each in two parts side by side)
+   and fused with their past;
 5. untrusted blocks (motion the candidates do not explain, occlusion, a block with outliers) are
    reconstructed alone.
 
