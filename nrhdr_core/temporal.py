@@ -39,6 +39,7 @@ stream; `reset` on a seek, flush or caps change.
 from __future__ import annotations
 
 import math
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -386,6 +387,16 @@ MARGIN = 16          # pixels of context around a block reconstructed in a mosai
 PIECES = 2           # parts a band or mosaic is reconstructed in, side by side (`_pieces`; the 2-core target)
 _POOL = []           # the threads the parts run on (one executor, made on first use)
 _POOL_LOCK = threading.Lock()
+
+
+def _forget_pool() -> None:
+    """In a forked child: the parent's pool threads do not exist there; the first use makes a new pool."""
+    global _POOL_LOCK
+    _POOL.clear()
+    _POOL_LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _run_parts(fn, items):
