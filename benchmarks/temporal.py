@@ -328,12 +328,14 @@ def shot(scene_list, h, w, frames, seed, repeat, budget):
 
 
 def shot_table(res, h, w, frames) -> str:
-    """The static shot from its first frame: ms mean / worst / steady, frames a live 30 fps source loses,
-    log2 PSNR of the first and the last frame."""
+    """The static shot from its first frame: ms mean / worst / steady (and mean and worst as multiples of the
+    preview's), frames a live 30 fps source loses, log2 PSNR of the first and the last frame."""
     cols = [("preview", "preview (anchor)"), ("off", "fse fast"),
             ("on", f"fse fast, temporal on (budget {res['budget']})"), ("unbounded", "fse fast, temporal on, budget 0")]
     rows = [("ms per frame, mean over the shot", lambda r: f"{r['mean']:.1f}"),
             ("worst frame, ms (frame)", lambda r: f"{r['worst']:.1f} ({r['worst_frame']})"),
+            ("mean / worst frame, x the preview's", lambda r: f"{r['mean'] / res['preview']['mean']:.2f} / "
+                                                            f"{r['worst'] / res['preview']['worst']:.2f}"),
             ("steady, ms (median of the second half)", lambda r: f"{r['steady']:.1f}"),
             (f"frames lost of {LIVE_FRAMES} at a live {LIVE_FPS:.0f} fps source (leaky queue of one)",
              lambda r: str(r["lost"])),

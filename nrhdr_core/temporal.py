@@ -23,7 +23,8 @@ Per frame (`TemporalReconstructor.process`):
    pixels averaged with their past, missing ones keep it; undone on a cut);
 4. in the other trusted blocks measured pixels are averaged with their aligned past by inverse variance
    (per pixel: an outlier restarts its pixel); the missing pixels are reconstructed from the averaged
-   values (the blocks as one mosaic when they are few) and fused with their past;
+   values (runs of block rows as bands, scattered blocks as one mosaic, each in two parts side by side)
+   and fused with their past;
 5. untrusted blocks (motion the candidates do not explain, occlusion, a block with outliers) are
    reconstructed alone.
 
@@ -38,6 +39,9 @@ stream; `reset` on a seek, flush or caps change.
 from __future__ import annotations
 
 import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit, prange
@@ -247,7 +251,8 @@ class TemporalReconstructor:
         block rows of `todo` as a band (the full width, MARGIN rows of context above and below) where that
         is smaller than a mosaic of its blocks (each with MARGIN pixels of context), the other blocks as
         one mosaic; the whole frame when that is not smaller. Blocks finished in the judgement (`fast`)
-        enter as known context: their new past."""
+        enter as known context: their new past. Bands and mosaics are cut into PIECES independent parts
+        (`_pieces`) that run side by side."""
         h, w = work.shape
         bs = int(self.options["block"])
         side = bs + 2 * MARGIN
@@ -276,10 +281,63 @@ class TemporalReconstructor:
         for y0, x0 in zip(ys, xs):
             near[y0 // bs:(y0 + side - 1) // bs + 1, x0 // bs:(x0 + side - 1) // bs + 1] = True
         self._fill(near & (fast != 0), work, known, lower, upper)
+        self._pieces(bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
+
+    def _pieces(self, bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset) -> None:
+        """The bands ((y0, y1) rows of `work`) and the mosaic of the blocks `rest` (context windows side x
+        side at (ys, xs)) reconstructed in PIECES parts each: a band wider than PIECES x 4 blocks as column
+        ranges split at block boundaries (each with MARGIN columns of context across the cut), the mosaic
+        as PIECES mosaics of consecutive blocks. Every part reads its input before any part writes, so the
+        output does not depend on their order or the threads (the parts are fixed by the counts); they run
+        on `_POOL` (FSE runs a band of a few block rows on one thread)."""
+        h, w = work.shape
+        bs = int(self.options["block"])
+        nbx = (w + bs - 1) // bs
+        parts = []                  # (rows, write columns x0..x1 of the band) or (mosaic blocks, ys, xs)
         for y0, y1 in bands:
-            self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, y0, y1)
+            cuts = [0, w]
+            if nbx >= PIECES * 4:
+                cuts = [0] + [(nbx * i // PIECES) * bs for i in range(1, PIECES)] + [w]
+            parts += [("band", y0, y1, x0, x1, max(x0 - MARGIN, 0) if x0 else 0, min(x1 + MARGIN, w))
+                      for x0, x1 in zip(cuts[:-1], cuts[1:])]
         if len(rest):
-            self._reconstruct_mosaic(rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
+            for i in np.array_split(np.arange(len(rest)), min(PIECES, len(rest))):
+                parts.append(("mosaic", rest[i], ys[i], xs[i]))
+
+        def take(a, part):
+            if a is None:
+                return None
+            if part[0] == "band":
+                _, y0, y1, _, _, c0, c1 = part
+                return np.ascontiguousarray(a[y0:y1, c0:c1])
+            _, blocks, py, px = part
+            rr = (py[:, None] + np.arange(side)[None, :])[:, :, None]
+            cc = (px[:, None] + np.arange(side)[None, :])[:, None, :]
+            return np.ascontiguousarray(a[rr, cc].reshape(len(blocks) * side, side))
+
+        inputs = [tuple(take(a, part) for a in (work, known, state, lower, upper)) for part in parts]
+        outs = list(_run_parts(lambda args: self._reconstruct_part(*args, noise, method, preset), inputs))
+        for part, sub in zip(parts, outs):
+            if part[0] == "band":
+                _, y0, y1, x0, x1, c0, _ = part
+                work[y0:y1, x0:x1] = sub[:, x0 - c0:x1 - c0]
+                continue
+            _, blocks, py, px = part
+            sub = sub.reshape(len(blocks), side, side)
+            for i, (by, bx) in enumerate(blocks):
+                y0, x0 = by * bs, bx * bs
+                y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
+                oy, ox = y0 - py[i], x0 - px[i]
+                work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
+
+    def _reconstruct_part(self, sub, k, st, lo, up, noise, method, preset):
+        """`reconstruction.reconstruct` of one part of `_pieces` (its own arrays), in place; returns it."""
+        from . import reconstruction
+        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
+        noisy = noisy if noisy.any() else None
+        return reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
+                                          noisy=noisy, noise=noise if noisy is not None else None,
+                                          fusion=self.fusion)
 
     def _fill(self, blocks, work, known, lower, upper) -> None:
         """The blocks `blocks` (a (by, bx) mask) finished in the judgement as known context (`_fill_fast`)."""
@@ -289,41 +347,9 @@ class TemporalReconstructor:
 
     def _reconstruct_rows(self, work, known, lower, upper, state, noise, method, preset, y0, y1) -> None:
         """`reconstruction.reconstruct` of rows y0..y1-1 of `work`, in place."""
-        from . import reconstruction
-        sub, k, st = work[y0:y1], known[y0:y1], state[y0:y1]
         lo = None if lower is None else lower[y0:y1]
         up = None if upper is None else upper[y0:y1]
-        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
-        noisy = noisy if noisy.any() else None
-        reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub, noisy=noisy,
-                                   noise=noise if noisy is not None else None, fusion=self.fusion)
-
-    def _reconstruct_mosaic(self, todo, ys, xs, side, work, known, lower, upper, state, noise, method,
-                            preset) -> None:
-        """The blocks `todo` reconstructed as one mosaic of their context windows (side x side at (ys, xs)),
-        stacked into one column; their pixels written back into `work`."""
-        from . import reconstruction
-        h, w = work.shape
-        bs = int(self.options["block"])
-        rows = (ys[:, None] + np.arange(side)[None, :])[:, :, None]
-        cols = (xs[:, None] + np.arange(side)[None, :])[:, None, :]
-        n = len(todo)
-
-        def mosaic(a):
-            return None if a is None else np.ascontiguousarray(a[rows, cols].reshape(n * side, side))
-
-        sub, k, st = mosaic(work), mosaic(known), mosaic(state)
-        lo, up = mosaic(lower), mosaic(upper)
-        noisy = ((st & (REASON_MASK | RECONSTRUCTED)) == NOISY) & ~k
-        noisy = noisy if noisy.any() else None
-        reconstruction.reconstruct(sub, k, method=method, preset=preset, lower=lo, upper=up, out=sub,
-                                   noisy=noisy, noise=noise if noisy is not None else None, fusion=self.fusion)
-        sub = sub.reshape(n, side, side)
-        for i, (by, bx) in enumerate(todo):
-            y0, x0 = by * bs, bx * bs
-            y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
-            oy, ox = y0 - ys[i], x0 - xs[i]
-            work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
+        self._reconstruct_part(work[y0:y1], known[y0:y1], state[y0:y1], lo, up, noise, method, preset)
 
     def _alone(self, values, state, noise, report, g, floor, nd) -> dict:
         """The frame reconstructed alone (`reconstruct_frame`, the same bits); the state restarts from it.
@@ -345,9 +371,9 @@ class TemporalReconstructor:
             self._level = np.empty((nby, nbx), np.uint8)
             self._uns = np.empty((nby, nbx), np.int32)
         _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
-                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]), preview)
+                 np.float32(o["rec_tol"]), np.float32(o["rec_texture"]), preview, bs,
+                 np.float32(o["reuse_frames"]), self._uns)
         self._level[...] = 0 if preview else 1
-        _block_unsettled(state, self._cnt, bs, np.float32(o["reuse_frames"]), self._uns)
         self.frames = 1
         tot = float(nby * nbx)
         has = float(np.count_nonzero(self._uns)) / tot
@@ -358,6 +384,29 @@ class TemporalReconstructor:
 
 _EMPTY = np.full((1, 1), np.nan, np.float32)
 MARGIN = 16          # pixels of context around a block reconstructed in a mosaic (FSE's support: 16 or 32)
+PIECES = 2           # parts a band or mosaic is reconstructed in, side by side (`_pieces`; the 2-core target)
+_POOL = []           # the threads the parts run on (one executor, made on first use)
+_POOL_LOCK = threading.Lock()
+
+
+def _forget_pool() -> None:
+    """In a forked child: the parent's pool threads do not exist there; the first use makes a new pool."""
+    global _POOL_LOCK
+    _POOL.clear()
+    _POOL_LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _run_parts(fn, items):
+    """fn over items, side by side on `_POOL` (the calling thread alone for one item); results in order."""
+    if len(items) <= 1:
+        return [fn(x) for x in items]
+    with _POOL_LOCK:
+        if not _POOL:
+            _POOL.append(ThreadPoolExecutor(max_workers=PIECES, thread_name_prefix="nrhdr-temporal"))
+    return list(_POOL[0].map(fn, items))
 
 
 def _planes(h, w, nby, nbx):
@@ -404,27 +453,81 @@ def _tex_var(img, y, x, h, w, rec_tex):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex, placeholder):
+def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex, placeholder, bs,
+             reuse_frames, uns):
     """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
-    the others with a fresh reconstruction's, each the average of 1 frame; with `placeholder` (a preview
-    start) the missing pixels that are not NOISY as no frame averaged (variance inf, count 0): the first
-    reconstruction of their block replaces them."""
+    the others with a fresh reconstruction's (+ `_tex_var`), each the average of 1 frame; with
+    `placeholder` (a preview start) the missing pixels that are not NOISY as no frame averaged (variance
+    inf, count 0): the first reconstruction of their block replaces them. uns[by, bx] = the block's
+    pixels not VALID whose past averages fewer than
+    `reuse_frames` frames (unsettled, as `_still_rows` counts them). One pass per block row, branch-free over whole
+    rows (it vectorises)."""
     h, w = values.shape
+    nby, nbx = uns.shape
     inf = np.float32(np.inf)
-    for y in prange(h):
-        for x in range(w):
-            v = values[y, x]
-            cnt[y, x] = 1
-            st = state[y, x]
-            prev[y, x] = v
-            r = st & REASON_MASK
-            if r == VALID:
-                var[y, x] = _meas_var(v, (st & ATTENUATED) != 0, g, floor, nd)
-            elif placeholder and r != NOISY:
-                var[y, x] = inf
-                cnt[y, x] = 0
-            else:
-                var[y, x] = _rec_var(v, g, floor, rec_noise, rec_tol) + _tex_var(values, y, x, h, w, rec_tex)
+    half = np.float32(0.5)
+    ndg = nd * g
+    ndf = nd * nd * floor
+    for by in prange(nby):
+        lo3 = np.empty(w, np.float32)       # the 3 x 1 column's min and max around each pixel of the row
+        hi3 = np.empty(w, np.float32)
+        tx = np.empty(w, np.float32)
+        ul = np.zeros(w, np.int32)          # unsettled pixels per column of the block row
+        for y in range(by * bs, min(by * bs + bs, h)):
+            ra = values[max(y - 1, 0)]
+            rb = values[y]
+            rc = values[min(y + 1, h - 1)]
+            for x in range(w):
+                a = ra[x]
+                b = rb[x]
+                c = rc[x]
+                lo = b
+                lo = a if a < lo else lo
+                lo = c if c < lo else lo
+                hi = b
+                hi = a if a > hi else hi
+                hi = c if c > hi else hi
+                lo3[x] = lo
+                hi3[x] = hi
+            for x in range(1, w - 1):        # the 3 x 3 range, then the texture term (`_tex_var`)
+                lo = lo3[x - 1]
+                lo = lo3[x] if lo3[x] < lo else lo
+                lo = lo3[x + 1] if lo3[x + 1] < lo else lo
+                hi = hi3[x - 1]
+                hi = hi3[x] if hi3[x] > hi else hi
+                hi = hi3[x + 1] if hi3[x + 1] > hi else hi
+                rr = half * (hi - lo)
+                tx[x] = rec_tex * rr * rr
+            for x in (0, w - 1):
+                lo = lo3[x]
+                hi = hi3[x]
+                for xx in range(max(x - 1, 0), min(x + 2, w)):
+                    lo = lo3[xx] if lo3[xx] < lo else lo
+                    hi = hi3[xx] if hi3[xx] > hi else hi
+                rr = half * (hi - lo)
+                tx[x] = rec_tex * rr * rr
+            sr = state[y]
+            pr = prev[y]
+            qr = var[y]
+            cr = cnt[y]
+            for x in range(w):
+                v = rb[x]
+                st = sr[x]
+                r = st & REASON_MASK
+                m = v if v > 0 else np.float32(0.0)
+                vm = (ndg * m + ndf) if (st & ATTENUATED) != 0 else (g * m + floor)
+                vr = rec_noise * (g * m + floor) + (rec_tol * m) * (rec_tol * m) + tx[x]
+                hold = placeholder & (r != VALID) & (r != NOISY)
+                pr[x] = v
+                qr[x] = vm if r == VALID else (inf if hold else vr)
+                c = np.uint8(0) if hold else np.uint8(1)
+                cr[x] = c
+                ul[x] += np.int32((r != VALID) & (np.float32(c) < reuse_frames))
+        for bx in range(nbx):
+            t = 0
+            for x in range(bx * bs, min(bx * bs + bs, w)):
+                t += ul[x]
+            uns[by, bx] = t
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -441,21 +544,6 @@ def _settle(state, cnt, blocks, bs, n):
                     c = cnt[y, x]
                     if (state[y, x] & REASON_MASK) != VALID and c < n:
                         cnt[y, x] = n
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _block_unsettled(state, cnt, bs, reuse_frames, uns):
-    """uns[by, bx] = the block's pixels not VALID whose past averages fewer than `reuse_frames` frames (as
-    `_still_rows` counts them)."""
-    h, w = state.shape
-    nby, nbx = uns.shape
-    for by in prange(nby):
-        for bx in range(nbx):
-            c = 0
-            for y in range(by * bs, min(by * bs + bs, h)):
-                for x in range(bx * bs, min(bx * bs + bs, w)):
-                    c += np.int32(((state[y, x] & REASON_MASK) != VALID) & (cnt[y, x] < reuse_frames))
-            uns[by, bx] = c
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1092,33 +1180,15 @@ def _fill_fast(blocks, prev, bs, work, known, lower, upper, use_bounds):
                     upper[y, x] = nan
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _ctx(work, prev, fast, bs, y, x):
-    """The reconstruction's value at (y, x): the new past in a block finished in the judgement."""
-    return prev[y, x] if fast[y // bs, x // bs] != 0 else work[y, x]
-
-
-@njit(cache=True, nogil=True)
-def _tex_var_ctx(work, prev, fast, bs, y, x, h, w, rec_tex):
-    """`_tex_var` of the reconstruction (`_ctx`)."""
-    lo = work[y, x]
-    hi = lo
-    for yy in range(max(y - 1, 0), min(y + 2, h)):
-        for xx in range(max(x - 1, 0), min(x + 2, w)):
-            a = _ctx(work, prev, fast, bs, yy, xx)
-            lo = a if a < lo else lo
-            hi = a if a > hi else hi
-    r = np.float32(0.5) * (hi - lo)
-    return rec_tex * r * r
-
-
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, fast, bs, lower, upper, use_bounds, g, rec_noise,
             rec_tol, reuse_frames, floor, rec_tex, nd, z_out):
     """Write the frame and keep it as the past, outside the blocks `_judge_blocks` finished (`fast`):
     measured pixels get their average, missing pixels the reconstruction fused by inverse
     variance with their aligned past (where they have one and it agrees within Z_OUT), within their
-    bounds, with RECONSTRUCTED. Returns the number of missing pixels written."""
+    bounds, with RECONSTRUCTED. The reconstruction's texture term (`_tex_var`) reads `work` around the
+    pixel: `_reconstruct_left` has put the new past of the finished blocks next to a reconstructed one
+    there. Returns the number of missing pixels written."""
     h, w = values.shape
     flag = np.uint8(RECONSTRUCTED)
     n = 0
@@ -1149,8 +1219,7 @@ def _finish(values, state, work, pv, pvar, pc, prev, var, cnt, fast, bs, lower, 
                     var[y, x] = -vp
                     c += 1
                     continue
-                vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var_ctx(work, prev, fast, bs, y, x, h, w,
-                                                                              rec_tex)
+                vr = _rec_var(a, g, floor, rec_noise, rec_tol) + _tex_var(work, y, x, h, w, rec_tex)
                 if r == NOISY:          # fused with its own measurement: no less certain than that
                     vm = _meas_var(a, True, g, floor, nd)
                     vr = vm if vm < vr else vr

@@ -181,3 +181,32 @@ def test_the_element_pipeline_equals_batch_under_the_default_budget(tmp_path, gs
     assert rc == 0, log
     element_exrs(d, w, h, tmp_path / "gst", gst_subprocess_env, timeout=300)
     assert_same_frames(tmp_path / "batch", tmp_path / "gst", 4)
+
+
+@pytest.mark.parametrize("budget", [BUDGET, 0])
+def test_a_restart_counts_every_block_with_a_pixel_not_measured_as_unsettled(prof, fluxes, budget):
+    """After a frame alone every pixel not VALID averages at most one frame (fewer than `reuse_frames`): the
+    blocks holding one are pending (a preview start) or refined (the method's start), counted from the input
+    states."""
+    v, s = frames(prof, fluxes[1], 1)[0]
+    s[:, :48] = (s[:, :48] & ~np.uint8(REASON_MASK)) | VALID        # three block columns measured throughout
+    share = ((s & REASON_MASK) != VALID).reshape(H // 16, 16, W // 16, 16).any(axis=(1, 3)).mean()
+    assert 0 < share < 1
+    rep = TemporalReconstructor(budget=budget).process(v.copy(), s.copy(), noise=prof)
+    assert rep["reset"] and rep["start"] == ("preview" if budget else "method")
+    assert rep["pending" if budget else "refined"] == pytest.approx(share)
+    assert rep["refined" if budget else "pending"] == 0.0
+
+
+def test_streams_refined_side_by_side_equal_the_streams_alone(prof, fluxes):
+    """Two streams processed at the same time from two threads (as two pipelines do; the refinement's parts
+    run on a shared pool) give the bits each gives alone."""
+    from concurrent.futures import ThreadPoolExecutor
+    clips = [frames(prof, f, 6, seed=5) for f in fluxes]
+    alone = [run(TemporalReconstructor(budget=BUDGET), c, prof)[0] for c in clips]
+    with ThreadPoolExecutor(2) as ex:
+        both = list(ex.map(lambda c: run(TemporalReconstructor(budget=BUDGET), c, prof)[0], clips))
+    for a, b in zip(alone, both):
+        for (va, sa), (vb, sb) in zip(a, b):
+            np.testing.assert_array_equal(va.view(np.uint32), vb.view(np.uint32))
+            np.testing.assert_array_equal(sa, sb)
