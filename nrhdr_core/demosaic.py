@@ -9,10 +9,11 @@ reconstruction):
    log2(max(G, 0) + c) (a hue is a ratio of channels: across an edge of any contrast the differences stay
    smooth, where linear differences scale with the brightness of an HDR scene); c keeps the logarithm
    finite and noise-tolerant near black (`log_offset`);
-3. the differences reconstructed on the red and the blue lattice (one cell per 2 x 2 Bayer block: the level
-   1 of the pull-push pyramid with the monochrome preview's neighbour fill, or an FSE image of half size in
-   the linear domain), turned into ratios 2^d, interpolated bilinearly to every photosite:
-   R = (max(G, 0) + c) 2^d_R - c, B likewise.
+3. the differences reconstructed: `preview` on the red and the blue lattice (one cell per 2 x 2 Bayer block:
+   the level 1 of the pull-push pyramid with the monochrome preview's neighbour fill), turned into ratios
+   2^d, interpolated bilinearly to every photosite; `fse` at every photosite by the FSE guided by the green
+   plane's spectrum (`chroma_fse`: colour detail taken at the frequencies green shows, also beyond the
+   lattices' Nyquist limit; aliases of the lattices not): R = (max(G, 0) + c) 2^d_R - c, B likewise.
 4. the colour-difference median (`_chroma_filter`): the other two channels of each photosite rebuilt from
    its own one and the 3 x 3 medians of the ratios 2^d_R, 2^d_B (Freeman 1988).
 
@@ -336,11 +337,12 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
             pull_push_levels(pv[2], pw[2], hs, ws, off)
         _lattice_fill(lat[0], lat[1], kl, pv, pw, hs, ws, off, 2 if deep else hs.shape[0] - 1, o2, w2, rl)
     else:
-        for i in range(2):
-            _ratio(_fse_lattice(lat[i], kl[i], preset), rl[i])
+        dif = _fse_differences(lat, kl, pos, out[_cfa.G], c, rl)
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
     crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
     _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], out)
+    if method != "preview":
+        _fse_colour(out, dif, pos, c, rng)
     if use_bounds and cnt[_N_CLIP]:
         _clipped_around(state, pos, crow, sc["rows"], out)
     if noisy is not None:
@@ -604,14 +606,6 @@ def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
             r[j] = np.exp2(r[j])
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _ratio(lat, ratio):
-    """ratio = 2^lat."""
-    for i in prange(lat.shape[0]):
-        for j in range(lat.shape[1]):
-            ratio[i, j] = np.exp2(lat[i, j])
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _expand(lat, i0, i1, a, px, ext_w, w, buf):
     """buf[x] (x < w) = the lattice row pair (i0, i1; weight a of i1) bilinear at photosite column x, for a
@@ -795,17 +789,6 @@ def _fse_green(v32, state, blk, kg, preset, use_bounds):
     np.nan_to_num(res, copy=False, nan=0.0, posinf=top, neginf=0.0)
     np.clip(res, min(float(kv.min()), 0.0), top, out=res)
     return res
-
-
-def _fse_lattice(lat, known, preset):
-    """A difference lattice filled by FSE in the linear domain (the differences are logarithms already)."""
-    from .reconstruction import reconstruct
-    if not known.any():
-        return np.zeros(lat.shape, np.float32)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.ascontiguousarray(reconstruct(lat, known, method="fse", preset=preset, domain="linear"),
-                                    np.float32)
 
 
 def _noisy_phases(state):
@@ -1030,3 +1013,49 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow):
     lim[:, 1] = rng[:, 2]
     lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
     _chroma_median(out, state, blk, pos, c, lim, sc["bnd"], crow, sc["rows"])
+
+
+# ---- green-guided colour differences of the fse method (docs/COLOUR.md "False colour") ---------------------
+
+def _fse_differences(lat, kl, pos, g, c, rl):
+    """float32 (2, H, W): the log differences d_R, d_B (`lat`, known where `kl`, on their lattices) at every
+    photosite by the green-guided FSE (`chroma_fse.guided_fse`, guide log2(max(G, 0) + c)); `rl` (the
+    lattices' ratios for `_colour`) = 2^d at the lattice cells."""
+    from .chroma_fse import guided_fse
+    h, w = g.shape
+    guide = np.log2(np.maximum(g, 0.0) + c).astype(np.float32)
+    dif = np.zeros((2, h, w), np.float32)
+    for i, ch in enumerate((_cfa.R, _cfa.B)):
+        py, px = int(pos[ch][0]), int(pos[ch][1])
+        full = np.zeros((h, w), np.float32)
+        known = np.zeros((h, w), np.bool_)
+        hl, wl = full[py::2, px::2].shape
+        full[py::2, px::2] = lat[i][:hl, :wl]
+        known[py::2, px::2] = kl[i][:hl, :wl]
+        if known.any():
+            guided_fse(full, known, guide, py, px, dif[i])
+        rl[i][:hl, :wl] = np.exp2(dif[i][py::2, px::2])
+    return dif
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _fse_colour(out, dif, pos, c, rng):
+    """R and B at the photosites of the other colours: (max(G, 0) + c) 2^d - c (`dif`: d_R, d_B at every
+    photosite), within the channel's range (`rng` as `_colour`); their own photosites stay as `_colour` left
+    them."""
+    h, w = out.shape[1], out.shape[2]
+    zero = np.float32(0.0)
+    for y in prange(h):
+        for i in range(2):
+            ch = 0 if i == 0 else 2
+            own_row = (y & 1) == pos[ch, 0]
+            lo = rng[ch, 0]
+            top = rng[ch, 2]
+            for x in range(w):
+                if own_row and (x & 1) == pos[ch, 1]:
+                    continue
+                gv = out[1, y, x]
+                e = ((gv if gv > zero else zero) + c) * np.exp2(dif[i, y, x]) - c
+                e = e if e - e == zero else top
+                e = lo if e < lo else e
+                out[ch, y, x] = top if e > top else e
