@@ -65,14 +65,16 @@ def guided_fse(d, known, guide, py, px, out=None) -> np.ndarray:
     if out is None:
         out = np.empty(d.shape, np.float32)
     rw, cs, sn, prior = _tables()
-    _guided(d, k, g, py, px, rw, cs, sn, prior, np.float32(GAMMA), ITERS, np.float32(ALPHA), np.float32(EPS),
-            np.float32(TAU), B, out)
+    ut = np.outer(np.arange(N), np.arange(N)) % N
+    _guided(d, k, g, py, px, rw, cs, sn, cs[ut], sn[ut], prior, np.float32(GAMMA), ITERS, np.float32(ALPHA),
+            np.float32(EPS), np.float32(TAU), B, out)
     return out
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def _dft_half(x, cs, sn, tr, ti, xr, xi):
-    """(xr, xi)[v, u] = DFT of the real N x N x for u <= N/2 (tr, ti: row-pass scratch)."""
+def _dft_half(x, cs, sn, ec, es, tr, ti, xr, xi):
+    """(xr, xi)[v, u] = DFT of the real N x N x for u <= N/2 (ec, es: cos and sin of 2 pi u j / N; tr, ti:
+    row-pass scratch)."""
     n = x.shape[0]
     hh = n // 2 + 1
     for i in range(n):
@@ -80,9 +82,8 @@ def _dft_half(x, cs, sn, tr, ti, xr, xi):
             sr = np.float32(0.0)
             si = np.float32(0.0)
             for j in range(n):
-                t = (u * j) % n
-                sr += x[i, j] * cs[t]
-                si -= x[i, j] * sn[t]
+                sr += x[i, j] * ec[u, j]
+                si -= x[i, j] * es[u, j]
             tr[i, u] = sr
             ti[i, u] = si
     for v in range(n):
@@ -114,7 +115,7 @@ def _full(hr, hi, fr, fi):
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=True)
-def _guided(d, known, guide, py, px, rw, cs, sn, prior, gamma, iters, alpha, eps, tau, b, out):
+def _guided(d, known, guide, py, px, rw, cs, sn, ec, es, prior, gamma, iters, alpha, eps, tau, b, out):
     """`guided_fse` over every block, block rows in parallel."""
     h, w = d.shape
     n = rw.shape[0]
@@ -183,10 +184,10 @@ def _guided(d, known, guide, py, px, rw, cs, sn, prior, gamma, iters, alpha, eps
                 for j in range(n):
                     gb[i, j] -= gm * rw[i, j]
                     xb[i, j] -= dm * wb[i, j]
-            _dft_half(wb, cs, sn, tr, ti, whr, whi)
+            _dft_half(wb, cs, sn, ec, es, tr, ti, whr, whi)
             _full(whr, whi, wr, wi)
-            _dft_half(xb, cs, sn, tr, ti, rr, ri)
-            _dft_half(gb, cs, sn, tr, ti, sr, si)
+            _dft_half(xb, cs, sn, ec, es, tr, ti, rr, ri)
+            _dft_half(gb, cs, sn, ec, es, tr, ti, sr, si)
             smax = np.float32(0.0)
             for v in range(n):
                 for u in range(hh):

@@ -1023,12 +1023,16 @@ def _fse_differences(lat, kl, pos, g, c, rl):
     lattices' ratios for `_colour`) = 2^d at the lattice cells."""
     from .chroma_fse import guided_fse
     h, w = g.shape
-    guide = np.log2(np.maximum(g, 0.0) + c).astype(np.float32)
-    dif = np.zeros((2, h, w), np.float32)
+    sc = planes("demosaic.fse_colour", (h, w), lambda: dict(
+        guide=np.empty((h, w), np.float32), dif=np.empty((2, h, w), np.float32),
+        full=np.empty((h, w), np.float32), known=np.empty((h, w), np.bool_)))
+    guide, dif, full, known = sc["guide"], sc["dif"], sc["full"], sc["known"]
+    np.log2(np.maximum(g, 0.0) + c, out=guide)
+    dif[:] = 0.0
     for i, ch in enumerate((_cfa.R, _cfa.B)):
         py, px = int(pos[ch][0]), int(pos[ch][1])
-        full = np.zeros((h, w), np.float32)
-        known = np.zeros((h, w), np.bool_)
+        full[:] = 0.0
+        known[:] = False
         hl, wl = full[py::2, px::2].shape
         full[py::2, px::2] = lat[i][:hl, :wl]
         known[py::2, px::2] = kl[i][:hl, :wl]
