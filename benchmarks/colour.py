@@ -20,8 +20,8 @@ light, $NRHDR_SHARED_DATA/kodak), their truth what `nrhdr simulate --cfa` writes
 centred view, fov 0.8, anti-aliased, exposed from the scene's luminance, median at 18 % of the regular pixels'
 range); photosite flux = the truth's channel of its CFA colour (unit sensitivities); shot and read noise, no
 crosstalk.
-Chain: `validity.classify` (defaults: weighted dark policy) -> `demosaic.reconstruct_cfa` (method `preview` and
-`fse` preset fast). Colour zone plate (`scene.colour_zone_plate`: achromatic rings around 0.25 and 3 x the
+Chain: `validity.classify` (defaults: weighted dark policy) -> `demosaic.reconstruct_cfa` (methods `preview`,
+`fse` (preset fast) and `fse-best` (fse preset best: the green-guided colour differences)). Colour zone plate (`scene.colour_zone_plate`: achromatic rings around 0.25 and 3 x the
 regular clip, and chromatic rings around 0.25), noise-free, so that what is measured is aliasing.
 
 Metrics: log2 PSNR of luminance per region (`metrics.rgb_clip_report`: dark < l_min x ND, bright >= the regular
@@ -61,7 +61,7 @@ CAMERAS = ("nr-independent", "nr-balanced", "sve", "bayer")
 ND_CAMERAS = CAMERAS[:3]
 LABELS = {"nr-independent": "non-regular ND, independent of the CFA", "nr-balanced": "non-regular ND, balanced per "
           "colour", "sve": "regular SVE (Assorted Pixels)", "bayer": "anchor: unmodified Bayer camera"}
-METHODS = {"preview": ("preview", "fast"), "fse": ("fse", "fast")}
+METHODS = {"preview": ("preview", "fast"), "fse": ("fse", "fast"), "fse-best": ("fse", "best")}
 HDR_SCENES = ("Desk", "KernerEnvLatLong", "MtTamWest", "StillLife", "Tree")
 GOALS = {"bright_gain_db": 12.0, "false_colour_db": 3.0, "fps_ratio": 0.70}
 
@@ -339,7 +339,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="*", default=None, help="HDR scene files (default: the shared ones)")
     ap.add_argument("--kodak", nargs="*", default=None, help="Kodak PNG files (default: kodim01-04 of the shared "
                                                              "data)")
-    ap.add_argument("--methods", default=None, help="comma-separated: preview, fse (default both; quick: preview)")
+    ap.add_argument("--methods", default=None, help="comma-separated: preview, fse, fse-best (default all; "
+                                               "quick: preview)")
     ap.add_argument("--zone-size", type=int, default=None, help="zone plate panel side (default 256)")
     ap.add_argument("--operator", default="local", choices=tonemap.SDR_OPERATORS, help="tone map operator")
     ap.add_argument("--fps-size", type=size, default=None, help="frames/s at WIDTHxHEIGHT (default 1920x1080)")
@@ -353,7 +354,7 @@ def main(argv=None) -> int:
     zsize = a.zone_size or (64 if a.quick else 256)
     fw, fh = a.fps_size or ((320, 180) if a.quick else (1920, 1080))
     fframes = a.fps_frames or (2 if a.quick else 4)
-    methods = (a.methods or ("preview" if a.quick else "preview,fse")).split(",")
+    methods = (a.methods or ("preview" if a.quick else ",".join(METHODS))).split(",")
     bad = [m for m in methods if m not in METHODS]
     if bad or zsize < 8 or min(fframes, a.repeat) < 1:
         ap.error(f"--methods takes {', '.join(METHODS)} (got {a.methods!r}); --zone-size >= 8; --fps-frames and "
