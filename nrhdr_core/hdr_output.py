@@ -33,6 +33,7 @@ LUMINANCE_UNIT = 10000           # ST 2086: luminance in 0.0001 cd/m^2
 # x265's constant quality (crf) chosen by measurement (docs/BENCHMARKS.md "HDR10 encoding") and its speed
 DEFAULT_CRF = 16
 DEFAULT_SPEED_PRESET = "medium"
+MIN_ENCODE_WIDTH = 64      # pixels: one HEVC coding tree unit (x265's default CTU size)
 SPEED_PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower",
                  "veryslow", "placebo")
 CONTAINERS = {".mp4": "mp4", ".mkv": "mkv"}
@@ -485,6 +486,17 @@ def matroska_caps(mastering: MasteringDisplay) -> str:
     """The caps (text) that a capssetter before matroskamux sets so that its Colour element states the
     mastering luminance the SEI states (MATROSKA_LUMINANCE_FACTOR)."""
     return f"video/x-h265,mastering-display-info=(string){mastering.caps_field(MATROSKA_LUMINANCE_FACTOR)}"
+
+
+def check_encode_size(width: int, height: int, where: str) -> None:
+    """ValueError naming `where` for a frame narrower than MIN_ENCODE_WIDTH: x265enc (libx265, GStreamer's
+    x265 plugin on Debian 12) corrupts its heap and aborts (`free(): invalid next size`) on such frames at some
+    sizes (widths 34 to 48 at heights of 32 and more, measured with videotestsrc), so the HEVC route refuses
+    them all before the first frame."""
+    if int(width) < MIN_ENCODE_WIDTH:
+        raise ValueError(f"{where}: {width}x{height} frames are narrower than {MIN_ENCODE_WIDTH} pixels (one HEVC "
+                         f"coding tree unit), which x265enc cannot encode reliably: encode frames at least "
+                         f"{MIN_ENCODE_WIDTH} pixels wide")
 
 
 def warmup_rgb(transfers=TRANSFERS, elements: bool = False) -> None:

@@ -289,3 +289,25 @@ def test_nrhdrenc_from_gst_launch(gst_subprocess_env, tiny_clip, tmp_path, trans
         assert Fraction(md["max_luminance"]) == 1000 and Fraction(md["min_luminance"]) == Fraction(1, 200)
         cll = kinds["Content light level metadata"]
         assert (cll["max_content"], cll["max_average"]) == (1000, 203)    # the estimate: peak, reference white
+
+
+@pytest.mark.gst
+def test_frames_narrower_than_a_coding_tree_unit_are_refused(gst_subprocess_env, tmp_path):
+    """x265enc aborts the process on some frames narrower than 64 pixels (48 x 32: `free(): invalid next
+    size`): nrhdrenc posts an error naming itself and the size instead, and `nrhdr hdr10` refuses such a clip
+    before its first frame, leaving nothing behind; 64 pixels wide encodes."""
+    from conftest import make_test_clip
+    _x265_and_ffprobe()
+    d, prof, raws = make_test_clip(tmp_path / "narrow", width=48, height=32, frames=2)
+    out = tmp_path / "e.mp4"
+    rc, text = run(["gst-launch-1.0", "-e", "filesrc", f"location={d / 'clip.raw'}", "!", "rawvideoparse",
+                    "format=gray16-le", "width=48", "height=32", "framerate=5/1", "!", "nrvalidity",
+                    f"profile={d / 'camera.json'}", "!", "nrreconstruct", "method=nearest", "!", "nrhdrenc", "!",
+                    "mp4mux", "!", "filesink", f"location={out}"], gst_subprocess_env)
+    assert rc != 0 and "nrhdrenc" in text and "48x32 frames are narrower than 64 pixels" in text, text
+    assert "invalid next size" not in text and "Aborted" not in text, text
+    v = tmp_path / "v.mp4"
+    rc, text = run([gst_subprocess_env["NRHDR"], "hdr10", d, v, "--method", "nearest", "--no-progress"],
+                   gst_subprocess_env)
+    assert rc == 2 and "48x32 frames are narrower than 64 pixels" in text, text
+    assert not [x.name for x in tmp_path.iterdir() if x.name.startswith("v.") or x.name.startswith(".v")]

@@ -260,6 +260,8 @@ def cmd_hdr10(a) -> int:
     if a.profile:
         check_clip_cfa(a.input, prof)
     colour = cfa.is_colour(getattr(prof, "cfa", "none"))
+    if container is not None:
+        hdr_output.check_encode_size(src.width, src.height, f"{out}")
     if a.report:
         if container is None:
             raise ValueError(f"--report scores a video decoded by ffmpeg; {out} names a folder of PNG stills "

@@ -136,7 +136,9 @@ class NrHdrEnc(NrElement, Gst.Bin):
         if ev is None or ev.type != Gst.EventType.CAPS:
             return Gst.PadProbeReturn.OK
         try:
-            self._set_metadata(HdrInfo.from_caps(ev.parse_caps(), LAYOUTS, element="nrhdrenc"))
+            info = HdrInfo.from_caps(ev.parse_caps(), LAYOUTS, element="nrhdrenc")
+            hdr_output.check_encode_size(info.width, info.height, "nrhdrenc")
+            self._set_metadata(info)
         except Exception as e:  # noqa: BLE001
             self.post_exception("caps", e)
             return Gst.PadProbeReturn.DROP
