@@ -53,6 +53,16 @@ def camera_features(env, *names: str) -> dict | None:
     return json.loads(p.stdout) if p.stdout.strip() else None
 
 
+def _die_with_parent():
+    """preexec_fn: the child gets SIGTERM when the test process dies (Linux PR_SET_PDEATHSIG), so a killed test
+    run leaves no fake camera answering on IP to the next run."""
+    import ctypes
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)       # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+
 @pytest.fixture
 def fake_camera(gst_subprocess_env):
     """A fresh fake GigE Vision camera on 127.0.0.1 (settings persist in a camera: one per test); yields
@@ -61,7 +71,8 @@ def fake_camera(gst_subprocess_env):
     probe = subprocess.run(["gst-inspect-1.0", "aravissrc"], env=gst_subprocess_env, capture_output=True)
     _need("the GStreamer element aravissrc", probe.returncode == 0)
     serial = f"NRT{os.getpid() % 100000}{next(_serials)}"
-    cam = subprocess.Popen([FAKE, "-i", IP, "-s", serial], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    cam = subprocess.Popen([FAKE, "-i", IP, "-s", serial], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                           preexec_fn=_die_with_parent)
     try:
         deadline = time.monotonic() + 20
         found = None
