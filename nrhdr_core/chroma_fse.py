@@ -134,7 +134,7 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
         wi = np.zeros((2 * m, 2 * m), np.float32)
         rr = np.zeros((m, mh), np.float32)
         ri = np.zeros((m, mh), np.float32)
-        pr = np.zeros((n, n), np.float32)
+        gmx = np.zeros((m, m), np.float32)
         pb = np.zeros((m, mh), np.float32)
         al_v = np.zeros((m, mh), np.int64)
         al_u = np.zeros((m, mh), np.int64)
@@ -179,6 +179,9 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
                     sf[v, u] = mg
                     smax = max(smax, mg)
             e = eps * smax + np.float32(1e-30)
+            for v in range(m):
+                for u in range(m):
+                    gmx[v, u] = max(max(sf[v, u], sf[v + m, u]), max(sf[v, u + m], sf[v + m, u + m]))
             for ch in range(nc):
                 py = par[ch, 0]
                 px = par[ch, 1]
@@ -233,74 +236,82 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
                             ri[v, u] = np.float32(0.5) * (br_ - ar)
                 w0 = wr[0, 0]
                 lim = tau * tau * w0 * w0
-                # alias shifts: the peaks of |W| on the full grid (|W(k)| = |W_L(k mod m)|)
+                # alias shifts: the peaks of |W| on the full grid (|W(k)| = |W_L(k mod m)|: each peak p_L of
+                # |W_L| with its 4 lattice aliases); the guide's maximum over k + p is then that of gmx over
+                # (k + p_L) mod m, one value per lattice bin
                 npk = 0
                 for v in range(m):
                     for u in range(m):
                         if wr[v, u] * wr[v, u] + wi[v, u] * wi[v, u] >= lim:
-                            for a4 in range(4):
-                                if npk < MAX_PEAKS:
-                                    pk_v[npk] = v + m * (a4 >> 1)
-                                    pk_u[npk] = u + m * (a4 & 1)
-                                npk += 1
-                for v in range(n):
-                    for u in range(hh):
-                        g4 = smax
-                        if npk <= MAX_PEAKS:
-                            g4 = sf[v, u]
-                            for p in range(npk):
-                                g4 = max(g4, sf[(v + pk_v[p]) & (n - 1), (u + pk_u[p]) & (n - 1)])
-                        q = (sf[v, u] + e) / (g4 + e)
-                        pv = prior[v, u] * (q * q if alpha == 2.0 else q ** alpha)
-                        pr[v, u] = pv
-                        pr[(n - v) & (n - 1), (n - u) & (n - 1)] = pv
-                pr[0, 0] = prior[0, 0]
-                # per lattice bin: the alias of largest selection weight
+                            if 4 * (npk + 1) <= MAX_PEAKS:
+                                pk_v[npk] = v
+                                pk_u[npk] = u
+                            npk += 1
+                # per lattice bin: the alias of largest selection weight prior(k) ((S(k) + e) / (g + e))^ALPHA
                 for v in range(m):
                     for u in range(mh):
+                        g4 = smax
+                        if 4 * npk <= MAX_PEAKS:
+                            g4 = np.float32(0.0)
+                            for p in range(npk):
+                                g4 = max(g4, gmx[(v + pk_v[p]) & (m - 1), (u + pk_u[p]) & (m - 1)])
+                        ig = np.float32(1.0) / (g4 + e)
                         best = np.float32(-1.0)
                         for a4 in range(4):
                             sv = v + m * (a4 >> 1)
                             su = u + m * (a4 & 1)
-                            if pr[sv, su] > best:
-                                best = pr[sv, su]
+                            q = (sf[sv, su] + e) * ig
+                            pv = prior[sv, su] * (q * q if alpha == 2.0 else q ** alpha)
+                            if sv == 0 and su == 0:
+                                pv = prior[0, 0]
+                            if pv > best:
+                                best = pv
                                 al_v[v, u] = sv
                                 al_u[v, u] = su
                         pb[v, u] = best * best
+                # the iterations; the residual update and the next selection in one pass
+                best = np.float32(-1.0)
+                kv = 0
+                ku = 0
+                for v in range(m):
+                    for u in range(mh):
+                        a_ = (rr[v, u] * rr[v, u] + ri[v, u] * ri[v, u]) * pb[v, u]
+                        if a_ > best:
+                            best = a_
+                            kv = v
+                            ku = u
                 for it in range(iters):
-                    best = np.float32(-1.0)
-                    kv = 0
-                    ku = 0
-                    for v in range(m):
-                        for u in range(mh):
-                            a_ = (rr[v, u] * rr[v, u] + ri[v, u] * ri[v, u]) * pb[v, u]
-                            if a_ > best:
-                                best = a_
-                                kv = v
-                                ku = u
                     cr = gamma * rr[kv, ku] / w0
                     ci = gamma * ri[kv, ku] / w0
                     self_c = kv == 0 and ku == 0
                     if self_c:
                         ci = np.float32(0.0)
+                    pc = np.float32(0.0) if self_c else np.float32(1.0)
                     sel_v[it] = al_v[kv, ku]
                     sel_u[it] = al_u[kv, ku]
                     sel_r[it] = cr
                     sel_i[it] = ci
+                    kv0 = kv
+                    ku0 = ku
+                    best = np.float32(-1.0)
                     for v in range(m):
-                        av = v - kv + m
-                        bv = v + kv
+                        av = v - kv0 + m
+                        bv = v + kv0
                         for u in range(mh):
-                            au = u - ku + m
-                            bu = u + ku
+                            au = u - ku0 + m
+                            bu = u + ku0
                             # c W(j - k) (+ conj(c) W(j + k) for a pair)
-                            xr_ = cr * wr[av, au] - ci * wi[av, au]
-                            xi_ = cr * wi[av, au] + ci * wr[av, au]
-                            if not self_c:
-                                xr_ += cr * wr[bv, bu] + ci * wi[bv, bu]
-                                xi_ += cr * wi[bv, bu] - ci * wr[bv, bu]
-                            rr[v, u] -= xr_
-                            ri[v, u] -= xi_
+                            xr_ = cr * wr[av, au] - ci * wi[av, au] + pc * (cr * wr[bv, bu] + ci * wi[bv, bu])
+                            xi_ = cr * wi[av, au] + ci * wr[av, au] + pc * (cr * wi[bv, bu] - ci * wr[bv, bu])
+                            r_ = rr[v, u] - xr_
+                            i_ = ri[v, u] - xi_
+                            rr[v, u] = r_
+                            ri[v, u] = i_
+                            a_ = (r_ * r_ + i_ * i_) * pb[v, u]
+                            if a_ > best:
+                                best = a_
+                                kv = v
+                                ku = u
                 # the model on the block's (b + 2) x (b + 2) surround (its phase relative to the lattice's
                 # offset q): the lattice band (|k| <= N/4 in both directions) into ib, the components beyond
                 # it into ob
