@@ -10,7 +10,7 @@ spectrum on the full grid is R(k) = e^{-2 pi i k.q / N} R_L(k mod N/2) (q: the l
 and the residual update R(j) -= c W(j - k) + conj(c) W(j + k) holds for R_L, W_L with c e^{2 pi i k.q / N}:
 the iterations run on the N/2 x N/2 lattice spectrum (a quarter of the bins), the selected bin k among its
 aliases being the one of largest selection weight (they share |R|). Spectra by radix-2 FFT
-(`fse.kernel.fft_pass`); the green spectrum of an area serves both channels.
+(`fse.kernel.fft_pass`); the green spectrum of an area serves both channels, two areas' in one complex FFT.
 
 Guided selection (joint sparsity of the channels, after the inter-channel model of Backes and Froehlich
 2020): bins k and k + p fit the known samples alike where the DFT W of the area's weights peaks at p
@@ -129,12 +129,13 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
     for by in prange(nby):
         zg = np.zeros(4 * nn, np.float32)
         zl = np.zeros(4 * mm, np.float32)
-        sf = np.zeros((n, n), np.float32)
+        sfs = np.zeros((2, n, n), np.float32)
         wr = np.zeros((2 * m, 2 * m), np.float32)
         wi = np.zeros((2 * m, 2 * m), np.float32)
         rr = np.zeros((m, mh), np.float32)
         ri = np.zeros((m, mh), np.float32)
-        gmx = np.zeros((m, m), np.float32)
+        gmxs = np.zeros((2, m, m), np.float32)
+        smx = np.zeros(2, np.float32)
         pb = np.zeros((m, mh), np.float32)
         al_v = np.zeros((m, mh), np.int64)
         al_u = np.zeros((m, mh), np.int64)
@@ -153,35 +154,54 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
             ay = y0 - o
             ax = bx - o
             wbk = min(b, w - bx)
-            # the guide: |DFT| of the windowed log green around its weighted mean, once for all channels
-            sg = np.float32(0.0)
-            srw = np.float32(0.0)
-            for i in range(n):
-                yc = min(max(ay + i, 0), h - 1)
-                for j in range(n):
-                    xc = min(max(ax + j, 0), w - 1)
-                    zg[i * n + j] = rw[i, j] * guide[yc, xc]
-                    zg[nn + i * n + j] = np.float32(0.0)
-                    sg += zg[i * n + j]
-                    srw += rw[i, j]
-            gm = sg / srw
-            for i in range(n):
-                for j in range(n):
-                    zg[i * n + j] -= gm * rw[i, j]
-            _fft2(zg, n, cs, sn, br)
-            smax = np.float32(0.0)
-            for u in range(n):
-                r0 = 2 * nn + br[u] * n
-                for v in range(n):
-                    a_ = zg[r0 + v]
-                    b2 = zg[r0 + nn + v]
-                    mg = np.sqrt(a_ * a_ + b2 * b2)
-                    sf[v, u] = mg
-                    smax = max(smax, mg)
+            # the guide: |DFT| of the windowed log green around its weighted mean, once for all channels; the
+            # areas of two neighbouring blocks as one complex FFT (real and imaginary part), split by conjugate
+            # symmetry
+            half = (bx // b) & 1
+            if half == 0:
+                for hf in range(2):
+                    sg = np.float32(0.0)
+                    srw = np.float32(0.0)
+                    off = hf * nn
+                    ax2 = ax + hf * b
+                    for i in range(n):
+                        yc = min(max(ay + i, 0), h - 1)
+                        for j in range(n):
+                            xc = min(max(ax2 + j, 0), w - 1)
+                            zg[off + i * n + j] = rw[i, j] * guide[yc, xc]
+                            sg += zg[off + i * n + j]
+                            srw += rw[i, j]
+                    gm = sg / srw
+                    for i in range(n):
+                        for j in range(n):
+                            zg[off + i * n + j] -= gm * rw[i, j]
+                _fft2(zg, n, cs, sn, br)
+                smx[0] = np.float32(0.0)
+                smx[1] = np.float32(0.0)
+                for u in range(n):
+                    ra = 2 * nn + br[u] * n
+                    rb = 2 * nn + br[(n - u) & (n - 1)] * n
+                    for v in range(n):
+                        mv = (n - v) & (n - 1)
+                        ar = zg[ra + v]
+                        ai = zg[ra + nn + v]
+                        br_ = zg[rb + mv]
+                        bi = zg[rb + nn + mv]
+                        m1 = np.float32(0.5) * np.sqrt((ar + br_) * (ar + br_) + (ai - bi) * (ai - bi))
+                        m2 = np.float32(0.5) * np.sqrt((ar - br_) * (ar - br_) + (ai + bi) * (ai + bi))
+                        sfs[0, v, u] = m1
+                        sfs[1, v, u] = m2
+                        smx[0] = max(smx[0], m1)
+                        smx[1] = max(smx[1], m2)
+                for hf in range(2):
+                    for v in range(m):
+                        for u in range(m):
+                            gmxs[hf, v, u] = max(max(sfs[hf, v, u], sfs[hf, v + m, u]),
+                                                 max(sfs[hf, v, u + m], sfs[hf, v + m, u + m]))
+            sf = sfs[half]
+            gmx = gmxs[half]
+            smax = smx[half]
             e = eps * smax + np.float32(1e-30)
-            for v in range(m):
-                for u in range(m):
-                    gmx[v, u] = max(max(sf[v, u], sf[v + m, u]), max(sf[v, u + m], sf[v + m, u + m]))
             for ch in range(nc):
                 py = par[ch, 0]
                 px = par[ch, 1]
