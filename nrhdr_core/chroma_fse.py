@@ -114,7 +114,6 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
     nc, h, w = d.shape
     n = rw.shape[0]
     nn = n * n
-    hh = n // 2 + 1
     m = n // 2                  # the lattice's spectrum
     mm = m * m
     mh = m // 2 + 1
