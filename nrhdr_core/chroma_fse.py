@@ -108,6 +108,15 @@ def _fft2(zb, n, tw_c, tw_s, br):
     fft_pass(zb, 2 * nn, 3 * nn, n, tw_c, tw_s)
 
 
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _pair(zb, n, br, v, u):
+    """(Re, Im) of Z(v, u) and of Z(-v, -u) from `_fft2`'s output layout."""
+    nn = n * n
+    a = 2 * nn + br[u] * n + v
+    b = 2 * nn + br[(n - u) & (n - 1)] * n + ((n - v) & (n - 1))
+    return zb[a], zb[a + nn], zb[b], zb[b + nn]
+
+
 @njit(cache=True, nogil=True, parallel=True, fastmath=True)
 def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alpha, eps, tau, b, out):
     """`guided_fse` over every block and channel, block rows in parallel."""
@@ -178,14 +187,8 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
                 smx[0] = np.float32(0.0)
                 smx[1] = np.float32(0.0)
                 for u in range(n):
-                    ra = 2 * nn + br[u] * n
-                    rb = 2 * nn + br[(n - u) & (n - 1)] * n
                     for v in range(n):
-                        mv = (n - v) & (n - 1)
-                        ar = zg[ra + v]
-                        ai = zg[ra + nn + v]
-                        br_ = zg[rb + mv]
-                        bi = zg[rb + nn + mv]
+                        ar, ai, br_, bi = _pair(zg, n, br, v, u)
                         m1 = np.float32(0.5) * np.sqrt((ar + br_) * (ar + br_) + (ai - bi) * (ai - bi))
                         m2 = np.float32(0.5) * np.sqrt((ar - br_) * (ar - br_) + (ai + bi) * (ai + bi))
                         sfs[0, v, u] = m1
@@ -232,14 +235,8 @@ def _guided(d, known, guide, par, rw, cs, sn, prior, br, brl, gamma, iters, alph
                 _fft2(zl, m, csl, snl, brl)
                 # W_L on the doubled periodic grid (no modulo in the update), R_L on the half spectrum
                 for u in range(m):
-                    ra = 2 * mm + brl[u] * m
-                    rb = 2 * mm + brl[(m - u) & (m - 1)] * m
                     for v in range(m):
-                        mv = (m - v) & (m - 1)
-                        ar = zl[ra + v]
-                        ai = zl[ra + mm + v]
-                        br_ = zl[rb + mv]
-                        bi = zl[rb + mm + mv]
+                        ar, ai, br_, bi = _pair(zl, m, brl, v, u)
                         wre = np.float32(0.5) * (ar + br_)
                         wim = np.float32(0.5) * (ai - bi)
                         wr[v, u] = wre
