@@ -151,6 +151,23 @@ def test_guided_differences_step_without_ringing():
 def test_guided_differences_bad_lattice():
     with pytest.raises(ValueError, match="parities"):
         chroma_fse.guided_fse(np.zeros((8, 8)), np.ones((8, 8), bool), np.zeros((8, 8)), 2, 0)
+    with pytest.raises(ValueError, match="off the lattice"):
+        chroma_fse.guided_fse(np.zeros((8, 8)), np.ones((8, 8), bool), np.zeros((8, 8)), 0, 0)
+
+
+def test_guided_differences_channels_in_one_pass():
+    """Two channels on their own lattices in one call (one guide spectrum per area) give what each gives
+    alone."""
+    h, w = 40, 36
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:h, 0:w]
+    g = np.log2(300.0 + 100.0 * np.cos(2 * np.pi * 0.3 * xx + 0.2 * yy))
+    d = rng.standard_normal((2, h, w)).astype(np.float32)
+    par = ((0, 0), (1, 1))
+    known = np.stack([(yy % 2 == py) & (xx % 2 == px) & (rng.random((h, w)) < 0.7) for py, px in par])
+    both = chroma_fse.guided_fse(d, known, g, [p[0] for p in par], [p[1] for p in par])
+    for i, (py, px) in enumerate(par):
+        np.testing.assert_array_equal(both[i], chroma_fse.guided_fse(d[i], known[i], g, py, px))
 
 
 def test_chromatic_zone_plate_fse_below_grey():
