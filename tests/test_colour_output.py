@@ -496,7 +496,7 @@ def test_hdr10_cli_colour_clip(gst_subprocess_env, tmp_path):
     from nrhdr_core import batch, chain, profile
     if shutil.which("ffprobe") is None or subprocess.run(["gst-inspect-1.0", "--exists", "x265enc"]).returncode:
         pytest.skip("x265enc or ffprobe not installed")
-    h, w, n = 32, 48, 2
+    h, w, n = 32, 64, 2          # 64 wide: x265enc's narrowest (hdr_output.check_encode_size)
     clip = tmp_path / "clip"
 
     def cli(*args):

@@ -260,8 +260,6 @@ def cmd_hdr10(a) -> int:
     if a.profile:
         check_clip_cfa(a.input, prof)
     colour = cfa.is_colour(getattr(prof, "cfa", "none"))
-    if container is not None:
-        hdr_output.check_encode_size(src.width, src.height, f"{out}")
     if a.report:
         if container is None:
             raise ValueError(f"--report scores a video decoded by ffmpeg; {out} names a folder of PNG stills "
@@ -275,6 +273,8 @@ def cmd_hdr10(a) -> int:
     settings = chain.ChainSettings(mode=a.mode, crosstalk=a.crosstalk, method=a.method, preset=a.preset)
     if colour:
         chain.check_colour(settings, prof.cfa)
+    if container is not None:
+        hdr_output.check_encode_size(src.width, src.height, f"{out}")
     progress = not a.no_progress
     with outputs.stop_on_signals(ends_process=True):
         if container is None:       # HDR stills
