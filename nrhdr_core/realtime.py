@@ -325,8 +325,7 @@ class JitWatch:
                     fn = getattr((event.data or {}).get("dispatcher"), "py_func", None)
                     with JitWatch._lock:
                         JitWatch.count += 1
-                        if getattr(fn, "__module__", "").startswith("nrhdr_core"):
-                            JitWatch.names.append(f"{fn.__module__}.{fn.__qualname__}")
+                        JitWatch.names.append(f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', '?')}")
                         if d == 0:
                             JitWatch.seconds += time.perf_counter() - getattr(self._local, "t0",
                                                                               time.perf_counter())
@@ -342,9 +341,9 @@ class JitWatch:
 
     @classmethod
     def since(cls, snap: tuple[int, float]) -> tuple[int, float, list[str]]:
-        """Compilations since `snap`: (count, seconds, last few kernel names)."""
+        """Compilations since `snap`: (count, seconds, up to 8 of the nrhdr_core kernels they compiled)."""
         cls.install()
         with cls._lock:
             n = cls.count - snap[0]
-            names = sorted(set(list(cls.names)[-n:]))[:8] if n > 0 else []
+            names = sorted({m for m in list(cls.names)[-n:] if m.startswith("nrhdr_core")})[:8] if n > 0 else []
             return n, cls.seconds - snap[1], names

@@ -185,7 +185,8 @@ class TemporalReconstructor:
         if self.use_bounds:        # the clipped-neighbour bounds where blocks are prepared (`work`: the input)
             _clip_lower_rows(work, state, lower, (fast == 0).any(axis=1).astype(np.uint8), bs)
         # 3. the other blocks: measured pixels averaged, settled missing pixels reused, the rest reconstructed
-        blocks = np.argwhere(fast == 0).astype(np.int32)
+        # C order whatever the count (argwhere's result is Fortran-ordered): one signature, the warm-up's
+        blocks = np.argwhere(fast == 0).astype(np.int32, order="C")
         n_todo = 0
         if len(blocks):
             left = np.zeros(len(blocks), np.int64)
@@ -341,7 +342,7 @@ class TemporalReconstructor:
 
     def _fill(self, blocks, work, known, lower, upper) -> None:
         """The blocks `blocks` (a (by, bx) mask) finished in the judgement as known context (`_fill_fast`)."""
-        _fill_fast(np.argwhere(blocks).astype(np.int32), self._prev, int(self.options["block"]), work, known,
+        _fill_fast(np.argwhere(blocks).astype(np.int32, order="C"), self._prev, int(self.options["block"]), work, known,
                    lower if lower is not None else _EMPTY, upper if upper is not None else _EMPTY,
                    lower is not None)
 

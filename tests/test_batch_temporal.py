@@ -120,6 +120,22 @@ def read_out(folder, n):
     return [io.read_exr(Path(folder) / f"frame_{i:05d}.exr") for i in range(n)]
 
 
+def test_the_warm_up_covers_a_steady_shot(steady):
+    """After `chain.warmup` of the temporal settings (`nrhdr warmup`'s temporal stage) a steady shot, whose
+    still blocks settle and are finished from the past, needs no kernel signature the warm-up did not make
+    (argument types and array layouts: a new one is a compilation in the element, mid-stream)."""
+    from numba.core.registry import CPUDispatcher
+
+    from nrhdr_core import chain, temporal
+    _d, prof, raws = steady
+    chain.warmup(settings(), stages=("reconstruction",), elements=True)
+    kernels = {k: f for k, f in vars(temporal).items() if isinstance(f, CPUDispatcher)}
+    warm = {k: set(f.signatures) for k, f in kernels.items()}
+    _out, reports = sequential(raws, prof)
+    assert any(r["refreshed"] + r["reused"] > 0 for r in reports)       # the still blocks' path ran
+    assert {k: set(f.signatures) - warm[k] for k, f in kernels.items() if set(f.signatures) - warm[k]} == {}
+
+
 def test_one_chunk_and_chunks_warmed_from_the_start_equal_the_sequential_run(steady, tmp_path):
     """One chunk over the clip (plain loop) = nrreconstruct temporal=on's core over the clip in order, bit
     for bit; chunks of 3 on 2 Dask workers whose overlap reaches frame 0 (6 >= the last chunk's start)
