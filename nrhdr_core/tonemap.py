@@ -407,10 +407,12 @@ def _local_position(rows, c, lv, cx, j, c0, g1, k0, lo, steps):
 
 
 @njit(cache=True, nogil=True)
-def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
-    """Row y's display levels (code + 0.5, float32) into `t[c]`: `_local_apply`'s row for `_rgb_local_apply`
-    (row views, an unsigned LUT index). Called, not inlined: inlined beside `_rgb_row`, the pair compiles to
-    code that takes about twice the time per row."""
+def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
+    """Row y's display light into `t[c]`: `_local_apply`'s 16-bit level (code + 0.5, `dlut` the LUT's steps
+    lut[i + 1] - lut[i]) through the sRGB EOTF table `dec`, as `_rgb_row` takes it; `ib[c]` the row's LUT
+    indices. The clamp and the index / fraction split have a loop of their own, the table look-ups another
+    (the first vectorises). Called, not inlined: inlined beside `_rgb_row`, the pair compiles to code that takes
+    about twice the time per row."""
     w = l.shape[1]
     hc, wc = ca.shape
     n = lut.shape[0]
@@ -421,6 +423,7 @@ def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
     ra = rows[c, 0]
     rb = rows[c, 1]
     tr = t[c]
+    ir = ib[c]
     f = max((y + 0.5) / cell - 0.5, 0.0)
     y0 = min(int(f), hc - 1)
     y1 = min(y0 + 1, hc - 1)
@@ -439,12 +442,15 @@ def _local_levels(l, ca, cb, y, rows, t, c, c0, g1, k0, lut, out_max):
             tr[x] = _local_position(rows, c, lrow[x], cx, j, c0, g1, k0, lo, steps)
     for x in range(full * cell, w):
         tr[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
-    last = np.uint32(n - 2)
+    last = np.int32(n - 2)
     for x in range(w):
         tv = min(max(tr[x], np.float32(0.0)), top)        # (l is finite)
-        i = min(np.uint32(tv), last)
-        ft = tv - np.float32(i)
-        tr[x] = (lut[i] + ft * (lut[i + np.uint32(1)] - lut[i])) * out_max + np.float32(0.5)
+        i = min(np.int32(tv), last)
+        ir[x] = i
+        tr[x] = tv - np.float32(i)
+    for x in range(w):
+        i = np.uint32(ir[x])
+        tr[x] = dec[np.uint32((lut[i] + tr[x] * dlut[i]) * np.float32(65535.0) + np.float32(0.5))]
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -496,15 +502,16 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, rows, tbuf, dec, bins, thr, sat, fbuf, out):
-    """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour (`_rgb_row`) into sRGB
-    `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows."""
+def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, dlut, rows, tbuf, ibuf, dec, bins, thr, sat, fbuf, out):
+    """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour (`_local_display`,
+    `_rgb_row`) into sRGB `out` (H, W, 3); `ibuf` (chunks, w) the LUT indices, `fbuf` (chunks, 3, w) the rows'
+    channels."""
     h, w = l.shape
     nch = tbuf.shape[0]
     for c in prange(nch):
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            _local_levels(l, ca, cb, y, rows, tbuf, c, c0, g1, k0, lut, np.float32(65535.0))
-            _rgb_row(rgb, y, k, tbuf, c, dec, bins, thr, sat, fbuf, out)
+            _local_display(l, ca, cb, y, rows, tbuf, ibuf, c, c0, g1, k0, lut, dlut, dec)
+            _rgb_row(rgb, y, k, tbuf, c, bins, thr, sat, fbuf, out)
 
 
 def _display(o):
@@ -522,9 +529,15 @@ _LUT = []
 
 
 def _lut() -> np.ndarray:
+    return _luts()[0]
+
+
+def _luts() -> tuple[np.ndarray, np.ndarray]:
+    """(the display curve's LUT, its steps lut[i + 1] - lut[i] in float32, 0 after the last entry)."""
     if not _LUT:
         o = _LUT_LO + np.arange(int(-_LUT_LO * _LUT_STEPS) + 1) / _LUT_STEPS
-        _LUT.append(_display(o).astype(np.float32))
+        lut = _display(o).astype(np.float32)
+        _LUT.append((lut, np.append(lut[1:] - lut[:-1], np.float32(0.0))))
     return _LUT[0]
 
 
@@ -596,7 +609,8 @@ class LocalTonemap:
 
     def _run(self, v, k, white, exposure_stops, contrast, out_max, colour, out):
         """The operator on the grey `v` (H, W), or on the luminance of the colour `v` (3, H, W) by `k` with
-        `colour` the display tables (`_log_kernel`)."""
+        `colour` the colour display's rows and tables (`_rgb_local_apply`: index rows, sRGB tables, saturation,
+        channel rows)."""
         from .scratch import planes
         h, w = v.shape[-2:]
         cell = LOCAL_CELL
@@ -624,7 +638,7 @@ class LocalTonemap:
         if colour is None:
             _local_apply(l, ca, cb, c, g1, k0, _lut(), np.float32(out_max), rows, tbuf, out)
         else:
-            _rgb_local_apply(v, k, l, ca, cb, c, g1, k0, _lut(), rows, tbuf, *colour, out)
+            _rgb_local_apply(v, k, l, ca, cb, c, g1, k0, *_luts(), rows, tbuf, *colour, out)
         return out
 
     def rgb(self, rgb: np.ndarray, white: float, exposure_stops: float = 0.0, contrast: float = DEFAULT_CONTRAST,
@@ -1023,21 +1037,19 @@ def _into_gamut(t0, t1, t2, yd, tb, c, x):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, out):
-    """Row y of the colour display codes (H, W, 3) from the grey operator's 16-bit levels of its luminance
-    (`lev[c]`: code + 0.5, float32; replaced by Y'): level Y' = the sRGB EOTF of the code (`dec`), channel
-    t = (c / L)^sat Y' (Y' where L = 0); above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the
-    code at the linear bin's start (`bins`, uint8), plus one from the next code's threshold on (a bin holds at
-    most one threshold: exact rounding in the encoded domain). `fb[c]` (3, w): the row's channels. Every array
-    indexed in full (no slices), table indices unsigned (no negative-index wrap); the Y' look-up has a loop of
-    its own so that the arithmetic loop vectorises; the code tables (16 KB + 1 KB) stay in L1."""
+def _rgb_row(rgb, y, k, lev, c, bins, thr, sat, fb, out):
+    """Row y of the colour display codes (H, W, 3) from the display light Y' of the grey operator's 16-bit
+    level of its luminance (`lev[c]`, the sRGB EOTF of the code): channel t = (c / L)^sat Y' (Y' where L = 0);
+    above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the code at the linear bin's start
+    (`bins`, uint8), plus one from the next code's threshold on (a bin holds at most one threshold: exact
+    rounding in the encoded domain). `fb[c]` (3, w): the row's channels. Every array indexed in full (no
+    slices), table indices unsigned (no negative-index wrap); the arithmetic loop vectorises; the code tables
+    (16 KB + 1 KB) stay in L1."""
     npx = lev.shape[1]
     zero = np.float32(0.0)
     one = np.float32(1.0)
     nb = np.float32(bins.shape[0] - 1)
     wr, wg, wb, kr, kb = k[0], k[1], k[2], k[3], k[4]
-    for x in range(npx):
-        lev[c, x] = dec[np.uint32(lev[c, x])]          # the look-up on its own: the next loop vectorises
     if sat != one:
         for x in range(npx):
             L = _luminance(rgb, y, x, wr, wg, wb, kr, kb)
@@ -1077,8 +1089,8 @@ def _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fb, out):
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, fbuf, out):
     """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels
-    into `lev` (chunks, w)), shown in colour (`_rgb_row`) into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its
-    rows."""
+    into `lev` (chunks, w), then their display light by the sRGB EOTF table `dec`), shown in colour (`_rgb_row`)
+    into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows."""
     h, w = out.shape[0], out.shape[1]
     nch = fbuf.shape[0]
     k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
@@ -1099,7 +1111,9 @@ def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, fbuf, o
             _split(ubits, mbits, ebuf)
             for x in range(w):
                 lev[c, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], lev[c, x], q) * inv_den * lmax + np.float32(0.5)
-            _rgb_row(rgb, y, k, lev, c, dec, bins, thr, sat, fbuf, out)
+            for x in range(w):
+                lev[c, x] = dec[np.uint32(lev[c, x])]     # the look-up on its own: the loops beside vectorise
+            _rgb_row(rgb, y, k, lev, c, bins, thr, sat, fbuf, out)
 
 
 def srgb_eotf(v):
@@ -1147,12 +1161,13 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
         raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
     _check_tone(white, contrast)
     k = np.array([*gains, *LUMA_BT709], np.float32)
-    lev, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
-                                                       np.empty((min(h, 64), 3, w), np.float32)))
+    lev, ibuf, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
+                                                             np.empty((min(h, 64), w), np.int32),
+                                                             np.empty((min(h, 64), 3, w), np.float32)))
     colour = (*_srgb_tables(), np.float32(saturation), fbuf)
     if operator == "local":
-        (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0, colour,
-                                                          out)
+        (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0,
+                                                          (ibuf, *colour), out)
     else:
         _rgb_log_kernel(v, k, np.float32(2.0 ** exposure_stops / white), np.float32(contrast),
                         np.float32(1.0 / math.log1p(contrast)), lev, *colour, out)

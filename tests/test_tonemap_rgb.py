@@ -1,6 +1,7 @@
 """The colour SDR tone map `tonemap.tonemap_rgb` (docs/TONEMAP.md "Colour") against the documented formula written
-out here in float64: white balance, luminance through the grey log operator to a 16-bit level, (c / L)^s Y in
-linear display light, out-of-gamut colours mixed with their grey, sRGB codes rounded in the encoded domain."""
+out here in float64: white balance, luminance through the grey operator (log or local) to a 16-bit level,
+(c / L)^s Y in linear display light, out-of-gamut colours mixed with their grey, sRGB codes rounded in the
+encoded domain."""
 from __future__ import annotations
 
 import numpy as np
@@ -32,13 +33,16 @@ def srgb_eotf(v):
     return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
 
 
-def reference(rgb, white, gains, exposure, contrast, sat):
-    """float64 codes of the documented colour tone map, operator log."""
+def reference(rgb, white, gains, exposure, contrast, sat, operator="log"):
+    """float64 codes of the documented colour tone map: the luminance's 16-bit level from the grey `operator`."""
     c32 = [np.minimum(np.nan_to_num(rgb[i] * np.float32(g), nan=0.0, posinf=1e30, neginf=0.0).clip(0, None),
                       np.float32(1e30)).astype(np.float32) for i, g in enumerate(gains)]
     r, g, b = c32
     lum = g + np.float32(KR) * (r - g) + np.float32(KB) * (b - g)        # the luminance the grey operator sees
-    level = tonemap.log_tonemap(lum, white, exposure, contrast, dtype=np.uint16)
+    if operator == "log":
+        level = tonemap.log_tonemap(lum, white, exposure, contrast, dtype=np.uint16)
+    else:
+        level = tonemap.LocalTonemap()(lum, white, exposure, contrast, dtype=np.uint16)
     y = srgb_eotf(level / 65535.0)
     L = lum.astype(np.float64)
     lit = L > 0
@@ -57,6 +61,19 @@ def test_log_codes_follow_the_documented_formula(sat, gains, exposure, contrast)
     rgb = varied_frame()
     got = tonemap.tonemap_rgb(rgb, 3e3, "log", gains, exposure, contrast, sat).astype(int)
     want = reference(rgb, 3e3, gains, exposure, contrast, sat)
+    diff = np.abs(got - want)
+    assert diff.max() <= 1                                  # float32 against float64 at a rounding boundary
+    assert (diff == 0).mean() > 0.995
+
+
+@pytest.mark.parametrize("sat", [1.0, 0.6])
+@pytest.mark.parametrize("gains,exposure,contrast", [((1.0, 1.0, 1.0), 0.0, 1000.0), ((1.3, 1.0, 0.8), 0.7, 300.0)])
+def test_local_codes_follow_the_documented_formula(sat, gains, exposure, contrast):
+    """The local operator: the grey local operator's level of the luminance (a width that is no multiple of
+    the 4-pixel cell: the last partial cell's pixels too), shown in colour as for log."""
+    rgb = varied_frame(3)
+    got = tonemap.LocalTonemap().rgb(rgb, 3e3, exposure, contrast, gains, sat).astype(int)
+    want = reference(rgb, 3e3, gains, exposure, contrast, sat, "local")
     diff = np.abs(got - want)
     assert diff.max() <= 1                                  # float32 against float64 at a rounding boundary
     assert (diff == 0).mean() > 0.995
