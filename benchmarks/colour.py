@@ -29,7 +29,8 @@ clip, by the truth's luminance; both capped at the ND camera's white); mean CIED
 against the tone-mapped truth (`tonemap.tonemap_rgb`, the profile's white, truth capped at it); false colour on
 the zone plate (`metrics.false_colour_db`: 10 log10 of the mean squared CIELAB chroma error at the truth's
 luminance, on the rings). Frames/s at 1920 x 1080 on the first scene, in the same run: the colour preview
-chain (`validity.classify -> crosstalk.correct` (compact LUT of a synthetic calibration) `-> reconstruct_cfa
+chain (`validity.classify -> crosstalk.correct` (mode lut, compact; a synthetic calibration, with per-colour
+amplitudes as a colour camera's) `-> reconstruct_cfa
 (preview) -> LocalTonemap.rgb`) against the monochrome preview chain of the same sensor (the same stages with
 `reconstruction.reconstruct_frame` (preview) and `LocalTonemap`), ms per stage; tone map `--operator` (default
 `local`, nrtonemap's; one operator per stream and output buffers reused, as in the elements); passes
@@ -39,6 +40,7 @@ Writes bench_out/colour/results.json and results.md.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import os
@@ -194,6 +196,7 @@ def _sibling(name):
     return mod
 
 
+SPILL_BY_COLOUR = (1.15, 1.0, 0.85)   # speed: per-colour amplitude factors, neighbours of R, G, B (longer spill more)
 SPEED_STAGES = ("classify", "crosstalk", "reconstruction", "tone map")
 
 
@@ -208,13 +211,18 @@ def speed(scene_path, h, w, frames, repeat, operator, seed):
     """{'mono' | 'colour': {'fps': frames/s, 'ms': {stage: ms per frame}}} of the preview chains at h x w (the
     stages called as the elements call them), passes interleaved, the best of `repeat` after an untimed frame."""
     base = profile.default(h, w, seed=3)
-    base = base.replace(crosstalk=_sibling("stages").synthetic_calibration(base, 40))
-    mono, col = base, base.replace(cfa=PATTERN)
+    calib = _sibling("stages").synthetic_calibration(base, 40)
+    mono = base.replace(crosstalk=calib)
+    # a colour camera's calibration has per-colour amplitudes (`calibration.colour_spill`): here the pixel's
+    # white-light amplitude times SPILL_BY_COLOUR for neighbours of R, G, B
+    amp = calib.alpha[None] * np.asarray(SPILL_BY_COLOUR, np.float32)[:, None, None]
+    col = base.replace(cfa=PATTERN, crosstalk=dataclasses.replace(calib, colour=np.ascontiguousarray(amp)))
     truth = truth_of(read_scene(scene_path), col)
     rng = np.random.default_rng(seed)
     raws_m = [sensor.capture(metrics.luminance(truth).astype(np.float32), mono, rng) for _ in range(frames)]
     raws_c = [sensor.capture(cfa.mosaic(truth, PATTERN), col, rng) for _ in range(frames)]
-    crosstalk.compact_for(base)
+    crosstalk.compact_for(mono)
+    crosstalk.compact_for(col)
     sm = chain.ChainSettings(method="preview", crosstalk="lut", operator=operator)
     # as the elements do: one LocalTonemap per stream, output buffers reused (nrreconstruct's pool, nrtonemap's
     # mapped output)
