@@ -305,7 +305,8 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
       setting's `operator` is "local").
     - `transfers` (of TRANSFERS): nrtonemap's outputs: "log" (GRAY8, and GRAY16 with `elements`), "pq",
       "hlg" (`tonemap.hdr_encode`).
-    - `calibrated`: the profile has a crosstalk calibration (an identity one here), as nrcrosstalk applies it.
+    - `calibrated`: the profile has a crosstalk calibration (an identity one here), as nrcrosstalk applies it;
+      with a Bayer `cfa` also one with per-colour amplitudes.
     - `elements`: also the array types of the GStreamer elements' mapped buffers, which numba compiles
       apart: read-only raw frames with packed or padded rows (nrvalidity), a read-only HDR frame and padded
       output rows (nrtonemap).
@@ -334,11 +335,14 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
                 validity.classify(r, prof, mode=mode, l_min=l_min, dark_policy=dark_policy)
 
     if "crosstalk" in stages and calibrated:
-        prof_x = prof.replace(crosstalk=crosstalk.identity_calibration(
-            mask, nd=prof.nd, black_level=prof.black_level, clip_code=prof.clip_code))
+        calib = crosstalk.identity_calibration(mask, nd=prof.nd, black_level=prof.black_level,
+                                               clip_code=prof.clip_code)
+        # a colour camera's calibration with and without per-colour amplitudes (`calibration.colour_spill`)
+        calibs = [calib] + ([dataclasses.replace(calib, colour=np.ones((3, h, w), np.float32))] if colour else [])
         for s in {(s.crosstalk, s.crosstalk_lut): s for s in sets if s.crosstalk != "off"}.values():
-            values, state = _warm_frame(prof, s, raw)
-            crosstalk.correct(values, state, prof_x, s.crosstalk, lut=s.crosstalk_lut)
+            for c in calibs:
+                values, state = _warm_frame(prof, s, raw)
+                crosstalk.correct(values, state, prof.replace(crosstalk=c), s.crosstalk, lut=s.crosstalk_lut)
 
     if "reconstruction" in stages and colour:
         _warm_colour(prof, sets, raw, elements)

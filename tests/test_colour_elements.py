@@ -5,6 +5,7 @@ nrreconstruct become colour frames (layout rgb-f32-u8-planar) equal bit for bit 
 naming the element and what is wrong."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import time
@@ -456,6 +457,33 @@ def test_warmup_compiles_the_colour_path():
     chain.warmup(sets, stages=("validity", "crosstalk", "reconstruction"), elements=True, cfa="rggb")
     with pytest.raises(ValueError, match="cfa"):
         chain.warmup(sets[0], cfa="rgb")
+
+
+def test_warmup_covers_the_per_colour_crosstalk():
+    """After chain.warmup's crosstalk stage with a CFA, correcting a colour camera's frame whose calibration has
+    per-colour amplitudes (`calibration.colour_spill`) needs no kernel signature the warm-up did not make, in
+    every mode and LUT form (a new one is a compilation in nrcrosstalk, mid-stream)."""
+    import itertools
+
+    from numba.core.registry import CPUDispatcher
+
+    from nrhdr_core import chain, crosstalk, profile, sensor, validity
+    sets = [chain.ChainSettings(crosstalk=m, crosstalk_lut=f)
+            for m, f in itertools.product(("lut", "kernel"), chain.LUT_FORMS)]
+    chain.warmup(sets, stages=("validity", "crosstalk"), elements=True, cfa="rggb")
+    kernels = [f for f in vars(crosstalk).values() if isinstance(f, CPUDispatcher)]
+    warm = [set(f.signatures) for f in kernels]
+    prof = profile.default(24, 32, seed=2).replace(cfa="rggb")
+    calib = crosstalk.identity_calibration(prof.mask, nd=prof.nd, black_level=prof.black_level,
+                                           clip_code=prof.clip_code)
+    amp = np.stack([np.full((24, 32), a, np.float32) for a in (1.2, 1.0, 0.8)])
+    prof = prof.replace(crosstalk=dataclasses.replace(calib, colour=amp))
+    flux = np.geomspace(1.0, 3e4, 24 * 32).reshape(24, 32)
+    raw = sensor.capture(flux, prof, np.random.default_rng(1))
+    for s in sets:
+        v, st = validity.classify(raw, prof)
+        crosstalk.correct(v, st, prof, s.crosstalk, lut=s.crosstalk_lut)
+    assert [sorted(map(str, set(f.signatures) - w)) for f, w in zip(kernels, warm)] == [[]] * len(kernels)
 
 
 # ---- a GenICam camera's 8-bit Bayer (the Aravis fake camera) ---------------------------------------------
