@@ -110,9 +110,8 @@ class TemporalReconstructor:
         self.frames = 0          # frames since the last reset
 
     def reset(self) -> None:
-        """Forget the past: the next frame is reconstructed alone."""
-        self._prev = self._var = self._cnt = None
-        self._level = self._uns = self._hold = self._rank = None
+        """Forget the past: the next frame is reconstructed alone (the state's arrays are kept for it: a
+        restart writes every element, without fresh pages to fault in)."""
         self.frames = 0
 
     # ---- one frame ------------------------------------------------------------------------------------
@@ -145,12 +144,12 @@ class TemporalReconstructor:
                   "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True,
                   "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None}
         if self._prev is not None and self._prev.shape != values.shape:
-            self.reset()
+            self.reset()                     # (`_alone` makes the state's arrays of the new size)
         known, lower, upper, work, pv, pvar, pc, dec, cand, fast = _planes(h, w, nby, nbx)
         g = np.float32(noise.gain)
         floor = np.float32(float(noise.gain) ** 2 * float(noise.read_noise) ** 2 + 1.0 / 12.0)
         nd = np.float32(noise.nd)
-        if self._prev is None:
+        if not self.frames:
             return self._alone(values, state, noise, report, g, floor, nd)
         # 1. global motion
         dy, dx = global_motion(values, state, self._prev, int(o["search"]))
@@ -369,7 +368,7 @@ class TemporalReconstructor:
         report["missing"] = int(reconstruction.reconstruct_frame(
             values, state, method="preview" if preview else self.method, preset=self.preset,
             use_bounds=self.use_bounds, noise=noise, fusion=self.fusion))
-        if self._prev is None or self._prev.shape != values.shape:
+        if self._prev is None or self._prev.shape != values.shape or self._uns.shape != (nby, nbx):
             self._prev = np.empty_like(values)
             self._var = np.empty_like(values)
             self._cnt = np.empty(values.shape, np.uint8)
