@@ -232,7 +232,7 @@ class TemporalReconstructor:
         fewest reconstructions averaged first (`_level`), then by block row, the rows with the most
         placeholders at the restart first (`_rank`: where the preview stands in for the most missing
         pixels), then in scan order (deterministic: the same frames give the same choice; the chosen
-        blocks of a static shot stay whole block rows, one band). Returns how many blocks with unsettled
+        blocks of a static shot are whole block rows: bands). Returns how many blocks with unsettled
         pixels were chosen."""
         uns = self._uns.ravel()
         if not self._budgeted(sel.size):
