@@ -30,8 +30,9 @@ Per frame (`TemporalReconstructor.process`):
 
 Under a budget (option ``budget``: blocks a frame, `TemporalReconstructor._select`) a restart is the
 preview's frame alone with placeholders for its missing pixels, and only ``budget`` of the still blocks
-whose missing pixels are not settled are refined a frame, the fewest reconstructions first, then in scan
-order; the others are reused as they are (docs/TEMPORAL.md "Budget").
+whose missing pixels are not settled are refined a frame, the fewest reconstructions first, then the
+block rows with the most placeholders, then in scan order; the others are reused as they are
+(docs/TEMPORAL.md "Budget").
 
 The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
 stream; `reset` on a seek, flush or caps change.
@@ -105,13 +106,12 @@ class TemporalReconstructor:
         self.method, self.preset, self.use_bounds, self.fusion = method, preset, bool(use_bounds), fusion
         self.options = o
         self._prev = self._var = self._cnt = None
-        self._level = self._uns = None
+        self._level = self._uns = self._hold = self._rank = None
         self.frames = 0          # frames since the last reset
 
     def reset(self) -> None:
-        """Forget the past: the next frame is reconstructed alone."""
-        self._prev = self._var = self._cnt = None
-        self._level = self._uns = None
+        """Forget the past: the next frame is reconstructed alone (the state's arrays are kept for it: a
+        restart writes every element, without fresh pages to fault in)."""
         self.frames = 0
 
     # ---- one frame ------------------------------------------------------------------------------------
@@ -144,12 +144,12 @@ class TemporalReconstructor:
                   "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True,
                   "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None}
         if self._prev is not None and self._prev.shape != values.shape:
-            self.reset()
+            self.reset()                     # (`_alone` makes the state's arrays of the new size)
         known, lower, upper, work, pv, pvar, pc, dec, cand, fast = _planes(h, w, nby, nbx)
         g = np.float32(noise.gain)
         floor = np.float32(float(noise.gain) ** 2 * float(noise.read_noise) ** 2 + 1.0 / 12.0)
         nd = np.float32(noise.nd)
-        if self._prev is None:
+        if not self.frames:
             return self._alone(values, state, noise, report, g, floor, nd)
         # 1. global motion
         dy, dx = global_motion(values, state, self._prev, int(o["search"]))
@@ -229,10 +229,12 @@ class TemporalReconstructor:
     def _select(self, sel) -> int:
         """sel = 1 at the blocks that may be refined this frame (reconstructed by the method and fused with
         their past when they are still and trusted): without a budget every block; with one, `budget` of
-        the blocks whose missing pixels are not settled
-        (`_uns`, as the last judgement counted them), the fewest reconstructions averaged first (`_level`),
-        then in scan order (deterministic: the same frames give the same choice). Returns how many blocks
-        with unsettled pixels were chosen."""
+        the blocks whose missing pixels are not settled (`_uns`, as the last judgement counted them), the
+        fewest reconstructions averaged first (`_level`), then by block row, the rows with the most
+        placeholders at the restart first (`_rank`: where the preview stands in for the most missing
+        pixels), then in scan order (deterministic: the same frames give the same choice; the chosen
+        blocks of a static shot are whole block rows: bands). Returns how many blocks with unsettled
+        pixels were chosen."""
         uns = self._uns.ravel()
         if not self._budgeted(sel.size):
             sel[...] = 1
@@ -241,7 +243,9 @@ class TemporalReconstructor:
         sel[...] = 0
         cand = np.flatnonzero(uns > 0)
         if len(cand) > b:
-            key = self._level.ravel()[cand].astype(np.int64) * sel.size + cand
+            nbx = sel.shape[1]
+            key = (self._level.ravel()[cand].astype(np.int64) * sel.size + self._rank[cand // nbx] * nbx
+                   + cand % nbx)
             cand = cand[np.argpartition(key, b - 1)[:b]]
         sel.ravel()[cand] = 1
         return len(cand)
@@ -365,16 +369,20 @@ class TemporalReconstructor:
         report["missing"] = int(reconstruction.reconstruct_frame(
             values, state, method="preview" if preview else self.method, preset=self.preset,
             use_bounds=self.use_bounds, noise=noise, fusion=self.fusion))
-        if self._prev is None or self._prev.shape != values.shape:
+        if self._prev is None or self._prev.shape != values.shape or self._uns.shape != (nby, nbx):
             self._prev = np.empty_like(values)
             self._var = np.empty_like(values)
             self._cnt = np.empty(values.shape, np.uint8)
             self._level = np.empty((nby, nbx), np.uint8)
             self._uns = np.empty((nby, nbx), np.int32)
+            self._hold = np.empty(nby, np.int64)
         _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
                  np.float32(o["rec_tol"]), np.float32(o["rec_texture"]), preview, bs,
-                 np.float32(o["reuse_frames"]), self._uns)
+                 np.float32(o["reuse_frames"]), self._uns, self._hold)
         self._level[...] = 0 if preview else 1
+        # block rows by their placeholders, most first (ties in scan order): the order `_select` refines in
+        self._rank = np.empty(nby, np.int64)
+        self._rank[np.argsort(-self._hold, kind="stable")] = np.arange(nby)
         self.frames = 1
         tot = float(nby * nbx)
         has = float(np.count_nonzero(self._uns)) / tot
@@ -455,14 +463,14 @@ def _tex_var(img, y, x, h, w, rec_tex):
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex, placeholder, bs,
-             reuse_frames, uns):
+             reuse_frames, uns, held):
     """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
     the others with a fresh reconstruction's (+ `_tex_var`), each the average of 1 frame; with
     `placeholder` (a preview start) the missing pixels that are not NOISY as no frame averaged (variance
     inf, count 0): the first reconstruction of their block replaces them. uns[by, bx] = the block's
-    pixels not VALID whose past averages fewer than
-    `reuse_frames` frames (unsettled, as `_still_rows` counts them). One pass per block row, branch-free over whole
-    rows (it vectorises)."""
+    pixels not VALID whose past averages fewer than `reuse_frames` frames (unsettled, as `_still_rows`
+    counts them); held[by] = the placeholders of block row by. One pass per block row, branch-free over
+    whole rows (it vectorises)."""
     h, w = values.shape
     nby, nbx = uns.shape
     inf = np.float32(np.inf)
@@ -474,6 +482,7 @@ def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, re
         hi3 = np.empty(w, np.float32)
         tx = np.empty(w, np.float32)
         ul = np.zeros(w, np.int32)          # unsettled pixels per column of the block row
+        nh = 0                              # placeholders in the block row
         for y in range(by * bs, min(by * bs + bs, h)):
             ra = values[max(y - 1, 0)]
             rb = values[y]
@@ -518,17 +527,19 @@ def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, re
                 m = v if v > 0 else np.float32(0.0)
                 vm = (ndg * m + ndf) if (st & ATTENUATED) != 0 else (g * m + floor)
                 vr = rec_noise * (g * m + floor) + (rec_tol * m) * (rec_tol * m) + tx[x]
-                hold = placeholder & (r != VALID) & (r != NOISY)
+                ph = placeholder & (r != VALID) & (r != NOISY)
                 pr[x] = v
-                qr[x] = vm if r == VALID else (inf if hold else vr)
-                c = np.uint8(0) if hold else np.uint8(1)
+                qr[x] = vm if r == VALID else (inf if ph else vr)
+                c = np.uint8(0) if ph else np.uint8(1)
                 cr[x] = c
                 ul[x] += np.int32((r != VALID) & (np.float32(c) < reuse_frames))
+                nh += np.int64(ph)
         for bx in range(nbx):
             t = 0
             for x in range(bx * bs, min(bx * bs + bs, w)):
                 t += ul[x]
             uns[by, bx] = t
+        held[by] = nh
 
 
 @njit(cache=True, nogil=True, parallel=True)

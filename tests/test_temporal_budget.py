@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from nrhdr_core import chain, profile, reconstruction, scene, sensor, simulate, validity
-from nrhdr_core.states import REASON_MASK, RECONSTRUCTED, VALID
+from nrhdr_core.states import NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from nrhdr_core.temporal import TemporalReconstructor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -210,3 +210,39 @@ def test_streams_refined_side_by_side_equal_the_streams_alone(prof, fluxes):
         for (va, sa), (vb, sb) in zip(a, b):
             np.testing.assert_array_equal(va.view(np.uint32), vb.view(np.uint32))
             np.testing.assert_array_equal(sa, sb)
+
+
+def test_the_default_budget_refines_one_block_row_of_a_1080p_wide_frame_a_frame(prof):
+    """nrreconstruct's and nrhdr batch's default (`chain.temporal_for` of the default settings): 120 blocks a
+    frame, one block row of a 1920-wide frame, whatever the frame's height (docs/TEMPORAL.md "Budget")."""
+    h, w = 48, 1920
+    p = profile.default(h, w, seed=5)
+    flux = scene.synthetic_hdr_scene(h, w, seed=7).astype(np.float32)
+    flux *= np.float32(simulate.exposure_scale(flux, p, 0.0))
+    tr = chain.temporal_for(chain.ChainSettings(temporal="on"))
+    assert tr.options["budget"] == chain.TEMPORAL_BUDGET == w // 16
+    _, reps = run(tr, frames(p, flux, 3), p)
+    blocks = reps[0]["blocks"]
+    assert blocks == 3 * (w // 16) and reps[0]["start"] == "preview"
+    assert [round(r["chosen"] * blocks) for r in reps[1:]] == [w // 16] * 2
+
+
+def test_the_rows_where_the_preview_stands_in_most_are_refined_first(prof):
+    """Under a budget of one block row, the block row with the most placeholders (missing pixels the preview
+    filled: here clipped regular pixels of a bright stripe) is refined in the shot's second frame, before a
+    row above it with a few; rows not chosen keep the preview's values at their missing pixels."""
+    flux = np.full((H, W), 300.0, np.float32)       # ND pixels below l-min: NOISY, unsettled in every block
+    flux[20:24, 8:40] = 12000.0                     # block row 1: a few clipped regular pixels
+    flux[48:64, :] = 12000.0                        # block row 3: clipped throughout
+    flux *= np.float32(1.0) + np.float32(0.2) * np.sin(np.arange(W, dtype=np.float32) / 3.0)
+    clip = frames(prof, flux, 3)
+    outs, reps = run(TemporalReconstructor(budget=W // 16), clip, prof)
+    held = ~np.isin(clip[0][1] & REASON_MASK, (VALID, NOISY))
+    rows = np.arange(H)[:, None] // 16
+    assert held[rows[:, 0] == 1].any() and held[rows[:, 0] == 3].sum() > 4 * held[rows[:, 0] == 1].sum()
+    assert held[(rows[:, 0] != 1) & (rows[:, 0] != 3)].sum() == 0
+    (v0, _), (v1, _), (v2, _) = outs
+    changed = lambda a, b, r: np.mean(a[held & (rows == r)] != b[held & (rows == r)])
+    assert round(reps[1]["chosen"] * reps[1]["blocks"]) == W // 16
+    assert changed(v1, v0, 3) > 0.9 and changed(v1, v0, 1) == 0      # the stripe's row first
+    assert changed(v2, v1, 1) > 0.9                                    # then the next

@@ -69,12 +69,15 @@ PROPERTIES = PropertyTable("GstNrReconstruct", [
          "recursive average (docs/TEMPORAL.md). Restarts on flush, seek, caps change and "
          "stop. Monochrome streams only", playing=True),
     Prop("temporal-budget", int, TEMPORAL_BUDGET, "Temporal budget",
-         "temporal=on: 16 x 16 blocks a frame the method may refine in a still shot. A shot's first frame "
-         "(and a cut's) is the preview; from the next frame on this many of the still blocks below their "
-         "temporal quality are reconstructed by the method each frame, most needed first, and kept once their "
-         "measured pixels average 4 frames, so that a static shot costs at most about the preview from its "
-         "first frame (docs/TEMPORAL.md). Counted in blocks, not time: the output does not depend on the "
-         "machine. 0 = no bound (the first frame by the method, every block that needs it every frame)",
+         "temporal=on: 16 x 16 blocks a frame the method may refine in a still shot, whatever the frame "
+         "size. A shot's first frame (and a cut's) is the preview; from the next frame on this many of the "
+         "still blocks below their temporal quality are reconstructed by the method each frame (the least "
+         "refined first, then the block rows where the preview stands in for the most missing pixels) and "
+         "kept once their measured pixels average 4 frames. The default, one block row of a 1920-wide "
+         "frame, keeps a static 1080p shot at about the preview's cost from its first frame; a frame of "
+         "more blocks takes more frames to reach its temporal quality (docs/TEMPORAL.md). Counted in "
+         "blocks, not time: the output does not depend on the machine. 0 = no bound (the first frame by "
+         "the method, every block that needs it every frame)",
          minimum=0, maximum=MAX_TEMPORAL_BUDGET, playing=True),
     Prop("post-stats", bool, False, "Post statistics",
          "Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing = fraction of pixels "
