@@ -448,23 +448,24 @@ def _clip_rule_row(keys, y, x0, green, m):
     """m[j] = the minimum of `_clip_rule_at` over the window of photosite x0 + 2 j of row y, for the
     photosites of that phase not at the row's ends (1 <= j < n - 1), from the phase-split `keys`
     (`_clip_keys`; rows beyond the frame replicated: a repeated row leaves a minimum as it is); contiguous
-    branch-free loops (they vectorise)."""
+    branch-free loops over row slices (they vectorise; a 2-D index does not)."""
     h, w = keys.shape
     wa = (w + 1) // 2
     n = (w - x0 + 1) // 2
     b = x0 * wa
-    ya = y - 2 if y >= 2 else y
-    yb = y + 2 if y + 2 < h else y
+    ka = keys[y - 2 if y >= 2 else y, b:b + n]
+    k0 = keys[y, b:b + n]
+    kb = keys[y + 2 if y + 2 < h else y, b:b + n]
     for j in range(1, n - 1):
-        t = min(min(keys[ya, b + j - 1], keys[ya, b + j]), keys[ya, b + j + 1])
-        t = min(t, min(min(keys[y, b + j - 1], keys[y, b + j]), keys[y, b + j + 1]))
-        m[j] = min(t, min(min(keys[yb, b + j - 1], keys[yb, b + j]), keys[yb, b + j + 1]))
+        t = min(min(ka[j - 1], ka[j]), ka[j + 1])
+        t = min(t, min(min(k0[j - 1], k0[j]), k0[j + 1]))
+        m[j] = min(t, min(min(kb[j - 1], kb[j]), kb[j + 1]))
     if green and h > 1:
         ob = (1 - x0) * wa + x0 - 1      # the diagonal neighbours: the other phase's j - 1 + x0 and j + x0
-        yu = y - 1 if y >= 1 else y + 1
-        yd = y + 1 if y + 1 < h else y - 1
+        ku = keys[y - 1 if y >= 1 else y + 1, ob:ob + n]
+        kd = keys[y + 1 if y + 1 < h else y - 1, ob:ob + n]
         for j in range(1, n - 1):
-            d = min(min(keys[yu, ob + j], keys[yu, ob + j + 1]), min(keys[yd, ob + j], keys[yd, ob + j + 1]))
+            d = min(min(ku[j], ku[j + 1]), min(kd[j], kd[j + 1]))
             m[j] = min(m[j], d)
 
 
@@ -481,11 +482,13 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
     w = values.shape[1]
     big = _BIG
     flag = np.uint8(RECONSTRUCTED)
+    sr = state[y]
+    vr = values[y]
     ncr = 0
     for x in range(w):
-        st = state[y, x]
+        st = sr[x]
         r = st & REASON_MASK
-        v = values[y, x]
+        v = vr[x]
         own = (x & 1) == x0
         keep = (r == VALID) | ((st & RECONSTRUCTED) != 0)
         lb = v if (use_bounds & (r == CLIPPED)) else -big
@@ -498,13 +501,13 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
         b = v if keep else b
         o[x] = b if own else a
         cr = own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED)
-        state[y, x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
+        sr[x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
         ncr += np.int64(cr)
     if ncr > 0:
         n = 0
         for x in range(x0, w, 2):       # the missing CLIPPED regular photosites, compacted (branch-free)
             ix[n] = x
-            n += 1 if (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED else 0
+            n += 1 if (sr[x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED else 0
         if use_bounds:
             _clip_rule_row(keys, y, x0, green, mr)
         nj = (w - x0 + 1) // 2
@@ -519,12 +522,13 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
                     (t if t > -inf else m)
             elif use_bounds:
                 m = _clip_rule_at(values, state, chan, y, x, green)
-            if (m == m) & (m > values[y, x]):
-                t = hi if hi > m else m
-                a = o[x]
-                b = t if a > t else a
-                o[x] = m if m > b else b
-            state[y, x] = state[y, x] | flag
+            ok = (m == m) & (m > vr[x])
+            t = hi if hi > m else m
+            a = o[x]
+            b = t if a > t else a
+            b = m if m > b else b
+            o[x] = b if ok else a
+            sr[x] = sr[x] | flag
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
