@@ -480,6 +480,7 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
     ends; `chan`: the channel plane; `green`: the green photosites' window) raises their lower bound l to l'
     (max(min(a, max(hi, l')), l') of the first result is the clamp with l')."""
     w = values.shape[1]
+    x0 = x0 & 1                     # provably >= 0: numba's loops indexed from it vectorise (no wraparound)
     big = _BIG
     flag = np.uint8(RECONSTRUCTED)
     sr = state[y]
@@ -601,40 +602,48 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
     for i in range(2):
         ch = 0 if i == 0 else 2
         y = 2 * y1 + pos[ch, 0]
-        px = pos[ch, 1]
+        px = pos[ch, 1] & 1                         # provably >= 0 (as `_own_row`'s x0)
         pvd = pvr if i == 0 else pvb
         pwd = pwr if i == 0 else pwb
         lo = kmax
         hi = kmin
         cl = kmin
         n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
+        yr = min(y, h - 1)                          # row slices (a 2-D index does not vectorise)
+        sr = state[yr]
+        vir = vi[yr]
+        vr = values[yr]
+        gr = gout[yr]
+        pvs = pvd[base:base + w1]
+        pws = pwd[base:base + w1]
+        klr = kl[i, y1]
         for x1 in range(n):
             x = 2 * x1 + px
-            r = state[y, x] & REASON_MASK
+            r = sr[x] & REASON_MASK
             k = r == VALID
-            key = f32_key(vi[y, x])
+            key = f32_key(vir[x])
             lo = min(lo, key if k else kmax)
             hi = max(hi, key if k else kmin)
             cl = max(cl, key if (r == CLIPPED) else kmin)
-            pvd[base + x1] = zero
-            pwd[base + x1] = one if k else zero
-            kl[i, y1, x1] = k
+            pvs[x1] = zero
+            pws[x1] = one if k else zero
+            klr[x1] = k
         nk = 0
         for x1 in range(n):                         # compaction apart: the loop above vectorises
             ix[nk] = x1
-            nk += 1 if kl[i, y1, x1] else 0
+            nk += 1 if klr[x1] else 0
         for q in range(nk):
             x1 = ix[q]
             x = 2 * x1 + px
-            a = values[y, x]
-            gv = gout[y, x]
+            a = vr[x]
+            gv = gr[x]
             a = (a if a > zero else zero) + c
             gv = (gv if gv > zero else zero) + c
-            pvd[base + x1] = np.log2(a / gv)
+            pvs[x1] = np.log2(a / gv)
         for x1 in range(n, w1):
-            pvd[base + x1] = zero
-            pwd[base + x1] = zero
-            kl[i, y1, x1] = False
+            pvs[x1] = zero
+            pws[x1] = zero
+            klr[x1] = False
         fst[y1, _F_LO + i] = lo
         fst[y1, _F_HI + i] = hi
         fst[y1, _F_CLIP + i] = cl
@@ -673,6 +682,7 @@ def _ratio(lat, ratio):
 def _expand(lat, i0, i1, a, px, ext_w, w, buf):
     """buf[x] (x < w) = the lattice row pair (i0, i1; weight a of i1) bilinear at photosite column x, for a
     lattice of columns px, px + 2, ... (ext_w of them; edge values replicated)."""
+    px = px & 1                     # provably >= 0 (as `_own_row`'s x0)
     b = np.float32(1.0) - a
     for j in range(ext_w):
         buf[px + 2 * j] = b * lat[i0, j] + a * lat[i1, j]
@@ -730,9 +740,9 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _cv(own, state, y, x):
-    """own[y, x] where the photosite is CLIPPED, else -_BIG (a minimum with it lifts nothing)."""
-    return own[y, x] if (state[y, x] & REASON_MASK) == CLIPPED else -_BIG
+def _cv(own, state, x):
+    """own[x] where the photosite is CLIPPED (`state`: its row), else -_BIG (a minimum with it lifts nothing)."""
+    return own[x] if (state[x] & REASON_MASK) == CLIPPED else -_BIG
 
 
 @njit(cache=True, nogil=True)
@@ -743,6 +753,7 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
     else those of the previous call in the same row and channel). fl[x]: the bound found (< _BIG: one
     applies), for `_floor_row`."""
+    x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
     h, w = state.shape
     big = _BIG
     up = y - 1 if y > 0 else y
@@ -750,15 +761,21 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     bu = np.float32(-big) if y > 0 else big          # + a value: the row's own, or +_BIG outside
     bd = np.float32(-big) if y + 1 < h else big
     if fresh and (vt or dg):
+        ou = own[up]                                 # row slices: a 2-D index does not vectorise
+        su = state[up]
+        od = own[dn]
+        sd = state[dn]
         for x in range(w):
-            a = _cv(own, state, up, x)
+            a = _cv(ou, su, x)
             a = a if bu < 0 else big
-            c = _cv(own, state, dn, x)
+            c = _cv(od, sd, x)
             c = c if bd < 0 else big
             b0[x] = min(a, c)
     if fresh and hz:
+        oy = own[y]
+        sy = state[y]
         for x in range(w):
-            b1[x] = _cv(own, state, y, x)
+            b1[x] = _cv(oy, sy, x)
     for x in range(x0, w, 2):
         m = big
         xl = x - 1 if x > 0 else x
@@ -1068,6 +1085,7 @@ def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
 def _floor_row(o, fl, x0, step):
     """o[x] (x = x0, x0 + step, ...) at least fl[x] where fl[x] < _BIG: the clipped-neighbour lower bounds
     `_lift_row` found for the same photosites."""
+    x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
     big = _BIG
     for x in range(x0, o.shape[0], step):
         m = fl[x]
