@@ -571,12 +571,16 @@ def _push_row(pv, pw, o1, w1, o2, w2, y1):
     zero = np.float32(0.0)
     b1 = o1 + y1 * w1
     b2 = o2 + (y1 // 2) * w2
+    v1 = pv[b1:b1 + w1]             # row slices: indices from 0 (no wraparound select; the loop vectorises)
+    q1 = pw[b1:b1 + w1]
+    v2 = pv[b2:b2 + w2]
+    q2 = pw[b2:b2 + w2]
     for x1 in range(w1):
-        a = pv[b2 + x1 // 2]
-        c = pw[b2 + x1 // 2]
+        a = v2[x1 // 2]
+        c = q2[x1 // 2]
         p = a / c if c > zero else zero
-        pv[b1 + x1] = p if pw[b1 + x1] < one else pv[b1 + x1]
-        pw[b1 + x1] = one
+        v1[x1] = p if q1[x1] < one else v1[x1]
+        q1[x1] = one
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -684,8 +688,10 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
     lattice of columns px, px + 2, ... (ext_w of them; edge values replicated)."""
     px = px & 1                     # provably >= 0 (as `_own_row`'s x0)
     b = np.float32(1.0) - a
+    l0 = lat[i0]
+    l1 = lat[i1]
     for j in range(ext_w):
-        buf[px + 2 * j] = b * lat[i0, j] + a * lat[i1, j]
+        buf[px + 2 * j] = b * l0[j] + a * l1[j]
     if px == 1:
         buf[0] = buf[1]
     last = px + 2 * (ext_w - 1)
