@@ -258,11 +258,14 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
         b1 = blk[yy & 1, 1]
         g0 = (b0 == 1) | g_any
         g1 = (b1 == 1) | g_any
+        sr = state[yy]                  # row slices: indices from 0 (no wraparound select; the loop vectorises)
+        vr = values[yy]
+        kr = kg[yy]
         for x in range(w):
-            st = state[yy, x]
+            st = sr[x]
             k = (st & REASON_MASK) == VALID
             odd = (x & 1) == 1
-            a = values[yy, x]
+            a = vr[x]
             fin = a - a == zero
             cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
             cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
@@ -272,7 +275,7 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
             kn0 += np.int64(k & (not odd))
             kn1 += np.int64(k & odd)
             kk = k & (g1 if odd else g0)
-            kg[yy, x] = kk
+            kr[x] = kk
         cnt[y1, _N_MISS] += cm
         cnt[y1, _N_NOISY] += cn
         cnt[y1, _N_BAD] += cb
