@@ -203,7 +203,7 @@ def _scratch(h, w):
         return dict(kg=np.empty((h, w), np.bool_), pv=np.zeros((3, n), np.float32), pw=np.zeros((3, n), np.float32),
                     kl=np.zeros((2, h1, w1), np.bool_), rl=np.zeros((2, h1, w1), np.float32),
                     rows=np.zeros((_CHUNKS, 4, w), np.float32), ix=np.zeros((_CHUNKS, w), np.int64),
-                    keys=np.zeros((h, w), np.float32), kb=np.zeros((_CHUNKS, 3, w), np.float32),
+                    keys=np.zeros((h, w), np.float32), mr=np.zeros((_CHUNKS, w), np.float32),
                     fl=np.zeros((3, h, w), np.float32),
                     cnt=np.zeros((h1, _NCNT), np.int64),
                     fst=np.zeros((h1, _NF), np.int32))
@@ -258,11 +258,14 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
         b1 = blk[yy & 1, 1]
         g0 = (b0 == 1) | g_any
         g1 = (b1 == 1) | g_any
+        sr = state[yy]                  # row slices: indices from 0 (no wraparound select; the loop vectorises)
+        vr = values[yy]
+        kr = kg[yy]
         for x in range(w):
-            st = state[yy, x]
+            st = sr[x]
             k = (st & REASON_MASK) == VALID
             odd = (x & 1) == 1
-            a = values[yy, x]
+            a = vr[x]
             fin = a - a == zero
             cm += np.int64((not k) & ((st & RECONSTRUCTED) == 0))
             cn += np.int64((st & (REASON_MASK | RECONSTRUCTED)) == NOISY)
@@ -272,7 +275,7 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
             kn0 += np.int64(k & (not odd))
             kn1 += np.int64(k & odd)
             kk = k & (g1 if odd else g0)
-            kg[yy, x] = kk
+            kr[x] = kk
         cnt[y1, _N_MISS] += cm
         cnt[y1, _N_NOISY] += cn
         cnt[y1, _N_BAD] += cb
@@ -335,7 +338,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     keys = sc["keys"]
     _clip_keys(v32, state, crow, keys)
     _green(v32, state, chan, blk, kg, pv[0], pw[0], off[1], w1, o2, w2, deep, gsrc, method != "preview",
-           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], keys, sc["kb"], out[_cfa.G])
+           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], keys, sc["mr"], out[_cfa.G])
     rng = _ranges(fst, cnt)
     # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
     lat = [pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1) for i in range(2)]
@@ -351,7 +354,8 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         for i in range(2):
             _ratio(_fse_lattice(lat[i], kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
-    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], keys, sc["kb"], sc["fl"], out)
+    _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], sc["ix"], keys, sc["mr"], sc["fl"],
+            out)
     if guided:
         _fse_colour(out, dif, pos, c, rng)
     if use_bounds and cnt[_N_CLIP]:
@@ -382,106 +386,113 @@ def _ranges(fst, cnt):
     return r
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _clip_keys(values, state, crow, keys):
-    """keys[y, x] in the rows `crow`: the photosite's term in the clipped-neighbour rule of
-    `validity.bounds(..., cfa=)`: +inf not attenuated (no term), its value (a lower bound) attenuated and
-    CLIPPED, -inf attenuated and not CLIPPED (the rule does not hold). A window's minimum is then the rule:
-    -inf none, +inf no attenuated photosite in it, else the smallest lower bound."""
+@njit(cache=True, nogil=True, inline="always")
+def _clip_key(values, state, y, x):
+    """The photosite's term in the clipped-neighbour rule: +inf not attenuated (no term), its value (a lower
+    bound) attenuated and CLIPPED, -inf attenuated and not CLIPPED (the rule does not hold). Branch-free."""
+    st = state[y, x]
+    att = (st & ATTENUATED) != 0
+    cl = (st & REASON_MASK) == CLIPPED
+    e = np.float32(-np.inf) if att else np.float32(np.inf)
+    v = values[y, x]
+    return v if (att & cl) else e
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip_rule_at(values, state, chan, y, x, green):
+    """The clipped-neighbour rule of `validity.bounds(..., cfa=)` at photosite (y, x)
+    (`validity.clip_lower_at_cfa`): the minimum of `_clip_key` over the same-colour photosites of its
+    5 x 5 window in the frame (red, blue: their Bayer phase's 3 x 3; green (`green`): its phase's 3 x 3 and
+    the 4 diagonal neighbours): -inf (one attenuated and not CLIPPED): NaN, no rule; +inf (no attenuated
+    one): `clip_lower_at_cfa` (the 9 x 9 window: rare); else the smallest lower bound. Branch-free inside
+    the frame's border of 2."""
     h, w = state.shape
     inf = np.float32(np.inf)
+    m = inf
+    if (y >= 2) & (y + 2 < h) & (x >= 2) & (x + 2 < w):
+        for dy in (-2, 0, 2):
+            for dx in (-2, 0, 2):
+                m = min(m, _clip_key(values, state, y + dy, x + dx))
+        if green:
+            for dy in (-1, 1):
+                for dx in (-1, 1):
+                    m = min(m, _clip_key(values, state, y + dy, x + dx))
+    else:
+        for yy in range(max(y - 2, y & 1), min(y + 3, h), 2):
+            for xx in range(max(x - 2, x & 1), min(x + 3, w), 2):
+                m = min(m, _clip_key(values, state, yy, xx))
+        if green:
+            for yy in (y - 1, y + 1):
+                for xx in (x - 1, x + 1):
+                    if (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w):
+                        m = min(m, _clip_key(values, state, yy, xx))
+    if m == inf:
+        return clip_lower_at_cfa(values, state, chan, y, x, h, w)
+    return m if m > -inf else np.float32(np.nan)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _clip_keys(values, state, crow, keys):
+    """keys[y] in the rows `crow`: `_clip_key` of row y's photosites, the even columns first, then the odd
+    ones from (w + 1) // 2 on (each Bayer phase's keys contiguous, for `_clip_rule_row`)."""
+    h, w = state.shape
+    wa = (w + 1) // 2
     for y in prange(h):
         if crow[y]:
             k = keys[y]
-            for x in range(w):
-                st = state[y, x]
-                att = (st & ATTENUATED) != 0
-                cl = (st & REASON_MASK) == CLIPPED
-                e = -inf if att else inf
-                k[x] = np.float32(values[y, x]) if (att & cl) else e
+            for j in range(wa):
+                k[j] = _clip_key(values, state, y, 2 * j)
+            for j in range(w // 2):
+                k[wa + j] = _clip_key(values, state, y, 2 * j + 1)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _key_at(keys, y, x, green):
-    """The minimum of `keys` over the same-colour photosites of the 5 x 5 window of (y, x) in the frame (the
-    colour plane's 3 x 3; `green`: and the 4 diagonal neighbours)."""
+def _clip_rule_row(keys, y, x0, green, m):
+    """m[j] = the minimum of `_clip_rule_at` over the window of photosite x0 + 2 j of row y, for the
+    photosites of that phase not at the row's ends (1 <= j < n - 1), from the phase-split `keys`
+    (`_clip_keys`; rows beyond the frame replicated: a repeated row leaves a minimum as it is); contiguous
+    branch-free loops over row slices (they vectorise; a 2-D index does not)."""
     h, w = keys.shape
-    m = np.float32(np.inf)
-    for yy in range(max(y - 2, y & 1), min(y + 3, h), 2):
-        for xx in range(max(x - 2, x & 1), min(x + 3, w), 2):
-            m = min(m, keys[yy, xx])
-    if green:
-        for yy in (y - 1, y + 1):
-            for xx in (x - 1, x + 1):
-                if 0 <= yy < h and 0 <= xx < w:
-                    m = min(m, keys[yy, xx])
-    return m
-
-
-@njit(cache=True, nogil=True)
-def _clip_rule_row(keys, values, state, chan, y, x0, green, buf):
-    """buf[2][x] (x = x0, x0 + 2, ... where the photosite is a missing CLIPPED regular one) = the
-    clipped-neighbour rule of `validity.bounds(..., cfa=)` among same-colour photosites
-    (`validity.clip_lower_at_cfa`): the minimum of `keys` (`_clip_keys`) over the 5 x 5 window's same-colour
-    photosites (red, blue: their Bayer phase's 3 x 3; green (`green`): its phase's 3 x 3 and the 4 diagonal
-    neighbours), NaN where one is attenuated and not CLIPPED; with no attenuated one among them the 9 x 9
-    window (`clip_lower_at_cfa`, a scan: rare). Column minima of rows y -+ 2 (buf[0]) and y -+ 1 (buf[1])
-    and the window minima in contiguous branch-free loops (they vectorise)."""
-    h, w = keys.shape
-    inf = np.float32(np.inf)
-    nan = np.float32(np.nan)
-    c3 = buf[0]
-    dg = buf[1]
-    m = buf[2]
-    k0 = keys[y]
-    ka = keys[y - 2] if y >= 2 else k0           # a repeated row leaves a minimum as it is
-    kb = keys[y + 2] if y + 2 < h else k0
-    for x in range(w):
-        c3[x] = min(min(ka[x], k0[x]), kb[x])
+    wa = (w + 1) // 2
+    n = (w - x0 + 1) // 2
+    b = x0 * wa
+    ka = keys[y - 2 if y >= 2 else y, b:b + n]
+    k0 = keys[y, b:b + n]
+    kb = keys[y + 2 if y + 2 < h else y, b:b + n]
+    for j in range(1, n - 1):
+        t = min(min(ka[j - 1], ka[j]), ka[j + 1])
+        t = min(t, min(min(k0[j - 1], k0[j]), k0[j + 1]))
+        m[j] = min(t, min(min(kb[j - 1], kb[j]), kb[j + 1]))
     if green and h > 1:
-        ku = keys[y - 1] if y >= 1 else keys[y + 1]
-        kd = keys[y + 1] if y + 1 < h else keys[y - 1]
-        for x in range(w):
-            dg[x] = min(ku[x], kd[x])
-    elif green:
-        for x in range(w):
-            dg[x] = inf
-    for x in range(2, w - 2):
-        t = min(min(c3[x - 2], c3[x]), c3[x + 2])
-        d = min(dg[x - 1], dg[x + 1]) if green else inf
-        m[x] = min(t, d)
-    for x in (0, 1, w - 2, w - 1):
-        if 0 <= x < w and (x < 2 or x >= w - 2):
-            m[x] = _key_at(keys, y, x, green)
-    nscan = 0
-    for x in range(x0, w, 2):
-        t = m[x]
-        nscan += np.int64((t == inf) & ((state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED))
-        m[x] = nan if t == -inf else t
-    if nscan > 0:
-        for x in range(x0, w, 2):
-            if m[x] == inf and (state[y, x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED:
-                m[x] = clip_lower_at_cfa(values, state, chan, y, x, h, w)
+        ob = (1 - x0) * wa + x0 - 1      # the diagonal neighbours: the other phase's j - 1 + x0 and j + x0
+        ku = keys[y - 1 if y >= 1 else y + 1, ob:ob + n]
+        kd = keys[y + 1 if y + 1 < h else y - 1, ob:ob + n]
+        for j in range(1, n - 1):
+            d = min(min(ku[j], ku[j + 1]), min(kd[j], kd[j + 1]))
+            m[j] = min(m[j], d)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, buf):
+def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr):
     """The photosites x0, x0 + 2, ... of row y, whose own channel's estimate is o[x]: measured (VALID) or
     already RECONSTRUCTED: their value; missing: at most max(hi, lower bound), then within their bounds
     (CLIPPED: >= lower bound, DARK: <= the value), and the RECONSTRUCTED bit. Branch-free over the whole
     row (it vectorises). The missing CLIPPED regular photosites get their bit in a second loop, only in
-    rows that have one, where the clipped-neighbour rule of `validity.bounds(..., cfa=)` (same-colour
-    photosites; `chan`: the channel plane) raises their lower bound l to l' (max(min(a, max(hi, l')), l')
-    of the first result is the clamp with l'): `_clip_rule_row` from `keys` (`green`: the green photosites'
-    window), row buffers `buf`."""
+    rows that have one (compacted through the index buffer `ix`), where the clipped-neighbour rule
+    (`_clip_rule_row` from the phase-split `keys` into the row buffer `mr`, `_clip_rule_at` at the row's
+    ends; `chan`: the channel plane; `green`: the green photosites' window) raises their lower bound l to l'
+    (max(min(a, max(hi, l')), l') of the first result is the clamp with l')."""
     w = values.shape[1]
+    x0 = x0 & 1                     # provably >= 0: numba's loops indexed from it vectorise (no wraparound)
     big = _BIG
     flag = np.uint8(RECONSTRUCTED)
+    sr = state[y]
+    vr = values[y]
     ncr = 0
     for x in range(w):
-        st = state[y, x]
+        st = sr[x]
         r = st & REASON_MASK
-        v = values[y, x]
+        v = vr[x]
         own = (x & 1) == x0
         keep = (r == VALID) | ((st & RECONSTRUCTED) != 0)
         lb = v if (use_bounds & (r == CLIPPED)) else -big
@@ -494,28 +505,39 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, buf):
         b = v if keep else b
         o[x] = b if own else a
         cr = own & ((st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED)
-        state[y, x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
+        sr[x] = st | (flag * np.uint8(own & (not keep) & (not cr)))
         ncr += np.int64(cr)
     if ncr > 0:
+        n = 0
+        for x in range(x0, w, 2):       # the missing CLIPPED regular photosites, compacted (branch-free)
+            ix[n] = x
+            n += 1 if (sr[x] & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED else 0
         if use_bounds:
-            _clip_rule_row(keys, values, state, chan, y, x0, green, buf)
-        mrow = buf[2]
-        for x in range(x0, w, 2):     # branch-free: selects (NaN m: no rule)
-            st = state[y, x]
-            m = mrow[x] if use_bounds else np.float32(np.nan)
-            cr = (st & (ATTENUATED | REASON_MASK | RECONSTRUCTED)) == CLIPPED
-            ok = cr & (m == m) & (m > values[y, x])
+            _clip_rule_row(keys, y, x0, green, mr)
+        nj = (w - x0 + 1) // 2
+        inf = np.float32(np.inf)
+        for q in range(n):
+            x = ix[q]
+            j = (x - x0) >> 1
+            m = np.float32(np.nan)
+            if use_bounds and 1 <= j < nj - 1:
+                t = mr[j]
+                m = clip_lower_at_cfa(values, state, chan, y, x, values.shape[0], w) if t == inf else \
+                    (t if t > -inf else m)
+            elif use_bounds:
+                m = _clip_rule_at(values, state, chan, y, x, green)
+            ok = (m == m) & (m > vr[x])
             t = hi if hi > m else m
             a = o[x]
             b = t if a > t else a
             b = m if m > b else b
             o[x] = b if ok else a
-            state[y, x] = st | (flag * np.uint8(cr))
+            sr[x] = sr[x] | flag
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
-           pvb, pwb, kl, fst, ixs, keys, kbs, gout):
+           pvb, pwb, kl, fst, ixs, keys, mrs, gout):
     """Per cell row: the green plane into `gout` (the pull-push fill `pullpush.fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
@@ -538,7 +560,7 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
                 if deep and not from_src:
                     _push_row(pv, pw, o1, w1, o2, w2, y1)
                 _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
-                             pwr, pvb, pwb, kl, fst, ix, keys, kbs[kc], gout, y1)
+                             pwr, pvb, pwb, kl, fst, ix, keys, mrs[kc], gout, y1)
             if deep:
                 for x2 in range(w2):
                     pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
@@ -552,18 +574,22 @@ def _push_row(pv, pw, o1, w1, o2, w2, y1):
     zero = np.float32(0.0)
     b1 = o1 + y1 * w1
     b2 = o2 + (y1 // 2) * w2
+    v1 = pv[b1:b1 + w1]             # row slices: indices from 0 (no wraparound select; the loop vectorises)
+    q1 = pw[b1:b1 + w1]
+    v2 = pv[b2:b2 + w2]
+    q2 = pw[b2:b2 + w2]
     for x1 in range(w1):
-        a = pv[b2 + x1 // 2]
-        c = pw[b2 + x1 // 2]
+        a = v2[x1 // 2]
+        c = q2[x1 // 2]
         p = a / c if c > zero else zero
-        pv[b1 + x1] = p if pw[b1 + x1] < one else pv[b1 + x1]
-        pw[b1 + x1] = one
+        v1[x1] = p if q1[x1] < one else v1[x1]
+        q1[x1] = one
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb,
-                 kl, fst, ix, keys, kb, gout, y1):
-    """`_green` of cell row y1 (index buffer `ix`; `keys`, row buffers `kb`: `_own_row`)."""
+                 kl, fst, ix, keys, mr, gout, y1):
+    """`_green` of cell row y1 (index buffer `ix`; `ix`, `keys`, row buffer `mr`: `_own_row`'s)."""
     h, w = values.shape
     zero = np.float32(0.0)
     one = np.float32(1.0)
@@ -578,45 +604,53 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
                 g[x] = gsrc[y, x]
         else:
             fill_row(values, kg, pv, o1, w1, y, g, True)
-        _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True, keys, kb)
+        _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True, keys, ix, mr)
     base = o1 + y1 * w1
     for i in range(2):
         ch = 0 if i == 0 else 2
         y = 2 * y1 + pos[ch, 0]
-        px = pos[ch, 1]
+        px = pos[ch, 1] & 1                         # provably >= 0 (as `_own_row`'s x0)
         pvd = pvr if i == 0 else pvb
         pwd = pwr if i == 0 else pwb
         lo = kmax
         hi = kmin
         cl = kmin
         n = 0 if y >= h else (w - px + 1) // 2      # the lattice's cells in the frame
+        yr = min(y, h - 1)                          # row slices (a 2-D index does not vectorise)
+        sr = state[yr]
+        vir = vi[yr]
+        vr = values[yr]
+        gr = gout[yr]
+        pvs = pvd[base:base + w1]
+        pws = pwd[base:base + w1]
+        klr = kl[i, y1]
         for x1 in range(n):
             x = 2 * x1 + px
-            r = state[y, x] & REASON_MASK
+            r = sr[x] & REASON_MASK
             k = r == VALID
-            key = f32_key(vi[y, x])
+            key = f32_key(vir[x])
             lo = min(lo, key if k else kmax)
             hi = max(hi, key if k else kmin)
             cl = max(cl, key if (r == CLIPPED) else kmin)
-            pvd[base + x1] = zero
-            pwd[base + x1] = one if k else zero
-            kl[i, y1, x1] = k
+            pvs[x1] = zero
+            pws[x1] = one if k else zero
+            klr[x1] = k
         nk = 0
         for x1 in range(n):                         # compaction apart: the loop above vectorises
             ix[nk] = x1
-            nk += 1 if kl[i, y1, x1] else 0
+            nk += 1 if klr[x1] else 0
         for q in range(nk):
             x1 = ix[q]
             x = 2 * x1 + px
-            a = values[y, x]
-            gv = gout[y, x]
+            a = vr[x]
+            gv = gr[x]
             a = (a if a > zero else zero) + c
             gv = (gv if gv > zero else zero) + c
-            pvd[base + x1] = np.log2(a / gv)
+            pvs[x1] = np.log2(a / gv)
         for x1 in range(n, w1):
-            pvd[base + x1] = zero
-            pwd[base + x1] = zero
-            kl[i, y1, x1] = False
+            pvs[x1] = zero
+            pws[x1] = zero
+            klr[x1] = False
         fst[y1, _F_LO + i] = lo
         fst[y1, _F_HI + i] = hi
         fst[y1, _F_CLIP + i] = cl
@@ -655,9 +689,12 @@ def _ratio(lat, ratio):
 def _expand(lat, i0, i1, a, px, ext_w, w, buf):
     """buf[x] (x < w) = the lattice row pair (i0, i1; weight a of i1) bilinear at photosite column x, for a
     lattice of columns px, px + 2, ... (ext_w of them; edge values replicated)."""
+    px = px & 1                     # provably >= 0 (as `_own_row`'s x0)
     b = np.float32(1.0) - a
+    l0 = lat[i0]
+    l1 = lat[i1]
     for j in range(ext_w):
-        buf[px + 2 * j] = b * lat[i0, j] + a * lat[i1, j]
+        buf[px + 2 * j] = b * l0[j] + a * l1[j]
     if px == 1:
         buf[0] = buf[1]
     last = px + 2 * (ext_w - 1)
@@ -669,13 +706,13 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, keys, kbs, fl, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, ixs, keys, mrs, fl, out):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
     channel's range; the red and blue photosites' own channel by `_own_row`. In the rows `crow` (near a
     CLIPPED photosite) first green, then red and blue from their own row, at least the smallest own value
     of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there; the bounds
-    into `fl`). `keys`, `kbs`: `_own_row`'s."""
+    into `fl`). `keys`, `ixs`, `mrs`: `_own_row`'s (buffers per chunk)."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
@@ -705,16 +742,16 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                     e = lo if e < lo else e
                     o[x] = top if e > top else e
                 if pos[ch, 0] == (y & 1):
-                    _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False, keys, kbs[k])
+                    _own_row(o, values, state, chan, y, pos[ch, 1], rng[ch, 1], use_bounds, False, keys, ixs[k], mrs[k])
                     if near:
                         _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3],
                                   True, fl[ch, y])
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _cv(own, state, y, x):
-    """own[y, x] where the photosite is CLIPPED, else -_BIG (a minimum with it lifts nothing)."""
-    return own[y, x] if (state[y, x] & REASON_MASK) == CLIPPED else -_BIG
+def _cv(own, state, x):
+    """own[x] where the photosite is CLIPPED (`state`: its row), else -_BIG (a minimum with it lifts nothing)."""
+    return own[x] if (state[x] & REASON_MASK) == CLIPPED else -_BIG
 
 
 @njit(cache=True, nogil=True)
@@ -725,6 +762,7 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
     else those of the previous call in the same row and channel). fl[x]: the bound found (< _BIG: one
     applies), for `_floor_row`."""
+    x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
     h, w = state.shape
     big = _BIG
     up = y - 1 if y > 0 else y
@@ -732,15 +770,21 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     bu = np.float32(-big) if y > 0 else big          # + a value: the row's own, or +_BIG outside
     bd = np.float32(-big) if y + 1 < h else big
     if fresh and (vt or dg):
+        ou = own[up]                                 # row slices: a 2-D index does not vectorise
+        su = state[up]
+        od = own[dn]
+        sd = state[dn]
         for x in range(w):
-            a = _cv(own, state, up, x)
+            a = _cv(ou, su, x)
             a = a if bu < 0 else big
-            c = _cv(own, state, dn, x)
+            c = _cv(od, sd, x)
             c = c if bd < 0 else big
             b0[x] = min(a, c)
     if fresh and hz:
+        oy = own[y]
+        sy = state[y]
         for x in range(w):
-            b1[x] = _cv(own, state, y, x)
+            b1[x] = _cv(oy, sy, x)
     for x in range(x0, w, 2):
         m = big
         xl = x - 1 if x > 0 else x
@@ -1050,6 +1094,7 @@ def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
 def _floor_row(o, fl, x0, step):
     """o[x] (x = x0, x0 + step, ...) at least fl[x] where fl[x] < _BIG: the clipped-neighbour lower bounds
     `_lift_row` found for the same photosites."""
+    x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
     big = _BIG
     for x in range(x0, o.shape[0], step):
         m = fl[x]
