@@ -1008,16 +1008,54 @@ def _colour_compact_planes(values, state, c, basis, inv_de, est, b0, b1):
     sc = np.empty(2, np.float32)             # by group (1: attenuated), indexed rather than selected
     sc[0] = 1.0
     sc[1] = np.float32(nd)
+    inv = np.empty(2, np.float32)
+    inv[0] = 1.0
+    inv[1] = np.float32(1.0) / np.float32(nd)
     for y in prange(h):
         for x in range(w):
             st = state[y, x]
             v = values[y, x]
             grp = np.int64((st & ATTENUATED) != 0)
             s = sc[grp]
-            f, ok = _compact_eval(rec, y, x, v / s, s, dscale[grp], inv_step, g, clip_rel, qs, qo, f0)
+            f, ok = _compact_eval(rec, y, x, v * inv[grp], s, dscale[grp], inv_step, g, clip_rel, qs, qo, f0)
             e = f if ((st & REASON_MASK) == VALID) & ok else v
             est[y, x] = e
-            q = e * (inv_de / s)
+            q = e * (inv_de * inv[grp])
+            b0[y, x] = _basis_at(basis, 0, q)
+            b1[y, x] = _basis_at(basis, 1, q)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _colour_compact_clipped(values, state, est, b0, b1, basis, inv_de, nd, block):
+    """A CLIPPED pixel's source flux as `_neighbour_estimate` with step 2 (same-colour neighbours only): at
+    least the largest bound of the clipped ones in the colour plane's 3 x 3, then the mean of the VALID
+    ones brighter than that in its 5 x 5 (their `_colour_compact_planes` flux); est, b0, b1 updated."""
+    h, w = values.shape
+    inv_att = np.float32(1.0) / np.float32(nd)
+    for y in prange(h):
+        for x in range(w):
+            st = state[y, x]
+            if (st & REASON_MASK) != CLIPPED:
+                continue
+            own = block[y & 1, x & 1]
+            v = values[y, x]
+            for yy in range(max(y - 2, 0), min(y + 3, h)):
+                for xx in range(max(x - 2, 0), min(x + 3, w)):
+                    if block[yy & 1, xx & 1] == own and (state[yy, xx] & REASON_MASK) == CLIPPED \
+                            and values[yy, xx] > v:
+                        v = values[yy, xx]
+            acc = np.float32(0.0)
+            n = 0
+            for yy in range(max(y - 4, 0), min(y + 5, h)):
+                for xx in range(max(x - 4, 0), min(x + 5, w)):
+                    if block[yy & 1, xx & 1] == own and (state[yy, xx] & REASON_MASK) == VALID \
+                            and est[yy, xx] > v:
+                        acc += est[yy, xx]
+                        n += 1
+            if n > 0:
+                v = acc / n
+            est[y, x] = v
+            q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
             b0[y, x] = _basis_at(basis, 0, q)
             b1[y, x] = _basis_at(basis, 1, q)
 
@@ -1058,6 +1096,9 @@ def _colour_compact_correct(values, state, c, clip_flux, est, b0, b1, sb, colour
     sc = np.empty(2, np.float32)             # by group (1: attenuated), indexed rather than selected
     sc[0] = 1.0
     sc[1] = ndf
+    inv = np.empty(2, np.float32)
+    inv[0] = 1.0
+    inv[1] = np.float32(1.0) / ndf
     for y in prange(h):
         yi = np.int64(y)                     # (a parfor index is unsigned: y - 1 would be float)
         for x in range(w):
@@ -1067,14 +1108,14 @@ def _colour_compact_correct(values, state, c, clip_flux, est, b0, b1, sb, colour
             grp = np.int64((st & ATTENUATED) != 0)
             s = sc[grp]
             dsc = dscale[grp]
-            m = v / s
+            m = v * inv[grp]
             if reason == VALID:
                 f, ok = _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0)
                 if not ok:
                     state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
                     continue
                 q_reg = f * inv_de                   # flat neighbours at this pixel's flux
-                q_att = q_reg / ndf
+                q_att = q_reg * inv[1]
                 fr0 = _basis_at(basis, 0, q_reg)
                 fr1 = _basis_at(basis, 1, q_reg)
                 da0 = _basis_at(basis, 0, q_att) - fr0
@@ -1181,8 +1222,9 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
                                      lambda: tuple(np.empty_like(values) for _ in range(3)))
         sb = spill_basis(calib)
         _colour_compact_planes(values, state, c.record(), sb.basis, sb.inv_de, est, b0, b1)
-        _colour_compact_correct(values, state, c.record(), calib.clip_flux, est, b0, b1, sb, calib.colour,
-                                cfas.block(cfa))
+        blk = cfas.block(cfa)
+        _colour_compact_clipped(values, state, est, b0, b1, sb.basis, sb.inv_de, float(profile.nd), blk)
+        _colour_compact_correct(values, state, c.record(), calib.clip_flux, est, b0, b1, sb, calib.colour, blk)
         return values, state
     if coloured:
         from . import cfa as cfas
