@@ -27,7 +27,8 @@ LUT assumes. A calibration with per-colour amplitudes (`CrosstalkCalibration.col
 coloured light: `calibration.colour_spill`) corrects that in both modes (`_correct_kernel`): ``lut`` removes
 the spill of the other-colour neighbours beyond what neighbours at the pixel's flux would send, with the
 pixel's amplitude for that colour, before the LUT (same-colour neighbours keep the LUT's assumption);
-``kernel`` does so for every neighbour, with the pixel's amplitude for the neighbour's colour.
+``kernel`` does so for every neighbour, with the pixel's amplitude for the neighbour's colour. ``lut`` with
+the compact LUT does the former in one pass (`_colour_compact_correct`, docs/CROSSTALK.md section 4b).
 
 Values are linear DN (attenuated pixels scaled by ND, docs/ARCHITECTURE.md); the correction returns flux in
 the same units. Clipped pixels keep their state; their lower bound is lowered to the pixel's calibrated
@@ -1187,7 +1188,7 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     compact form (`compact_for`, fast; error: docs/CROSSTALK.md "Compact LUT"). A colour profile whose
     calibration has per-colour amplitudes (`CrosstalkCalibration.colour`) takes `_correct_kernel` with them
     in both modes with the full table (two passes, `iterations` each), and with lut 'compact' in mode 'lut'
-    the one-pass `_colour_compact_correct` (docs/CROSSTALK.md "Colour compact"). Returns (values, state)."""
+    the one-pass `_colour_compact_correct` (docs/CROSSTALK.md section 4b). Returns (values, state)."""
     if mode not in MODES:
         raise ValueError(f"crosstalk mode must be one of {MODES}, got {mode!r}")
     if lut not in LUT_FORMS:
@@ -1256,8 +1257,10 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
 
 
 def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float = 0.0,
-                         clip_code: int = 4094) -> CrosstalkCalibration:
-    """A calibration that maps every code to code * s (zero crosstalk); for `chain.warmup` and tests."""
+                         clip_code: int = 4094, colour: bool = False) -> CrosstalkCalibration:
+    """A calibration that maps every code to code * s (zero crosstalk); for `chain.warmup` and tests.
+    `colour`: with per-colour amplitudes (all 1), as a colour camera's calibration has them, so that a
+    colour profile takes (and warms) the colour kernels of `correct`."""
     mask = np.asarray(mask, bool)
     h, w = mask.shape
     top = float(clip_code) - black_level
@@ -1270,4 +1273,5 @@ def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float 
         knot_flux=np.array([0.0, top, top * nd], np.float64),
         clip_flux=np.full((h, w), np.nan, np.float32), nd=nd, black_level=black_level,
         clip_code=clip_code, sig_e=np.array([0.0, 1.0], np.float32), sigma=np.zeros((8, 2), np.float32),
-        alpha=np.ones((h, w), np.float32), info={"identity": True})
+        alpha=np.ones((h, w), np.float32), info={"identity": True},
+        colour=np.ones((3, h, w), np.float32) if colour else None)

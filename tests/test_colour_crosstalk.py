@@ -324,3 +324,18 @@ def test_colour_compact_handles_states_as_the_full_path(colour_coupled):
     assert np.array_equal(vc[unc], v_in[unc])
     dark = reason == validity.DARK
     assert np.allclose(vc[dark], vp[dark], rtol=1e-6) and np.allclose(vc[dark], vf[dark], rtol=0.05)
+
+
+def test_identity_colour_calibration_is_the_identity_in_every_colour_setting():
+    """`identity_calibration(colour=True)` (what a colour warm-up needs to reach the colour kernels): no
+    crosstalk, so every setting returns the measured values."""
+    prof = profile.default(12, 16, cfa="rggb")
+    prof = prof.replace(crosstalk=crosstalk.identity_calibration(prof.mask, nd=prof.nd, black_level=prof.black_level,
+                                                                 clip_code=prof.clip_code, colour=True))
+    raw = np.clip(prof.black_level + np.geomspace(5, 3000, 12 * 16).reshape(12, 16), 0, prof.clip_code).astype(np.uint16)
+    for mode, lut in (("lut", "compact"), ("lut", "full"), ("kernel", "full")):
+        v, s = validity.classify(raw, prof, "threshold", l_min=0)
+        v0 = v.copy()
+        crosstalk.correct(v, s, prof, mode, lut=lut)
+        ok = (s & validity.REASON_MASK) == validity.VALID
+        assert ok.sum() > 100 and np.allclose(v[ok], v0[ok], rtol=1e-3, atol=0.05), (mode, lut)
