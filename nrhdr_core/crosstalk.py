@@ -683,6 +683,29 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
                       info={"points": COMPACT_POINTS, "no_range_pixels": int(np.sum(n < 2))})
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0):
+    """(flux, ok) of code `m` on pixel (y, x)'s compact record `rec` (`CompactLut`; s: ND or 1, dsc: its
+    group's scale): a square root, two reads and a lerp; below the dark knot between (black, f0) and the
+    knot, as `lut_eval`; ok False above the range's top or without a range."""
+    zero = np.float32(0.0)
+    c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
+    tq = np.int64(rec[y, x, 15]) & 0xFFFF
+    top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
+    mm = max(min(max(m, c0), top), zero)
+    u = np.sqrt(mm * inv_step)
+    j = min(np.int64(u), g - 1)
+    t = u - np.float32(j)
+    a = np.float32(rec[y, x, j])
+    d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dsc
+    f = max((mm + d) * s, zero)
+    fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
+    f = fb if m <= c0 else f
+    # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
+    ok = (m <= top) & (tq != _NO_RANGE)
+    return f, ok
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _lut_kernel_compact(values, state, c, clip_flux):
     """`lut` mode in place with the compact LUT `c` (`CompactRecord`) and the table's clipping fluxes: the
@@ -707,21 +730,7 @@ def _lut_kernel_compact(values, state, c, clip_flux):
             grp = np.int64((st & ATTENUATED) != 0)    # group 1: attenuated
             s = sc[grp]
             m = v * inv[grp]
-            c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
-            tq = np.int64(rec[y, x, 15]) & 0xFFFF
-            top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
-            mm = max(min(max(m, c0), top), zero)
-            u = np.sqrt(mm * inv_step)
-            j = min(np.int64(u), g - 1)
-            t = u - np.float32(j)
-            a = np.float32(rec[y, x, j])
-            d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dscale[grp]
-            f = max((mm + d) * s, zero)
-            # below the dark knot: between (black, f0) and the knot, as `lut_eval`
-            fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
-            f = fb if m <= c0 else f
-            # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
-            ok = (m <= top) & (tq != _NO_RANGE)
+            f, ok = _compact_eval(rec, y, x, m, s, dscale[grp], inv_step, g, clip_rel, qs, qo, f0)
             reason = st & REASON_MASK
             cf = clip_flux[y, x]
             nv = v
@@ -925,31 +934,10 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est, chan, step):
             est[y, x] = v
 
 
-# ---- colour compact: the `lut` mode's fast setting on a colour calibration (docs/CROSSTALK.md "4b") -------
+# ---- colour compact: the `lut` mode's fast setting on a colour calibration (docs/CROSSTALK.md 4b) ---------
 # The compact LUT per pixel plus the per-colour correction of `_correct_kernel` (every=False) in one pass:
-# neighbour fluxes from the compact LUT (evaluated once per pixel into a plane), one iteration, the spill
-# table read through a per-source coordinate (no search per neighbour).
-
-@njit(cache=True, nogil=True, inline="always")
-def _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0):
-    """(flux, ok) of code `m` on pixel (y, x)'s compact record (as `_lut_kernel_compact`; s: ND or 1, dsc:
-    its group's scale)."""
-    zero = np.float32(0.0)
-    c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
-    tq = np.int64(rec[y, x, 15]) & 0xFFFF
-    top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
-    mm = max(min(max(m, c0), top), zero)
-    u = np.sqrt(mm * inv_step)
-    j = min(np.int64(u), g - 1)
-    t = u - np.float32(j)
-    a = np.float32(rec[y, x, j])
-    d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dsc
-    f = max((mm + d) * s, zero)
-    fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
-    f = fb if m <= c0 else f
-    ok = (m <= top) & (tq != _NO_RANGE)
-    return f, ok
-
+# neighbour fluxes from the compact LUT (evaluated once per pixel into planes with their spill as sources),
+# clipped pixels' fluxes from their colour's photosites, one iteration.
 
 # the spill table as the colour compact kernels read it: sigma_d(e) resampled at the signals e_i = i / inv_de,
 # i < SPILL_GRID, up to the table's last signal, in its rank-2 form sigma_d(e) ~ sum_k weight[d, k] basis_k(e)
@@ -963,9 +951,8 @@ def spill_basis(calib: CrosstalkCalibration) -> SpillBasis:
     """`SpillBasis` of a calibration's spill table (sig_e, sigma): `_spill_vec`'s function (linear through 0
     below the table, its last slope above it: the last cell's lerp continued) at SPILL_GRID uniform signals,
     reduced to its best rank-SPILL_RANK approximation (exact for a spill that is one signal curve per
-    mechanism, coupling and blooming, times a 3 x 3 shape each: `SensorModel`). info: the largest
-    approximation error relative to the table's largest spill (`max_rel_error`). Derived once per
-    calibration and kept on it."""
+    mechanism, coupling and blooming, times a 3 x 3 shape each: `SensorModel`); a component below 1e-6 of
+    the first is dropped (it would be denormal in float32). Derived once per calibration and kept on it."""
     hit = calib.__dict__.get("_spill_basis")
     if hit is not None and hit[0] is calib.sigma and hit[1] is calib.sig_e:
         return hit[2]
@@ -982,10 +969,9 @@ def spill_basis(calib: CrosstalkCalibration) -> SpillBasis:
     keep = sv[:SPILL_RANK] > 1e-6 * max(sv[0], 1e-30)    # a component at rounding level would be denormal
     basis = np.where(keep, u[:, :SPILL_RANK] * sv[:SPILL_RANK], 0.0)             # (G, R)
     weight = np.where(keep, vt[:SPILL_RANK].T, 0.0)                              # (8, R)
-    err = np.max(np.abs(basis @ weight.T - table)) / max(np.max(np.abs(table)), 1e-12)
     sb = SpillBasis(np.ascontiguousarray(basis, np.float32), np.ascontiguousarray(weight, np.float32),
                     np.float32((SPILL_GRID - 1) / top))
-    calib.__dict__["_spill_basis"] = (calib.sigma, calib.sig_e, sb, {"max_rel_error": float(err)})
+    calib.__dict__["_spill_basis"] = (calib.sigma, calib.sig_e, sb)
     return sb
 
 
