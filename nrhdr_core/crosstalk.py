@@ -687,7 +687,8 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
 def _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0):
     """(flux, ok) of code `m` on pixel (y, x)'s compact record `rec` (`CompactLut`; s: ND or 1, dsc: its
     group's scale): a square root, two reads and a lerp; below the dark knot between (black, f0) and the
-    knot, as `lut_eval`; ok False above the range's top or without a range."""
+    knot, as `lut_eval`; ok False above the range's top or without a range. `_lut_kernel_compact` writes
+    these lines out itself: calling this from it measured 20 ms against 14 ms per 1080p frame."""
     zero = np.float32(0.0)
     c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
     tq = np.int64(rec[y, x, 15]) & 0xFFFF
@@ -730,7 +731,21 @@ def _lut_kernel_compact(values, state, c, clip_flux):
             grp = np.int64((st & ATTENUATED) != 0)    # group 1: attenuated
             s = sc[grp]
             m = v * inv[grp]
-            f, ok = _compact_eval(rec, y, x, m, s, dscale[grp], inv_step, g, clip_rel, qs, qo, f0)
+            c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
+            tq = np.int64(rec[y, x, 15]) & 0xFFFF
+            top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
+            mm = max(min(max(m, c0), top), zero)
+            u = np.sqrt(mm * inv_step)
+            j = min(np.int64(u), g - 1)
+            t = u - np.float32(j)
+            a = np.float32(rec[y, x, j])
+            d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dscale[grp]
+            f = max((mm + d) * s, zero)
+            # below the dark knot: between (black, f0) and the knot, as `lut_eval`
+            fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
+            f = fb if m <= c0 else f
+            # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
+            ok = (m <= top) & (tq != _NO_RANGE)
             reason = st & REASON_MASK
             cf = clip_flux[y, x]
             nv = v
