@@ -1,11 +1,19 @@
-"""Crosstalk on a Bayer sensor: white-light against per-colour calibration, LUT and kernel mode.
+"""Crosstalk on a Bayer sensor: white-light against per-colour calibration, LUT (full and compact) and kernel
+mode, and the speed of the colour settings at 1080p.
 
 Calibrates a simulated 128 x 96 rggb sensor (crosstalk preset `prototype`) from flat sweeps under white, red,
 green and blue light (`calibration.simulate_flats(light=...)`, `calibration.colour_spill`), then corrects
 captures without shot or read noise (saturated red and blue flats, white flats, a StillLife crop) and prints the
-mean (median) |relative error| of the attenuated photosites per channel R, G, B for each mode and calibration.
+mean (median) |relative error| of the attenuated photosites per channel R, G, B for each setting and
+calibration (`lut full` / `lut compact` / `kernel`; white: the calibration without its per-colour amplitudes),
+and the mean |compact - full| / full of the per-colour calibration's lut settings.
 
-    .venv/bin/python benchmarks/colour_crosstalk.py OUT_FOLDER [--coupling 1.3,1.0,0.8]
+`--speed`: ms per 1920 x 1080 frame of `crosstalk.correct` mode lut with the compact LUT on a monochrome
+profile (the anchor), and with the compact and the full LUT on a colour profile whose calibration has
+per-colour amplitudes (a synthetic 40-knot table with the simulated sensor's spill table and amplitudes tiled),
+alternating, median of `--repeats`, with the load average.
+
+    .venv/bin/python benchmarks/colour_crosstalk.py OUT_FOLDER [--coupling 1.3,1.0,0.8] [--speed]
 
 `--coupling`: the sensor model's crosstalk per source colour (`SensorModel.colour_coupling`). The scene crop
 needs ../shared/data/hdr/StillLife.exr ($NRHDR_SHARED_DATA/hdr); without it that row is skipped.
@@ -15,6 +23,8 @@ from __future__ import annotations
 import argparse
 import dataclasses as D
 import os
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +46,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("out", type=Path, help="folder for the simulated flats (replaced)")
     ap.add_argument("--coupling", default=None, help="R,G,B crosstalk per source colour")
+    ap.add_argument("--speed", action="store_true", help="also time the colour settings at 1920 x 1080")
+    ap.add_argument("--repeats", type=int, default=7, help="timed calls per setting (--speed)")
     a = ap.parse_args(argv)
     prof = P.default(H, W, cfa="rggb")
     model = X.sensor_model_preset("prototype", H, W)
@@ -51,19 +63,35 @@ def main(argv=None) -> int:
     quiet = D.replace(prof, read_noise=0.0)
     rng = np.random.default_rng(9)
 
-    def err(p, mode, truth):
-        raw = sensor.capture(truth, quiet, rng, sensor_model=model, shot_noise=False)
+    settings = (("lut full", "lut", "full"), ("lut compact", "lut", "compact"), ("kernel", "kernel", "full"))
+
+    def corrected(p, mode, lut, raw):
         v, s = V.classify(raw, p, "threshold", l_min=0)
-        X.correct(v, s, p, mode)
+        X.correct(v, s, p, mode, lut=lut)
+        return v, s
+
+    def scored(truth, s):
         ok = ((s & V.REASON_MASK) == V.VALID) & prof.mask & (truth >= 20)
         ok[:2] = ok[-2:] = ok[:, :2] = ok[:, -2:] = False
-        r = np.abs(v - truth) / np.maximum(truth, 1.0)   # scored only where truth >= 20
+        return ok
+
+    def per_channel(r, ok):
         return " / ".join(f"{100 * np.mean(r[ok & (chan == c)]):.1f} ({100 * np.median(r[ok & (chan == c)]):.1f})"
                           for c in range(3))
 
     def row(name, truth):
-        print(f"{name:<16}", *(f"| {m}, {c} cal.: {err(p, m, truth)} %" for m in ("lut", "kernel")
-                               for c, p in (("white", white), ("per-colour", col))))
+        raw = sensor.capture(truth, quiet, rng, sensor_model=model, shot_noise=False)
+        cells, out = [], {}
+        for label, mode, lut in settings:
+            for c, p in (("white", white), ("per-colour", col)):
+                v, s = out[label, c] = corrected(p, mode, lut, raw)
+                r = np.abs(v - truth) / np.maximum(truth, 1.0)   # scored only where truth >= 20
+                cells.append(f"| {label}, {c} cal.: {per_channel(r, scored(truth, s))} %")
+        (vf, sf), (vc, sc) = out["lut full", "per-colour"], out["lut compact", "per-colour"]
+        d = np.abs(vc - vf) / np.maximum(vf, 1.0)
+        cells.append(f"| per-colour compact vs full: {per_channel(d, scored(truth, sf))} %"
+                     f"{'' if np.array_equal(sf, sc) else ' (states differ)'}")
+        print(f"{name:<16}", *cells)
 
     for name, light in {"sat-red": (1, .1, .05), "sat-blue": (.05, .1, 1), "white": (1, 1, 1)}.items():
         for level in ((50., 100., 1000., 6000.) if name == "white" else (1000., 6000.)):
@@ -76,7 +104,46 @@ def main(argv=None) -> int:
         row("StillLife crop", scene)
     else:
         print(f"StillLife crop: {exr} not found (set NRHDR_SHARED_DATA)")
+    if a.speed:
+        speed(col.crosstalk, a.repeats)
     return 0
+
+
+def speed(small, repeats: int) -> None:
+    """ms per 1920 x 1080 frame: mono compact (anchor), colour compact, colour full, alternating."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from stages import synthetic_calibration
+    h, w = 1080, 1920
+    prof = P.default(h, w, cfa="rggb")
+    table = synthetic_calibration(prof, 40)
+    reps = (-(-h // small.colour.shape[1]), -(-w // small.colour.shape[2]))   # the tile keeps the Bayer phase
+    colour = np.ascontiguousarray(np.tile(small.colour, (1,) + reps)[:, :h, :w])
+    cal = D.replace(table, sig_e=small.sig_e, sigma=small.sigma, colour=colour)
+    mono = D.replace(prof, cfa="none").replace(crosstalk=table)
+    colr = prof.replace(crosstalk=cal)
+    rng = np.random.default_rng(0)
+    raw = np.clip(prof.black_level + rng.gamma(1.5, 600.0, (h, w)), 0, prof.clip_code).astype(np.uint16)
+    v0, s0 = V.classify(raw, prof, "threshold")
+    runs = {"mono lut compact (anchor)": (mono, "compact"), "colour lut compact (fast)": (colr, "compact"),
+            "colour lut full (accurate)": (colr, "full")}
+    for p, lut in runs.values():          # compile / derive the compact LUT first
+        X.compact_for(p)
+        X.correct(v0.copy(), s0.copy(), p, "lut", lut=lut)
+    ms = {k: [] for k in runs}
+    for i in range(repeats):
+        for k, (p, lut) in runs.items():
+            if "full" in k and i >= max(2, repeats // 3):
+                continue                  # ~1.5 s a call: a few suffice
+            v, s = v0.copy(), s0.copy()
+            t0 = time.perf_counter()
+            X.correct(v, s, p, "lut", lut=lut)
+            ms[k].append(1e3 * (time.perf_counter() - t0))
+    load = os.getloadavg()
+    anchor = np.median(ms["mono lut compact (anchor)"])
+    print(f"speed, 1920 x 1080, {os.cpu_count()} CPUs, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}:")
+    for k, t in ms.items():
+        print(f"  {k:<28} {np.median(t):8.1f} ms (min {np.min(t):.1f}, {len(t)} calls) "
+              f"= {np.median(t) / anchor:.1f} x anchor")
 
 
 if __name__ == "__main__":

@@ -27,7 +27,8 @@ LUT assumes. A calibration with per-colour amplitudes (`CrosstalkCalibration.col
 coloured light: `calibration.colour_spill`) corrects that in both modes (`_correct_kernel`): ``lut`` removes
 the spill of the other-colour neighbours beyond what neighbours at the pixel's flux would send, with the
 pixel's amplitude for that colour, before the LUT (same-colour neighbours keep the LUT's assumption);
-``kernel`` does so for every neighbour, with the pixel's amplitude for the neighbour's colour.
+``kernel`` does so for every neighbour, with the pixel's amplitude for the neighbour's colour. ``lut`` with
+the compact LUT does the former in one pass (`_colour_compact_correct`, docs/CROSSTALK.md section 4b).
 
 Values are linear DN (attenuated pixels scaled by ND, docs/ARCHITECTURE.md); the correction returns flux in
 the same units. Clipped pixels keep their state; their lower bound is lowered to the pixel's calibrated
@@ -230,6 +231,7 @@ class CrosstalkCalibration:
         # the compact LUT derived from this table (`compact_for`) is not shipped: derived again where used
         d = dict(self.__dict__)
         d.pop("_compact", None)
+        d.pop("_spill_basis", None)
         return d
 
     def codes(self) -> np.ndarray:
@@ -681,6 +683,30 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
                       info={"points": COMPACT_POINTS, "no_range_pixels": int(np.sum(n < 2))})
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0):
+    """(flux, ok) of code `m` on pixel (y, x)'s compact record `rec` (`CompactLut`; s: ND or 1, dsc: its
+    group's scale): a square root, two reads and a lerp; below the dark knot between (black, f0) and the
+    knot, as `lut_eval`; ok False above the range's top or without a range. `_lut_kernel_compact` writes
+    these lines out itself: calling this from it measured 20 ms against 14 ms per 1080p frame."""
+    zero = np.float32(0.0)
+    c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
+    tq = np.int64(rec[y, x, 15]) & 0xFFFF
+    top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
+    mm = max(min(max(m, c0), top), zero)
+    u = np.sqrt(mm * inv_step)
+    j = min(np.int64(u), g - 1)
+    t = u - np.float32(j)
+    a = np.float32(rec[y, x, j])
+    d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dsc
+    f = max((mm + d) * s, zero)
+    fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
+    f = fb if m <= c0 else f
+    # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
+    ok = (m <= top) & (tq != _NO_RANGE)
+    return f, ok
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _lut_kernel_compact(values, state, c, clip_flux):
     """`lut` mode in place with the compact LUT `c` (`CompactRecord`) and the table's clipping fluxes: the
@@ -923,6 +949,215 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est, chan, step):
             est[y, x] = v
 
 
+# ---- colour compact: the `lut` mode's fast setting on a colour calibration (docs/CROSSTALK.md 4b) ---------
+# The compact LUT per pixel plus the per-colour correction of `_correct_kernel` (every=False) in one pass:
+# neighbour fluxes from the compact LUT (evaluated once per pixel into planes with their spill as sources),
+# clipped pixels' fluxes from their colour's photosites, one iteration.
+
+# the spill table as the colour compact kernels read it: sigma_d(e) resampled at the signals e_i = i / inv_de,
+# i < SPILL_GRID, up to the table's last signal, in its rank-2 form sigma_d(e) ~ sum_k weight[d, k] basis_k(e)
+# (SVD; `spill_basis`): a source's spill to all 8 neighbours is 2 numbers, the plane pass computes them once
+SpillBasis = namedtuple("SpillBasis", "basis weight inv_de")
+SPILL_GRID = 2048
+SPILL_RANK = 2
+
+
+def spill_basis(calib: CrosstalkCalibration) -> SpillBasis:
+    """`SpillBasis` of a calibration's spill table (sig_e, sigma): `_spill_vec`'s function (linear through 0
+    below the table, its last slope above it: the last cell's lerp continued) at SPILL_GRID uniform signals,
+    reduced to its best rank-SPILL_RANK approximation (exact for a spill that is one signal curve per
+    mechanism, coupling and blooming, times a 3 x 3 shape each: `SensorModel`); a component below 1e-6 of
+    the first is dropped (it would be denormal in float32). Derived once per calibration and kept on it."""
+    hit = calib.__dict__.get("_spill_basis")
+    if hit is not None and hit[0] is calib.sigma and hit[1] is calib.sig_e:
+        return hit[2]
+    sig_e = np.asarray(calib.sig_e, np.float64)
+    sigma = np.asarray(calib.sigma, np.float64)
+    top = float(sig_e[-1]) if sig_e[-1] > 0 else 1.0
+    e = np.linspace(0.0, top, SPILL_GRID)
+    if sig_e[0] > 0:
+        xs, ys = np.concatenate([[0.0], sig_e]), np.concatenate([np.zeros((8, 1)), sigma], 1)
+    else:
+        xs, ys = sig_e, sigma
+    table = np.stack([np.interp(e, xs, ys[d]) for d in range(8)], 1)          # (G, 8)
+    u, sv, vt = np.linalg.svd(table, full_matrices=False)
+    keep = sv[:SPILL_RANK] > 1e-6 * max(sv[0], 1e-30)    # a component at rounding level would be denormal
+    basis = np.where(keep, u[:, :SPILL_RANK] * sv[:SPILL_RANK], 0.0)             # (G, R)
+    weight = np.where(keep, vt[:SPILL_RANK].T, 0.0)                              # (8, R)
+    sb = SpillBasis(np.ascontiguousarray(basis, np.float32), np.ascontiguousarray(weight, np.float32),
+                    np.float32((SPILL_GRID - 1) / top))
+    calib.__dict__["_spill_basis"] = (calib.sigma, calib.sig_e, sb)
+    return sb
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _basis_at(basis, k, q):
+    """basis_k at grid coordinate q = e * inv_de (`SpillBasis`): a lerp, the last cell continued above."""
+    i = min(max(np.int64(q), 0), basis.shape[0] - 2)
+    t = q - np.float32(i)
+    a = basis[i, k]
+    return a + t * (basis[i + 1, k] - a)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _colour_compact_planes(values, state, c, basis, inv_de, est, b0, b1):
+    """est = every pixel's flux as a crosstalk source (its compact LUT flux if VALID and in range, else its
+    value, as `_lut_pass`); b0, b1 = the `SpillBasis` functions of its signal (est / ND or est)."""
+    h, w = values.shape
+    rec, dscale, clip_rel, qs, qo, f0, nd = c.rec, c.dscale, c.clip_rel, c.qs, c.qo, c.f0, c.nd
+    g = rec.shape[2] - 3
+    inv_step = np.float32(g * g) / clip_rel
+    sc = np.empty(2, np.float32)             # by group (1: attenuated), indexed rather than selected
+    sc[0] = 1.0
+    sc[1] = np.float32(nd)
+    inv = np.empty(2, np.float32)
+    inv[0] = 1.0
+    inv[1] = np.float32(1.0) / np.float32(nd)
+    for y in prange(h):
+        for x in range(w):
+            st = state[y, x]
+            v = values[y, x]
+            grp = np.int64((st & ATTENUATED) != 0)
+            s = sc[grp]
+            f, ok = _compact_eval(rec, y, x, v * inv[grp], s, dscale[grp], inv_step, g, clip_rel, qs, qo, f0)
+            e = f if ((st & REASON_MASK) == VALID) & ok else v
+            est[y, x] = e
+            q = e * (inv_de * inv[grp])
+            b0[y, x] = _basis_at(basis, 0, q)
+            b1[y, x] = _basis_at(basis, 1, q)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _colour_compact_clipped(values, state, est, b0, b1, basis, inv_de, nd, block):
+    """A CLIPPED pixel's source flux as `_neighbour_estimate` with step 2 (same-colour neighbours only): at
+    least the largest bound of the clipped ones in the colour plane's 3 x 3, then the mean of the VALID
+    ones brighter than that in its 5 x 5 (their `_colour_compact_planes` flux); est, b0, b1 updated."""
+    h, w = values.shape
+    inv_att = np.float32(1.0) / np.float32(nd)
+    for y in prange(h):
+        for x in range(w):
+            st = state[y, x]
+            if (st & REASON_MASK) != CLIPPED:
+                continue
+            own = block[y & 1, x & 1]
+            v = values[y, x]
+            for yy in range(max(y - 2, 0), min(y + 3, h)):
+                for xx in range(max(x - 2, 0), min(x + 3, w)):
+                    if block[yy & 1, xx & 1] == own and (state[yy, xx] & REASON_MASK) == CLIPPED \
+                            and values[yy, xx] > v:
+                        v = values[yy, xx]
+            acc = np.float32(0.0)
+            n = 0
+            for yy in range(max(y - 4, 0), min(y + 5, h)):
+                for xx in range(max(x - 4, 0), min(x + 5, w)):
+                    if block[yy & 1, xx & 1] == own and (state[yy, xx] & REASON_MASK) == VALID \
+                            and est[yy, xx] > v:
+                        acc += est[yy, xx]
+                        n += 1
+            if n > 0:
+                v = acc / n
+            est[y, x] = v
+            q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
+            b0[y, x] = _basis_at(basis, 0, q)
+            b1[y, x] = _basis_at(basis, 1, q)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _neighbour_spill(w0, w1, state, est, b0, b1, yy, xx, h, w, f, fr0, fr1, da0, da1):
+    """sigma_d of the neighbour at (yy, xx) minus sigma_d of a flat neighbour at flux f (basis values fr.
+    of a regular one, + da. for an attenuated one), w0, w1 direction d's weights (`SpillBasis`); 0 outside
+    the frame and for a DARK neighbour brighter than f (its value is an upper bound only). Arithmetic, not
+    selects, on the neighbour's group (the mask's groups alternate at random: a branch would mispredict)."""
+    inb = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+    y2 = min(max(yy, 0), h - 1)
+    x2 = min(max(xx, 0), w - 1)
+    stn = state[y2, x2]
+    att = np.float32((stn & ATTENUATED) != 0)
+    t = w0 * (b0[y2, x2] - fr0 - att * da0) + w1 * (b1[y2, x2] - fr1 - att * da1)
+    if (stn & REASON_MASK) == DARK:
+        inb = inb & (est[y2, x2] <= f)
+    return t * np.float32(inb)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _colour_compact_correct(values, state, c, clip_flux, est, b0, b1, sb, colour, block):
+    """`lut` mode in place on a Bayer mosaic (`block`: its 2 x 2 channels) with the compact LUT `c` and the
+    per-colour amplitudes `colour` (3, H, W): a VALID pixel's code, less the spill of its other-colour
+    neighbours (their basis values b0, b1: `_colour_compact_planes`) beyond what neighbours at its
+    compact-LUT flux would send, times its amplitude for that colour, through its compact LUT (one
+    iteration of `_correct_kernel` with every=False; spill table `sb`: `SpillBasis`); a DARK neighbour
+    brighter than the pixel is left out. States as `_correct_kernel`: UNCALIBRATED out of range, CLIPPED at
+    most the clipping flux, DARK/NOISY bounds mapped."""
+    h, w = values.shape
+    rec, dscale, clip_rel, qs, qo, f0, nd = c.rec, c.dscale, c.clip_rel, c.qs, c.qo, c.f0, c.nd
+    basis, wt, inv_de = sb.basis, sb.weight, sb.inv_de
+    g = rec.shape[2] - 3
+    inv_step = np.float32(g * g) / clip_rel
+    ndf = np.float32(nd)
+    zero = np.float32(0.0)
+    sc = np.empty(2, np.float32)             # by group (1: attenuated), indexed rather than selected
+    sc[0] = 1.0
+    sc[1] = ndf
+    inv = np.empty(2, np.float32)
+    inv[0] = 1.0
+    inv[1] = np.float32(1.0) / ndf
+    for y in prange(h):
+        yi = np.int64(y)                     # (a parfor index is unsigned: y - 1 would be float)
+        for x in range(w):
+            st = state[y, x]
+            reason = st & REASON_MASK
+            v = values[y, x]
+            grp = np.int64((st & ATTENUATED) != 0)
+            s = sc[grp]
+            dsc = dscale[grp]
+            m = v * inv[grp]
+            if reason == VALID:
+                f, ok = _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0)
+                if not ok:
+                    state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
+                    continue
+                q_reg = f * inv_de                   # flat neighbours at this pixel's flux
+                q_att = q_reg * inv[1]
+                fr0 = _basis_at(basis, 0, q_reg)
+                fr1 = _basis_at(basis, 1, q_reg)
+                da0 = _basis_at(basis, 0, q_att) - fr0
+                da1 = _basis_at(basis, 1, q_att) - fr1
+                own = block[y & 1, x & 1]
+                c_h = block[y & 1, (x + 1) & 1]      # colour of the left/right, up/down, diagonal neighbours
+                c_v = block[(y + 1) & 1, x & 1]
+                c_d = block[(y + 1) & 1, (x + 1) & 1]
+                a_h = colour[c_h, y, x]
+                a_v = colour[c_v, y, x]
+                a_d = colour[c_d, y, x] if c_d != own else zero    # a green photosite's diagonals are green
+                # directions in DIRS order: (-1,-1) (-1,0) (-1,1) (0,-1) (0,1) (1,-1) (1,0) (1,1)
+                sd = _neighbour_spill(wt[0, 0], wt[0, 1], state, est, b0, b1, yi - 1, x - 1, h, w, f, fr0, fr1,
+                                      da0, da1)
+                sd += _neighbour_spill(wt[2, 0], wt[2, 1], state, est, b0, b1, yi - 1, x + 1, h, w, f, fr0, fr1,
+                                       da0, da1)
+                sd += _neighbour_spill(wt[5, 0], wt[5, 1], state, est, b0, b1, yi + 1, x - 1, h, w, f, fr0, fr1,
+                                       da0, da1)
+                sd += _neighbour_spill(wt[7, 0], wt[7, 1], state, est, b0, b1, yi + 1, x + 1, h, w, f, fr0, fr1,
+                                       da0, da1)
+                sv = _neighbour_spill(wt[1, 0], wt[1, 1], state, est, b0, b1, yi - 1, x, h, w, f, fr0, fr1,
+                                      da0, da1)
+                sv += _neighbour_spill(wt[6, 0], wt[6, 1], state, est, b0, b1, yi + 1, x, h, w, f, fr0, fr1,
+                                       da0, da1)
+                sh = _neighbour_spill(wt[3, 0], wt[3, 1], state, est, b0, b1, yi, x - 1, h, w, f, fr0, fr1,
+                                      da0, da1)
+                sh += _neighbour_spill(wt[4, 0], wt[4, 1], state, est, b0, b1, yi, x + 1, h, w, f, fr0, fr1,
+                                       da0, da1)
+                delta = a_d * sd + a_v * sv + a_h * sh
+                f2, ok2 = _compact_eval(rec, y, x, m - delta, s, dsc, inv_step, g, clip_rel, qs, qo, f0)
+                values[y, x] = max(f2 if ok2 else f, zero)
+            elif reason == CLIPPED:
+                cf = clip_flux[y, x]
+                if cf == cf and cf < v:
+                    values[y, x] = cf
+            elif reason == DARK or reason == NOISY:
+                f, ok = _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0)
+                if ok and f > zero:
+                    values[y, x] = f
+
 _compact_lock = threading.Lock()
 
 
@@ -953,7 +1188,8 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
     `lut` (mode 'lut' only): 'full' = the calibration's per-pixel table (accurate), 'compact' = its
     compact form (`compact_for`, fast; error: docs/CROSSTALK.md "Compact LUT"). A colour profile whose
     calibration has per-colour amplitudes (`CrosstalkCalibration.colour`) takes `_correct_kernel` with them
-    in both modes (the full table). Returns (values, state)."""
+    in both modes with the full table (two passes, `iterations` each), and with lut 'compact' in mode 'lut'
+    the one-pass `_colour_compact_correct` (docs/CROSSTALK.md section 4b). Returns (values, state)."""
     if mode not in MODES:
         raise ValueError(f"crosstalk mode must be one of {MODES}, got {mode!r}")
     if lut not in LUT_FORMS:
@@ -979,6 +1215,18 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
             _lut_kernel_compact(values, state, c.record(), calib.clip_flux)
         else:
             _lut_kernel(values, state, table, nd)
+        return values, state
+    if coloured and mode == "lut" and lut == "compact":
+        from . import cfa as cfas
+        from . import scratch
+        c = compact_for(profile)
+        est, b0, b1 = scratch.planes("crosstalk_colour", values.shape,
+                                     lambda: tuple(np.empty_like(values) for _ in range(3)))
+        sb = spill_basis(calib)
+        _colour_compact_planes(values, state, c.record(), sb.basis, sb.inv_de, est, b0, b1)
+        blk = cfas.block(cfa)
+        _colour_compact_clipped(values, state, est, b0, b1, sb.basis, sb.inv_de, float(profile.nd), blk)
+        _colour_compact_correct(values, state, c.record(), calib.clip_flux, est, b0, b1, sb, calib.colour, blk)
         return values, state
     if coloured:
         from . import cfa as cfas
@@ -1010,8 +1258,10 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
 
 
 def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float = 0.0,
-                         clip_code: int = 4094) -> CrosstalkCalibration:
-    """A calibration that maps every code to code * s (zero crosstalk); for `chain.warmup` and tests."""
+                         clip_code: int = 4094, colour: bool = False) -> CrosstalkCalibration:
+    """A calibration that maps every code to code * s (zero crosstalk); for `chain.warmup` and tests.
+    `colour`: with per-colour amplitudes (all 1), as a colour camera's calibration has them, so that a
+    colour profile takes (and warms) the colour kernels of `correct`."""
     mask = np.asarray(mask, bool)
     h, w = mask.shape
     top = float(clip_code) - black_level
@@ -1024,4 +1274,5 @@ def identity_calibration(mask: np.ndarray, nd: float = 6.35, black_level: float 
         knot_flux=np.array([0.0, top, top * nd], np.float64),
         clip_flux=np.full((h, w), np.nan, np.float32), nd=nd, black_level=black_level,
         clip_code=clip_code, sig_e=np.array([0.0, 1.0], np.float32), sigma=np.zeros((8, 2), np.float32),
-        alpha=np.ones((h, w), np.float32), info={"identity": True})
+        alpha=np.ones((h, w), np.float32), info={"identity": True},
+        colour=np.ones((3, h, w), np.float32) if colour else None)

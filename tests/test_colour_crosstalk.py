@@ -109,7 +109,7 @@ def calibrated(tmp: Path, sensor: Sensor):
     return white, col, cs, tmp
 
 
-def flat_error(prof, sensor, light, level, mode):
+def flat_error(prof, sensor, light, level, mode, lut="full"):
     """Mean relative error (%) per channel of the attenuated photosites of a noise-free coloured flat
     (`level`: a white regular photosite's code above black) after `crosstalk.correct`, interior only."""
     h, w = sensor.mask.shape
@@ -117,7 +117,7 @@ def flat_error(prof, sensor, light, level, mode):
     truth = level * np.asarray(light, float)[chan]              # DN a regular photosite reads without crosstalk
     raw = sensor.frame(truth / GAIN)
     v, s = validity.classify(raw, prof, "threshold", l_min=0)
-    crosstalk.correct(v, s, prof, mode)
+    crosstalk.correct(v, s, prof, mode, lut=lut)
     ok = ((s & validity.REASON_MASK) == validity.VALID) & sensor.mask & (truth >= 20)
     ok[:2] = ok[-2:] = False
     ok[:, :2] = ok[:, -2:] = False
@@ -242,3 +242,100 @@ def test_cli_calibrates_per_colour(colour_coupled, tmp_path, capsys):
     a = cli.build_parser().parse_args(args[:5] + [str(tmp_path / "c2.json")] + args[6:])
     assert a.func(a) == 2
     assert "--cfa" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("light", ["red", "green", "blue"])
+def test_colour_compact_removes_most_of_the_white_lut_bias(colour_coupled, light):
+    """mode lut, lut compact on a per-colour calibration (the fast setting: one pass, neighbour fluxes from
+    the compact LUT): under coloured light it removes most of the white-light LUT's bias, within a few
+    points of the full table's two-pass correction."""
+    sensor, white, col, _, _ = colour_coupled
+    L = LIGHTS[light]
+    for level in (1200.0, 3000.0):
+        e_white = flat_error(white, sensor, L, level, "lut", "compact")
+        e_fast = flat_error(col, sensor, L, level, "lut", "compact")
+        e_full = flat_error(col, sensor, L, level, "lut", "full")
+        assert np.max(np.abs(e_white)) > 25, e_white
+        assert np.max(np.abs(e_fast)) < 11, (e_fast, e_full)
+        assert np.mean(np.abs(e_fast)) < np.mean(np.abs(e_white)) / 4, (e_white, e_fast)
+        assert np.max(np.abs(e_fast - e_full)) < 8, (e_fast, e_full)
+
+
+def test_colour_compact_equals_the_full_table_under_grey_light(colour_coupled):
+    """Grey light: no other-colour spill difference to remove, so the fast setting is the compact LUT: it
+    differs from the full path by what the compact LUT differs from the full table (its resampling error,
+    docs/CROSSTALK.md "Compact LUT"), measured here on the calibration without its per-colour amplitudes,
+    and from that compact LUT by a fraction of a per cent."""
+    sensor, white, col, _, _ = colour_coupled
+    h, w = sensor.mask.shape
+    for level in (300.0, 1500.0, 3500.0):
+        raw = sensor.frame(np.full((h, w), level / GAIN))
+        out = {}
+        for name, p in (("colour", col), ("white", white)):
+            for lut in ("full", "compact"):
+                v, s = validity.classify(raw, p, "threshold", l_min=0)
+                crosstalk.correct(v, s, p, "lut", lut=lut)
+                out[name, lut] = (v, s)
+        sf = out["colour", "full"][1]
+        assert all(np.array_equal(sf, o[1]) for o in out.values())
+        ok = (sf & validity.REASON_MASK) == validity.VALID
+
+        def rel(a, b):
+            return np.abs(out[a][0] - out[b][0])[ok] / out[b][0][ok]
+        fast, compact = rel(("colour", "compact"), ("colour", "full")), rel(("white", "compact"), ("white", "full"))
+        p99 = np.percentile(fast, 99), np.percentile(compact, 99)
+        between = rel(("colour", "compact"), ("white", "compact"))
+        assert np.median(fast) < np.median(compact) + 5e-4 and p99[0] < p99[1] + 0.01, \
+            (level, np.median(fast), np.median(compact), p99)
+        assert np.median(between) < 1e-3 and np.percentile(between, 99) < 0.02, \
+            (level, np.median(between), np.percentile(between, 99))
+
+
+def test_colour_compact_handles_states_as_the_full_path(colour_coupled):
+    """CLIPPED pixels keep their state with their bound lowered to the calibrated clip flux, DARK bounds
+    are mapped through the compact LUT (as the monochrome compact setting maps them), pixels without a
+    calibrated range become UNCALIBRATED (value as measured): the same states and clipped values as the
+    full path."""
+    sensor, _, col, _, _ = colour_coupled
+    h, w = sensor.mask.shape
+    cal = col.crosstalk
+    nk = cal.n_knots.copy()
+    nk[10:14, 20:24] = 1                                   # no calibrated range
+    prof = dataclasses.replace(col, crosstalk=dataclasses.replace(cal, n_knots=nk))
+    plain = dataclasses.replace(col, crosstalk=dataclasses.replace(cal, n_knots=nk, colour=None))
+    flux = np.full((h, w), 2000.0)
+    flux[:, :12] = 40.0 * ND                             # attenuated photosites below l_min: DARK
+    flux[30:, 30:] = 20 * (CLIP - BLACK)                 # every photosite clipped
+    raw = sensor.frame(flux / GAIN * np.asarray(LIGHTS["red"], float)[channels(sensor.cfa, h, w)])
+    v_in, _ = validity.classify(raw, prof, "threshold", l_min=30)
+    out = {}
+    for name, p, lut in (("full", prof, "full"), ("fast", prof, "compact"), ("plain", plain, "compact")):
+        v, s = validity.classify(raw, p, "threshold", l_min=30)
+        crosstalk.correct(v, s, p, "lut", lut=lut)
+        out[name] = (v, s)
+    (vf, sf), (vc, sc), (vp, sp) = out["full"], out["fast"], out["plain"]
+    reason = sf & validity.REASON_MASK
+    for st in (validity.CLIPPED, validity.DARK, validity.UNCALIBRATED, validity.VALID):
+        assert np.any(reason == st), st
+    assert np.array_equal(sf, sc) and np.array_equal(sc, sp)
+    clipped = reason == validity.CLIPPED
+    assert np.array_equal(vf[clipped], vc[clipped]) and np.all(vc[clipped] <= v_in[clipped])
+    unc = reason == validity.UNCALIBRATED
+    assert np.array_equal(vc[unc], v_in[unc])
+    dark = reason == validity.DARK
+    assert np.allclose(vc[dark], vp[dark], rtol=1e-6) and np.allclose(vc[dark], vf[dark], rtol=0.05)
+
+
+def test_identity_colour_calibration_is_the_identity_in_every_colour_setting():
+    """`identity_calibration(colour=True)` (what a colour warm-up needs to reach the colour kernels): no
+    crosstalk, so every setting returns the measured values."""
+    prof = profile.default(12, 16, cfa="rggb")
+    prof = prof.replace(crosstalk=crosstalk.identity_calibration(prof.mask, nd=prof.nd, black_level=prof.black_level,
+                                                                 clip_code=prof.clip_code, colour=True))
+    raw = np.clip(prof.black_level + np.geomspace(5, 3000, 12 * 16).reshape(12, 16), 0, prof.clip_code).astype(np.uint16)
+    for mode, lut in (("lut", "compact"), ("lut", "full"), ("kernel", "full")):
+        v, s = validity.classify(raw, prof, "threshold", l_min=0)
+        v0 = v.copy()
+        crosstalk.correct(v, s, prof, mode, lut=lut)
+        ok = (s & validity.REASON_MASK) == validity.VALID
+        assert ok.sum() > 100 and np.allclose(v[ok], v0[ok], rtol=1e-3, atol=0.05), (mode, lut)
