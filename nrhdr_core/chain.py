@@ -335,10 +335,10 @@ def warmup(settings: ChainSettings | Iterable[ChainSettings] = ChainSettings(), 
                 validity.classify(r, prof, mode=mode, l_min=l_min, dark_policy=dark_policy)
 
     if "crosstalk" in stages and calibrated:
-        calib = crosstalk.identity_calibration(mask, nd=prof.nd, black_level=prof.black_level,
-                                               clip_code=prof.clip_code)
         # a colour camera's calibration with and without per-colour amplitudes (`calibration.colour_spill`)
-        calibs = [calib] + ([dataclasses.replace(calib, colour=np.ones((3, h, w), np.float32))] if colour else [])
+        calibs = [crosstalk.identity_calibration(mask, nd=prof.nd, black_level=prof.black_level,
+                                                 clip_code=prof.clip_code, colour=c)
+                  for c in ((False, True) if colour else (False,))]
         for s in {(s.crosstalk, s.crosstalk_lut): s for s in sets if s.crosstalk != "off"}.values():
             for c in calibs:
                 values, state = _warm_frame(prof, s, raw)
