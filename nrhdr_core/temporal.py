@@ -124,7 +124,8 @@ class TemporalReconstructor:
         blocks, "refined" (the share reconstructed by the method this frame), "pending" (the share reused
         before reaching their temporal quality), "chosen" (the share `_select` chose), "motion" (dy, dx):
         the motion most trusted blocks took (the global estimate where none), "cut", "reset" (True when
-        the frame was reconstructed alone) and "start" (then "preview" or "method")."""
+        the frame was reconstructed alone), "start" (then "preview" or "method") and "reconstructed" (the
+        unknown pixels given to the method, a pixel once for each part that holds it)."""
         from . import validity
         o = self.options
         if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
