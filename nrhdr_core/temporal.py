@@ -124,7 +124,8 @@ class TemporalReconstructor:
         blocks, "refined" (the share reconstructed by the method this frame), "pending" (the share reused
         before reaching their temporal quality), "chosen" (the share `_select` chose), "motion" (dy, dx):
         the motion most trusted blocks took (the global estimate where none), "cut", "reset" (True when
-        the frame was reconstructed alone) and "start" (then "preview" or "method")."""
+        the frame was reconstructed alone), "start" (then "preview" or "method") and "reconstructed" (the
+        unknown pixels given to the method, a pixel once for each part that holds it)."""
         from . import validity
         o = self.options
         if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
@@ -142,7 +143,7 @@ class TemporalReconstructor:
         nby, nbx = (h + bs - 1) // bs, (w + bs - 1) // bs
         report = {"missing": 0, "blocks": nby * nbx, "fresh": 1.0, "refreshed": 0.0, "reused": 0.0,
                   "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True,
-                  "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None}
+                  "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None, "reconstructed": 0}
         if self._prev is not None and self._prev.shape != values.shape:
             self.reset()                     # (`_alone` makes the state's arrays of the new size)
         known, lower, upper, work, pv, pvar, pc, dec, cand, fast = _planes(h, w, nby, nbx)
@@ -187,7 +188,7 @@ class TemporalReconstructor:
         # 3. the other blocks: measured pixels averaged, settled missing pixels reused, the rest reconstructed
         # C order whatever the count (argwhere's result is Fortran-ordered): one signature, the warm-up's
         blocks = np.argwhere(fast == 0).astype(np.int32, order="C")
-        n_todo = 0
+        n_todo = n_rec = 0
         if len(blocks):
             left = np.zeros(len(blocks), np.int64)
             _prepare_blocks(blocks, values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
@@ -196,8 +197,9 @@ class TemporalReconstructor:
             todo = blocks[left > 0]
             n_todo = len(todo)
             if n_todo:
-                self._reconstruct_left(todo, fast, work, known, lower if self.use_bounds else None,
-                                       upper if self.use_bounds else None, state, noise, method, preset)
+                n_rec = self._reconstruct_left(todo, left[left > 0], fast, work, known,
+                                       lower if self.use_bounds else None, upper if self.use_bounds else None,
+                                       state, noise, method, preset)
         # 4. fused with the past, written back, kept as the next frame's past
         n += _finish(values, state, work, pv, pvar, pc, self._prev, self._var, self._cnt, fast, bs, lo_a, up_a,
                     self.use_bounds, g, np.float32(o["rec_noise"]), np.float32(o["rec_tol"]),
@@ -215,7 +217,7 @@ class TemporalReconstructor:
         tot = float(dec.size)
         report.update(missing=int(n), reset=False, fresh=counts[FRESH] / tot, refreshed=counts[REFRESH] / tot,
                       reused=counts[REUSE] / tot, no_prior=counts[NO_PRIOR] / tot,
-                      no_evidence=counts[NO_EVIDENCE] / tot, refined=n_todo / tot,
+                      no_evidence=counts[NO_EVIDENCE] / tot, refined=n_todo / tot, reconstructed=n_rec,
                       pending=float(np.count_nonzero((self._uns > 0) & (dec == REUSE))) / tot,
                       chosen=chosen / tot)
         return report
@@ -250,34 +252,46 @@ class TemporalReconstructor:
         sel.ravel()[cand] = 1
         return len(cand)
 
-    def _reconstruct_left(self, todo, fast, work, known, lower, upper, state, noise, method, preset) -> None:
-        """`reconstruction.reconstruct` of the pixels left unknown in the blocks `todo` ((by, bx) rows), in
-        place in `work`, over as few pixels as it takes (cost follows change): each run of consecutive
-        block rows of `todo` as a band (the full width, MARGIN rows of context above and below) where that
-        is smaller than a mosaic of its blocks (each with MARGIN pixels of context), the other blocks as
-        one mosaic; the whole frame when that is not smaller. Blocks finished in the judgement (`fast`)
-        enter as known context: their new past. Bands and mosaics are cut into PIECES independent parts
-        (`_pieces`) that run side by side."""
+    def _reconstruct_left(self, todo, left, fast, work, known, lower, upper, state, noise, method, preset) -> int:
+        """`reconstruction.reconstruct` of the pixels left unknown in the blocks `todo` ((by, bx) rows;
+        left: their unknown pixels), in place in `work`, over as little work as it takes (cost follows
+        change): each run of consecutive block rows of `todo` as a band (the full width, MARGIN rows of
+        context above and below) or as windows of its blocks (each with MARGIN pixels of context) in one
+        mosaic, whichever `_part_cost` counts less; the whole frame when that covers no fewer pixels.
+        Blocks finished in the judgement (`fast`) enter as known context: their new past. Bands and mosaics
+        are cut into PIECES independent parts (`_pieces`) that run side by side. Returns the unknown pixels
+        given to the method (a pixel once for each part that holds it)."""
         h, w = work.shape
         bs = int(self.options["block"])
         side = bs + 2 * MARGIN
         nby, nbx = fast.shape
         if h < side or w < side:
             self._fill(fast != 0, work, known, lower, upper)
-            return self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
+            self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
+            return h * w - int(np.count_nonzero(known))
+        # the unknown pixels a window reaches: its block's and its neighbours' within MARGIN (the only
+        # unknown pixels are those of `todo`): adjacent windows of a mosaic reconstruct each other's again
+        r = -(-MARGIN // bs)
+        unk = np.zeros((nby + 2 * r, nbx + 2 * r), np.int64)
+        unk[todo[:, 0] + r, todo[:, 1] + r] = left
+        reach = sum(unk[r + dy:nby + r + dy, r + dx:nbx + r + dx] for dy in range(-r, r + 1) for dx in range(-r, r + 1))
         rows = np.unique(todo[:, 0])
         bands, rest = [], []
         for run in np.split(rows, np.flatnonzero(np.diff(rows) > 1) + 1):
             inside = (todo[:, 0] >= run[0]) & (todo[:, 0] <= run[-1])
             y0, y1 = max(int(run[0]) * bs - MARGIN, 0), min(int(run[-1]) * bs + bs + MARGIN, h)
-            if (y1 - y0) * w < int(inside.sum()) * side * side:
+            band = _part_cost((y1 - y0) * w, int(left[inside].sum()))
+            mosaic = _part_cost(int(inside.sum()) * side * side,
+                                int(reach[todo[inside, 0], todo[inside, 1]].sum()))
+            if band < mosaic:
                 bands.append((y0, y1))
             else:
                 rest.append(todo[inside])
         rest = np.concatenate(rest) if rest else todo[:0]
         if sum((y1 - y0) * w for y0, y1 in bands) + len(rest) * side * side >= h * w:
             self._fill(fast != 0, work, known, lower, upper)
-            return self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
+            self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
+            return h * w - int(np.count_nonzero(known))
         near = np.zeros((nby, nbx), np.bool_)            # the finished blocks the bands and windows reach into
         for y0, y1 in bands:
             near[y0 // bs:(y1 - 1) // bs + 1, :] = True
@@ -286,15 +300,16 @@ class TemporalReconstructor:
         for y0, x0 in zip(ys, xs):
             near[y0 // bs:(y0 + side - 1) // bs + 1, x0 // bs:(x0 + side - 1) // bs + 1] = True
         self._fill(near & (fast != 0), work, known, lower, upper)
-        self._pieces(bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
+        return self._pieces(bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
 
-    def _pieces(self, bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset) -> None:
+    def _pieces(self, bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset) -> int:
         """The bands ((y0, y1) rows of `work`) and the mosaic of the blocks `rest` (context windows side x
         side at (ys, xs)) reconstructed in PIECES parts each: a band wider than PIECES x 4 blocks as column
         ranges split at block boundaries (each with MARGIN columns of context across the cut), the mosaic
         as PIECES mosaics of consecutive blocks. Every part reads its input before any part writes, so the
         output does not depend on their order or the threads (the parts are fixed by the counts); they run
-        on `_POOL` (FSE runs a band of a few block rows on one thread)."""
+        on `_POOL` (FSE runs a band of a few block rows on one thread). Returns the unknown pixels of the
+        parts."""
         h, w = work.shape
         bs = int(self.options["block"])
         nbx = (w + bs - 1) // bs
@@ -321,6 +336,7 @@ class TemporalReconstructor:
             return np.ascontiguousarray(a[rr, cc].reshape(len(blocks) * side, side))
 
         inputs = [tuple(take(a, part) for a in (work, known, state, lower, upper)) for part in parts]
+        unknown = sum(k.size - int(np.count_nonzero(k)) for _, k, _, _, _ in inputs)
         outs = list(_run_parts(lambda args: self._reconstruct_part(*args, noise, method, preset), inputs))
         for part, sub in zip(parts, outs):
             if part[0] == "band":
@@ -334,6 +350,7 @@ class TemporalReconstructor:
                 y1, x1 = min(y0 + bs, h), min(x0 + bs, w)
                 oy, ox = y0 - py[i], x0 - px[i]
                 work[y0:y1, x0:x1] = sub[i, oy:oy + y1 - y0, ox:ox + x1 - x0]
+        return unknown
 
     def _reconstruct_part(self, sub, k, st, lo, up, noise, method, preset):
         """`reconstruction.reconstruct` of one part of `_pieces` (its own arrays), in place; returns it."""
@@ -393,6 +410,7 @@ class TemporalReconstructor:
 
 _EMPTY = np.full((1, 1), np.nan, np.float32)
 MARGIN = 16          # pixels of context around a block reconstructed in a mosaic (FSE's support: 16 or 32)
+AREA_COST = 0.12     # FSE's work per pixel of a part (its domain, plan and bounds) in unknown pixels' work
 PIECES = 2           # parts a band or mosaic is reconstructed in, side by side (`_pieces`; the 2-core target)
 _POOL = []           # the threads the parts run on (one executor, made on first use)
 _POOL_LOCK = threading.Lock()
@@ -406,6 +424,13 @@ def _forget_pool() -> None:
 
 
 os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _part_cost(area, unknown) -> float:
+    """The work of reconstructing a part (band or mosaic) of `area` pixels holding `unknown` unknown pixels,
+    in unknown pixels' work: FSE's passes over the part (AREA_COST a pixel) and its windows, as many as the
+    unknown pixels it holds (a mosaic's windows hold their neighbours' too)."""
+    return AREA_COST * area + unknown
 
 
 def _run_parts(fn, items):

@@ -246,3 +246,25 @@ def test_the_rows_where_the_preview_stands_in_most_are_refined_first(prof):
     assert round(reps[1]["chosen"] * reps[1]["blocks"]) == W // 16
     assert changed(v1, v0, 3) > 0.9 and changed(v1, v0, 1) == 0      # the stripe's row first
     assert changed(v2, v1, 1) > 0.9                                    # then the next
+
+
+def test_each_refining_frame_reconstructs_its_blocks_missing_pixels_about_once():
+    """A static shot under a budget of a third of a block row over a clipped stripe two block rows high: every
+    frame refines its budget's blocks (a run of one row or of the end of one and the start of the next) and
+    gives the method about their own missing pixels, once (a band; windows of adjacent blocks in a mosaic
+    would hold each other's missing pixels again: two to three times as many)."""
+    h, w = 96, 512
+    p = profile.default(h, w, seed=5)
+    flux = np.full((h, w), 300.0, np.float32)
+    flux[32:64, :] = 12000.0                        # block rows 2 and 3: regular pixels clipped throughout
+    flux *= np.float32(1.0) + np.float32(0.2) * np.sin(np.arange(w, dtype=np.float32) / 3.0)
+    clip = frames(p, flux, 6)
+    budget = w // 16 // 3
+    _, reps = run(TemporalReconstructor(budget=budget), clip, p)
+    unknown = ((clip[0][1] & REASON_MASK) != VALID).reshape(h // 16, 16, w // 16, 16).sum(axis=(1, 3))
+    most = int(unknown[2:4].max())
+    assert most > 128
+    for r in reps[1:]:
+        refined = round(r["refined"] * r["blocks"])
+        assert refined >= budget              # (and the blocks whose NOISY pixels restarted)
+        assert 0 < r["reconstructed"] <= 1.25 * refined * most
