@@ -312,7 +312,8 @@ def run_to_eos(desc, caps, buffers):
             src.push_buffer(b)
         src.end_of_stream()
         m = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.ERROR | Gst.MessageType.EOS)
-        assert m is not None and m.type == Gst.MessageType.EOS, m and m.parse_error()[0].message
+        assert m is not None and m.type == Gst.MessageType.EOS, m and "{}: {} ({})".format(
+            m.src.get_name(), m.parse_error()[0].message, m.parse_error()[1])   # debug text: which check failed
     finally:
         pipeline.set_state(Gst.State.NULL)
 
