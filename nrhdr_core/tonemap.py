@@ -1101,15 +1101,16 @@ def _rgb_row(rgb, y, k, lev, c, first, thr, sat, fb, fbits, out):
 def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, first, thr, sat, fbuf, fbits, out):
     """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels
     into `lev` (chunks, w), then their display light by the sRGB EOTF table `dec`), shown in colour (`_rgb_row`)
-    into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows."""
+    into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows, before them the log curve's 1 + q v, mantissas and
+    exponents."""
     h, w = out.shape[0], out.shape[1]
     nch = fbuf.shape[0]
     k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
     lmax = np.float32(65535.0)
     for c in prange(nch):
-        ubuf = np.empty(w, np.float32)
-        mbuf = np.empty(w, np.float32)
-        ebuf = np.empty(w, np.float32)
+        ubuf = fbuf[c, 0]
+        mbuf = fbuf[c, 1]
+        ebuf = fbuf[c, 2]
         ubits = ubuf.view(np.int32)
         mbits = mbuf.view(np.int32)
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
