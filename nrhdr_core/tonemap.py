@@ -1027,9 +1027,8 @@ def _luminance(rgb, y, x, k0, k1, k2, kr, kb):
 
 @njit(cache=True, nogil=True, inline="always")
 def _unit(v):
-    """v clamped to [+0, 1]; NaN gives 0."""
-    v = v if v > np.float32(0.0) else np.float32(0.0)
-    return v if v < np.float32(1.0) else np.float32(1.0)
+    """v clamped to [+0, 1]; NaN gives 0 (builtin max(a, b) is b > a ? b : a: selects, never branches)."""
+    return min(max(np.float32(0.0), v), np.float32(1.0))
 
 
 @njit(cache=True, nogil=True, inline="always")
