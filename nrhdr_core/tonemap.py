@@ -501,8 +501,9 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
                 out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, dlut, rows, tbuf, ibuf, dec, bins, thr, sat, fbuf, out):
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, dlut, rows, tbuf, ibuf, dec, first, thr, sat, fbuf, fbits,
+                     out):
     """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour (`_local_display`,
     `_rgb_row`) into sRGB `out` (H, W, 3); `ibuf` (chunks, w) the LUT indices, `fbuf` (chunks, 3, w) the rows'
     channels."""
@@ -511,7 +512,7 @@ def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, dlut, rows, tbuf, ibuf,
     for c in prange(nch):
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
             _local_display(l, ca, cb, y, rows, tbuf, ibuf, c, c0, g1, k0, lut, dlut, dec)
-            _rgb_row(rgb, y, k, tbuf, c, bins, thr, sat, fbuf, out)
+            _rgb_row(rgb, y, k, tbuf, c, first, thr, sat, fbuf, fbits, out)
 
 
 def _display(o):
@@ -1025,30 +1026,41 @@ def _luminance(rgb, y, x, k0, k1, k2, kr, kb):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _into_gamut(t0, t1, t2, yd, tb, c, x):
-    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into tb[c, :, x], clamped to [0, 1]."""
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    mx = max(t0, max(t1, t2))
-    f = (one - yd) / (mx - yd) if mx > one else one
-    tb[c, 0, x] = min(max(yd + (t0 - yd) * f, zero), one)
-    tb[c, 1, x] = min(max(yd + (t1 - yd) * f, zero), one)
-    tb[c, 2, x] = min(max(yd + (t2 - yd) * f, zero), one)
+def _unit(v):
+    """v clamped to [+0, 1]; NaN gives 0 (builtin max(a, b) is b > a ? b : a: selects, never branches)."""
+    return min(max(np.float32(0.0), v), np.float32(1.0))
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rgb_row(rgb, y, k, lev, c, bins, thr, sat, fb, out):
+def _into_gamut(t0, t1, t2, yd, tb, c, x):
+    """Mix (t0, t1, t2) with its grey yd until the largest is at most 1; into tb[c, :, x], clamped (`_unit`)."""
+    one = np.float32(1.0)
+    mx = max(t0, max(t1, t2))
+    f = (one - yd) / (mx - yd) if mx > one else one
+    tb[c, 0, x] = _unit(yd + (t0 - yd) * f)
+    tb[c, 1, x] = _unit(yd + (t1 - yd) * f)
+    tb[c, 2, x] = _unit(yd + (t2 - yd) * f)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _srgb_code(b, first, thr):
+    """The sRGB 8-bit code of the linear light t in [+0, 1] with float32 bit pattern b (uint32): the number of
+    code thresholds at or below t, from the `_srgb_tables` entries of b's top 16 bits (the thresholds below
+    the entry's range, and the bit pattern of the one threshold in its range)."""
+    i = b >> np.uint32(16)
+    return first[i] + np.uint8(b >= thr[i])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rgb_row(rgb, y, k, lev, c, first, thr, sat, fb, fbits, out):
     """Row y of the colour display codes (H, W, 3) from the display light Y' of the grey operator's 16-bit
     level of its luminance (`lev[c]`, the sRGB EOTF of the code): channel t = (c / L)^sat Y' (Y' where L = 0);
-    above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes: the code at the linear bin's start
-    (`bins`, uint8), plus one from the next code's threshold on (a bin holds at most one threshold: exact
-    rounding in the encoded domain). `fb[c]` (3, w): the row's channels. Every array indexed in full (no
-    slices), table indices unsigned (no negative-index wrap); the arithmetic loop vectorises; the code tables
-    (16 KB + 1 KB) stay in L1."""
+    above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes by `_srgb_code` from the bits of t
+    (`fbits`, the uint32 view of `fb`). `fb[c]` (3, w): the row's channels. Every array indexed in full (no
+    slices), table indices unsigned (no negative-index wrap); the arithmetic loop vectorises."""
     npx = lev.shape[1]
     zero = np.float32(0.0)
     one = np.float32(1.0)
-    nb = np.float32(bins.shape[0] - 1)
     wr, wg, wb, kr, kb = k[0], k[1], k[2], k[3], k[4]
     if sat != one:
         for x in range(npx):
@@ -1076,29 +1088,28 @@ def _rgb_row(rgb, y, k, lev, c, bins, thr, sat, fb, out):
             over = mx > one
             mix = (one - yd) / (mx - yd if over else one)
             mix = mix if over else one
-            fb[c, 0, x] = min(max(yd + (t0 - yd) * mix, zero), one)
-            fb[c, 1, x] = min(max(yd + (t1 - yd) * mix, zero), one)
-            fb[c, 2, x] = min(max(yd + (t2 - yd) * mix, zero), one)
+            fb[c, 0, x] = _unit(yd + (t0 - yd) * mix)
+            fb[c, 1, x] = _unit(yd + (t1 - yd) * mix)
+            fb[c, 2, x] = _unit(yd + (t2 - yd) * mix)
     for x in range(npx):
         for ch in range(3):
-            lin = fb[c, ch, x]
-            code = np.uint32(bins[np.uint32(lin * nb)])
-            out[y, x, ch] = code + np.uint32(1) if lin >= thr[code] else code
+            out[y, x, ch] = _srgb_code(fbits[c, ch, x], first, thr)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, fbuf, out):
+def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, first, thr, sat, fbuf, fbits, out):
     """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels
     into `lev` (chunks, w), then their display light by the sRGB EOTF table `dec`), shown in colour (`_rgb_row`)
-    into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows."""
+    into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows, before them the log curve's 1 + q v, mantissas and
+    exponents."""
     h, w = out.shape[0], out.shape[1]
     nch = fbuf.shape[0]
     k0, k1, k2, kr, kb = k[0], k[1], k[2], k[3], k[4]
     lmax = np.float32(65535.0)
     for c in prange(nch):
-        ubuf = np.empty(w, np.float32)
-        mbuf = np.empty(w, np.float32)
-        ebuf = np.empty(w, np.float32)
+        ubuf = fbuf[c, 0]
+        mbuf = fbuf[c, 1]
+        ebuf = fbuf[c, 2]
         ubits = ubuf.view(np.int32)
         mbits = mbuf.view(np.int32)
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
@@ -1113,7 +1124,7 @@ def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, bins, thr, sat, fbuf, o
                 lev[c, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], lev[c, x], q) * inv_den * lmax + np.float32(0.5)
             for x in range(w):
                 lev[c, x] = dec[np.uint32(lev[c, x])]     # the look-up on its own: the loops beside vectorise
-            _rgb_row(rgb, y, k, lev, c, bins, thr, sat, fbuf, out)
+            _rgb_row(rgb, y, k, lev, c, first, thr, sat, fbuf, fbits, out)
 
 
 def srgb_eotf(v):
@@ -1126,14 +1137,21 @@ _SRGB = []
 
 
 def _srgb_tables():
-    """(decode: float32 sRGB EOTF of each 16-bit level, bins: uint8 first code of each of 16384 linear bins,
-    thr: float32 linear threshold between code k and k + 1)."""
+    """(decode: float32 sRGB EOTF of each 16-bit level; first, thr: `_srgb_code`'s uint8 code and uint32
+    threshold bit pattern (2^32 - 1 where none) for each top 16 bits of a float32 in [+0, 1]). Code k + 1
+    starts at the float32 threshold srgb_eotf((k + 0.5) / 255) (rounding in the encoded domain); an entry's
+    range (2^16 bit patterns, less than 0.79 % of its values) holds at most one threshold (those are 0.89 %
+    or more apart)."""
     if not _SRGB:
         dec = srgb_eotf(np.arange(65536) / 65535.0).astype(np.float32)
-        thr = np.append(srgb_eotf((np.arange(255) + 0.5) / 255.0), 2.0).astype(np.float32)
-        edges = (np.arange(16385) / 16384.0).astype(np.float32)
-        bins = np.searchsorted(thr, edges, side="right").astype(np.uint8)
-        _SRGB.append((dec, bins, thr))
+        tb = srgb_eotf((np.arange(255) + 0.5) / 255.0).astype(np.float32).view(np.uint32).astype(np.int64)
+        top = np.arange((0x3F800000 >> 16) + 1, dtype=np.int64)
+        below = np.searchsorted(tb, top << 16, side="left")
+        inside = np.searchsorted(tb, (top + 1) << 16, side="left") - below
+        if inside.max() > 1:
+            raise AssertionError("sRGB code tables: two thresholds in one entry's range")
+        thr = np.where(inside == 1, tb[np.minimum(below, tb.size - 1)], 2 ** 32 - 1).astype(np.uint32)
+        _SRGB.append((dec, below.astype(np.uint8), thr))
     return _SRGB[0]
 
 
@@ -1164,7 +1182,7 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
     lev, ibuf, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
                                                              np.empty((min(h, 64), w), np.int32),
                                                              np.empty((min(h, 64), 3, w), np.float32)))
-    colour = (*_srgb_tables(), np.float32(saturation), fbuf)
+    colour = (*_srgb_tables(), np.float32(saturation), fbuf, fbuf.view(np.uint32))
     if operator == "local":
         (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0,
                                                           (ibuf, *colour), out)

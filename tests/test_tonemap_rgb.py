@@ -99,3 +99,22 @@ def test_padded_output_rows_get_the_same_codes(operator):
     tonemap.tonemap_rgb(rgb, 3e3, operator, out=buf[:, :W * 3].reshape(H, W, 3))
     np.testing.assert_array_equal(buf[:, :W * 3].reshape(H, W, 3), want)
     assert (buf[:, W * 3:] == 77).all()
+
+
+@pytest.mark.parametrize("operator", tonemap.SDR_OPERATORS)
+def test_grey_codes_are_exact(operator):
+    """A grey pixel of a power-of-two value shows exactly its level's display light Y' (c / L = 1, no rounding),
+    so its code is the number of float32 code thresholds srgb_eotf((k + 0.5) / 255) at or below float32 Y':
+    no tolerance, over many levels."""
+    rng = np.random.default_rng(4)
+    grey = np.exp2(rng.integers(-12, 17, (H, W))).astype(np.float32)
+    thresholds = srgb_eotf((np.arange(255) + 0.5) / 255.0).astype(np.float32)
+    for white in (1.0, 37.0, 3e3, 5e4):
+        if operator == "log":
+            level = tonemap.log_tonemap(grey, white, dtype=np.uint16)
+        else:
+            level = tonemap.LocalTonemap()(grey, white, dtype=np.uint16)
+        want = np.searchsorted(thresholds, srgb_eotf(level / 65535.0).astype(np.float32), side="right")
+        got = tonemap.tonemap_rgb(np.stack([grey] * 3), white, operator)
+        for ch in range(3):
+            np.testing.assert_array_equal(got[..., ch], want)
