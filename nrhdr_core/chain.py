@@ -46,7 +46,8 @@ PRESETS = tuple(FSE_PRESETS)
 TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
 STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
 TEMPORAL_MODES = ("off", "on")           # nrreconstruct temporal
-TEMPORAL_BUDGET = 120                    # nrreconstruct temporal-budget: blocks per frame (docs/TEMPORAL.md)
+TEMPORAL_BUDGET = 120                    # nrreconstruct temporal-budget: blocks' worth of FSE work a frame
+                                         # (docs/TEMPORAL.md)
 MAX_TEMPORAL_BUDGET = 1 << 20
 COLOUR_METHODS = ("preview", "fse")      # the reconstruction methods of a colour mosaic (demosaic.METHODS)
 
@@ -64,7 +65,7 @@ class ChainSettings:
     use_bounds: bool = True          # nrreconstruct use-bounds
     noise_fusion: str = "auto"       # nrreconstruct noise-fusion (NOISY pixels: auto, accurate or fast)
     temporal: str = "off"            # nrreconstruct temporal (on: `process_frame` needs a TemporalReconstructor)
-    temporal_budget: int = TEMPORAL_BUDGET   # nrreconstruct temporal-budget (blocks per frame; 0 = no bound)
+    temporal_budget: int = TEMPORAL_BUDGET   # nrreconstruct temporal-budget (blocks' worth a frame; 0 = no bound)
     operator: str = "local"          # nrtonemap operator (tonemap.SDR_OPERATORS; docs/TONEMAP.md)
     white: float | None = None       # nrtonemap white (None = the profile's white, as in the caps)
     exposure: float = 0.0            # nrtonemap exposure (stops)
