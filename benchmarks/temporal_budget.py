@@ -25,7 +25,8 @@ sys.path.insert(0, str(ROOT))
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--budgets", default="0,120,240", help="comma-separated blocks per frame (0: no bound)")
+    ap.add_argument("--budgets", default="0,120,240",
+                    help="comma-separated budgets: blocks' worth of FSE work a frame (0: no bound)")
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--size", default="1920x1080", help="WIDTHxHEIGHT")

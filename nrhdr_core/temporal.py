@@ -180,14 +180,15 @@ class TemporalReconstructor:
             report["cut"] = True
             _undo_fast(values, state, work, fast, bs)
             return self._alone(values, state, noise, report, g, floor, nd)
-        if cy.size == 1:
+        if cy.size == 1 and self._order is not None:
+            # chosen blocks beyond the budget now: reused as they are, as the judgement reuses the blocks not
+            # chosen (the kernel runs on every budgeted still frame, so that the warm-up compiles it)
             late = self._over_budget(dec)
-            if late is not None:            # reused as they are, as the judgement reuses the blocks not chosen
-                dec[late != 0] = REUSE
-                sel[late != 0] = 0
-                n += _reuse_late(values, state, self._prev, self._var, self._cnt, pv, late, fast, bs,
-                                 self.use_bounds, g, floor, nd, np.float32(o["tol"]), np.float32(Z_OUT),
-                                 np.float32(o["max_frames"]))
+            dec[late != 0] = REUSE
+            sel[late != 0] = 0
+            n += _reuse_late(values, state, self._prev, self._var, self._cnt, pv, late, fast, bs,
+                             self.use_bounds, g, floor, nd, np.float32(o["tol"]), np.float32(Z_OUT),
+                             np.float32(o["max_frames"]))
         method, preset = self.method, self.preset
         if callable(method):
             method, preset = method(n_unknown / float(h * w)) if n_unknown else ("preview", preset)
@@ -285,18 +286,15 @@ class TemporalReconstructor:
     def _over_budget(self, dec):
         """After the judgement: where a chosen block now holds more unknown pixels than the selection
         counted (`_unk`, this frame's), the chosen REFRESH blocks that no longer fit the budget (`_fit`, in
-        the selection's order), as a (nby, nbx) uint8 mask (None: none): they are reused as they are
-        instead, so that FSE's work on the chosen blocks never exceeds the budget."""
+        the selection's order), as a (nby, nbx) uint8 mask: they are reused as they are instead, so that
+        FSE's work on the chosen blocks never exceeds the budget."""
+        late = np.zeros(dec.shape, np.uint8)
         order = self._order
-        if order is None or not len(order) or not (self._unk.ravel()[order] > self._est).any():
-            return None
+        if not len(order) or not (self._unk.ravel()[order] > self._est).any():
+            return late
         k = _fit(order, self._unk, self._work_cap(), int(self.options["block"]), self._prev.shape)
         drop = order[k:]
-        drop = drop[dec.ravel()[drop] == REFRESH]
-        if not len(drop):
-            return None
-        late = np.zeros(dec.shape, np.uint8)
-        late.ravel()[drop] = 1
+        late.ravel()[drop[dec.ravel()[drop] == REFRESH]] = 1
         return late
 
     def _reconstruct_left(self, todo, left, fast, work, known, lower, upper, state, noise, method, preset) -> int:
@@ -623,8 +621,8 @@ def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, re
     `placeholder` (a preview start) the missing pixels that are not NOISY as no frame averaged (variance
     inf, count 0): the first reconstruction of their block replaces them. uns[by, bx] = the block's
     pixels not VALID whose past averages fewer than `reuse_frames` frames (unsettled, as `_still_rows`
-    counts them), unk[by, bx] = its pixels not VALID; held[by] = the placeholders of block row by. One pass per block row, branch-free over
-    whole rows (it vectorises)."""
+    counts them), unk[by, bx] = its pixels not VALID; held[by] = the placeholders of block row by. One
+    pass per block row, branch-free over whole rows (it vectorises)."""
     h, w = values.shape
     nby, nbx = uns.shape
     inf = np.float32(np.inf)
