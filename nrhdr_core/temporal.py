@@ -189,6 +189,8 @@ class TemporalReconstructor:
             n += _reuse_late(values, state, self._prev, self._var, self._cnt, pv, late, fast, bs,
                              self.use_bounds, g, floor, nd, np.float32(o["tol"]), np.float32(Z_OUT),
                              np.float32(o["max_frames"]))
+            if late.any():
+                counts = np.bincount(dec.ravel(), minlength=5)
         method, preset = self.method, self.preset
         if callable(method):
             method, preset = method(n_unknown / float(h * w)) if n_unknown else ("preview", preset)
