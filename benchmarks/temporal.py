@@ -90,8 +90,8 @@ def renderer(kind, scenes, j, prof, frames, seed):
 
 
 def temporal(budget=None):
-    """The temporal state for `SETTINGS`' reconstruction (`budget`: blocks per frame; None: the chain's default,
-    as nrreconstruct temporal-budget)."""
+    """The temporal state for `SETTINGS`' reconstruction (`budget`: blocks' worth of FSE work a frame; None:
+    the chain's default, as nrreconstruct temporal-budget)."""
     return TemporalReconstructor(method=SETTINGS.method, preset=SETTINGS.preset, use_bounds=SETTINGS.use_bounds,
                                  fusion=SETTINGS.noise_fusion,
                                  budget=SETTINGS.temporal_budget if budget is None else budget)
@@ -305,10 +305,10 @@ def live_lost(ms, fps=LIVE_FPS, frames=LIVE_FRAMES) -> int:
 def shot(scene_list, h, w, frames, seed, repeat, budget):
     """A static shot from its first frame at h x w (the first scene): per frame the reconstruction stage's ms
     (best of `repeat` after an untimed pass) and log2 PSNR (all pixels) against the truth, for preview,
-    fse fast, fse fast with the temporal state under `budget` (blocks per frame; the default) and without a
-    bound (budget 0), back to back on each frame. Returns {config: {"ms", "psnr", "mean", "worst", "steady",
-    "lost"}} and "frames_to_quality": the first frame from which the budgeted shot stays within QUALITY_TOL
-    dB of the unbounded one."""
+    fse fast, fse fast with the temporal state under `budget` (blocks' worth of FSE work a frame; the
+    default) and without a bound (budget 0), back to back on each frame. Returns {config: {"ms", "psnr",
+    "mean", "worst", "steady", "lost"}} and "frames_to_quality": the first frame from which the budgeted
+    shot stays within QUALITY_TOL dB of the unbounded one."""
     prof = profile.default(h, w, seed=3)
     configs = [("preview", PREVIEW, None), ("off", SETTINGS, None), ("on", SETTINGS, temporal(budget)),
                ("unbounded", SETTINGS, temporal(0))]
@@ -413,7 +413,7 @@ def main(argv=None) -> int:
                     help="HDR scene files, or 'synthetic' (default: GoldenGate, memorial, venice_sunset in the "
                          "shared data where present, else all of its HDR scenes)")
     ap.add_argument("--temporal-budget", type=int, default=None,
-                    help=f"temporal on: blocks a frame (nrreconstruct temporal-budget; default "
+                    help=f"temporal on: blocks' worth of FSE work a frame (nrreconstruct temporal-budget; default "
                          f"{chain.TEMPORAL_BUDGET}, 0 = no bound)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default=str(OUT))

@@ -8,7 +8,8 @@ Prints per configuration: ms mean over the shot and worst frame (and both as mul
 of the second half, the frames a 30 fps live source would lose behind a leaky queue of one (`live_lost`), each
 frame against the preview's same frame (timed back to back: the most, as a multiple, and the frames above it),
 log2 PSNR (all pixels) at four frames and, with budget 0 (no bound) among the budgets, the frame from which the
-shot stays within `QUALITY_TOL` dB of it.
+shot stays within `QUALITY_TOL` dB of it; then per budget FSE's work a refining frame (the reports' "work",
+in unknown pixels' work: the budget's, and the blocks reconstructed alone on top).
 """
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ sys.path.insert(0, str(ROOT))
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--budgets", default="0,120,240", help="comma-separated blocks per frame (0: no bound)")
+    ap.add_argument("--budgets", default="0,120,240",
+                    help="comma-separated budgets: blocks' worth of FSE work a frame (0: no bound)")
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--size", default="1920x1080", help="WIDTHxHEIGHT")
@@ -69,7 +71,22 @@ def main(argv=None) -> int:
               f"{ms.mean() / p0.mean():.2f} / {ms.max() / p0.max():.2f} | {(ms / p0).max():.2f} "
               f"({int(np.argmax(ms / p0))}) / {int(np.sum(ms > p0))} | {reach} | "
               f"{' / '.join(f'{p[i]:.2f}' for i in marks)} |")
+    for b in budgets:
+        tr = bt.temporal(b)
+        work = []
+        for v, s in classified(raws, prof, bt):
+            work.append(tr.process(v, s, noise=prof)["work"])
+        work = np.array(work[1:])
+        print(f"budget {b}: FSE work a frame, frames 1-{n - 1}: {work.min() / 1e3:.1f} - {work.max() / 1e3:.1f} "
+              f"thousand (median {np.median(work) / 1e3:.1f})")
     return 0
+
+
+def classified(raws, prof, bt):
+    """The raw frames classified as `benchmarks/temporal.py` `timed` classifies them."""
+    from nrhdr_core import validity
+    s = bt.SETTINGS
+    return [validity.classify(raw, prof, mode=s.mode, l_min=s.l_min, dark_policy=s.dark_policy) for raw in raws]
 
 
 if __name__ == "__main__":

@@ -46,7 +46,8 @@ PRESETS = tuple(FSE_PRESETS)
 TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
 STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
 TEMPORAL_MODES = ("off", "on")           # nrreconstruct temporal
-TEMPORAL_BUDGET = 120                    # nrreconstruct temporal-budget: blocks per frame (docs/TEMPORAL.md)
+TEMPORAL_BUDGET = 90                     # nrreconstruct temporal-budget: blocks' worth of FSE work a frame
+                                         # (docs/TEMPORAL.md)
 MAX_TEMPORAL_BUDGET = 1 << 20
 COLOUR_METHODS = ("preview", "fse")      # the reconstruction methods of a colour mosaic (demosaic.METHODS)
 
@@ -64,7 +65,7 @@ class ChainSettings:
     use_bounds: bool = True          # nrreconstruct use-bounds
     noise_fusion: str = "auto"       # nrreconstruct noise-fusion (NOISY pixels: auto, accurate or fast)
     temporal: str = "off"            # nrreconstruct temporal (on: `process_frame` needs a TemporalReconstructor)
-    temporal_budget: int = TEMPORAL_BUDGET   # nrreconstruct temporal-budget (blocks per frame; 0 = no bound)
+    temporal_budget: int = TEMPORAL_BUDGET   # nrreconstruct temporal-budget (blocks' worth a frame; 0 = no bound)
     operator: str = "local"          # nrtonemap operator (tonemap.SDR_OPERATORS; docs/TONEMAP.md)
     white: float | None = None       # nrtonemap white (None = the profile's white, as in the caps)
     exposure: float = 0.0            # nrtonemap exposure (stops)
@@ -252,14 +253,15 @@ def _warm_temporal(prof, s: ChainSettings, raw: np.ndarray) -> None:
     averaging, the reconstruction of what is left, the fusion with the past, the finished still blocks), a cut
     after them (the finished blocks' input restored), one moved by a pixel (the aligned past) and one moved by
     three (the phase correlation of `temporal.global_motion`); the frame and mask tiled 2 x 2, so that the
-    correlation has its 4 x 4 cells."""
-    tr = temporal_for(s)
+    correlation has its 4 x 4 cells; and under a budget of one block, so that the budgeted path (the preview
+    start, the blocks chosen by their work) is compiled whatever the frame's size."""
     prof = prof.replace(mask=np.tile(prof.mask, (2, 2)), defects=None)
     raw = np.tile(raw, (2, 2))
     cut = np.ascontiguousarray(raw[::-1, ::-1])
-    for frame in [raw] * 6 + [cut, np.roll(cut, 1, axis=1), np.roll(cut, 4, axis=1)]:
-        values, state = _warm_frame(prof, s, frame)
-        tr.process(values, state, noise=prof)
+    for tr in (temporal_for(s), temporal_for(dataclasses.replace(s, temporal_budget=1))):
+        for frame in [raw] * 6 + [cut, np.roll(cut, 1, axis=1), np.roll(cut, 4, axis=1)]:
+            values, state = _warm_frame(prof, s, frame)
+            tr.process(values, state, noise=prof)
 
 
 def _padded(a: np.ndarray, pad: int) -> np.ndarray:

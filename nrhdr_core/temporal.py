@@ -28,10 +28,11 @@ Per frame (`TemporalReconstructor.process`):
 5. untrusted blocks (motion the candidates do not explain, occlusion, a block with outliers) are
    reconstructed alone.
 
-Under a budget (option ``budget``: blocks a frame, `TemporalReconstructor._select`) a restart is the
-preview's frame alone with placeholders for its missing pixels, and only ``budget`` of the still blocks
-whose missing pixels are not settled are refined a frame, the fewest reconstructions first, then the
-block rows with the most placeholders, then in scan order; the others are reused as they are
+Under a budget (option ``budget``: FSE's work a frame in blocks' worth, `TemporalReconstructor._select`)
+a restart is the preview's frame alone with placeholders for its missing pixels, and of the still blocks
+whose missing pixels are not settled only as many are refined a frame as FSE's work on them fits the
+budget (`_fit`: bands and mosaics as `_reconstruct_left` counts them), the fewest reconstructions first,
+then the block rows with the most placeholders, then in scan order; the others are reused as they are
 (docs/TEMPORAL.md "Budget").
 
 The state (the previous output, its per-pixel variance and frame count) belongs to the instance: one per
@@ -76,7 +77,7 @@ DEFAULTS = dict(
     rec_tol=0.03,      # ... plus (rec_tol x level)^2: the model error averaging does not remove
     rec_texture=0.5,   # ... plus rec_texture x (half the 3 x 3 range)^2: larger at edges and in texture
     min_evidence=8,    # measured pixels a block needs to be judged
-    budget=0,          # blocks per frame FSE refines in a still shot (0: every block that needs it; docs/TEMPORAL.md)
+    budget=0,          # FSE's work a frame in a still shot, in blocks' worth (0: no bound; docs/TEMPORAL.md)
 )
 
 
@@ -106,7 +107,7 @@ class TemporalReconstructor:
         self.method, self.preset, self.use_bounds, self.fusion = method, preset, bool(use_bounds), fusion
         self.options = o
         self._prev = self._var = self._cnt = None
-        self._level = self._uns = self._hold = self._rank = None
+        self._level = self._uns = self._unk = self._hold = self._rank = self._order = None
         self.frames = 0          # frames since the last reset
 
     def reset(self) -> None:
@@ -143,7 +144,8 @@ class TemporalReconstructor:
         nby, nbx = (h + bs - 1) // bs, (w + bs - 1) // bs
         report = {"missing": 0, "blocks": nby * nbx, "fresh": 1.0, "refreshed": 0.0, "reused": 0.0,
                   "no_prior": 0.0, "no_evidence": 0.0, "motion": (0.0, 0.0), "cut": False, "reset": True,
-                  "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None, "reconstructed": 0}
+                  "refined": 0.0, "pending": 0.0, "chosen": 0.0, "start": None, "reconstructed": 0,
+                  "work": 0.0}
         if self._prev is not None and self._prev.shape != values.shape:
             self.reset()                     # (`_alone` makes the state's arrays of the new size)
         known, lower, upper, work, pv, pvar, pc, dec, cand, fast = _planes(h, w, nby, nbx)
@@ -163,7 +165,7 @@ class TemporalReconstructor:
             values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand, fast, work, g, floor,
             nd, np.float32(o["z_mean"]), np.float32(o["outliers"]), np.float32(o["tol"]), np.float32(Z_OUT),
             int(o["min_evidence"]), np.float32(o["reuse_frames"]), cmis, self.use_bounds,
-            np.float32(o["max_frames"]), cy.size == 1, sel, self._uns)
+            np.float32(o["max_frames"]), cy.size == 1, sel, self._uns, self._unk)
         if n_flagged or n_bad:
             # pixels filled upstream or non-finite measurements: the general single-frame path judges them
             _undo_fast(values, state, work, fast, bs)
@@ -178,6 +180,17 @@ class TemporalReconstructor:
             report["cut"] = True
             _undo_fast(values, state, work, fast, bs)
             return self._alone(values, state, noise, report, g, floor, nd)
+        if cy.size == 1 and self._order is not None:
+            # chosen blocks beyond the budget now: reused as they are, as the judgement reuses the blocks not
+            # chosen (the kernel runs on every budgeted still frame, so that the warm-up compiles it)
+            late = self._over_budget(dec)
+            dec[late != 0] = REUSE
+            sel[late != 0] = 0
+            n += _reuse_late(values, state, self._prev, self._var, self._cnt, pv, late, fast, bs,
+                             self.use_bounds, g, floor, nd, np.float32(o["tol"]), np.float32(Z_OUT),
+                             np.float32(o["max_frames"]))
+            if late.any():
+                counts = np.bincount(dec.ravel(), minlength=5)
         method, preset = self.method, self.preset
         if callable(method):
             method, preset = method(n_unknown / float(h * w)) if n_unknown else ("preview", preset)
@@ -189,6 +202,7 @@ class TemporalReconstructor:
         # C order whatever the count (argwhere's result is Fortran-ordered): one signature, the warm-up's
         blocks = np.argwhere(fast == 0).astype(np.int32, order="C")
         n_todo = n_rec = 0
+        n_work = 0.0
         if len(blocks):
             left = np.zeros(len(blocks), np.int64)
             _prepare_blocks(blocks, values, state, self._prev, self._var, self._cnt, cy, cx, bs, dec, cand,
@@ -197,7 +211,7 @@ class TemporalReconstructor:
             todo = blocks[left > 0]
             n_todo = len(todo)
             if n_todo:
-                n_rec = self._reconstruct_left(todo, left[left > 0], fast, work, known,
+                n_rec, n_work = self._reconstruct_left(todo, left[left > 0], fast, work, known,
                                        lower if self.use_bounds else None, upper if self.use_bounds else None,
                                        state, noise, method, preset)
         # 4. fused with the past, written back, kept as the next frame's past
@@ -218,6 +232,7 @@ class TemporalReconstructor:
         report.update(missing=int(n), reset=False, fresh=counts[FRESH] / tot, refreshed=counts[REFRESH] / tot,
                       reused=counts[REUSE] / tot, no_prior=counts[NO_PRIOR] / tot,
                       no_evidence=counts[NO_EVIDENCE] / tot, refined=n_todo / tot, reconstructed=n_rec,
+                      work=n_work,
                       pending=float(np.count_nonzero((self._uns > 0) & (dec == REUSE))) / tot,
                       chosen=chosen / tot)
         return report
@@ -230,27 +245,59 @@ class TemporalReconstructor:
 
     def _select(self, sel) -> int:
         """sel = 1 at the blocks that may be refined this frame (reconstructed by the method and fused with
-        their past when they are still and trusted): without a budget every block; with one, `budget` of
-        the blocks whose missing pixels are not settled (`_uns`, as the last judgement counted them), the
+        their past when they are still and trusted): without a budget every block; with one, of the blocks
+        whose missing pixels are not settled (`_uns`, as the last judgement counted them) in the order the
         fewest reconstructions averaged first (`_level`), then by block row, the rows with the most
         placeholders at the restart first (`_rank`: where the preview stands in for the most missing
-        pixels), then in scan order (deterministic: the same frames give the same choice; the chosen
-        blocks of a static shot are whole block rows: bands). Returns how many blocks with unsettled
-        pixels were chosen."""
+        pixels), then in scan order, as many as FSE's work on them fits the budget (`_fit`, their unknown
+        pixels as the last judgement counted them: `_unk`). Deterministic: the same frames give the same
+        choice; the chosen blocks of a static shot are runs of whole block rows: bands. Returns how many
+        blocks with unsettled pixels were chosen."""
         uns = self._uns.ravel()
+        self._order = self._est = None
         if not self._budgeted(sel.size):
             sel[...] = 1
             return int(np.count_nonzero(uns))
-        b = int(self.options["budget"])
+        bs = int(self.options["block"])
+        cap = self._work_cap()
         sel[...] = 0
         cand = np.flatnonzero(uns > 0)
-        if len(cand) > b:
-            nbx = sel.shape[1]
+        nbx = sel.shape[1]
+        # no more blocks fit than the budget over the least a block can cost (its area in a band, 1 unknown)
+        most = min(len(cand), int(cap // _part_cost(bs * bs, 1)) + 1)
+        if len(cand):
             key = (self._level.ravel()[cand].astype(np.int64) * sel.size + self._rank[cand // nbx] * nbx
                    + cand % nbx)
-            cand = cand[np.argpartition(key, b - 1)[:b]]
+            if most < len(cand):
+                part = np.argpartition(key, most - 1)[:most]
+                cand, key = cand[part], key[part]
+            cand = cand[np.argsort(key, kind="stable")]
+            cand = cand[:_fit(cand, self._unk, cap, bs, self._prev.shape)]
         sel.ravel()[cand] = 1
+        self._order = cand
+        self._est = self._unk.ravel()[cand]
         return len(cand)
+
+    def _work_cap(self) -> float:
+        """The budget in FSE's work (`_part_cost` units): `budget` blocks' worth, a block's worth being the
+        work of a block every pixel of which is unknown in a band (its area with MARGIN rows of context above
+        and below)."""
+        bs = int(self.options["block"])
+        return int(self.options["budget"]) * _part_cost(bs * (bs + 2 * MARGIN), bs * bs)
+
+    def _over_budget(self, dec):
+        """After the judgement: where a chosen block now holds more unknown pixels than the selection
+        counted (`_unk`, this frame's), the chosen REFRESH blocks that no longer fit the budget (`_fit`, in
+        the selection's order), as a (nby, nbx) uint8 mask: they are reused as they are instead, so that
+        FSE's work on the chosen blocks never exceeds the budget."""
+        late = np.zeros(dec.shape, np.uint8)
+        order = self._order
+        if not len(order) or not (self._unk.ravel()[order] > self._est).any():
+            return late
+        k = _fit(order, self._unk, self._work_cap(), int(self.options["block"]), self._prev.shape)
+        drop = order[k:]
+        late.ravel()[drop[dec.ravel()[drop] == REFRESH]] = 1
+        return late
 
     def _reconstruct_left(self, todo, left, fast, work, known, lower, upper, state, noise, method, preset) -> int:
         """`reconstruction.reconstruct` of the pixels left unknown in the blocks `todo` ((by, bx) rows;
@@ -260,7 +307,9 @@ class TemporalReconstructor:
         mosaic, whichever `_part_cost` counts less; the whole frame when that covers no fewer pixels.
         Blocks finished in the judgement (`fast`) enter as known context: their new past. Bands and mosaics
         are cut into PIECES independent parts (`_pieces`) that run side by side. Returns the unknown pixels
-        given to the method (a pixel once for each part that holds it)."""
+        given to the method (a pixel once for each part that holds it) and their work (`_part_cost`:
+        the bands' and mosaics' as the choice between them counts it, the whole frame's when that is
+        reconstructed)."""
         h, w = work.shape
         bs = int(self.options["block"])
         side = bs + 2 * MARGIN
@@ -268,7 +317,8 @@ class TemporalReconstructor:
         if h < side or w < side:
             self._fill(fast != 0, work, known, lower, upper)
             self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
-            return h * w - int(np.count_nonzero(known))
+            unknown = h * w - int(np.count_nonzero(known))
+            return unknown, _part_cost(h * w, unknown)
         # the unknown pixels a window reaches: its block's and its neighbours' within MARGIN (the only
         # unknown pixels are those of `todo`): adjacent windows of a mosaic reconstruct each other's again
         r = -(-MARGIN // bs)
@@ -277,12 +327,14 @@ class TemporalReconstructor:
         reach = sum(unk[r + dy:nby + r + dy, r + dx:nbx + r + dx] for dy in range(-r, r + 1) for dx in range(-r, r + 1))
         rows = np.unique(todo[:, 0])
         bands, rest = [], []
+        cost = 0.0
         for run in np.split(rows, np.flatnonzero(np.diff(rows) > 1) + 1):
             inside = (todo[:, 0] >= run[0]) & (todo[:, 0] <= run[-1])
             y0, y1 = max(int(run[0]) * bs - MARGIN, 0), min(int(run[-1]) * bs + bs + MARGIN, h)
             band = _part_cost((y1 - y0) * w, int(left[inside].sum()))
             mosaic = _part_cost(int(inside.sum()) * side * side,
                                 int(reach[todo[inside, 0], todo[inside, 1]].sum()))
+            cost += min(band, mosaic)
             if band < mosaic:
                 bands.append((y0, y1))
             else:
@@ -291,7 +343,8 @@ class TemporalReconstructor:
         if sum((y1 - y0) * w for y0, y1 in bands) + len(rest) * side * side >= h * w:
             self._fill(fast != 0, work, known, lower, upper)
             self._reconstruct_rows(work, known, lower, upper, state, noise, method, preset, 0, h)
-            return h * w - int(np.count_nonzero(known))
+            unknown = h * w - int(np.count_nonzero(known))
+            return unknown, _part_cost(h * w, unknown)
         near = np.zeros((nby, nbx), np.bool_)            # the finished blocks the bands and windows reach into
         for y0, y1 in bands:
             near[y0 // bs:(y1 - 1) // bs + 1, :] = True
@@ -300,7 +353,8 @@ class TemporalReconstructor:
         for y0, x0 in zip(ys, xs):
             near[y0 // bs:(y0 + side - 1) // bs + 1, x0 // bs:(x0 + side - 1) // bs + 1] = True
         self._fill(near & (fast != 0), work, known, lower, upper)
-        return self._pieces(bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset)
+        return (self._pieces(bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset),
+                cost)
 
     def _pieces(self, bands, rest, ys, xs, side, work, known, lower, upper, state, noise, method, preset) -> int:
         """The bands ((y0, y1) rows of `work`) and the mosaic of the blocks `rest` (context windows side x
@@ -392,10 +446,11 @@ class TemporalReconstructor:
             self._cnt = np.empty(values.shape, np.uint8)
             self._level = np.empty((nby, nbx), np.uint8)
             self._uns = np.empty((nby, nbx), np.int32)
+            self._unk = np.empty((nby, nbx), np.int32)
             self._hold = np.empty(nby, np.int64)
         _restart(values, state, self._prev, self._var, self._cnt, g, floor, nd, np.float32(o["rec_noise"]),
                  np.float32(o["rec_tol"]), np.float32(o["rec_texture"]), preview, bs,
-                 np.float32(o["reuse_frames"]), self._uns, self._hold)
+                 np.float32(o["reuse_frames"]), self._uns, self._unk, self._hold)
         self._level[...] = 0 if preview else 1
         # block rows by their placeholders, most first (ties in scan order): the order `_select` refines in
         self._rank = np.empty(nby, np.int64)
@@ -431,6 +486,80 @@ def _part_cost(area, unknown) -> float:
     in unknown pixels' work: FSE's passes over the part (AREA_COST a pixel) and its windows, as many as the
     unknown pixels it holds (a mosaic's windows hold their neighbours' too)."""
     return AREA_COST * area + unknown
+
+
+def _fit(order, unk, cap, bs, shape) -> int:
+    """How many of the blocks `order` (flat indices, in the order they are chosen) fit a budget of `cap` in
+    FSE's work (`_part_cost`), reconstructed as `TemporalReconstructor._reconstruct_left` does: each run of
+    consecutive block rows as a band or a mosaic, whichever costs less (unk: the blocks' unknown pixels).
+    Whole runs of one block row are tried at once (vectorised): the work of the first k blocks of a run
+    grows with k. At least one block (a budget smaller than a block still refines the shot)."""
+    h, w = shape
+    nby, nbx = unk.shape
+    side = bs + 2 * MARGIN
+    r = -(-MARGIN // bs)
+    rows = order // nbx
+    cols = order % nbx
+    u_all = unk.ravel()[order].astype(np.float64)
+    su = np.zeros((nby + 2 * r, nbx + 2 * r))        # the chosen blocks' unknown pixels (reach of a window)
+    sn = np.zeros((nby + 2 * r, nbx + 2 * r))        # 1 at the chosen blocks
+    band_u = np.zeros(nby)                            # per block row: the chosen blocks' unknown pixels
+    mos = np.zeros(nby)                               # ... their mosaic's work (neighbours' reach included)
+    has = np.zeros(nby, np.bool_)
+    starts = np.r_[0, np.flatnonzero(np.diff(rows) != 0) + 1, len(order)]
+
+    def runs_cost(mask):
+        """The work of the runs of block rows `mask` marks: per run min(band, mosaic)."""
+        if not mask.any():
+            return 0.0
+        idx = np.flatnonzero(mask)
+        cuts = np.flatnonzero(np.diff(idx) > 1) + 1
+        total = 0.0
+        for run in np.split(idx, cuts):
+            y0, y1 = max(int(run[0]) * bs - MARGIN, 0), min(int(run[-1]) * bs + bs + MARGIN, h)
+            total += min(_part_cost((y1 - y0) * w, band_u[run].sum()), mos[run].sum())
+        return total
+
+    taken = 0
+    for a, b in zip(starts[:-1], starts[1:]):
+        row = int(rows[a])
+        c = cols[a:b]
+        u = u_all[a:b]
+        # each block's mosaic work: its window's area and unknown pixels, and the reach between it and the
+        # chosen blocks around it (both ways); neighbours earlier in this run of the row counted too
+        win_u = sum(su[row + r + dy, c + r + dx] for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+        win_n = sum(sn[row + r + dy, c + r + dx] for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+        dm = _part_cost(side * side, u) + win_u + win_n * u
+        if len(c) > 1:
+            # earlier blocks of this run within r columns of each later one (the runs are in column order)
+            for k in range(1, r + 1):
+                near = (c[k:] - c[:-k]) <= r
+                dm[k:] += near * (u[:-k] + u[k:])
+        was = has[row]
+        has[row] = True
+        lo = hi = row
+        while lo > 0 and has[lo - 1]:
+            lo -= 1
+        while hi < nby - 1 and has[hi + 1]:
+            hi += 1
+        inrun = np.zeros(nby, np.bool_)
+        inrun[lo:hi + 1] = True
+        other = runs_cost(has & ~inrun)
+        y0, y1 = max(lo * bs - MARGIN, 0), min(hi * bs + bs + MARGIN, h)
+        band = _part_cost((y1 - y0) * w, band_u[lo:hi + 1].sum() + np.cumsum(u))
+        mosaic = mos[lo:hi + 1].sum() + np.cumsum(dm)
+        k = int(np.searchsorted(other + np.minimum(band, mosaic), cap, side="right"))
+        if k == 0 and taken == 0:
+            k = 1
+        if k < len(c):
+            has[row] = was or k > 0
+            return taken + k
+        band_u[row] += u.sum()
+        mos[row] += dm.sum()
+        su[row + r, c + r] = u
+        sn[row + r, c + r] = 1
+        taken += len(c)
+    return taken
 
 
 def _run_parts(fn, items):
@@ -488,14 +617,14 @@ def _tex_var(img, y, x, h, w, rec_tex):
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, rec_tex, placeholder, bs,
-             reuse_frames, uns, held):
+             reuse_frames, uns, unk, held):
     """The past after a frame reconstructed alone: its output, measured pixels with their noise variance,
     the others with a fresh reconstruction's (+ `_tex_var`), each the average of 1 frame; with
     `placeholder` (a preview start) the missing pixels that are not NOISY as no frame averaged (variance
     inf, count 0): the first reconstruction of their block replaces them. uns[by, bx] = the block's
     pixels not VALID whose past averages fewer than `reuse_frames` frames (unsettled, as `_still_rows`
-    counts them); held[by] = the placeholders of block row by. One pass per block row, branch-free over
-    whole rows (it vectorises)."""
+    counts them), unk[by, bx] = its pixels not VALID; held[by] = the placeholders of block row by. One
+    pass per block row, branch-free over whole rows (it vectorises)."""
     h, w = values.shape
     nby, nbx = uns.shape
     inf = np.float32(np.inf)
@@ -507,6 +636,7 @@ def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, re
         hi3 = np.empty(w, np.float32)
         tx = np.empty(w, np.float32)
         ul = np.zeros(w, np.int32)          # unsettled pixels per column of the block row
+        ua = np.zeros(w, np.int32)          # pixels not VALID per column of the block row
         nh = 0                              # placeholders in the block row
         for y in range(by * bs, min(by * bs + bs, h)):
             ra = values[max(y - 1, 0)]
@@ -558,12 +688,16 @@ def _restart(values, state, prev, var, cnt, g, floor, nd, rec_noise, rec_tol, re
                 c = np.uint8(0) if ph else np.uint8(1)
                 cr[x] = c
                 ul[x] += np.int32((r != VALID) & (np.float32(c) < reuse_frames))
+                ua[x] += np.int32(r != VALID)
                 nh += np.int64(ph)
         for bx in range(nbx):
             t = 0
+            a = 0
             for x in range(bx * bs, min(bx * bs + bs, w)):
                 t += ul[x]
+                a += ua[x]
             uns[by, bx] = t
+            unk[by, bx] = a
         held[by] = nh
 
 
@@ -796,7 +930,8 @@ def _aligned(prev, var, y, x, sy, sx, h, w, mis2):
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, work, g, floor, nd, z_mean,
-                  out_share, tol, z_out, min_ev, reuse_frames, cmis, use_bounds, max_frames, allow_fast, sel, uns):
+                  out_share, tol, z_out, min_ev, reuse_frames, cmis, use_bounds, max_frames, allow_fast, sel, uns,
+                  unk):
     """Per block: the candidate motion (`_candidates`: (cy[c], cx[c])) that explains the measured pixels
     (VALID and NOISY) best, and the decision (FRESH, REFRESH, REUSE, NO_PRIOR, NO_EVIDENCE). With
     `allow_fast` (no motion: the only candidate is none; every read is of the block's own pixels) a REUSE
@@ -804,7 +939,8 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, wo
     (`_reuse_row` once the block row is judged: its past and its output), fast = 1; `work` = the input
     values of every row (for `_undo_fast` and the bounds of the blocks prepared after);
     the general path skips it. A still trusted block whose missing pixels are not settled is reused as it
-    is unless sel[by, bx] chose it for refinement; uns[by, bx] = its unsettled pixels (`_still_rows`).
+    is unless sel[by, bx] chose it for refinement; uns[by, bx] = its unsettled pixels (`_still_rows`),
+    unk[by, bx] = its pixels not VALID.
     Returns the blocks trusted on their bounds
     alone, the pixels not VALID, those of them already RECONSTRUCTED, the VALID pixels that are not
     finite, and the pixels not VALID written."""
@@ -851,6 +987,7 @@ def _judge_blocks(values, state, prev, var, cnt, cy, cx, bs, dec, cand, fast, wo
                     zr, n, no, nu, nf, nb, unsettled = _lane_sums(zl, il, x0, x1)
                     zs = zr
                     n_unknown += nu
+                    unk[by, bx] = nu
                     n_flagged += nf
                     blk_bad = nf + nb
                     n_bad += nb
@@ -1052,6 +1189,36 @@ def _reuse_row(values, state, prev, var, cnt, work, y, fm, use_bounds, g, floor,
         vr[x] = la[x] if f else v
         sr[x] = st | (flag * np.uint8(m))
         n += np.int64(m)
+    return n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _reuse_late(values, state, prev, var, cnt, scratch, late, fast, bs, use_bounds, g, floor, nd, tol, z_out,
+                max_frames):
+    """The blocks `late` marks finished as `_judge_blocks` finishes a reused block (`_reuse_row`), after it;
+    fast = 1 there. `scratch` (h, w) takes the rows' input values in place of `work` (which keeps the
+    input of the frame). Returns the pixels not VALID written."""
+    h, w = values.shape
+    nby, nbx = late.shape
+    n = 0
+    for by in prange(nby):
+        fm = np.zeros(w, np.uint8)
+        k = 0
+        for bx in range(nbx):
+            if late[by, bx] != 0:
+                fm[bx * bs:min(bx * bs + bs, w)] = 1
+                fast[by, bx] = 1
+                k += 1
+        if k == 0:
+            continue
+        la = np.empty(w, np.float32)
+        lv = np.empty(w, np.float32)
+        lc = np.empty(w, np.uint8)
+        c = 0
+        for y in range(by * bs, min(by * bs + bs, h)):
+            c += _reuse_row(values, state, prev, var, cnt, scratch, y, fm, use_bounds, g, floor, nd, tol, z_out,
+                            max_frames, la, lv, lc)
+        n += c
     return n
 
 

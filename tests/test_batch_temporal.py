@@ -122,7 +122,8 @@ def read_out(folder, n):
 
 def test_the_warm_up_covers_a_steady_shot(steady):
     """After `chain.warmup` of the temporal settings (`nrhdr warmup`'s temporal stage) a steady shot, whose
-    still blocks settle and are finished from the past, needs no kernel signature the warm-up did not make
+    still blocks settle and are finished from the past, without a budget and under one (the frame's 12
+    blocks are within the default budget: no bound), needs no kernel signature the warm-up did not make
     (argument types and array layouts: a new one is a compilation in the element, mid-stream)."""
     from numba.core.registry import CPUDispatcher
 
@@ -133,6 +134,8 @@ def test_the_warm_up_covers_a_steady_shot(steady):
     warm = {k: set(f.signatures) for k, f in kernels.items()}
     _out, reports = sequential(raws, prof)
     assert any(r["refreshed"] + r["reused"] > 0 for r in reports)       # the still blocks' path ran
+    _out, reports = sequential(raws, prof, temporal_budget=2)            # and under a budget
+    assert reports[0]["start"] == "preview" and any(r["chosen"] > 0 for r in reports[1:])
     assert {k: set(f.signatures) - warm[k] for k, f in kernels.items() if set(f.signatures) - warm[k]} == {}
 
 
@@ -340,12 +343,17 @@ if __name__ == "__main__":
 
 def test_temporal_budget_reaches_the_reconstructor(steady, tmp_path):
     """--temporal-budget 2 (of the 64x48 frame's 12 blocks) = nrreconstruct temporal=on temporal-budget=2's
-    core over the clip, bit for bit; it bounds the refinement (no frame chooses more than 2 blocks to refine) and
-    its frames differ from the default budget's, which covers the whole frame; without --temporal on it is
-    refused before any frame."""
+    core over the clip, bit for bit; it bounds the refinement (where only chosen blocks are refined, FSE's
+    work stays within 2 blocks' worth: `temporal.AREA_COST` a pixel of the parts, 1 an unknown pixel, a block's
+    worth a fully unknown block in a band with `temporal.MARGIN` rows of context) and its frames differ from
+    the default budget's, which covers the whole frame; without --temporal on it is refused before any
+    frame."""
+    from nrhdr_core.temporal import AREA_COST, MARGIN
     d, prof, raws = steady
     seq, reports = sequential(raws, prof, temporal_budget=2)
-    assert all(r["chosen"] * r["blocks"] <= 2 + 1e-9 for r in reports)
+    block_work = AREA_COST * 16 * (16 + 2 * MARGIN) + 256
+    assert all(r["work"] <= 2 * block_work for r in reports
+               if r["refined"] <= r["chosen"] and r["fresh"] + r["no_prior"] + r["no_evidence"] == 0)
     assert any(r["chosen"] > 0 for r in reports)
     rc, log = nrhdr_batch(d, "-o", tmp_path / "b2", "--workers", "0", "--temporal", "on", "--chunk", "100",
                           "--temporal-budget", "2")
