@@ -126,7 +126,8 @@ class TemporalReconstructor:
         before reaching their temporal quality), "chosen" (the share `_select` chose), "motion" (dy, dx):
         the motion most trusted blocks took (the global estimate where none), "cut", "reset" (True when
         the frame was reconstructed alone), "start" (then "preview" or "method") and "reconstructed" (the
-        unknown pixels given to the method, a pixel once for each part that holds it)."""
+        unknown pixels given to the method, a pixel once for each part that holds it) and "work" (the
+        method's work on them in unknown pixels' work, `_part_cost`; the budget's unit is `block_worth`)."""
         from . import validity
         o = self.options
         if not (isinstance(values, np.ndarray) and values.ndim == 2 and values.dtype == np.float32
@@ -279,11 +280,8 @@ class TemporalReconstructor:
         return len(cand)
 
     def _work_cap(self) -> float:
-        """The budget in FSE's work (`_part_cost` units): `budget` blocks' worth, a block's worth being the
-        work of a block every pixel of which is unknown in a band (its area with MARGIN rows of context above
-        and below)."""
-        bs = int(self.options["block"])
-        return int(self.options["budget"]) * _part_cost(bs * (bs + 2 * MARGIN), bs * bs)
+        """The budget in FSE's work (`_part_cost` units): `budget` blocks' worth (`block_worth`)."""
+        return int(self.options["budget"]) * block_worth(int(self.options["block"]))
 
     def _over_budget(self, dec):
         """After the judgement: where a chosen block now holds more unknown pixels than the selection
@@ -479,6 +477,12 @@ def _forget_pool() -> None:
 
 
 os.register_at_fork(after_in_child=_forget_pool)
+
+
+def block_worth(block: int = 16) -> float:
+    """The unit of the temporal budget, in `_part_cost` units (unknown pixels' work): the work of a block
+    every pixel of which is unknown, in a band (its area with MARGIN rows of context above and below)."""
+    return _part_cost(block * (block + 2 * MARGIN), block * block)
 
 
 def _part_cost(area, unknown) -> float:

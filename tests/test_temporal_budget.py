@@ -165,7 +165,9 @@ def test_element_budget_matches_core_and_posts_the_refinement(gst, prof, fluxes)
         np.testing.assert_array_equal(r.samples[i][3][1], s)
         assert st[i].get_value("refined") == pytest.approx(reps[i]["refined"])
         assert st[i].get_value("pending") == pytest.approx(reps[i]["pending"])
+        assert st[i].get_value("work") == pytest.approx(reps[i]["work"] / BLOCK_WORK)
     assert st[0].get_value("pending") > 0.5
+    assert 0 < max(m.get_value("work") for m in st) <= BUDGET    # the posted work is in the budget's unit
 
 
 @pytest.mark.gst

@@ -63,8 +63,9 @@ def add_batch(sub) -> None:
                    help="nrreconstruct temporal (on: the previous frames as a prior; frames are computed in "
                         "chunks of consecutive frames, see --chunk, --overlap)")
     g.add_argument("--temporal-budget", type=number(0, chain.MAX_TEMPORAL_BUDGET, integer=True), default=None,
-                   help=f"nrreconstruct temporal-budget: blocks per frame that FSE refines after a shot's preview "
-                        f"start (default {chain.TEMPORAL_BUDGET}; 0 = no bound; docs/TEMPORAL.md)")
+                   help=f"nrreconstruct temporal-budget: blocks' worth of FSE work a frame that refines a still "
+                        f"shot after its preview start (default {chain.TEMPORAL_BUDGET}; 0 = no bound; "
+                        f"docs/TEMPORAL.md)")
     g.add_argument("--png", action="store_true",
                    help="also write tone-mapped GRAY8 PNGs (nrtonemap; monochrome clips)")
     g.add_argument("--operator", choices=chain.SDR_OPERATORS, default="local",

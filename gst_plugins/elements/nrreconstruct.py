@@ -69,21 +69,22 @@ PROPERTIES = PropertyTable("GstNrReconstruct", [
          "recursive average (docs/TEMPORAL.md). Restarts on flush, seek, caps change and "
          "stop. Monochrome streams only", playing=True),
     Prop("temporal-budget", int, TEMPORAL_BUDGET, "Temporal budget",
-         "temporal=on: 16 x 16 blocks a frame the method may refine in a still shot, whatever the frame "
-         "size. A shot's first frame (and a cut's) is the preview; from the next frame on this many of the "
-         "still blocks below their temporal quality are reconstructed by the method each frame (the least "
-         "refined first, then the block rows where the preview stands in for the most missing pixels) and "
-         "kept once their measured pixels average 4 frames. The default, one block row of a 1920-wide "
-         "frame, keeps a static 1080p shot at about the preview's cost from its first frame; a frame of "
-         "more blocks takes more frames to reach its temporal quality (docs/TEMPORAL.md). Counted in "
-         "blocks, not time: the output does not depend on the machine. 0 = no bound (the first frame by "
-         "the method, every block that needs it every frame)",
+         "temporal=on: the method's work a frame to refine a still shot, in blocks' worth (one 16 x 16 block "
+         "every pixel of which is unknown, in a band: 348 unknown pixels' work), whatever the frame size. A "
+         "shot's first frame (and a cut's) is the preview; from the next frame on, the still blocks below "
+         "their temporal quality are reconstructed by the method (the least refined first, then the block "
+         "rows where the preview stands in for the most missing pixels) while their work fits the budget, "
+         "and kept once their measured pixels average 4 frames. The default keeps every frame of a static "
+         "1080p shot at about the preview's cost; a larger frame takes more frames to reach its temporal "
+         "quality (docs/TEMPORAL.md). Counted in work, not time: the output does not depend on the "
+         "machine. 0 = no bound (the first frame by the method, every block that needs it every frame)",
          minimum=0, maximum=MAX_TEMPORAL_BUDGET, playing=True),
     Prop("post-stats", bool, False, "Post statistics",
          "Post an element message 'nrhdr-frame-stats' per frame (fields frame, missing = fraction of pixels "
          "reconstructed, method, seconds; with temporal=on also the blocks' shares reused, refreshed, fresh, "
-         "refined (reconstructed by the method), pending (reused at less than their temporal quality), the "
-         "global motion motion-x, motion-y and cut). Off by default: an application that never reads the "
+         "refined (reconstructed by the method), pending (reused at less than their temporal quality), work "
+         "(the method's work in blocks' worth, the unit of temporal-budget), the global motion motion-x, "
+         "motion-y and cut). Off by default: an application that never reads the "
          "bus would keep every message", playing=True),
     LATENCY_PROP,
 ])
@@ -381,8 +382,8 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         frames skipped upstream, and the processing latency answered to the LATENCY query; with temporal=on
         the work of `TemporalReconstructor.process`: shares of blocks reused, refreshed (reconstructed and
         fused with their past), fresh (reconstructed alone), refined (reconstructed by the method),
-        pending (reused before their temporal quality), the global motion and whether the frame was a
-        cut."""
+        pending (reused before their temporal quality), the method's work in blocks' worth (the unit of
+        temporal-budget), the global motion and whether the frame was a cut."""
         s = Gst.Structure.new_empty(STATS_MESSAGE)
         s.set_value("frame", GObject.Value(GObject.TYPE_UINT64, self._frames))
         s.set_value("missing", GObject.Value(GObject.TYPE_DOUBLE, float(missing)))
@@ -395,9 +396,11 @@ class NrReconstruct(NrElement, LiveTiming, GstBase.BaseTransform):
         s.set_value("latency", GObject.Value(GObject.TYPE_DOUBLE, self.nr_processing_latency() / 1e9))
         s.set_value("temporal", "off" if work is None else "on")
         if work is not None:
+            from nrhdr_core.temporal import block_worth
             alone = work["fresh"] + work["no_prior"] + work["no_evidence"]
             for name, v in (("reused", work["reused"]), ("refreshed", work["refreshed"]), ("fresh", alone),
                             ("refined", work["refined"]), ("pending", work["pending"]),
+                            ("work", work["work"] / block_worth(int(self._temporal.options["block"]))),
                             ("motion-x", work["motion"][1]), ("motion-y", work["motion"][0])):
                 s.set_value(name, GObject.Value(GObject.TYPE_DOUBLE, float(v)))
             s.set_value("cut", GObject.Value(GObject.TYPE_BOOLEAN, bool(work["cut"])))
