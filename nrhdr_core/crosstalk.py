@@ -685,34 +685,41 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0):
-    """(flux, ok, slope, room) of code `m` on pixel (y, x)'s compact record `rec` (`CompactLut`; s: ND or
-    1, dsc: its group's scale): a square root, two reads and a lerp; below the dark knot between (black,
-    f0) and the knot, as `lut_eval`; ok False above the range's top or without a range. slope: d flux /
-    d code of that piecewise function at m (linear in sqrt(code) between grid codes); room: the range's
-    top - m. `_lut_kernel_compact` writes these lines out itself: calling this from it measured 20 ms
-    against 14 ms per 1080p frame."""
-    zero = np.float32(0.0)
+def _compact_fetch(rec, y, x, m, inv_step, g, clip_rel, qs, qo):
+    """The reads of code `m` on pixel (y, x)'s compact record `rec` (`CompactLut`): (c0, top, a, b), its
+    dark knot's code, its range's top (-inf without a range) and the grid values around m
+    (`_compact_line`, `_compact_at` evaluate them; split so that the arithmetic runs without gathers)."""
     c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
     tq = np.int64(rec[y, x, 15]) & 0xFFFF
     top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
-    mm = max(min(max(m, c0), top), zero)
-    u = np.sqrt(mm * inv_step)
-    j = min(np.int64(u), g - 1)
-    t = u - np.float32(j)
-    a = np.float32(rec[y, x, j])
-    da = (np.float32(rec[y, x, j + 1]) - a) * dsc
-    d = a * dsc + t * da
-    f = max((mm + d) * s, zero)
-    # d u / d m = inv_step / (2 u); u > 0 wherever m > c0 (mm >= c0 > 0, or m > 0 when c0 <= 0)
-    slope = s * (np.float32(1.0) + da * inv_step / (np.float32(2.0) * max(u, np.float32(1e-6))))
-    below = f0 / c0 if c0 > zero else zero
-    fb = below * max(m, zero) if c0 > zero else f0
-    f = fb if m <= c0 else f
-    slope = below if m <= c0 else slope
-    # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
-    ok = (m <= top) & (tq != _NO_RANGE)
-    return f, ok, slope, top - m
+    top = -np.inf if tq == _NO_RANGE else top
+    mm = max(min(max(m, c0), top), np.float32(0.0))
+    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    return c0, top, np.float32(rec[y, x, j]), np.float32(rec[y, x, j + 1])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _compact_line(m, c0, top, a, b, dsc, inv_step, g):
+    """The compact LUT's correction around code m as a line in u = sqrt(code x inv_step): (d0, du) with
+    correction(m') = d0 + du u' for every m' of m's grid segment (a, b: `_compact_fetch`'s grid values,
+    dsc: the pixel's group's scale)."""
+    mm = max(min(max(m, c0), top), np.float32(0.0))
+    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    du = (b - a) * dsc
+    return a * dsc - np.float32(j) * du, du
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _compact_at(m, c0, d0, du, s, inv_step, f0):
+    """Flux of code m (at most the range's top) on the compact LUT's segment (d0, du) (`_compact_line`): a
+    square root and a multiply-add, s: ND or 1; below the dark knot c0 between (black, f0) and the knot, as
+    `lut_eval`; exact on the segment, the segment continued beyond it. `_lut_kernel_compact` writes these
+    lines out itself (calling a helper from it measured 20 ms against 14 ms per 1080p frame)."""
+    zero = np.float32(0.0)
+    mm = max(max(m, c0), zero)
+    f = max((mm + d0 + du * np.sqrt(mm * inv_step)) * s, zero)
+    fb = f0 / c0 * max(m, zero) if c0 > zero else f0
+    return fb if m <= c0 else f
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -1040,12 +1047,12 @@ def _pick(k, a, b):
 # the colour compact kernels' working planes, float32 (K, H, W), per pixel:
 # src (as a neighbour): basis values b0, b1 (`SpillBasis`) of its signal (its flux est, / ND if attenuated);
 #     its bound if DARK (left out as a neighbour brighter than the target) else -inf
-# tgt (as the corrected pixel): est (its compact-LUT flux if VALID and in range, else its value); slope
-#     d flux / d code and room = the range's top - code there (`_compact_eval`); the basis values o0, o1 of a
-#     source at est of the other group (regular if it is attenuated, else attenuated)
+# tgt (as the corrected pixel): est (its compact-LUT flux if VALID and in range, else its value); its compact
+#     LUT around its code: dark knot c0, segment d0, du (`_compact_line`), room = the range's top - code; the
+#     basis values o0, o1 of a source at est of the other group (regular if it is attenuated, else attenuated)
 _SRC_B0, _SRC_B1, _SRC_DARK = 0, 1, 2
-_TGT_F, _TGT_SLOPE, _TGT_ROOM, _TGT_O0, _TGT_O1 = 0, 1, 2, 3, 4
-SRC_PLANES, TGT_PLANES = 3, 5
+_TGT_F, _TGT_C0, _TGT_D0, _TGT_DU, _TGT_ROOM, _TGT_O0, _TGT_O1 = 0, 1, 2, 3, 4, 5, 6
+SRC_PLANES, TGT_PLANES = 3, 7
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -1066,31 +1073,48 @@ def _colour_compact_planes(values, state, c, basis, inv_de, src, tgt, n_clipped)
     dsc0 = dscale[0]
     dsc1 = dscale[1]
     for y in prange(h):
-        n = 0
+        vr, sr = values[y], state[y]
+        b0r, b1r, dkr = src[_SRC_B0, y], src[_SRC_B1, y], src[_SRC_DARK, y]
+        fr, c0r, d0r, dur, rmr = tgt[_TGT_F, y], tgt[_TGT_C0, y], tgt[_TGT_D0, y], tgt[_TGT_DU, y], tgt[_TGT_ROOM, y]
+        o0r, o1r = tgt[_TGT_O0, y], tgt[_TGT_O1, y]
+        # the record reads (gathers) first, into the tgt rows that the arithmetic then overwrites, so that the
+        # arithmetic loop vectorises; the spill table lookups (gathers) last
         for x in range(w):
-            st = state[y, x]
-            v = values[y, x]
+            attf = np.float32((sr[x] & ATTENUATED) != 0)
+            c0r[x], rmr[x], o0r[x], o1r[x] = _compact_fetch(rec, y, x, vr[x] * _pick(attf, invnd, one), inv_step, g,
+                                                            clip_rel, qs, qo)
+        for x in range(w):
+            st = sr[x]
+            v = vr[x]
             attf = np.float32((st & ATTENUATED) != 0)
-            f, ok, slope, room = _compact_eval(rec, y, x, v * _pick(attf, invnd, one), _pick(attf, ndf, one),
-                                               _pick(attf, dsc1, dsc0), inv_step, g, clip_rel, qs, qo, f0)
+            m = v * _pick(attf, invnd, one)
+            c0 = c0r[x]
+            top = rmr[x]
+            d0, du = _compact_line(m, c0, top, o0r[x], o1r[x], _pick(attf, dsc1, dsc0), inv_step, g)
+            f = _compact_at(m, c0, d0, du, _pick(attf, ndf, one), inv_step, f0)
+            ok = m <= top
             reason = st & REASON_MASK
             valid = (reason == VALID) & ok
-            e = f if valid else v
-            q = e * inv_de
-            q_other = q * _pick(attf, one, invnd)
-            q = q * _pick(attf, invnd, one)
-            src[_SRC_B0, y, x] = _basis_at(basis, 0, q)
-            src[_SRC_B1, y, x] = _basis_at(basis, 1, q)
-            src[_SRC_DARK, y, x] = v if reason == DARK else -np.inf
-            tgt[_TGT_F, y, x] = e
-            tgt[_TGT_SLOPE, y, x] = slope
-            tgt[_TGT_ROOM, y, x] = room
-            tgt[_TGT_O0, y, x] = _basis_at(basis, 0, q_other)
-            tgt[_TGT_O1, y, x] = _basis_at(basis, 1, q_other)
-            values[y, x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
+            fr[x] = f if valid else v
+            d0r[x] = d0
+            dur[x] = du
+            rmr[x] = top - m
+            dkr[x] = v if reason == DARK else -np.inf
+            vr[x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
             # (VALID is 0: st | UNCALIBRATED is (st & FLAG_MASK) | UNCALIBRATED)
-            state[y, x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
-            n += np.int64(reason == CLIPPED)
+            sr[x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
+        n = 0                                  # (a count in the loop above would keep it from vectorising)
+        for x in range(w):
+            st = sr[x]
+            n += np.int64((st & REASON_MASK) == CLIPPED)
+            attf = np.float32((st & ATTENUATED) != 0)
+            q = fr[x] * inv_de
+            q_own = q * _pick(attf, invnd, one)
+            q_other = q * _pick(attf, one, invnd)
+            b0r[x] = _basis_at(basis, 0, q_own)
+            b1r[x] = _basis_at(basis, 1, q_own)
+            o0r[x] = _basis_at(basis, 0, q_other)
+            o1r[x] = _basis_at(basis, 1, q_other)
         n_clipped[y] = n
 
 
@@ -1172,31 +1196,40 @@ def _flat_spill(f, o0, o1, own0, own1, st):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _colour_value(v, f, slope, room, valid, kd, p, q, sd, sv, sh):
-    """A pixel's corrected value (`_colour_compact_correct`; f, slope, room: its `tgt` entries, valid: it
-    is VALID);
-    p, q: its amplitudes (`colour_pairs`); sd, sv, sh: the summed spill differences of its diagonal,
-    up/down and left/right neighbours; kd 1 where its diagonal neighbours have another colour (red, blue
-    photosites), 0 where they are green like it. VALID: its compact LUT flux at its code less the
-    other-colour spill delta, to first order (f - slope x delta; f where the corrected code lies above its
-    range), at least 0; others v."""
+def _colour_value(v, st, t, kd, p, q, sd, sv, sh, ndf, invnd, inv_step, f0):
+    """A pixel's corrected value (`_colour_compact_correct`): v its value, st its state, t = (est, c0, d0, du,
+    room) its `tgt` entries; p, q: its amplitudes (`colour_pairs`); sd, sv, sh: the summed spill
+    differences of its diagonal, up/down and left/right neighbours; kd 1 where its diagonal neighbours have
+    another colour (red, blue photosites), 0 where they are green like it. VALID: its compact LUT at its
+    code m less the other-colour spill delta, on m's grid segment continued (`_compact_at`; est where
+    m - delta lies above its range), at least 0; others v."""
+    f, c0, d0, du, room = t
+    one = np.float32(1.0)
+    attf = np.float32((st & ATTENUATED) != 0)
     delta = kd * q * sd + _pick(kd, p, q) * sv + p * sh
-    nv = max(f - slope * delta if delta >= -room else f, np.float32(0.0))
-    return nv if valid else v
+    f2 = _compact_at(v * _pick(attf, invnd, one) - delta, c0, d0, du, _pick(attf, ndf, one), inv_step, f0)
+    nv = max(f2 if delta >= -room else f, np.float32(0.0))
+    return nv if (st & REASON_MASK) == VALID else v
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour_compact_correct(values, state, clip_flux, src, tgt, wt, pairs, block, n_clipped):
+def _colour_compact_correct(values, state, c, clip_flux, src, tgt, wt, pairs, block, n_clipped):
     """`lut` mode in place on a Bayer mosaic (`block`: its 2 x 2 channels) with the per-colour amplitudes
     `pairs` (`colour_pairs`), after `_colour_compact_planes` and `_colour_compact_clipped` (the planes
     `src`, `tgt`): a VALID pixel's code, less the spill of its other-colour neighbours beyond what
-    neighbours at its flux would send, times its amplitude for that colour, through its compact LUT to
-    first order (one iteration of `_correct_kernel` with every=False; wt: the `SpillBasis` weights); a
+    neighbours at its flux would send, times its amplitude for that colour, through its compact LUT `c`
+    (its segment at the code, `_colour_value`; one iteration of `_correct_kernel` with every=False; wt: the
+    `SpillBasis` weights); a
     DARK neighbour brighter than the pixel is left out; CLIPPED values at most the clipping flux (rows with
     CLIPPED pixels: n_clipped). The interior is one branch-free loop per row over contiguous rows (y - 1,
     y, y + 1 of each plane: no gathers, so it vectorises); the border rows and columns clamp their
     neighbours."""
     h, w = values.shape
+    g = c.rec.shape[2] - 3
+    inv_step = np.float32(g * g) / c.clip_rel
+    f0 = c.f0
+    ndf = np.float32(c.nd)
+    invnd = np.float32(1.0) / ndf
     # directions in DIRS order: (-1,-1) (-1,0) (-1,1) (0,-1) (0,1) (1,-1) (1,0) (1,1)
     w00, w01, w10, w11, w20, w21, w30, w31 = wt[0, 0], wt[0, 1], wt[1, 0], wt[1, 1], wt[2, 0], wt[2, 1], \
         wt[3, 0], wt[3, 1]
@@ -1224,9 +1257,9 @@ def _colour_compact_correct(values, state, clip_flux, src, tgt, wt, pairs, block
             sv += _neighbour_spill(w60, w61, state, src, yi + 1, xi, h, w, f, fr0, fr1, da0, da1)
             sh = _neighbour_spill(w30, w31, state, src, yi, xi - 1, h, w, f, fr0, fr1, da0, da1)
             sh += _neighbour_spill(w40, w41, state, src, yi, xi + 1, h, w, f, fr0, fr1, da0, da1)
-            values[yi, xi] = _colour_value(values[yi, xi], f, tgt[_TGT_SLOPE, yi, xi], tgt[_TGT_ROOM, yi, xi],
-                                           (st & REASON_MASK) == VALID, _pick(np.float32(xi & 1), kd_o, kd_e),
-                                           pairs[0, yi, xi], pairs[1, yi, xi], sd, sv, sh)
+            t = (f, tgt[_TGT_C0, yi, xi], tgt[_TGT_D0, yi, xi], tgt[_TGT_DU, yi, xi], tgt[_TGT_ROOM, yi, xi])
+            values[yi, xi] = _colour_value(values[yi, xi], st, t, _pick(np.float32(xi & 1), kd_o, kd_e),
+                                           pairs[0, yi, xi], pairs[1, yi, xi], sd, sv, sh, ndf, invnd, inv_step, f0)
         if not border:
             # interior: the target is x + 1, its neighbours x, x + 1, x + 2 of the rows above (u), at (c)
             # and below (d) of each plane: non-negative indices only
@@ -1234,24 +1267,26 @@ def _colour_compact_correct(values, state, clip_flux, src, tgt, wt, pairs, block
             b1u, b1c, b1d = src[_SRC_B1, yi - 1], src[_SRC_B1, yi], src[_SRC_B1, yi + 1]
             su, sc, sdn = state[yi - 1], state[yi], state[yi + 1]
             dku, dkc, dkd = src[_SRC_DARK, yi - 1], src[_SRC_DARK, yi], src[_SRC_DARK, yi + 1]
-            fr, slr, rmr = tgt[_TGT_F, yi], tgt[_TGT_SLOPE, yi], tgt[_TGT_ROOM, yi]
+            fr, c0r, d0r, dur, rmr = tgt[_TGT_F, yi], tgt[_TGT_C0, yi], tgt[_TGT_D0, yi], tgt[_TGT_DU, yi], \
+                tgt[_TGT_ROOM, yi]
             o0r, o1r = tgt[_TGT_O0, yi], tgt[_TGT_O1, yi]
             vr, pr, qr = values[yi], pairs[0, yi], pairs[1, yi]
             for x in range(w - 2):
-                c = x + 1
-                f = fr[c]
-                st = sc[c]
-                fr0, fr1, da0, da1 = _flat_spill(f, o0r[c], o1r[c], b0c[c], b1c[c], st)
+                xc = x + 1
+                f = fr[xc]
+                st = sc[xc]
+                fr0, fr1, da0, da1 = _flat_spill(f, o0r[xc], o1r[xc], b0c[xc], b1c[xc], st)
                 sd = _spill_term(w00, w01, b0u[x], b1u[x], su[x], dku[x], f, fr0, fr1, da0, da1)
                 sd += _spill_term(w20, w21, b0u[x + 2], b1u[x + 2], su[x + 2], dku[x + 2], f, fr0, fr1, da0, da1)
                 sd += _spill_term(w50, w51, b0d[x], b1d[x], sdn[x], dkd[x], f, fr0, fr1, da0, da1)
                 sd += _spill_term(w70, w71, b0d[x + 2], b1d[x + 2], sdn[x + 2], dkd[x + 2], f, fr0, fr1, da0, da1)
-                sv = _spill_term(w10, w11, b0u[c], b1u[c], su[c], dku[c], f, fr0, fr1, da0, da1)
-                sv += _spill_term(w60, w61, b0d[c], b1d[c], sdn[c], dkd[c], f, fr0, fr1, da0, da1)
+                sv = _spill_term(w10, w11, b0u[xc], b1u[xc], su[xc], dku[xc], f, fr0, fr1, da0, da1)
+                sv += _spill_term(w60, w61, b0d[xc], b1d[xc], sdn[xc], dkd[xc], f, fr0, fr1, da0, da1)
                 sh = _spill_term(w30, w31, b0c[x], b1c[x], sc[x], dkc[x], f, fr0, fr1, da0, da1)
                 sh += _spill_term(w40, w41, b0c[x + 2], b1c[x + 2], sc[x + 2], dkc[x + 2], f, fr0, fr1, da0, da1)
-                vr[c] = _colour_value(vr[c], f, slr[c], rmr[c], (st & REASON_MASK) == VALID,
-                                      _pick(np.float32(c & 1), kd_o, kd_e), pr[c], qr[c], sd, sv, sh)
+                vr[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
+                                       _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh, ndf, invnd,
+                                       inv_step, f0)
         if n_clipped[yi] > 0:
             for x in range(w):
                 cf = clip_flux[yi, x]
@@ -1329,8 +1364,8 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         _colour_compact_planes(values, state, c.record(), sb.basis, sb.inv_de, src, tgt, n_clipped)
         blk = cfas.block(cfa)
         _colour_compact_clipped(values, state, src, tgt, sb.basis, sb.inv_de, nd, blk, n_clipped)
-        _colour_compact_correct(values, state, calib.clip_flux, src, tgt, sb.weight, colour_pairs(calib, cfa), blk,
-                                n_clipped)
+        _colour_compact_correct(values, state, c.record(), calib.clip_flux, src, tgt, sb.weight,
+                                colour_pairs(calib, cfa), blk, n_clipped)
         return values, state
     if coloured:
         from . import cfa as cfas
