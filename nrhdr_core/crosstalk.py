@@ -965,9 +965,11 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est, chan, step):
 
 
 # ---- colour compact: the `lut` mode's fast setting on a colour calibration (docs/CROSSTALK.md 4b) ---------
-# The compact LUT per pixel plus the per-colour correction of `_correct_kernel` (every=False) in one pass:
-# neighbour fluxes from the compact LUT (evaluated once per pixel into planes with their spill as sources),
-# clipped pixels' fluxes from their colour's photosites, one iteration.
+# The compact LUT per pixel plus the per-colour correction of `_correct_kernel` (every=False), one iteration,
+# in three passes: `_colour_compact_planes` evaluates each pixel's compact LUT once into planes (its spill as a
+# source, its LUT segment as a target), `_colour_compact_clipped` estimates the clipped pixels' flux from their
+# colour's photosites, `_colour_compact_correct` subtracts the other-colour spill difference in a loop without
+# gathers (it vectorises) and reads the compact record again only where the corrected code left its segment.
 
 # the spill table as the colour compact kernels read it: sigma_d(e) resampled at the signals e_i = i / inv_de,
 # i < SPILL_GRID, up to the table's last signal, in its rank-2 form sigma_d(e) ~ sum_k weight[d, k] basis_k(e)
@@ -1196,20 +1198,40 @@ def _flat_spill(f, o0, o1, own0, own1, st):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _colour_value(v, st, t, kd, p, q, sd, sv, sh, ndf, invnd, inv_step, f0):
-    """A pixel's corrected value (`_colour_compact_correct`): v its value, st its state, t = (est, c0, d0, du,
-    room) its `tgt` entries; p, q: its amplitudes (`colour_pairs`); sd, sv, sh: the summed spill
-    differences of its diagonal, up/down and left/right neighbours; kd 1 where its diagonal neighbours have
-    another colour (red, blue photosites), 0 where they are green like it. VALID: its compact LUT at its
-    code m less the other-colour spill delta, on m's grid segment continued (`_compact_at`; est where
-    m - delta lies above its range), at least 0; others v."""
+def _colour_value(v, st, t, kd, p, q, sd, sv, sh, ndf, invnd, inv_step, g, f0):
+    """A pixel's corrected value (`_colour_compact_correct`) and the code to evaluate again (NaN: none):
+    v its value, st its state, t = (est, c0, d0, du, room) its `tgt` entries; p, q: its amplitudes
+    (`colour_pairs`); sd, sv, sh: the summed spill differences of its diagonal, up/down and left/right
+    neighbours; kd 1 where its diagonal neighbours have another colour (red, blue photosites), 0 where they
+    are green like it. VALID: its compact LUT at its code m less the other-colour spill delta (est where
+    m - delta lies above its range), at least 0, on m's grid segment (`_compact_at`); m - delta is
+    returned where it lies on another segment; others v."""
     f, c0, d0, du, room = t
     one = np.float32(1.0)
+    zero = np.float32(0.0)
     attf = np.float32((st & ATTENUATED) != 0)
     delta = kd * q * sd + _pick(kd, p, q) * sv + p * sh
-    f2 = _compact_at(v * _pick(attf, invnd, one) - delta, c0, d0, du, _pick(attf, ndf, one), inv_step, f0)
-    nv = max(f2 if delta >= -room else f, np.float32(0.0))
-    return nv if (st & REASON_MASK) == VALID else v
+    m = v * _pick(attf, invnd, one)
+    m2 = m - delta
+    f2 = _compact_at(m2, c0, d0, du, _pick(attf, ndf, one), inv_step, f0)
+    valid = (st & REASON_MASK) == VALID
+    inside = delta >= -room
+    nv = max(f2 if inside else f, zero)
+    # the grid segments of m and m - delta (as `_compact_line`); below c0 the LUT is one line
+    j = min(np.int64(np.sqrt(max(min(max(m, c0), m + room), zero) * inv_step)), g - 1)
+    j2 = min(np.int64(np.sqrt(max(m2, c0, zero) * inv_step)), g - 1)
+    again = valid & inside & (m2 > c0) & (j2 != j)
+    return (nv if valid else v), (m2 if again else np.float32(np.nan))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _compact_again(rec, y, x, m, st, ndf, invnd, dsc0, dsc1, inv_step, g, clip_rel, qs, qo, f0):
+    """The compact LUT's flux at code m (in its range) on pixel (y, x) in state st, at least 0."""
+    one = np.float32(1.0)
+    attf = np.float32((st & ATTENUATED) != 0)
+    c0, top, a, b = _compact_fetch(rec, y, x, m, inv_step, g, clip_rel, qs, qo)
+    d0, du = _compact_line(m, c0, top, a, b, _pick(attf, dsc1, dsc0), inv_step, g)
+    return max(_compact_at(m, c0, d0, du, _pick(attf, ndf, one), inv_step, f0), np.float32(0.0))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -1225,11 +1247,13 @@ def _colour_compact_correct(values, state, c, clip_flux, src, tgt, wt, pairs, bl
     y, y + 1 of each plane: no gathers, so it vectorises); the border rows and columns clamp their
     neighbours."""
     h, w = values.shape
-    g = c.rec.shape[2] - 3
-    inv_step = np.float32(g * g) / c.clip_rel
-    f0 = c.f0
-    ndf = np.float32(c.nd)
+    rec, dscale, clip_rel, qs, qo, f0, nd = c.rec, c.dscale, c.clip_rel, c.qs, c.qo, c.f0, c.nd
+    g = rec.shape[2] - 3
+    inv_step = np.float32(g * g) / clip_rel
+    ndf = np.float32(nd)
     invnd = np.float32(1.0) / ndf
+    dsc0 = dscale[0]
+    dsc1 = dscale[1]
     # directions in DIRS order: (-1,-1) (-1,0) (-1,1) (0,-1) (0,1) (1,-1) (1,0) (1,1)
     w00, w01, w10, w11, w20, w21, w30, w31 = wt[0, 0], wt[0, 1], wt[1, 0], wt[1, 1], wt[2, 0], wt[2, 1], \
         wt[3, 0], wt[3, 1]
@@ -1258,8 +1282,9 @@ def _colour_compact_correct(values, state, c, clip_flux, src, tgt, wt, pairs, bl
             sh = _neighbour_spill(w30, w31, state, src, yi, xi - 1, h, w, f, fr0, fr1, da0, da1)
             sh += _neighbour_spill(w40, w41, state, src, yi, xi + 1, h, w, f, fr0, fr1, da0, da1)
             t = (f, tgt[_TGT_C0, yi, xi], tgt[_TGT_D0, yi, xi], tgt[_TGT_DU, yi, xi], tgt[_TGT_ROOM, yi, xi])
-            values[yi, xi] = _colour_value(values[yi, xi], st, t, _pick(np.float32(xi & 1), kd_o, kd_e),
-                                           pairs[0, yi, xi], pairs[1, yi, xi], sd, sv, sh, ndf, invnd, inv_step, f0)
+            values[yi, xi], tgt[_TGT_O0, yi, xi] = _colour_value(
+                values[yi, xi], st, t, _pick(np.float32(xi & 1), kd_o, kd_e), pairs[0, yi, xi], pairs[1, yi, xi], sd,
+                sv, sh, ndf, invnd, inv_step, g, f0)
         if not border:
             # interior: the target is x + 1, its neighbours x, x + 1, x + 2 of the rows above (u), at (c)
             # and below (d) of each plane: non-negative indices only
@@ -1284,9 +1309,16 @@ def _colour_compact_correct(values, state, c, clip_flux, src, tgt, wt, pairs, bl
                 sv += _spill_term(w60, w61, b0d[xc], b1d[xc], sdn[xc], dkd[xc], f, fr0, fr1, da0, da1)
                 sh = _spill_term(w30, w31, b0c[x], b1c[x], sc[x], dkc[x], f, fr0, fr1, da0, da1)
                 sh += _spill_term(w40, w41, b0c[x + 2], b1c[x + 2], sc[x + 2], dkc[x + 2], f, fr0, fr1, da0, da1)
-                vr[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
-                                       _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh, ndf, invnd,
-                                       inv_step, f0)
+                vr[xc], o0r[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
+                                                _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh,
+                                                ndf, invnd, inv_step, g, f0)
+        # the pixels whose corrected code lies on another grid segment: the compact LUT read there (tgt's o0
+        # row holds that code)
+        for x in range(w):
+            m2 = tgt[_TGT_O0, yi, x]
+            if m2 == m2:
+                values[yi, x] = _compact_again(rec, yi, x, m2, state[yi, x], ndf, invnd, dsc0, dsc1, inv_step, g,
+                                               clip_rel, qs, qo, f0)
         if n_clipped[yi] > 0:
             for x in range(w):
                 cf = clip_flux[yi, x]
