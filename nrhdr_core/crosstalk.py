@@ -232,6 +232,7 @@ class CrosstalkCalibration:
         d = dict(self.__dict__)
         d.pop("_compact", None)
         d.pop("_spill_basis", None)
+        d.pop("_colour_pairs", None)
         return d
 
     def codes(self) -> np.ndarray:
@@ -684,27 +685,41 @@ def compact_lut(calib: CrosstalkCalibration, mask: np.ndarray, nd: float, chunk:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0):
-    """(flux, ok) of code `m` on pixel (y, x)'s compact record `rec` (`CompactLut`; s: ND or 1, dsc: its
-    group's scale): a square root, two reads and a lerp; below the dark knot between (black, f0) and the
-    knot, as `lut_eval`; ok False above the range's top or without a range. `_lut_kernel_compact` writes
-    these lines out itself: calling this from it measured 20 ms against 14 ms per 1080p frame."""
-    zero = np.float32(0.0)
+def _compact_fetch(rec, y, x, m, inv_step, g, clip_rel, qs, qo):
+    """The reads of code `m` on pixel (y, x)'s compact record `rec` (`CompactLut`): (c0, top, a, b), its
+    dark knot's code, its range's top (-inf without a range) and the grid values around m
+    (`_compact_line`, `_compact_at` evaluate them; split so that the arithmetic runs without gathers)."""
     c0 = np.float32(np.int64(rec[y, x, 14]) & 0xFFFF) * qs - qo
     tq = np.int64(rec[y, x, 15]) & 0xFFFF
     top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
-    mm = max(min(max(m, c0), top), zero)
-    u = np.sqrt(mm * inv_step)
-    j = min(np.int64(u), g - 1)
-    t = u - np.float32(j)
-    a = np.float32(rec[y, x, j])
-    d = (a + t * (np.float32(rec[y, x, j + 1]) - a)) * dsc
-    f = max((mm + d) * s, zero)
-    fb = f0 * (max(m, zero) / c0) if c0 > zero else f0
-    f = fb if m <= c0 else f
-    # bitwise & |, not `and`: short-circuits compile to branches (2x slower on a random mask)
-    ok = (m <= top) & (tq != _NO_RANGE)
-    return f, ok
+    top = -np.inf if tq == _NO_RANGE else top
+    mm = max(min(max(m, c0), top), np.float32(0.0))
+    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    return c0, top, np.float32(rec[y, x, j]), np.float32(rec[y, x, j + 1])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _compact_line(m, c0, top, a, b, dsc, inv_step, g):
+    """The compact LUT's correction around code m as a line in u = sqrt(code x inv_step): (d0, du) with
+    correction(m') = d0 + du u' for every m' of m's grid segment (a, b: `_compact_fetch`'s grid values,
+    dsc: the pixel's group's scale)."""
+    mm = max(min(max(m, c0), top), np.float32(0.0))
+    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    du = (b - a) * dsc
+    return a * dsc - np.float32(j) * du, du
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _compact_at(m, c0, d0, du, s, inv_step, f0):
+    """Flux of code m (at most the range's top) on the compact LUT's segment (d0, du) (`_compact_line`): a
+    square root and a multiply-add, s: ND or 1; below the dark knot c0 between (black, f0) and the knot, as
+    `lut_eval`; exact on the segment, the segment continued beyond it. `_lut_kernel_compact` writes these
+    lines out itself (calling a helper from it measured 20 ms against 14 ms per 1080p frame)."""
+    zero = np.float32(0.0)
+    mm = max(max(m, c0), zero)
+    f = max((mm + d0 + du * np.sqrt(mm * inv_step)) * s, zero)
+    fb = f0 / c0 * max(m, zero) if c0 > zero else f0
+    return fb if m <= c0 else f
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -950,9 +965,11 @@ def _neighbour_estimate(values, state, lut, ok, dirs, est, chan, step):
 
 
 # ---- colour compact: the `lut` mode's fast setting on a colour calibration (docs/CROSSTALK.md 4b) ---------
-# The compact LUT per pixel plus the per-colour correction of `_correct_kernel` (every=False) in one pass:
-# neighbour fluxes from the compact LUT (evaluated once per pixel into planes with their spill as sources),
-# clipped pixels' fluxes from their colour's photosites, one iteration.
+# The compact LUT per pixel plus the per-colour correction of `_correct_kernel` (every=False), one iteration,
+# in three passes: `_colour_compact_planes` evaluates each pixel's compact LUT once into planes (its spill as a
+# source, its LUT segment as a target), `_colour_compact_clipped` estimates the clipped pixels' flux from their
+# colour's photosites, `_colour_compact_correct` subtracts the other-colour spill difference in a loop without
+# gathers (it vectorises) and reads the compact record again only where the corrected code left its segment.
 
 # the spill table as the colour compact kernels read it: sigma_d(e) resampled at the signals e_i = i / inv_de,
 # i < SPILL_GRID, up to the table's last signal, in its rank-2 form sigma_d(e) ~ sum_k weight[d, k] basis_k(e)
@@ -999,42 +1016,122 @@ def _basis_at(basis, k, q):
     return a + t * (basis[i + 1, k] - a)
 
 
+def colour_pairs(calib: CrosstalkCalibration, cfa: str) -> np.ndarray:
+    """(2, H, W) float32: the per-colour amplitudes (`CrosstalkCalibration.colour`) a photosite of the Bayer
+    mosaic `cfa` applies to its other-colour neighbours: [0] for its left/right neighbours' colour, [1] for
+    its diagonal neighbours' colour (red, blue photosites: their up/down neighbours are green
+    like the left/right ones) or its up/down neighbours' colour (green photosites: their diagonals are
+    green).
+    Derived once per calibration and mosaic and kept on the calibration."""
+    from . import cfa as cfas
+    hit = calib.__dict__.get("_colour_pairs")
+    if hit is not None and hit[0] is calib.colour and hit[1] == cfa:
+        return hit[2]
+    blk = cfas.block(cfa).astype(np.int64)
+    h, w = calib.shape
+    out = np.empty((2, h, w), np.float32)
+    for py in range(2):
+        for px in range(2):
+            own, c_h, c_v, c_d = blk[py, px], blk[py, 1 - px], blk[1 - py, px], blk[1 - py, 1 - px]
+            out[0, py::2, px::2] = calib.colour[c_h, py::2, px::2]
+            out[1, py::2, px::2] = calib.colour[c_v if c_d == own else c_d, py::2, px::2]
+    calib.__dict__["_colour_pairs"] = (calib.colour, cfa, out)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pick(k, a, b):
+    """a where k (float32) is 1, b where it is 0: exact for finite a, b, and no branch (the mask's groups
+    alternate at random)."""
+    return k * a + (np.float32(1.0) - k) * b
+
+
+# the colour compact kernels' working planes, float32 (K, H, W), per pixel:
+# src (as a neighbour): basis values b0, b1 (`SpillBasis`) of its signal (its flux est, / ND if attenuated);
+#     its bound if DARK (left out as a neighbour brighter than the target) else -inf
+# tgt (as the corrected pixel): est (its compact-LUT flux if VALID and in range, else its value); its compact
+#     LUT around its code: dark knot c0, segment d0, du (`_compact_line`), room = the range's top - code; the
+#     basis values o0, o1 of a source at est of the other group (regular if it is attenuated, else attenuated)
+_SRC_B0, _SRC_B1, _SRC_DARK = 0, 1, 2
+_TGT_F, _TGT_C0, _TGT_D0, _TGT_DU, _TGT_ROOM, _TGT_O0, _TGT_O1 = 0, 1, 2, 3, 4, 5, 6
+SRC_PLANES, TGT_PLANES = 3, 7
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour_compact_planes(values, state, c, basis, inv_de, est, b0, b1):
-    """est = every pixel's flux as a crosstalk source (its compact LUT flux if VALID and in range, else its
-    value, as `_lut_pass`); b0, b1 = the `SpillBasis` functions of its signal (est / ND or est)."""
+def _colour_compact_planes(values, state, c, basis, inv_de, src, tgt, n_clipped):
+    """The planes `src`, `tgt` of every pixel (see _SRC_B0) from its compact LUT `c`: a VALID pixel in range
+    is a source at its flux, others at their value (as `_lut_pass`). The target side of `lut` mode too: a
+    VALID pixel out of range becomes UNCALIBRATED (value kept), a DARK/NOISY bound is mapped through the
+    compact LUT when positive (as `_lut_kernel_compact`); n_clipped[y] = the CLIPPED pixels of row y
+    (`_colour_compact_clipped` and the clip-flux bound visit only those rows). Branch-free per pixel."""
     h, w = values.shape
     rec, dscale, clip_rel, qs, qo, f0, nd = c.rec, c.dscale, c.clip_rel, c.qs, c.qo, c.f0, c.nd
     g = rec.shape[2] - 3
     inv_step = np.float32(g * g) / clip_rel
-    sc = np.empty(2, np.float32)             # by group (1: attenuated), indexed rather than selected
-    sc[0] = 1.0
-    sc[1] = np.float32(nd)
-    inv = np.empty(2, np.float32)
-    inv[0] = 1.0
-    inv[1] = np.float32(1.0) / np.float32(nd)
+    ndf = np.float32(nd)
+    invnd = np.float32(1.0) / ndf
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    dsc0 = dscale[0]
+    dsc1 = dscale[1]
     for y in prange(h):
+        vr, sr = values[y], state[y]
+        b0r, b1r, dkr = src[_SRC_B0, y], src[_SRC_B1, y], src[_SRC_DARK, y]
+        fr, c0r, d0r, dur, rmr = tgt[_TGT_F, y], tgt[_TGT_C0, y], tgt[_TGT_D0, y], tgt[_TGT_DU, y], tgt[_TGT_ROOM, y]
+        o0r, o1r = tgt[_TGT_O0, y], tgt[_TGT_O1, y]
+        # the record reads (gathers) first, into the tgt rows that the arithmetic then overwrites, so that the
+        # arithmetic loop vectorises; the spill table lookups (gathers) last
         for x in range(w):
-            st = state[y, x]
-            v = values[y, x]
-            grp = np.int64((st & ATTENUATED) != 0)
-            s = sc[grp]
-            f, ok = _compact_eval(rec, y, x, v * inv[grp], s, dscale[grp], inv_step, g, clip_rel, qs, qo, f0)
-            e = f if ((st & REASON_MASK) == VALID) & ok else v
-            est[y, x] = e
-            q = e * (inv_de * inv[grp])
-            b0[y, x] = _basis_at(basis, 0, q)
-            b1[y, x] = _basis_at(basis, 1, q)
+            attf = np.float32((sr[x] & ATTENUATED) != 0)
+            c0r[x], rmr[x], o0r[x], o1r[x] = _compact_fetch(rec, y, x, vr[x] * _pick(attf, invnd, one), inv_step, g,
+                                                            clip_rel, qs, qo)
+        for x in range(w):
+            st = sr[x]
+            v = vr[x]
+            attf = np.float32((st & ATTENUATED) != 0)
+            m = v * _pick(attf, invnd, one)
+            c0 = c0r[x]
+            top = rmr[x]
+            d0, du = _compact_line(m, c0, top, o0r[x], o1r[x], _pick(attf, dsc1, dsc0), inv_step, g)
+            f = _compact_at(m, c0, d0, du, _pick(attf, ndf, one), inv_step, f0)
+            ok = m <= top
+            reason = st & REASON_MASK
+            valid = (reason == VALID) & ok
+            fr[x] = f if valid else v
+            d0r[x] = d0
+            dur[x] = du
+            rmr[x] = top - m
+            dkr[x] = v if reason == DARK else -np.inf
+            vr[x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
+            # (VALID is 0: st | UNCALIBRATED is (st & FLAG_MASK) | UNCALIBRATED)
+            sr[x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
+        n = 0                                  # (a count in the loop above would keep it from vectorising)
+        for x in range(w):
+            st = sr[x]
+            n += np.int64((st & REASON_MASK) == CLIPPED)
+            attf = np.float32((st & ATTENUATED) != 0)
+            q = fr[x] * inv_de
+            q_own = q * _pick(attf, invnd, one)
+            q_other = q * _pick(attf, one, invnd)
+            b0r[x] = _basis_at(basis, 0, q_own)
+            b1r[x] = _basis_at(basis, 1, q_own)
+            o0r[x] = _basis_at(basis, 0, q_other)
+            o1r[x] = _basis_at(basis, 1, q_other)
+        n_clipped[y] = n
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour_compact_clipped(values, state, est, b0, b1, basis, inv_de, nd, block):
-    """A CLIPPED pixel's source flux as `_neighbour_estimate` with step 2 (same-colour neighbours only): at
+def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n_clipped):
+    """A CLIPPED pixel's source flux as `_neighbour_estimate` with step 2 (same-colour photosites only): at
     least the largest bound of the clipped ones in the colour plane's 3 x 3, then the mean of the VALID
-    ones brighter than that in its 5 x 5 (their `_colour_compact_planes` flux); est, b0, b1 updated."""
+    ones brighter than that in its 5 x 5 (their `_colour_compact_planes` flux); its `src` basis values
+    updated. Visits the rows with CLIPPED pixels (n_clipped) and, in the windows, the photosites of the
+    pixel's colour."""
     h, w = values.shape
     inv_att = np.float32(1.0) / np.float32(nd)
     for y in prange(h):
+        if n_clipped[y] == 0:
+            continue
         for x in range(w):
             st = state[y, x]
             if (st & REASON_MASK) != CLIPPED:
@@ -1042,121 +1139,191 @@ def _colour_compact_clipped(values, state, est, b0, b1, basis, inv_de, nd, block
             own = block[y & 1, x & 1]
             v = values[y, x]
             for yy in range(max(y - 2, 0), min(y + 3, h)):
-                for xx in range(max(x - 2, 0), min(x + 3, w)):
-                    if block[yy & 1, xx & 1] == own and (state[yy, xx] & REASON_MASK) == CLIPPED \
-                            and values[yy, xx] > v:
-                        v = values[yy, xx]
+                for p in range(2):
+                    if block[yy & 1, p] != own:
+                        continue
+                    x0 = max(x - 2, 0)
+                    for xx in range(x0 + ((p - x0) & 1), min(x + 3, w), 2):
+                        if (state[yy, xx] & REASON_MASK) == CLIPPED and values[yy, xx] > v:
+                            v = values[yy, xx]
             acc = np.float32(0.0)
             n = 0
             for yy in range(max(y - 4, 0), min(y + 5, h)):
-                for xx in range(max(x - 4, 0), min(x + 5, w)):
-                    if block[yy & 1, xx & 1] == own and (state[yy, xx] & REASON_MASK) == VALID \
-                            and est[yy, xx] > v:
-                        acc += est[yy, xx]
-                        n += 1
+                for p in range(2):
+                    if block[yy & 1, p] != own:
+                        continue
+                    x0 = max(x - 4, 0)
+                    for xx in range(x0 + ((p - x0) & 1), min(x + 5, w), 2):
+                        e = tgt[_TGT_F, yy, xx]
+                        if (state[yy, xx] & REASON_MASK) == VALID and e > v:
+                            acc += e
+                            n += 1
             if n > 0:
                 v = acc / n
-            est[y, x] = v
             q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
-            b0[y, x] = _basis_at(basis, 0, q)
-            b1[y, x] = _basis_at(basis, 1, q)
+            src[_SRC_B0, y, x] = _basis_at(basis, 0, q)
+            src[_SRC_B1, y, x] = _basis_at(basis, 1, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _neighbour_spill(w0, w1, state, est, b0, b1, yy, xx, h, w, f, fr0, fr1, da0, da1):
-    """sigma_d of the neighbour at (yy, xx) minus sigma_d of a flat neighbour at flux f (basis values fr.
-    of a regular one, + da. for an attenuated one), w0, w1 direction d's weights (`SpillBasis`); 0 outside
-    the frame and for a DARK neighbour brighter than f (its value is an upper bound only). Arithmetic, not
-    selects, on the neighbour's group (the mask's groups alternate at random: a branch would mispredict)."""
+def _spill_term(w0, w1, b0, b1, stn, dark, f, fr0, fr1, da0, da1):
+    """sigma_d of a neighbour (state stn, `src` entries b0, b1, dark) minus sigma_d of a flat neighbour at
+    flux f (basis values fr. of a regular one, + da. for an attenuated one), w0, w1 direction d's weights
+    (`SpillBasis`); 0 for a DARK neighbour brighter than f (its value is an upper bound only). Arithmetic,
+    no branch."""
+    att = np.float32((stn & ATTENUATED) != 0)
+    t = w0 * (b0 - fr0 - att * da0) + w1 * (b1 - fr1 - att * da1)
+    return t * np.float32(dark <= f)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _neighbour_spill(w0, w1, state, src, yy, xx, h, w, f, fr0, fr1, da0, da1):
+    """`_spill_term` of the neighbour at (yy, xx); 0 outside the frame."""
     inb = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
     y2 = min(max(yy, 0), h - 1)
     x2 = min(max(xx, 0), w - 1)
-    stn = state[y2, x2]
-    att = np.float32((stn & ATTENUATED) != 0)
-    t = w0 * (b0[y2, x2] - fr0 - att * da0) + w1 * (b1[y2, x2] - fr1 - att * da1)
-    if (stn & REASON_MASK) == DARK:
-        inb = inb & (est[y2, x2] <= f)
+    t = _spill_term(w0, w1, src[_SRC_B0, y2, x2], src[_SRC_B1, y2, x2], state[y2, x2],
+                    src[_SRC_DARK, y2, x2], f, fr0, fr1, da0, da1)
     return t * np.float32(inb)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _flat_spill(f, o0, o1, own0, own1, st):
+    """(fr0, fr1, da0, da1) of a pixel in state st (`_spill_term`) from its own basis values (`src`) and
+    the other group's (`tgt`) at its flux f: a regular source's values and what an attenuated one adds."""
+    attf = np.float32((st & ATTENUATED) != 0)
+    fr0 = _pick(attf, o0, own0)
+    fr1 = _pick(attf, o1, own1)
+    return fr0, fr1, _pick(attf, own0, o0) - fr0, _pick(attf, own1, o1) - fr1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _colour_value(v, st, t, kd, p, q, sd, sv, sh, ndf, invnd, inv_step, g, f0):
+    """A pixel's corrected value (`_colour_compact_correct`) and the code to evaluate again (NaN: none):
+    v its value, st its state, t = (est, c0, d0, du, room) its `tgt` entries; p, q: its amplitudes
+    (`colour_pairs`); sd, sv, sh: the summed spill differences of its diagonal, up/down and left/right
+    neighbours; kd 1 where its diagonal neighbours have another colour (red, blue photosites), 0 where they
+    are green like it. VALID: its compact LUT at its code m less the other-colour spill delta (est where
+    m - delta lies above its range), at least 0, on m's grid segment (`_compact_at`); m - delta is
+    returned where it lies on another segment; others v."""
+    f, c0, d0, du, room = t
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    attf = np.float32((st & ATTENUATED) != 0)
+    delta = kd * q * sd + _pick(kd, p, q) * sv + p * sh
+    m = v * _pick(attf, invnd, one)
+    m2 = m - delta
+    f2 = _compact_at(m2, c0, d0, du, _pick(attf, ndf, one), inv_step, f0)
+    valid = (st & REASON_MASK) == VALID
+    inside = delta >= -room
+    nv = max(f2 if inside else f, zero)
+    # the grid segments of m and m - delta (as `_compact_line`); below c0 the LUT is one line
+    j = min(np.int64(np.sqrt(max(min(max(m, c0), m + room), zero) * inv_step)), g - 1)
+    j2 = min(np.int64(np.sqrt(max(m2, c0, zero) * inv_step)), g - 1)
+    again = valid & inside & (m2 > c0) & (j2 != j)
+    return (nv if valid else v), (m2 if again else np.float32(np.nan))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _compact_again(rec, y, x, m, st, ndf, invnd, dsc0, dsc1, inv_step, g, clip_rel, qs, qo, f0):
+    """The compact LUT's flux at code m (in its range) on pixel (y, x) in state st, at least 0."""
+    one = np.float32(1.0)
+    attf = np.float32((st & ATTENUATED) != 0)
+    c0, top, a, b = _compact_fetch(rec, y, x, m, inv_step, g, clip_rel, qs, qo)
+    d0, du = _compact_line(m, c0, top, a, b, _pick(attf, dsc1, dsc0), inv_step, g)
+    return max(_compact_at(m, c0, d0, du, _pick(attf, ndf, one), inv_step, f0), np.float32(0.0))
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour_compact_correct(values, state, c, clip_flux, est, b0, b1, sb, colour, block):
-    """`lut` mode in place on a Bayer mosaic (`block`: its 2 x 2 channels) with the compact LUT `c` and the
-    per-colour amplitudes `colour` (3, H, W): a VALID pixel's code, less the spill of its other-colour
-    neighbours (their basis values b0, b1: `_colour_compact_planes`) beyond what neighbours at its
-    compact-LUT flux would send, times its amplitude for that colour, through its compact LUT (one
-    iteration of `_correct_kernel` with every=False; spill table `sb`: `SpillBasis`); a DARK neighbour
-    brighter than the pixel is left out. States as `_correct_kernel`: UNCALIBRATED out of range, CLIPPED at
-    most the clipping flux, DARK/NOISY bounds mapped."""
+def _colour_compact_correct(values, state, c, clip_flux, src, tgt, wt, pairs, block, n_clipped):
+    """`lut` mode in place on a Bayer mosaic (`block`: its 2 x 2 channels) with the per-colour amplitudes
+    `pairs` (`colour_pairs`), after `_colour_compact_planes` and `_colour_compact_clipped` (the planes
+    `src`, `tgt`): a VALID pixel's code, less the spill of its other-colour neighbours beyond what
+    neighbours at its flux would send, times its amplitude for that colour, through its compact LUT `c`
+    (its segment at the code, `_colour_value`; one iteration of `_correct_kernel` with every=False; wt: the
+    `SpillBasis` weights); a
+    DARK neighbour brighter than the pixel is left out; CLIPPED values at most the clipping flux (rows with
+    CLIPPED pixels: n_clipped). The interior is one branch-free loop per row over contiguous rows (y - 1,
+    y, y + 1 of each plane: no gathers, so it vectorises); the border rows and columns clamp their
+    neighbours."""
     h, w = values.shape
     rec, dscale, clip_rel, qs, qo, f0, nd = c.rec, c.dscale, c.clip_rel, c.qs, c.qo, c.f0, c.nd
-    basis, wt, inv_de = sb.basis, sb.weight, sb.inv_de
     g = rec.shape[2] - 3
     inv_step = np.float32(g * g) / clip_rel
     ndf = np.float32(nd)
-    zero = np.float32(0.0)
-    sc = np.empty(2, np.float32)             # by group (1: attenuated), indexed rather than selected
-    sc[0] = 1.0
-    sc[1] = ndf
-    inv = np.empty(2, np.float32)
-    inv[0] = 1.0
-    inv[1] = np.float32(1.0) / ndf
+    invnd = np.float32(1.0) / ndf
+    dsc0 = dscale[0]
+    dsc1 = dscale[1]
+    # directions in DIRS order: (-1,-1) (-1,0) (-1,1) (0,-1) (0,1) (1,-1) (1,0) (1,1)
+    w00, w01, w10, w11, w20, w21, w30, w31 = wt[0, 0], wt[0, 1], wt[1, 0], wt[1, 1], wt[2, 0], wt[2, 1], \
+        wt[3, 0], wt[3, 1]
+    w40, w41, w50, w51, w60, w61, w70, w71 = wt[4, 0], wt[4, 1], wt[5, 0], wt[5, 1], wt[6, 0], wt[6, 1], \
+        wt[7, 0], wt[7, 1]
     for y in prange(h):
         yi = np.int64(y)                     # (a parfor index is unsigned: y - 1 would be float)
+        py = yi & 1
+        qy = (yi + 1) & 1
+        # 1 where the pixel's diagonal neighbours have another colour, by its column parity (even e, odd o)
+        kd_e = np.float32(block[qy, 1] != block[py, 0])
+        kd_o = np.float32(block[qy, 0] != block[py, 1])
+        border = (yi == 0) | (yi == h - 1) | (w < 3)
+        for k in range(w if border else 2):
+            xi = np.int64(k) if border else np.int64(k) * (w - 1)      # a border row, or columns 0 and w - 1
+            f = tgt[_TGT_F, yi, xi]
+            st = state[yi, xi]
+            fr0, fr1, da0, da1 = _flat_spill(f, tgt[_TGT_O0, yi, xi], tgt[_TGT_O1, yi, xi], src[_SRC_B0, yi, xi],
+                                             src[_SRC_B1, yi, xi], st)
+            sd = _neighbour_spill(w00, w01, state, src, yi - 1, xi - 1, h, w, f, fr0, fr1, da0, da1)
+            sd += _neighbour_spill(w20, w21, state, src, yi - 1, xi + 1, h, w, f, fr0, fr1, da0, da1)
+            sd += _neighbour_spill(w50, w51, state, src, yi + 1, xi - 1, h, w, f, fr0, fr1, da0, da1)
+            sd += _neighbour_spill(w70, w71, state, src, yi + 1, xi + 1, h, w, f, fr0, fr1, da0, da1)
+            sv = _neighbour_spill(w10, w11, state, src, yi - 1, xi, h, w, f, fr0, fr1, da0, da1)
+            sv += _neighbour_spill(w60, w61, state, src, yi + 1, xi, h, w, f, fr0, fr1, da0, da1)
+            sh = _neighbour_spill(w30, w31, state, src, yi, xi - 1, h, w, f, fr0, fr1, da0, da1)
+            sh += _neighbour_spill(w40, w41, state, src, yi, xi + 1, h, w, f, fr0, fr1, da0, da1)
+            t = (f, tgt[_TGT_C0, yi, xi], tgt[_TGT_D0, yi, xi], tgt[_TGT_DU, yi, xi], tgt[_TGT_ROOM, yi, xi])
+            values[yi, xi], tgt[_TGT_O0, yi, xi] = _colour_value(
+                values[yi, xi], st, t, _pick(np.float32(xi & 1), kd_o, kd_e), pairs[0, yi, xi], pairs[1, yi, xi], sd,
+                sv, sh, ndf, invnd, inv_step, g, f0)
+        if not border:
+            # interior: the target is x + 1, its neighbours x, x + 1, x + 2 of the rows above (u), at (c)
+            # and below (d) of each plane: non-negative indices only
+            b0u, b0c, b0d = src[_SRC_B0, yi - 1], src[_SRC_B0, yi], src[_SRC_B0, yi + 1]
+            b1u, b1c, b1d = src[_SRC_B1, yi - 1], src[_SRC_B1, yi], src[_SRC_B1, yi + 1]
+            su, sc, sdn = state[yi - 1], state[yi], state[yi + 1]
+            dku, dkc, dkd = src[_SRC_DARK, yi - 1], src[_SRC_DARK, yi], src[_SRC_DARK, yi + 1]
+            fr, c0r, d0r, dur, rmr = tgt[_TGT_F, yi], tgt[_TGT_C0, yi], tgt[_TGT_D0, yi], tgt[_TGT_DU, yi], \
+                tgt[_TGT_ROOM, yi]
+            o0r, o1r = tgt[_TGT_O0, yi], tgt[_TGT_O1, yi]
+            vr, pr, qr = values[yi], pairs[0, yi], pairs[1, yi]
+            for x in range(w - 2):
+                xc = x + 1
+                f = fr[xc]
+                st = sc[xc]
+                fr0, fr1, da0, da1 = _flat_spill(f, o0r[xc], o1r[xc], b0c[xc], b1c[xc], st)
+                sd = _spill_term(w00, w01, b0u[x], b1u[x], su[x], dku[x], f, fr0, fr1, da0, da1)
+                sd += _spill_term(w20, w21, b0u[x + 2], b1u[x + 2], su[x + 2], dku[x + 2], f, fr0, fr1, da0, da1)
+                sd += _spill_term(w50, w51, b0d[x], b1d[x], sdn[x], dkd[x], f, fr0, fr1, da0, da1)
+                sd += _spill_term(w70, w71, b0d[x + 2], b1d[x + 2], sdn[x + 2], dkd[x + 2], f, fr0, fr1, da0, da1)
+                sv = _spill_term(w10, w11, b0u[xc], b1u[xc], su[xc], dku[xc], f, fr0, fr1, da0, da1)
+                sv += _spill_term(w60, w61, b0d[xc], b1d[xc], sdn[xc], dkd[xc], f, fr0, fr1, da0, da1)
+                sh = _spill_term(w30, w31, b0c[x], b1c[x], sc[x], dkc[x], f, fr0, fr1, da0, da1)
+                sh += _spill_term(w40, w41, b0c[x + 2], b1c[x + 2], sc[x + 2], dkc[x + 2], f, fr0, fr1, da0, da1)
+                vr[xc], o0r[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
+                                                _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh,
+                                                ndf, invnd, inv_step, g, f0)
+        # the pixels whose corrected code lies on another grid segment: the compact LUT read there (tgt's o0
+        # row holds that code)
         for x in range(w):
-            st = state[y, x]
-            reason = st & REASON_MASK
-            v = values[y, x]
-            grp = np.int64((st & ATTENUATED) != 0)
-            s = sc[grp]
-            dsc = dscale[grp]
-            m = v * inv[grp]
-            if reason == VALID:
-                f, ok = _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0)
-                if not ok:
-                    state[y, x] = (st & FLAG_MASK) | UNCALIBRATED
-                    continue
-                q_reg = f * inv_de                   # flat neighbours at this pixel's flux
-                q_att = q_reg * inv[1]
-                fr0 = _basis_at(basis, 0, q_reg)
-                fr1 = _basis_at(basis, 1, q_reg)
-                da0 = _basis_at(basis, 0, q_att) - fr0
-                da1 = _basis_at(basis, 1, q_att) - fr1
-                own = block[y & 1, x & 1]
-                c_h = block[y & 1, (x + 1) & 1]      # colour of the left/right, up/down, diagonal neighbours
-                c_v = block[(y + 1) & 1, x & 1]
-                c_d = block[(y + 1) & 1, (x + 1) & 1]
-                a_h = colour[c_h, y, x]
-                a_v = colour[c_v, y, x]
-                a_d = colour[c_d, y, x] if c_d != own else zero    # a green photosite's diagonals are green
-                # directions in DIRS order: (-1,-1) (-1,0) (-1,1) (0,-1) (0,1) (1,-1) (1,0) (1,1)
-                sd = _neighbour_spill(wt[0, 0], wt[0, 1], state, est, b0, b1, yi - 1, x - 1, h, w, f, fr0, fr1,
-                                      da0, da1)
-                sd += _neighbour_spill(wt[2, 0], wt[2, 1], state, est, b0, b1, yi - 1, x + 1, h, w, f, fr0, fr1,
-                                       da0, da1)
-                sd += _neighbour_spill(wt[5, 0], wt[5, 1], state, est, b0, b1, yi + 1, x - 1, h, w, f, fr0, fr1,
-                                       da0, da1)
-                sd += _neighbour_spill(wt[7, 0], wt[7, 1], state, est, b0, b1, yi + 1, x + 1, h, w, f, fr0, fr1,
-                                       da0, da1)
-                sv = _neighbour_spill(wt[1, 0], wt[1, 1], state, est, b0, b1, yi - 1, x, h, w, f, fr0, fr1,
-                                      da0, da1)
-                sv += _neighbour_spill(wt[6, 0], wt[6, 1], state, est, b0, b1, yi + 1, x, h, w, f, fr0, fr1,
-                                       da0, da1)
-                sh = _neighbour_spill(wt[3, 0], wt[3, 1], state, est, b0, b1, yi, x - 1, h, w, f, fr0, fr1,
-                                      da0, da1)
-                sh += _neighbour_spill(wt[4, 0], wt[4, 1], state, est, b0, b1, yi, x + 1, h, w, f, fr0, fr1,
-                                       da0, da1)
-                delta = a_d * sd + a_v * sv + a_h * sh
-                f2, ok2 = _compact_eval(rec, y, x, m - delta, s, dsc, inv_step, g, clip_rel, qs, qo, f0)
-                values[y, x] = max(f2 if ok2 else f, zero)
-            elif reason == CLIPPED:
-                cf = clip_flux[y, x]
-                if cf == cf and cf < v:
-                    values[y, x] = cf
-            elif reason == DARK or reason == NOISY:
-                f, ok = _compact_eval(rec, y, x, m, s, dsc, inv_step, g, clip_rel, qs, qo, f0)
-                if ok and f > zero:
-                    values[y, x] = f
+            m2 = tgt[_TGT_O0, yi, x]
+            if m2 == m2:
+                values[yi, x] = _compact_again(rec, yi, x, m2, state[yi, x], ndf, invnd, dsc0, dsc1, inv_step, g,
+                                               clip_rel, qs, qo, f0)
+        if n_clipped[yi] > 0:
+            for x in range(w):
+                cf = clip_flux[yi, x]
+                if (state[yi, x] & REASON_MASK) == CLIPPED and cf < values[yi, x]:    # NaN: no change
+                    values[yi, x] = cf
 
 _compact_lock = threading.Lock()
 
@@ -1220,13 +1387,17 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         from . import cfa as cfas
         from . import scratch
         c = compact_for(profile)
-        est, b0, b1 = scratch.planes("crosstalk_colour", values.shape,
-                                     lambda: tuple(np.empty_like(values) for _ in range(3)))
+        h, w = values.shape
+        src, tgt, n_clipped = scratch.planes(
+            "crosstalk_colour", values.shape,
+            lambda: (np.empty((SRC_PLANES, h, w), np.float32), np.empty((TGT_PLANES, h, w), np.float32),
+                     np.empty(h, np.int64)))
         sb = spill_basis(calib)
-        _colour_compact_planes(values, state, c.record(), sb.basis, sb.inv_de, est, b0, b1)
+        _colour_compact_planes(values, state, c.record(), sb.basis, sb.inv_de, src, tgt, n_clipped)
         blk = cfas.block(cfa)
-        _colour_compact_clipped(values, state, est, b0, b1, sb.basis, sb.inv_de, float(profile.nd), blk)
-        _colour_compact_correct(values, state, c.record(), calib.clip_flux, est, b0, b1, sb, calib.colour, blk)
+        _colour_compact_clipped(values, state, src, tgt, sb.basis, sb.inv_de, nd, blk, n_clipped)
+        _colour_compact_correct(values, state, c.record(), calib.clip_flux, src, tgt, sb.weight,
+                                colour_pairs(calib, cfa), blk, n_clipped)
         return values, state
     if coloured:
         from . import cfa as cfas

@@ -339,3 +339,63 @@ def test_identity_colour_calibration_is_the_identity_in_every_colour_setting():
         crosstalk.correct(v, s, prof, mode, lut=lut)
         ok = (s & validity.REASON_MASK) == validity.VALID
         assert ok.sum() > 100 and np.allclose(v[ok], v0[ok], rtol=1e-3, atol=0.05), (mode, lut)
+
+
+def test_colour_compact_first_order_step_matches_the_compact_lut_at_the_corrected_code():
+    """The fast setting takes the compact LUT at the corrected code m - delta to first order (its flux and
+    slope at m, docs/CROSSTALK.md section 4b). On a hand-made calibration with a curved code-to-flux table
+    and a linear spill table (sigma_d(e) = k_d e), under coloured light (red photosites 3 x as bright as
+    the others), delta is computed here from the definition: the pixel's amplitude for each other-colour
+    neighbour times k_d (neighbour signal - signal of a flat neighbour at the pixel's flux), neighbour
+    fluxes from the compact LUT; the compact LUT at m - delta (the monochrome compact setting on the codes
+    m - delta) is the reference, and the step is within the compact LUT's own error (against the full
+    table) there. Every VALID pixel of the 16 x 16 frame, borders included."""
+    h, w, nd = 16, 16, 6.0
+    prof = profile.default(h, w, cfa="rggb", seed=2).replace(nd=nd)
+    att = prof.mask
+    s = np.where(att, nd, 1.0)
+    kk = 12
+    knot_flux = np.linspace(0.0, 4000.0 * nd, kk)
+    frac = knot_flux / knot_flux[-1]
+    codes = (knot_flux[None, None, :] / s[:, :, None]) * (1.0 - 0.08 * frac[None, None, :] ** 2) + 3.0
+    codes[:, :, 0] = 3.0
+    q, qs, qo = crosstalk.quantize_codes(codes, int(prof.clip_code) + 1)
+    k_d = np.array([0.003, 0.012, 0.003, 0.010, 0.010, 0.003, 0.012, 0.003])    # DIRS order
+    rng = np.random.default_rng(5)
+    colour = rng.uniform(0.8, 1.3, (3, h, w)).astype(np.float32)
+    white = crosstalk.CrosstalkCalibration(
+        codes_q=q, qscale=qs, qoffset=qo, n_knots=np.full((h, w), kk, np.int32), knot_flux=knot_flux,
+        clip_flux=np.full((h, w), np.nan, np.float32), nd=nd, black_level=float(prof.black_level),
+        clip_code=int(prof.clip_code), sig_e=np.array([0.0, 1e5], np.float32),
+        sigma=np.ascontiguousarray((k_d[:, None] * np.array([0.0, 1e5])).astype(np.float32)),
+        alpha=np.ones((h, w), np.float32))
+    mono = prof.replace(crosstalk=white)
+    col = prof.replace(crosstalk=dataclasses.replace(white, colour=colour))
+    chan = channels("rggb", h, w)
+    m = np.where(chan == 0, 1500.0, 500.0) / s * rng.uniform(0.9, 1.1, (h, w))      # codes above black
+    state0 = np.where(att, validity.ATTENUATED, validity.VALID).astype(np.uint8)
+
+    def compact(codes_, lut="compact"):
+        v, st = (codes_ * s).astype(np.float32), state0.copy()
+        crosstalk.correct(v, st, mono, "lut", lut=lut)
+        assert np.all((st & validity.REASON_MASK) == validity.VALID)
+        return v.astype(np.float64)
+
+    f = compact(m)
+    delta = np.zeros((h, w))
+    for d, (dy, dx) in enumerate(crosstalk.DIRS):
+        for y in range(h):
+            for x in range(w):
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < h and 0 <= xx < w and chan[yy, xx] != chan[y, x]:
+                    delta[y, x] += colour[chan[yy, xx], y, x] * k_d[d] * (f[yy, xx] - f[y, x]) / s[yy, xx]
+    reference = compact(m - delta)
+    v, st = (m * s).astype(np.float32), state0.copy()
+    crosstalk.correct(v, st, col, "lut", lut="compact")
+    assert np.all((st & validity.REASON_MASK) == validity.VALID)
+    step = np.abs(reference - f) / f
+    err = np.abs(v - reference) / reference
+    assert np.all(reference > 0.2 * f)
+    assert np.median(step[chan != 0]) > 0.03, np.median(step)        # the correction is not small here
+    own = np.abs(reference - compact(m - delta, "full")) / reference       # the compact LUT's own error
+    assert np.max(err) < max(np.max(own), 1e-4), (np.max(err), np.max(own))
