@@ -1330,7 +1330,8 @@ _compact_lock = threading.Lock()
 
 def compact_for(profile) -> CompactLut:
     """The compact LUT of a profile's calibration, derived once and kept on the calibration object (the
-    elements call this when they start, so the first frame does not pay for it)."""
+    elements call this when they start, so the first frame does not pay for it); for a colour profile
+    whose calibration has per-colour amplitudes also its `spill_basis` and `colour_pairs`."""
     calib = profile.crosstalk
     if calib is None:
         raise ValueError("the profile has no crosstalk calibration")
@@ -1342,6 +1343,10 @@ def compact_for(profile) -> CompactLut:
         hit = calib.__dict__.get("_compact")
         if hit is None or hit[0] is not mask or hit[1] != nd:
             hit = (mask, nd, compact_lut(calib, mask, nd))
+            cfa = getattr(profile, "cfa", "none")
+            if calib.colour is not None and cfa != "none":
+                spill_basis(calib)
+                colour_pairs(calib, cfa)
             calib.__dict__["_compact"] = hit
     return hit[2]
 

@@ -399,3 +399,27 @@ def test_colour_compact_first_order_step_matches_the_compact_lut_at_the_correcte
     assert np.median(step[chan != 0]) > 0.03, np.median(step)        # the correction is not small here
     own = np.abs(reference - compact(m - delta, "full")) / reference       # the compact LUT's own error
     assert np.max(err) < max(np.max(own), 1e-4), (np.max(err), np.max(own))
+
+
+def test_compact_for_derives_the_colour_tables_before_the_first_frame(monkeypatch):
+    """`compact_for` (what nrcrosstalk calls when it starts) also derives a colour calibration's amplitude
+    pairs and spill basis, so the first frame derives neither: afterwards the pairs come without the mosaic
+    lookup, and with the SVD disabled the colour compact setting still corrects a frame."""
+    from nrhdr_core import cfa as cfas
+    prof = profile.default(12, 16, cfa="grbg")
+    prof = prof.replace(crosstalk=crosstalk.identity_calibration(prof.mask, nd=prof.nd, black_level=prof.black_level,
+                                                                 clip_code=prof.clip_code, colour=True))
+    crosstalk.compact_for(prof)
+
+    def derived_again(*a, **k):
+        raise AssertionError("derived in the frame")
+    with monkeypatch.context() as m:
+        m.setattr(cfas, "block", derived_again)
+        assert crosstalk.colour_pairs(prof.crosstalk, prof.cfa).shape == (2, 12, 16)
+        with pytest.raises(AssertionError, match="derived in the frame"):     # a calibration not seen before
+            crosstalk.colour_pairs(dataclasses.replace(prof.crosstalk), prof.cfa)
+    monkeypatch.setattr(np.linalg, "svd", derived_again)
+    raw = np.clip(prof.black_level + np.geomspace(5, 3000, 12 * 16).reshape(12, 16), 0, prof.clip_code).astype(np.uint16)
+    v, s = validity.classify(raw, prof, "threshold", l_min=0)
+    crosstalk.correct(v, s, prof, "lut", lut="compact")
+    assert np.isfinite(v).all()
