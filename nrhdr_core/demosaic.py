@@ -228,7 +228,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
     per channel, CLIPPED photosites); the green plane's pyramid level 1 (`pull_row`) and, `deep`, level 2
-    (`pull_at`, per pair of cell rows). Branch-free pixel loops."""
+    (`_pull_level_row`, per pair of cell rows). Branch-free pixel loops."""
     h, w = values.shape
     h1 = cnt.shape[0]
     zero = np.float32(0.0)
@@ -237,8 +237,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
         for y1 in range(step * q, min(step * q + step, h1)):
             _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
         if deep:
-            for x2 in range(w2):
-                pull_at(pv, pw, o1, h1, w1, o2, w2, q, x2)
+            _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -284,6 +283,43 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
         cnt[y1, _N_KNOWN + b0] += kn0
         cnt[y1, _N_KNOWN + b1] += kn1
     pull_row(values, kg, pv, pw, o1, w1, y1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1):
+    """Row y1 of a pyramid level (at o1, w1 wide) pulled from the level below it (at o0, h0 x w0):
+    `pullpush.pull_at` of each of its pixels, the same sums in the same order; the full 2 x 2 blocks in a
+    branch-free loop over row slices (it vectorises), a last odd row or column by `pull_at`."""
+    y = 2 * y1
+    if y + 1 >= h0:
+        for x1 in range(w1):
+            pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
+        return
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    a0 = o0 + y * w0
+    va = pv[a0:a0 + w0]
+    vb = pv[a0 + w0:a0 + 2 * w0]
+    ca = pw[a0:a0 + w0]
+    cb = pw[a0 + w0:a0 + 2 * w0]
+    b1 = o1 + y1 * w1
+    vo = pv[b1:b1 + w1]
+    co = pw[b1:b1 + w1]
+    for x1 in range(w0 // 2):
+        x = 2 * x1
+        s = zero + va[x]
+        s = s + va[x + 1]
+        s = s + vb[x]
+        s = s + vb[x + 1]
+        c = zero + ca[x]
+        c = c + ca[x + 1]
+        c = c + cb[x]
+        c = c + cb[x + 1]
+        over = c > one
+        vo[x1] = s / c if over else s
+        co[x1] = one if over else c
+    if w0 % 2:
+        pull_at(pv, pw, o0, h0, w0, o1, w1, y1, w1 - 1)
 
 
 def _positions(blk):
@@ -546,7 +582,7 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
     integer reductions vectorise, float ones do not). The logarithm only at
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
     pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`push_at`) row
-    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`pull_at`) per pair of cell
+    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_level_row`) per pair of cell
     rows."""
     h, w = values.shape
     h1 = (h + 1) // 2
@@ -562,9 +598,8 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
                 _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
                              pwr, pvb, pwb, kl, fst, ix, keys, mrs[kc], gout, y1)
             if deep:
-                for x2 in range(w2):
-                    pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
-                    pull_at(pvb, pwb, o1, h1, w1, o2, w2, q, x2)
+                _pull_level_row(pvr, pwr, o1, h1, w1, o2, w2, q)
+                _pull_level_row(pvb, pwb, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
