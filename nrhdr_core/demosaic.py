@@ -40,8 +40,7 @@ from numba import njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .pullpush import (SERIAL_LEVEL, fill_row, pull, pull_at, pull_push_levels, pull_row, push, pyramid,
-                       small_levels)
+from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid, small_levels
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_at_cfa
@@ -332,16 +331,30 @@ def _positions(blk):
 
 def _levels_from(pv, pw, hs, ws, off, first):
     """`pullpush.pull_push_levels` from level `first` (pulled already) to the top and back to it:
-    big levels in parallel regions, the small ones in one serial call."""
+    big levels in parallel regions by rows (`_pull_rows`, `_push_rows`), the small ones in one serial call."""
     levels = hs.shape[0] - 1
     small = first
     while small < levels and hs[small] * ws[small] >= SERIAL_LEVEL:
         small += 1
     for lv in range(first, small):
-        pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+        _pull_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
     small_levels(pv, pw, hs, ws, off, small, levels)
     for lv in range(small - 1, first - 1, -1):
-        push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+        _push_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _pull_rows(pv, pw, o0, h0, w0, o1, h1, w1):
+    """`pullpush.pull` by rows (`_pull_level_row`)."""
+    for y1 in prange(h1):
+        _pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _push_rows(pv, pw, o0, h0, w0, o1, w1):
+    """`pullpush.push` by rows (`_push_row`)."""
+    for y in prange(h0):
+        _push_row(pv, pw, o0, w0, o1, w1, y)
 
 
 def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
@@ -694,14 +707,20 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
     """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
-    their pyramids pulled from level `first` to the top and pushed back to it (`small_levels`, one
-    pyramid per thread), then each cell its value where known, else the weighted mean of its known
+    their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread: level
+    `first` by rows, `_pull_level_row` and `_push_row`, the smaller ones by `small_levels`), then each cell its value where known, else the weighted mean of its known
     8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `pullpush.fill_row`, as
     the monochrome preview fills level 0); stored as the ratio 2^d."""
     levels = hs.shape[0] - 1
     for i in prange(2):
         if first < levels:
-            small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
+            v = pv[1 + i]
+            p = pw[1 + i]
+            for y in range(hs[first + 1]):
+                _pull_level_row(v, p, off[first], hs[first], ws[first], off[first + 1], ws[first + 1], y)
+            small_levels(v, p, hs, ws, off, first + 1, levels)
+            for y in range(hs[first]):
+                _push_row(v, p, off[first], ws[first], off[first + 1], ws[first + 1], y)
     h1 = known.shape[1]
     for q in prange(2 * h1):
         i = q // h1
