@@ -740,23 +740,33 @@ def _ratio(lat, ratio):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _expand(lat, i0, i1, a, px, ext_w, w, buf):
+def _expand(lat, i0, i1, a, px, ext_w, w, buf, e):
     """buf[x] (x < w) = the lattice row pair (i0, i1; weight a of i1) bilinear at photosite column x, for a
-    lattice of columns px, px + 2, ... (ext_w of them; edge values replicated)."""
+    lattice of columns px, px + 2, ... (ext_w of them; edge values replicated; none: its first cell's);
+    e: a row buffer (the lattice row pair's blend, then interleaved with the means of neighbours: loops
+    that vectorise)."""
     px = px & 1                     # provably >= 0 (as `_own_row`'s x0)
     b = np.float32(1.0) - a
     l0 = lat[i0]
     l1 = lat[i1]
-    for j in range(ext_w):
-        buf[px + 2 * j] = b * l0[j] + a * l1[j]
-    if px == 1:
-        buf[0] = buf[1]
-    last = px + 2 * (ext_w - 1)
     half = np.float32(0.5)
-    for x in range(px + 1, last, 2):
-        buf[x] = half * (buf[x - 1] + buf[x + 1])
+    if ext_w < 1:                   # no column of the lattice in the frame: its first cell's value everywhere
+        e0 = b * l0[0] + a * l1[0]
+        for x in range(w):
+            buf[x] = e0
+        return
+    for j in range(ext_w):
+        e[j] = b * l0[j] + a * l1[j]
+    for j in range(ext_w - 1):
+        buf[px + 2 * j] = e[j]
+        buf[px + 2 * j + 1] = half * (e[j] + e[j + 1])
+    last = px + 2 * (ext_w - 1)
+    el = e[ext_w - 1]
+    buf[last] = el
+    if px == 1:
+        buf[0] = e[0]
     for x in range(last + 1, w):
-        buf[x] = buf[last]
+        buf[x] = el
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -785,7 +795,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                 t = y - pos[ch, 0]
                 i0 = 0 if t < 0 else min(t >> 1, eh - 1)
                 a = half if (t > 0 and (t & 1) == 1 and i0 + 1 < eh) else zero
-                _expand(rl[i], i0, min(i0 + 1, eh - 1), a, pos[ch, 1], ext[ch, 1], w, buf)
+                _expand(rl[i], i0, min(i0 + 1, eh - 1), a, pos[ch, 1], ext[ch, 1], w, buf, rows[k, 2])
                 lo = rng[ch, 0]
                 top = rng[ch, 2]
                 o = out[ch, y]
@@ -1009,7 +1019,8 @@ def _fuse(out, blk, noisy, noise, fusion):
 
 def warmup() -> None:
     """Compile (or load from numba's cache) the kernels of both methods, on a tiny synthetic mosaic (writeable
-    and read-only values, NOISY photosites fused, clipped and dark ones bounded)."""
+    and read-only values, NOISY photosites fused, clipped and dark ones bounded), and the parallel pyramid
+    levels of large frames."""
     from .validity import default_noise
     rng = np.random.default_rng(0)
     h, w = 16, 20
@@ -1022,6 +1033,12 @@ def warmup() -> None:
     for method in METHODS:
         for v in (vals, ro):
             reconstruct_cfa(v, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
+    # the pyramid levels pulled and pushed in parallel (`_levels_from`: level 2 of SERIAL_LEVEL cells or more)
+    _, _, hs, ws, off = pyramid(h, w)
+    pv = np.zeros((3, off[-1]), np.float32)
+    pw = np.zeros((3, off[-1]), np.float32)
+    _pull_rows(pv[0], pw[0], off[1], hs[1], ws[1], off[2], hs[2], ws[2])
+    _push_rows(pv[0], pw[0], off[1], hs[1], ws[1], off[2], ws[2])
 
 
 # ---- colour-difference median (docs/COLOUR.md "Colour-difference median") ---------------------------------
