@@ -40,8 +40,7 @@ from numba import njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .pullpush import (SERIAL_LEVEL, fill_row, pull, pull_at, pull_push_levels, pull_row, push, pyramid,
-                       small_levels)
+from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid, small_levels
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_at_cfa
@@ -228,7 +227,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
     per channel, CLIPPED photosites); the green plane's pyramid level 1 (`pull_row`) and, `deep`, level 2
-    (`pull_at`, per pair of cell rows). Branch-free pixel loops."""
+    (`_pull_level_row`, per pair of cell rows). Branch-free pixel loops."""
     h, w = values.shape
     h1 = cnt.shape[0]
     zero = np.float32(0.0)
@@ -237,8 +236,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
         for y1 in range(step * q, min(step * q + step, h1)):
             _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
         if deep:
-            for x2 in range(w2):
-                pull_at(pv, pw, o1, h1, w1, o2, w2, q, x2)
+            _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -286,6 +284,43 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
     pull_row(values, kg, pv, pw, o1, w1, y1)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1):
+    """Row y1 of a pyramid level (at o1, w1 wide) pulled from the level below it (at o0, h0 x w0):
+    `pullpush.pull_at` of each of its pixels, the same sums in the same order; the full 2 x 2 blocks in a
+    branch-free loop over row slices (it vectorises), a last odd row or column by `pull_at`."""
+    y = 2 * y1
+    if y + 1 >= h0:
+        for x1 in range(w1):
+            pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
+        return
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    a0 = o0 + y * w0
+    va = pv[a0:a0 + w0]
+    vb = pv[a0 + w0:a0 + 2 * w0]
+    ca = pw[a0:a0 + w0]
+    cb = pw[a0 + w0:a0 + 2 * w0]
+    b1 = o1 + y1 * w1
+    vo = pv[b1:b1 + w1]
+    co = pw[b1:b1 + w1]
+    for x1 in range(w0 // 2):
+        x = 2 * x1
+        s = zero + va[x]
+        s = s + va[x + 1]
+        s = s + vb[x]
+        s = s + vb[x + 1]
+        c = zero + ca[x]
+        c = c + ca[x + 1]
+        c = c + cb[x]
+        c = c + cb[x + 1]
+        over = c > one
+        vo[x1] = s / c if over else s
+        co[x1] = one if over else c
+    if w0 % 2:
+        pull_at(pv, pw, o0, h0, w0, o1, w1, y1, w1 - 1)
+
+
 def _positions(blk):
     """int64 (3, 2): the (row, column) of each channel's photosite in the 2 x 2 block (green: the first)."""
     pos = np.zeros((3, 2), np.int64)
@@ -296,16 +331,30 @@ def _positions(blk):
 
 def _levels_from(pv, pw, hs, ws, off, first):
     """`pullpush.pull_push_levels` from level `first` (pulled already) to the top and back to it:
-    big levels in parallel regions, the small ones in one serial call."""
+    big levels in parallel regions by rows (`_pull_rows`, `_push_rows`), the small ones in one serial call."""
     levels = hs.shape[0] - 1
     small = first
     while small < levels and hs[small] * ws[small] >= SERIAL_LEVEL:
         small += 1
     for lv in range(first, small):
-        pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
+        _pull_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
     small_levels(pv, pw, hs, ws, off, small, levels)
     for lv in range(small - 1, first - 1, -1):
-        push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+        _push_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _pull_rows(pv, pw, o0, h0, w0, o1, h1, w1):
+    """`pullpush.pull` by rows (`_pull_level_row`)."""
+    for y1 in prange(h1):
+        _pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _push_rows(pv, pw, o0, h0, w0, o1, w1):
+    """`pullpush.push` by rows (`_push_row`)."""
+    for y in prange(h0):
+        _push_row(pv, pw, o0, w0, o1, w1, y)
 
 
 def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
@@ -546,7 +595,7 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
     integer reductions vectorise, float ones do not). The logarithm only at
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
     pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`push_at`) row
-    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`pull_at`) per pair of cell
+    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_level_row`) per pair of cell
     rows."""
     h, w = values.shape
     h1 = (h + 1) // 2
@@ -562,9 +611,8 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
                 _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
                              pwr, pvb, pwb, kl, fst, ix, keys, mrs[kc], gout, y1)
             if deep:
-                for x2 in range(w2):
-                    pull_at(pvr, pwr, o1, h1, w1, o2, w2, q, x2)
-                    pull_at(pvb, pwb, o1, h1, w1, o2, w2, q, x2)
+                _pull_level_row(pvr, pwr, o1, h1, w1, o2, w2, q)
+                _pull_level_row(pvb, pwb, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -659,14 +707,20 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
     """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
-    their pyramids pulled from level `first` to the top and pushed back to it (`small_levels`, one
-    pyramid per thread), then each cell its value where known, else the weighted mean of its known
+    their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread: level
+    `first` by rows, `_pull_level_row` and `_push_row`, the smaller ones by `small_levels`), then each cell its value where known, else the weighted mean of its known
     8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `pullpush.fill_row`, as
     the monochrome preview fills level 0); stored as the ratio 2^d."""
     levels = hs.shape[0] - 1
     for i in prange(2):
         if first < levels:
-            small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
+            v = pv[1 + i]
+            p = pw[1 + i]
+            for y in range(hs[first + 1]):
+                _pull_level_row(v, p, off[first], hs[first], ws[first], off[first + 1], ws[first + 1], y)
+            small_levels(v, p, hs, ws, off, first + 1, levels)
+            for y in range(hs[first]):
+                _push_row(v, p, off[first], ws[first], off[first + 1], ws[first + 1], y)
     h1 = known.shape[1]
     for q in prange(2 * h1):
         i = q // h1
@@ -686,23 +740,33 @@ def _ratio(lat, ratio):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _expand(lat, i0, i1, a, px, ext_w, w, buf):
+def _expand(lat, i0, i1, a, px, ext_w, w, buf, e):
     """buf[x] (x < w) = the lattice row pair (i0, i1; weight a of i1) bilinear at photosite column x, for a
-    lattice of columns px, px + 2, ... (ext_w of them; edge values replicated)."""
+    lattice of columns px, px + 2, ... (ext_w of them; edge values replicated; none: its first cell's);
+    e: a row buffer (the lattice row pair's blend, then interleaved with the means of neighbours: loops
+    that vectorise)."""
     px = px & 1                     # provably >= 0 (as `_own_row`'s x0)
     b = np.float32(1.0) - a
     l0 = lat[i0]
     l1 = lat[i1]
-    for j in range(ext_w):
-        buf[px + 2 * j] = b * l0[j] + a * l1[j]
-    if px == 1:
-        buf[0] = buf[1]
-    last = px + 2 * (ext_w - 1)
     half = np.float32(0.5)
-    for x in range(px + 1, last, 2):
-        buf[x] = half * (buf[x - 1] + buf[x + 1])
+    if ext_w < 1:                   # no column of the lattice in the frame: its first cell's value everywhere
+        e0 = b * l0[0] + a * l1[0]
+        for x in range(w):
+            buf[x] = e0
+        return
+    for j in range(ext_w):
+        e[j] = b * l0[j] + a * l1[j]
+    for j in range(ext_w - 1):
+        buf[px + 2 * j] = e[j]
+        buf[px + 2 * j + 1] = half * (e[j] + e[j + 1])
+    last = px + 2 * (ext_w - 1)
+    el = e[ext_w - 1]
+    buf[last] = el
+    if px == 1:
+        buf[0] = e[0]
     for x in range(last + 1, w):
-        buf[x] = buf[last]
+        buf[x] = el
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -731,7 +795,7 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                 t = y - pos[ch, 0]
                 i0 = 0 if t < 0 else min(t >> 1, eh - 1)
                 a = half if (t > 0 and (t & 1) == 1 and i0 + 1 < eh) else zero
-                _expand(rl[i], i0, min(i0 + 1, eh - 1), a, pos[ch, 1], ext[ch, 1], w, buf)
+                _expand(rl[i], i0, min(i0 + 1, eh - 1), a, pos[ch, 1], ext[ch, 1], w, buf, rows[k, 2])
                 lo = rng[ch, 0]
                 top = rng[ch, 2]
                 o = out[ch, y]
@@ -955,7 +1019,8 @@ def _fuse(out, blk, noisy, noise, fusion):
 
 def warmup() -> None:
     """Compile (or load from numba's cache) the kernels of both methods, on a tiny synthetic mosaic (writeable
-    and read-only values, NOISY photosites fused, clipped and dark ones bounded)."""
+    and read-only values, NOISY photosites fused, clipped and dark ones bounded), and the parallel pyramid
+    levels of large frames."""
     from .validity import default_noise
     rng = np.random.default_rng(0)
     h, w = 16, 20
@@ -968,6 +1033,12 @@ def warmup() -> None:
     for method in METHODS:
         for v in (vals, ro):
             reconstruct_cfa(v, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
+    # the pyramid levels pulled and pushed in parallel (`_levels_from`: level 2 of SERIAL_LEVEL cells or more)
+    _, _, hs, ws, off = pyramid(h, w)
+    pv = np.zeros((3, off[-1]), np.float32)
+    pw = np.zeros((3, off[-1]), np.float32)
+    _pull_rows(pv[0], pw[0], off[1], hs[1], ws[1], off[2], hs[2], ws[2])
+    _push_rows(pv[0], pw[0], off[1], hs[1], ws[1], off[2], ws[2])
 
 
 # ---- colour-difference median (docs/COLOUR.md "Colour-difference median") ---------------------------------
