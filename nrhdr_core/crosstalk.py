@@ -1125,6 +1125,15 @@ _CLIP_ROWS = 16
 _CLIP_TILE = 64
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _span_offset(y, yy, dx, a, b, w, block):
+    """For `_clip_span`: the pixels x in [lo, hi) of the span [a, b) of row y whose neighbour (yy, x + dx) is
+    in the frame, and whether it has their colour when x is even (f0), odd (f1)."""
+    f0 = block[yy & 1, dx & 1] == block[y & 1, 0]
+    f1 = block[yy & 1, (dx + 1) & 1] == block[y & 1, 1]
+    return max(a, -dx), min(b, w - dx), f0, f1
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
     """`_colour_compact_clipped`'s estimate for the pixels x in [a, b) of row y, into mr (the largest
@@ -1139,7 +1148,6 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
     n = b - a
     zero = np.float32(0.0)
     one = np.float32(1.0)
-    cy = y & 1
     m = mr[:n]
     c = cvb[y - r0, a:b]
     for i in range(n):
@@ -1149,10 +1157,7 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
         if yy < r0 or yy >= h:
             continue
         for dx in range(-2, 3):
-            f0 = block[yy & 1, dx & 1] == block[cy, 0]
-            f1 = block[yy & 1, (dx + 1) & 1] == block[cy, 1]
-            lo = max(a, -dx)
-            hi = min(b, w - dx)
+            lo, hi, f0, f1 = _span_offset(y, yy, dx, a, b, w, block)
             if (dy == 0 and dx == 0) or not (f0 or f1) or hi <= lo:
                 continue
             c = cvb[yy - r0, lo + dx:hi + dx]
@@ -1178,10 +1183,7 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
         if yy < r0 or yy >= h:
             continue
         for dx in range(-4, 5):
-            f0 = block[yy & 1, dx & 1] == block[cy, 0]
-            f1 = block[yy & 1, (dx + 1) & 1] == block[cy, 1]
-            lo = max(a, -dx)
-            hi = min(b, w - dx)
+            lo, hi, f0, f1 = _span_offset(y, yy, dx, a, b, w, block)
             if not (f0 or f1) or hi <= lo:
                 continue
             e = veb[yy - r0, lo + dx:hi + dx]
