@@ -1120,49 +1120,163 @@ def _colour_compact_planes(values, state, c, basis, inv_de, src, tgt, n_clipped)
         n_clipped[y] = n
 
 
+# the rows of `_colour_compact_clipped`'s work unit (a thread's share) and the columns of its skip test
+_CLIP_ROWS = 16
+_CLIP_TILE = 64
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _span_offset(y, yy, dx, a, b, w, block):
+    """For `_clip_span`: the pixels x in [lo, hi) of the span [a, b) of row y whose neighbour (yy, x + dx) is
+    in the frame, and whether it has their colour when x is even (f0), odd (f1)."""
+    f0 = block[yy & 1, dx & 1] == block[y & 1, 0]
+    f1 = block[yy & 1, (dx + 1) & 1] == block[y & 1, 1]
+    return max(a, -dx), min(b, w - dx), f0, f1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
+    """`_colour_compact_clipped`'s estimate for the pixels x in [a, b) of row y, into mr (the largest
+    CLIPPED value, itself included, of its colour's photosites in its 5 x 5), ar and cr (sum and count of its
+    colour's VALID fluxes above mr in its 9 x 9), at x - a. cvb, veb: rows r0.. of the CLIPPED values and
+    VALID fluxes (-inf elsewhere); pz[p, x]: 0 where x & 1 == p, -inf elsewhere. One pass per window offset
+    (dy, dx) over the span, window rows top to bottom and columns left to right (the sum's order), in loops
+    without branches (they vectorise): an offset that reaches the pixel's colour from one column parity only
+    is masked by pz (a -inf candidate, a +inf threshold)."""
+    h = r0 + cvb.shape[0]
+    w = cvb.shape[1]
+    n = b - a
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    m = mr[:n]
+    c = cvb[y - r0, a:b]
+    for i in range(n):
+        m[i] = c[i]
+    for dy in range(-2, 3):
+        yy = y + dy
+        if yy < r0 or yy >= h:
+            continue
+        for dx in range(-2, 3):
+            lo, hi, f0, f1 = _span_offset(y, yy, dx, a, b, w, block)
+            if (dy == 0 and dx == 0) or not (f0 or f1) or hi <= lo:
+                continue
+            c = cvb[yy - r0, lo + dx:hi + dx]
+            mm = mr[lo - a:hi - a]
+            z = pz[0 if f0 else 1, lo:hi]
+            if f0 and f1:
+                for i in range(hi - lo):
+                    ci = c[i]
+                    mi = mm[i]
+                    mm[i] = ci if ci > mi else mi
+            else:
+                for i in range(hi - lo):
+                    ci = c[i] + z[i]
+                    mi = mm[i]
+                    mm[i] = ci if ci > mi else mi
+    acc = ar[:n]
+    cnt = cr[:n]
+    for i in range(n):
+        acc[i] = zero
+        cnt[i] = zero
+    for dy in range(-4, 5):
+        yy = y + dy
+        if yy < r0 or yy >= h:
+            continue
+        for dx in range(-4, 5):
+            lo, hi, f0, f1 = _span_offset(y, yy, dx, a, b, w, block)
+            if not (f0 or f1) or hi <= lo:
+                continue
+            e = veb[yy - r0, lo + dx:hi + dx]
+            mm = mr[lo - a:hi - a]
+            sa = ar[lo - a:hi - a]
+            sc = cr[lo - a:hi - a]
+            z = pz[0 if f0 else 1, lo:hi]
+            if f0 and f1:
+                for i in range(hi - lo):
+                    ei = e[i]
+                    s = ei > mm[i]
+                    sa[i] += ei if s else zero
+                    sc[i] += one if s else zero
+            else:
+                for i in range(hi - lo):
+                    ei = e[i]
+                    s = ei > mm[i] - z[i]
+                    sa[i] += ei if s else zero
+                    sc[i] += one if s else zero
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n_clipped):
     """A CLIPPED pixel's source flux as `_neighbour_estimate` with step 2 (same-colour photosites only): at
     least the largest bound of the clipped ones in the colour plane's 3 x 3, then the mean of the VALID
     ones brighter than that in its 5 x 5 (their `_colour_compact_planes` flux); its `src` basis values
-    updated. Visits the rows with CLIPPED pixels (n_clipped) and, in the windows, the photosites of the
-    pixel's colour."""
+    updated. Visits the rows with CLIPPED pixels (n_clipped), in each the runs of _CLIP_TILE columns with
+    CLIPPED pixels (`_clip_span`)."""
     h, w = values.shape
     inv_att = np.float32(1.0) / np.float32(nd)
-    for y in prange(h):
-        if n_clipped[y] == 0:
-            continue
-        for x in range(w):
-            st = state[y, x]
-            if (st & REASON_MASK) != CLIPPED:
+    ninf = np.float32(-np.inf)
+    pz = np.empty((2, w), np.float32)
+    for x in range(w):
+        pz[x & 1, x] = np.float32(0.0)
+        pz[1 - (x & 1), x] = ninf
+    ng = (h + _CLIP_ROWS - 1) // _CLIP_ROWS
+    groups = np.empty(ng, np.int64)
+    k = 0
+    for g in range(ng):
+        if n_clipped[g * _CLIP_ROWS:min(g * _CLIP_ROWS + _CLIP_ROWS, h)].sum() > 0:
+            groups[k] = g
+            k += 1
+    nt = (w + _CLIP_TILE - 1) // _CLIP_TILE
+    for gi in prange(k):
+        y0 = groups[gi] * _CLIP_ROWS
+        y1 = min(y0 + _CLIP_ROWS, h)
+        r0 = max(y0 - 4, 0)
+        r1 = min(y1 + 4, h)
+        cvb = np.empty((r1 - r0, w), np.float32)
+        veb = np.empty((r1 - r0, w), np.float32)
+        for r in range(r0, r1):
+            sr, vr, fr = state[r], values[r], tgt[_TGT_F, r]
+            cr_, vb = cvb[r - r0], veb[r - r0]
+            for x in range(w):
+                reason = sr[x] & REASON_MASK
+                cr_[x] = vr[x] if reason == CLIPPED else ninf
+                vb[x] = fr[x] if reason == VALID else ninf
+        mr = np.empty(w, np.float32)
+        ar = np.empty(w, np.float32)
+        cn = np.empty(w, np.float32)
+        for y in range(y0, y1):
+            if n_clipped[y] == 0:
                 continue
-            own = block[y & 1, x & 1]
-            v = values[y, x]
-            for yy in range(max(y - 2, 0), min(y + 3, h)):
-                for p in range(2):
-                    if block[yy & 1, p] != own:
+            crow = cvb[y - r0]
+            t = 0
+            while t < nt:
+                a = t * _CLIP_TILE
+                b = a
+                while t < nt:                   # the run of tiles with CLIPPED pixels from tile t
+                    hit = False
+                    for x in range(t * _CLIP_TILE, min(t * _CLIP_TILE + _CLIP_TILE, w)):
+                        if crow[x] != ninf:
+                            hit = True
+                            break
+                    if not hit:
+                        break
+                    t += 1
+                    b = min(t * _CLIP_TILE, w)
+                if b == a:
+                    t += 1
+                    continue
+                _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cn)
+                for x in range(a, b):
+                    st = state[y, x]
+                    if (st & REASON_MASK) != CLIPPED:
                         continue
-                    x0 = max(x - 2, 0)
-                    for xx in range(x0 + ((p - x0) & 1), min(x + 3, w), 2):
-                        if (state[yy, xx] & REASON_MASK) == CLIPPED and values[yy, xx] > v:
-                            v = values[yy, xx]
-            acc = np.float32(0.0)
-            n = 0
-            for yy in range(max(y - 4, 0), min(y + 5, h)):
-                for p in range(2):
-                    if block[yy & 1, p] != own:
-                        continue
-                    x0 = max(x - 4, 0)
-                    for xx in range(x0 + ((p - x0) & 1), min(x + 5, w), 2):
-                        e = tgt[_TGT_F, yy, xx]
-                        if (state[yy, xx] & REASON_MASK) == VALID and e > v:
-                            acc += e
-                            n += 1
-            if n > 0:
-                v = acc / n
-            q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
-            src[_SRC_B0, y, x] = _basis_at(basis, 0, q)
-            src[_SRC_B1, y, x] = _basis_at(basis, 1, q)
+                    v = mr[x - a]
+                    n = np.int64(cn[x - a])
+                    if n > 0:
+                        v = ar[x - a] / n
+                    q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
+                    src[_SRC_B0, y, x] = _basis_at(basis, 0, q)
+                    src[_SRC_B1, y, x] = _basis_at(basis, 1, q)
 
 
 @njit(cache=True, nogil=True, inline="always")

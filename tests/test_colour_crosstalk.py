@@ -423,3 +423,63 @@ def test_compact_for_derives_the_colour_tables_before_the_first_frame(monkeypatc
     v, s = validity.classify(raw, prof, "threshold", l_min=0)
     crosstalk.correct(v, s, prof, "lut", lut="compact")
     assert np.isfinite(v).all()
+
+
+def _clipped_reference(values, state, f, basis, inv_de, nd, chan):
+    """The colour compact pass's CLIPPED-pixel rule written from its definition (docs/CROSSTALK.md 4b): v =
+    the largest value of the pixel and the CLIPPED photosites of its colour in its 5 x 5 window; the mean
+    (float32 sum, window rows top to bottom, columns left to right) of the flux f of its colour's VALID
+    photosites in its 9 x 9 window brighter than v replaces v when there are any; returns the (2, H, W)
+    basis values at v (/ ND if attenuated) as a lerp of the basis grid, None where not CLIPPED."""
+    from nrhdr_core.states import ATTENUATED, CLIPPED, REASON_MASK, VALID
+    h, w = values.shape
+    reason = state & REASON_MASK
+    out = {}
+    for y in range(h):
+        for x in range(w):
+            if reason[y, x] != CLIPPED:
+                continue
+            same = lambda yy, xx: 0 <= yy < h and 0 <= xx < w and chan[yy, xx] == chan[y, x]
+            v = max(float(values[yy, xx]) for yy in range(y - 2, y + 3) for xx in range(x - 2, x + 3)
+                    if same(yy, xx) and reason[yy, xx] == CLIPPED)
+            acc, n = np.float32(0.0), 0
+            for yy in range(y - 4, y + 5):
+                for xx in range(x - 4, x + 5):
+                    if same(yy, xx) and reason[yy, xx] == VALID and f[yy, xx] > v:
+                        acc, n = np.float32(acc + f[yy, xx]), n + 1
+            if n:
+                v = float(acc) / n
+            q = v * float(inv_de) * (float(np.float32(1.0) / np.float32(nd)) if state[y, x] & ATTENUATED else 1.0)
+            i = min(max(int(q), 0), basis.shape[0] - 2)
+            t = q - i
+            out[y, x] = [np.float32(float(basis[i, k]) + t * float(basis[i + 1, k] - basis[i, k])) for k in range(2)]
+    return out
+
+
+@pytest.mark.parametrize("cfa", ["rggb", "bggr", "grbg", "gbrg"])
+@pytest.mark.parametrize("shape", [(13, 17), (11, 150)])
+def test_colour_compact_clipped_estimate_follows_its_definition(cfa, shape):
+    """The colour compact pass's flux of CLIPPED pixels (`_colour_compact_clipped`) equals the rule written
+    from its definition, bit for bit, on random frames with VALID, CLIPPED and DARK pixels, attenuated or
+    not, in every Bayer phase; a wide frame with sparse CLIPPED pixels and rows without any."""
+    from nrhdr_core import cfa as cfas
+    from nrhdr_core.states import ATTENUATED, CLIPPED, DARK, VALID
+    rng = np.random.default_rng(sum(map(ord, cfa)) + shape[1])
+    h, w = shape
+    p_clip = 0.3 if w < 64 else 0.03
+    state = rng.choice(np.array([VALID, CLIPPED, DARK], np.uint8), (h, w), p=[0.6 - p_clip, p_clip, 0.4])
+    state[h // 2] = np.where(state[h // 2] == CLIPPED, VALID, state[h // 2])
+    state |= rng.choice(np.array([0, ATTENUATED], np.uint8), (h, w))
+    values = rng.choice(np.array([2.0, 2.5, 3.0], np.float32), (h, w))
+    tgt = rng.uniform(0.0, 4.0, (crosstalk.TGT_PLANES, h, w)).astype(np.float32)
+    src = rng.uniform(0.0, 1.0, (crosstalk.SRC_PLANES, h, w)).astype(np.float32)
+    basis = rng.uniform(0.0, 1.0, (64, 2)).astype(np.float32)
+    inv_de, nd = np.float32(7.3), 6.0
+    n_clipped = ((state & 15) == CLIPPED).sum(1).astype(np.int64)
+    expect = src.copy()
+    ref = _clipped_reference(values, state, tgt[0], basis, inv_de, nd, cfas.channel_index(cfa, h, w))
+    for (y, x), b in ref.items():
+        expect[:2, y, x] = b
+    crosstalk._colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, cfas.block(cfa), n_clipped)
+    assert len(ref) > 5
+    assert np.array_equal(src, expect)
