@@ -46,7 +46,7 @@ PRESETS = tuple(FSE_PRESETS)
 TRANSFERS = ("log",) + HDR_TRANSFERS     # nrtonemap's: the log tone map, or a BT.2100 HDR encoding
 STAGES = ("validity", "crosstalk", "reconstruction", "tonemap")
 TEMPORAL_MODES = ("off", "on")           # nrreconstruct temporal
-TEMPORAL_BUDGET = 90                     # nrreconstruct temporal-budget: blocks' worth of FSE work a frame
+TEMPORAL_BUDGET = 75                     # nrreconstruct temporal-budget: blocks' worth of FSE work a frame
                                          # (docs/TEMPORAL.md)
 MAX_TEMPORAL_BUDGET = 1 << 20
 COLOUR_METHODS = ("preview", "fse")      # the reconstruction methods of a colour mosaic (demosaic.METHODS)

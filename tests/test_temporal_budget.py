@@ -224,8 +224,8 @@ def test_streams_refined_side_by_side_equal_the_streams_alone(prof, fluxes):
 
 
 def test_the_default_budget_bounds_a_1080p_wide_frames_refinement_in_fse_work(prof):
-    """nrreconstruct's and nrhdr batch's default (`chain.temporal_for` of the default settings): 90 blocks'
-    worth of FSE's work a frame (three quarters of a 1920-wide block row every pixel of which is unknown),
+    """nrreconstruct's and nrhdr batch's default (`chain.temporal_for` of the default settings): 75 blocks'
+    worth of FSE's work a frame (five eighths of a 1920-wide block row every pixel of which is unknown),
     whatever the frame's size: every refining frame of a 1920-wide static shot gives FSE at most that much
     work beyond the blocks reconstructed alone, and refines whole runs of blocks (docs/TEMPORAL.md
     "Budget")."""
@@ -234,7 +234,7 @@ def test_the_default_budget_bounds_a_1080p_wide_frames_refinement_in_fse_work(pr
     flux = scene.synthetic_hdr_scene(h, w, seed=7).astype(np.float32)
     flux *= np.float32(simulate.exposure_scale(flux, p, 0.0))
     tr = chain.temporal_for(chain.ChainSettings(temporal="on"))
-    assert tr.options["budget"] == chain.TEMPORAL_BUDGET == 90
+    assert tr.options["budget"] == chain.TEMPORAL_BUDGET == 75
     _, reps = run(tr, frames(p, flux, 3), p)
     blocks = reps[0]["blocks"]
     assert blocks == 3 * (w // 16) and reps[0]["start"] == "preview"
