@@ -240,25 +240,30 @@ def _log2_row(lrow, mrow, cy, cm, cm2):
 
 @njit(cache=True, nogil=True, inline="always")
 def _cell_sums(lrow, cy, cm, cm2):
-    """`_log2_row`'s sums of the row's l and l^2 per cell added to row cy of `cm`, `cm2`, in its order
-    (0 + l0 + l1 + l2 + l3, each l^2 a float32 product); a full cell's LOCAL_CELL = 4 pixels written out, so
-    that the loop over cells vectorises."""
+    """`_log2_row`'s sums of the row's l and l^2 per cell added to row cy of `cm`, `cm2`, in its order; the
+    full cells in a loop of their own whose inner loop has a fixed count (LOCAL_CELL): it unrolls and the loop
+    over cells vectorises."""
     w = lrow.shape[0]
-    full = w // 4
+    cell = LOCAL_CELL
+    full = w // cell
     for cx in range(full):
-        x = 4 * cx
-        t0, t1, t2, t3 = lrow[x], lrow[x + 1], lrow[x + 2], lrow[x + 3]
-        cm[cy, cx] += 0.0 + t0 + t1 + t2 + t3
-        cm2[cy, cx] += 0.0 + t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3
-    if full < cm.shape[1]:
         s1 = 0.0
         s2 = 0.0
-        for x in range(4 * full, w):
+        for j in range(cell):
+            t = lrow[cx * cell + j]
+            s1 += t
+            s2 += t * t
+        cm[cy, cx] += s1
+        cm2[cy, cx] += s2
+    for cx in range(full, cm.shape[1]):       # the partial last cell
+        s1 = 0.0
+        s2 = 0.0
+        for x in range(cx * cell, w):
             t = lrow[x]
             s1 += t
             s2 += t * t
-        cm[cy, full] += s1
-        cm2[cy, full] += s2
+        cm[cy, cx] += s1
+        cm2[cy, cx] += s2
 
 
 @njit(cache=True, nogil=True, inline="always")
