@@ -199,13 +199,10 @@ _LOG2_MAX = 100.0                    # x is capped at 2^100 (1e30 and +inf stay 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _log2_row(lrow, mrow, cy, cm, cm2):
+def _log2_values(lrow, mrow):
     """lrow (x + toe per pixel) -> log2 in place by exponent / mantissa split (`mrow` the mantissas), ln m =
-    2 atanh(z), z = (m-1)/(m+1) (|error| < 1e-6 stops); its sums of l and l^2 per cell added to row cy of
-    `cm`, `cm2`."""
+    2 atanh(z), z = (m-1)/(m+1) (|error| < 1e-6 stops)."""
     w = lrow.shape[0]
-    wc = cm.shape[1]
-    cell = LOCAL_CELL
     k2 = np.float32(2.0 / math.log(2.0))
     _split(lrow.view(np.int32), mrow.view(np.int32), lrow)
     for x in range(w):
@@ -221,10 +218,47 @@ def _log2_row(lrow, mrow, cy, cm, cm2):
         p = p * zz + np.float32(1.0 / 3.0)
         p = p * zz + np.float32(1.0)
         lrow[x] = e + k2 * z * p
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _log2_row(lrow, mrow, cy, cm, cm2):
+    """`_log2_values` of lrow; its sums of l and l^2 per cell added to row cy of `cm`, `cm2`."""
+    w = lrow.shape[0]
+    wc = cm.shape[1]
+    cell = LOCAL_CELL
+    _log2_values(lrow, mrow)
     for cx in range(wc):
         s1 = 0.0
         s2 = 0.0
         for x in range(cx * cell, min(w, (cx + 1) * cell)):
+            t = lrow[x]
+            s1 += t
+            s2 += t * t
+        cm[cy, cx] += s1
+        cm2[cy, cx] += s2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_sums(lrow, cy, cm, cm2):
+    """`_log2_row`'s sums of the row's l and l^2 per cell added to row cy of `cm`, `cm2`, in its order; the
+    full cells in a loop of their own whose inner loop has a fixed count (LOCAL_CELL): it unrolls and the loop
+    over cells vectorises."""
+    w = lrow.shape[0]
+    cell = LOCAL_CELL
+    full = w // cell
+    for cx in range(full):
+        s1 = 0.0
+        s2 = 0.0
+        for j in range(cell):
+            t = lrow[cx * cell + j]
+            s1 += t
+            s2 += t * t
+        cm[cy, cx] += s1
+        cm2[cy, cx] += s2
+    for cx in range(full, cm.shape[1]):       # the partial last cell
+        s1 = 0.0
+        s2 = 0.0
+        for x in range(cx * cell, w):
             t = lrow[x]
             s1 += t
             s2 += t * t
@@ -270,7 +304,8 @@ def _local_log(values, scale, toe, l, cm, cm2, mbuf):
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _rgb_local_log(rgb, k, scale, toe, l, cm, cm2, mbuf):
-    """`_local_log` of the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`)."""
+    """`_local_log` of the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`); the cell sums by
+    `_cell_sums`."""
     h, w = l.shape
     hc = cm.shape[0]
     nch = mbuf.shape[0]
@@ -288,7 +323,8 @@ def _rgb_local_log(rgb, k, scale, toe, l, cm, cm2, mbuf):
                     v = v if v > np.float32(0.0) else np.float32(0.0)
                     v = v if v < xmax else xmax
                     lrow[x] = v + toe
-                _log2_row(lrow, mbuf[c], cy, cm, cm2)
+                _log2_values(lrow, mbuf[c])
+                _cell_sums(lrow, cy, cm, cm2)
             _cell_means(cy, h, w, cm, cm2)
 
 

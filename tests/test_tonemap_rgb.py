@@ -118,3 +118,18 @@ def test_grey_codes_are_exact(operator):
         got = tonemap.tonemap_rgb(np.stack([grey] * 3), white, operator)
         for ch in range(3):
             np.testing.assert_array_equal(got[..., ch], want)
+
+
+@pytest.mark.parametrize("width", [1, 3, 4, 6, 8, W])
+def test_local_statistics_equal_the_grey_operators_on_the_luminance(width):
+    """The colour local operator's frame statistics (c, g, offset) are the grey operator's on the frame's float32
+    luminance, bit for bit: the cell moments are summed alike for full and partial 4-pixel cells."""
+    rgb = np.ascontiguousarray(varied_frame(5)[:, :, :width])
+    gains = (1.3, 1.0, 0.8)
+    c = [np.minimum(np.nan_to_num(rgb[i] * np.float32(g), nan=0.0, posinf=1e30, neginf=0.0).clip(0, None),
+                    np.float32(1e30)).astype(np.float32) for i, g in enumerate(gains)]
+    lum = c[1] + np.float32(KR) * (c[0] - c[1]) + np.float32(KB) * (c[2] - c[1])
+    colour, grey = tonemap.LocalTonemap(), tonemap.LocalTonemap()
+    colour.rgb(rgb, 3e3, 0.4, 300.0, gains)
+    grey(lum, 3e3, 0.4, 300.0)
+    np.testing.assert_array_equal(colour.params, grey.params)
