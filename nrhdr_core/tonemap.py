@@ -221,26 +221,8 @@ def _log2_values(lrow, mrow):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _log2_row(lrow, mrow, cy, cm, cm2):
-    """`_log2_values` of lrow; its sums of l and l^2 per cell added to row cy of `cm`, `cm2`."""
-    w = lrow.shape[0]
-    wc = cm.shape[1]
-    cell = LOCAL_CELL
-    _log2_values(lrow, mrow)
-    for cx in range(wc):
-        s1 = 0.0
-        s2 = 0.0
-        for x in range(cx * cell, min(w, (cx + 1) * cell)):
-            t = lrow[x]
-            s1 += t
-            s2 += t * t
-        cm[cy, cx] += s1
-        cm2[cy, cx] += s2
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _cell_sums(lrow, cy, cm, cm2):
-    """`_log2_row`'s sums of the row's l and l^2 per cell added to row cy of `cm`, `cm2`, in its order; the
+    """The sums of the row's l and l^2 per cell added to row cy of `cm`, `cm2`, left to right; the
     full cells in a loop of their own whose inner loop has a fixed count (LOCAL_CELL): it unrolls and the loop
     over cells vectorises."""
     w = lrow.shape[0]
@@ -279,7 +261,7 @@ def _cell_means(cy, h, w, cm, cm2):
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _local_log(values, scale, toe, l, cm, cm2, mbuf):
-    """l = log2(min(max(v scale, 0), 2^100) + toe) (NaN -> log2(toe)) per pixel into `l` (`_log2_row`); `cm`,
+    """l = log2(min(max(v scale, 0), 2^100) + toe) (NaN -> log2(toe)) per pixel into `l` (`_log2_values`); `cm`,
     `cm2`: means of l and l^2 per LOCAL_CELL^2 cell; rows in chunks, `mbuf` (chunks, w) the chunks' mantissa
     rows."""
     h, w = values.shape
@@ -298,14 +280,14 @@ def _local_log(values, scale, toe, l, cm, cm2, mbuf):
                     v = v if v > np.float32(0.0) else np.float32(0.0)     # also NaN
                     v = v if v < xmax else xmax
                     lrow[x] = v + toe
-                _log2_row(lrow, mbuf[c], cy, cm, cm2)
+                _log2_values(lrow, mbuf[c])
+                _cell_sums(lrow, cy, cm, cm2)
             _cell_means(cy, h, w, cm, cm2)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _rgb_local_log(rgb, k, scale, toe, l, cm, cm2, mbuf):
-    """`_local_log` of the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`); the cell sums by
-    `_cell_sums`."""
+    """`_local_log` of the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`)."""
     h, w = l.shape
     hc = cm.shape[0]
     nch = mbuf.shape[0]
