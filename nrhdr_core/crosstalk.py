@@ -694,7 +694,7 @@ def _compact_fetch(rec, y, x, m, inv_step, g, clip_rel, qs, qo):
     top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
     top = -np.inf if tq == _NO_RANGE else top
     mm = max(min(max(m, c0), top), np.float32(0.0))
-    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    j = min(np.int32(np.sqrt(mm * inv_step)), np.int32(g - 1))
     return c0, top, np.float32(rec[y, x, j]), np.float32(rec[y, x, j + 1])
 
 
@@ -704,7 +704,7 @@ def _compact_line(m, c0, top, a, b, dsc, inv_step, g):
     correction(m') = d0 + du u' for every m' of m's grid segment (a, b: `_compact_fetch`'s grid values,
     dsc: the pixel's group's scale)."""
     mm = max(min(max(m, c0), top), np.float32(0.0))
-    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    j = min(np.int32(np.sqrt(mm * inv_step)), np.int32(g - 1))
     du = (b - a) * dsc
     return a * dsc - np.float32(j) * du, du
 
@@ -1009,8 +1009,11 @@ def spill_basis(calib: CrosstalkCalibration) -> SpillBasis:
 
 @njit(cache=True, nogil=True, inline="always")
 def _basis_at(basis, k, q):
-    """basis_k at grid coordinate q = e * inv_de (`SpillBasis`): a lerp, the last cell continued above."""
-    i = min(max(np.int64(q), 0), basis.shape[0] - 2)
+    """basis_k at grid coordinate q = e * inv_de (`SpillBasis`): a lerp, the last cell continued above, the
+    first cell for q from 2**63 up and NaN (the cell an int64 conversion picks), with an int32 conversion
+    (it vectorises)."""
+    qq = q if q < np.float32(9.2e18) else np.float32(-1.0)
+    i = min(max(np.int32(min(qq, np.float32(1e9))), np.int32(0)), np.int32(basis.shape[0] - 2))
     t = q - np.float32(i)
     a = basis[i, k]
     return a + t * (basis[i + 1, k] - a)
@@ -1332,8 +1335,8 @@ def _colour_value(v, st, t, kd, p, q, sd, sv, sh, ndf, invnd, inv_step, g, f0):
     inside = delta >= -room
     nv = max(f2 if inside else f, zero)
     # the grid segments of m and m - delta (as `_compact_line`); below c0 the LUT is one line
-    j = min(np.int64(np.sqrt(max(min(max(m, c0), m + room), zero) * inv_step)), g - 1)
-    j2 = min(np.int64(np.sqrt(max(m2, c0, zero) * inv_step)), g - 1)
+    j = min(np.int32(np.sqrt(max(min(max(m, c0), m + room), zero) * inv_step)), np.int32(g - 1))
+    j2 = min(np.int32(np.sqrt(max(m2, c0, zero) * inv_step)), np.int32(g - 1))
     again = valid & inside & (m2 > c0) & (j2 != j)
     return (nv if valid else v), (m2 if again else np.float32(np.nan))
 
