@@ -1166,16 +1166,17 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
             c = cvb[yy - r0, lo + dx:hi + dx]
             mm = mr[lo - a:hi - a]
             z = pz[0 if f0 else 1, lo:hi]
+            # (+ 0: an unconditional store; `if ci > mi: mm[i] = ci` does not vectorise)
             if f0 and f1:
                 for i in range(hi - lo):
                     ci = c[i]
                     mi = mm[i]
-                    mm[i] = ci if ci > mi else mi
+                    mm[i] = (ci if ci > mi else mi) + zero
             else:
                 for i in range(hi - lo):
                     ci = c[i] + z[i]
                     mi = mm[i]
-                    mm[i] = ci if ci > mi else mi
+                    mm[i] = (ci if ci > mi else mi) + zero
     acc = ar[:n]
     cnt = cr[:n]
     for i in range(n):
