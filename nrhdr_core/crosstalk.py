@@ -1105,9 +1105,12 @@ def _colour_compact_planes(values, state, c, basis, inv_de, src, tgt, n_clipped)
             dur[x] = du
             rmr[x] = top - m
             dkr[x] = v if reason == DARK else -np.inf
-            vr[x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
+            # the new value into the o0 row (read above, rewritten below), copied to the values row after the
+            # loop: a store of 'f if ... else v' into v's own place compiles to a masked store (slow)
+            o0r[x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
             # (VALID is 0: st | UNCALIBRATED is (st & FLAG_MASK) | UNCALIBRATED)
             sr[x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
+        vr[:] = o0r
         n = 0                                  # (a count in the loop above would keep it from vectorising)
         for x in range(w):
             st = sr[x]
@@ -1427,9 +1430,12 @@ def _colour_compact_correct(values, state, c, clip_flux, src, tgt, wt, pairs, bl
                 sv += _spill_term(w60, w61, b0d[xc], b1d[xc], sdn[xc], dkd[xc], f, fr0, fr1, da0, da1)
                 sh = _spill_term(w30, w31, b0c[x], b1c[x], sc[x], dkc[x], f, fr0, fr1, da0, da1)
                 sh += _spill_term(w40, w41, b0c[x + 2], b1c[x + 2], sc[x + 2], dkc[x + 2], f, fr0, fr1, da0, da1)
-                vr[xc], o0r[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
-                                                _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh,
-                                                ndf, invnd, inv_step, g, f0)
+                # the new value into the c0 row (read above), copied to the values row after the loop (a
+                # masked store otherwise, as in `_colour_compact_planes`)
+                c0r[xc], o0r[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
+                                                 _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh,
+                                                 ndf, invnd, inv_step, g, f0)
+            vr[1:w - 1] = c0r[1:w - 1]
         # the pixels whose corrected code lies on another grid segment: the compact LUT read there (tgt's o0
         # row holds that code)
         for x in range(w):
