@@ -22,7 +22,10 @@ smooth coloured scene (R : G : B = 1.2 : 1 : 0.7, a gradient and a clipped patch
 and a linear 1 % / 1.2 % / 0.3 % spill table, interleaved, minimum of `--repeats`; with the share of VALID
 pixels whose corrected code left its compact-LUT segment (read again).
 
-    .venv/bin/python benchmarks/colour_crosstalk.py OUT_FOLDER --passes
+    .venv/bin/python benchmarks/colour_crosstalk.py OUT_FOLDER --passes [--scene PATH.exr]
+
+`--scene`: the passes on an HDR scene instead (`benchmarks/colour.py`'s 1080p frame of it and its synthetic
+40-knot calibration with per-colour amplitudes 1.15 / 1.0 / 0.85; the anchor on the scene's luminance).
 
 `--coupling`: the sensor model's crosstalk per source colour (`SensorModel.colour_coupling`). The scene crop
 needs ../shared/data/hdr/StillLife.exr ($NRHDR_SHARED_DATA/hdr); without it that row is skipped.
@@ -58,9 +61,12 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", action="store_true", help="also time the colour settings at 1920 x 1080")
     ap.add_argument("--passes", action="store_true", help="only the CPU time of the colour compact passes")
     ap.add_argument("--repeats", type=int, default=7, help="timed calls per setting (--speed, --passes)")
+    ap.add_argument("--scene", default=None, help="--passes on this HDR scene (.exr) instead of the synthetic one")
     a = ap.parse_args(argv)
+    if a.scene and not a.passes:
+        ap.error("--scene goes with --passes")
     if a.passes:
-        passes(a.repeats)
+        passes(a.repeats, a.scene)
         return 0
     prof = P.default(H, W, cfa="rggb")
     model = X.sensor_model_preset("prototype", H, W)
@@ -159,24 +165,33 @@ def speed(small, repeats: int) -> None:
               f"= {np.median(t) / anchor:.1f} x anchor")
 
 
-def passes(repeats: int) -> None:
+def passes(repeats: int, scene: str | None = None) -> None:
     """CPU ms per 1920 x 1080 frame of the colour compact passes and of the monochrome compact kernel."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from stages import synthetic_calibration
     h, w = 1080, 1920
     prof = P.default(h, w, seed=3)
-    kern = X.make_kernel(0.010, 0.012, 0.003)
-    k_d = np.array([kern[1 + dy, 1 + dx] for dy, dx in X.DIRS])
-    table = D.replace(synthetic_calibration(prof, 40), sig_e=np.array([0.0, 1e5], np.float32),
-                      sigma=np.ascontiguousarray((k_d[:, None] * np.array([0.0, 1e5])).astype(np.float32)))
+    table = synthetic_calibration(prof, 40)
+    if scene is None:
+        kern = X.make_kernel(0.010, 0.012, 0.003)
+        k_d = np.array([kern[1 + dy, 1 + dx] for dy, dx in X.DIRS])
+        table = D.replace(table, sig_e=np.array([0.0, 1e5], np.float32),
+                          sigma=np.ascontiguousarray((k_d[:, None] * np.array([0.0, 1e5])).astype(np.float32)))
     amp = np.ascontiguousarray(table.alpha[None] * np.asarray((1.15, 1.0, 0.85), np.float32)[:, None, None])
     colr = prof.replace(cfa="rggb", crosstalk=D.replace(table, colour=amp))
     mono = prof.replace(crosstalk=table)
-    xx = np.arange(w)[None, :].repeat(h, 0)
-    lum = (200 + 3000 * (xx / w) ** 2).astype(np.float32)
-    lum[300:500, 600:900] = 60000
     rng = np.random.default_rng(0)
-    raw = sensor.capture(cfa.mosaic(np.stack([lum * 1.2, lum, lum * 0.7]), "rggb"), colr, rng)
+    if scene is None:
+        xx = np.arange(w)[None, :].repeat(h, 0)
+        lum = (200 + 3000 * (xx / w) ** 2).astype(np.float32)
+        lum[300:500, 600:900] = 60000
+        rgb = np.stack([lum * 1.2, lum, lum * 0.7])
+    else:
+        import colour as cb
+        from nrhdr_core import metrics
+        rgb = cb.truth_of(cb.read_scene(scene), colr)
+        lum = metrics.luminance(rgb).astype(np.float32)
+    raw = sensor.capture(cfa.mosaic(rgb, "rggb"), colr, rng)
     v0, s0 = V.classify(raw, colr)
     vm, sm = V.classify(sensor.capture(lum, mono, rng), mono)
     c, cm = X.compact_for(colr).record(), X.compact_for(mono).record()

@@ -694,7 +694,7 @@ def _compact_fetch(rec, y, x, m, inv_step, g, clip_rel, qs, qo):
     top = clip_rel if tq == _TOP_IS_CLIP else np.float32(tq) * qs - qo
     top = -np.inf if tq == _NO_RANGE else top
     mm = max(min(max(m, c0), top), np.float32(0.0))
-    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    j = min(np.int32(np.sqrt(mm * inv_step)), np.int32(g - 1))
     return c0, top, np.float32(rec[y, x, j]), np.float32(rec[y, x, j + 1])
 
 
@@ -704,7 +704,7 @@ def _compact_line(m, c0, top, a, b, dsc, inv_step, g):
     correction(m') = d0 + du u' for every m' of m's grid segment (a, b: `_compact_fetch`'s grid values,
     dsc: the pixel's group's scale)."""
     mm = max(min(max(m, c0), top), np.float32(0.0))
-    j = min(np.int64(np.sqrt(mm * inv_step)), g - 1)
+    j = min(np.int32(np.sqrt(mm * inv_step)), np.int32(g - 1))
     du = (b - a) * dsc
     return a * dsc - np.float32(j) * du, du
 
@@ -1009,8 +1009,11 @@ def spill_basis(calib: CrosstalkCalibration) -> SpillBasis:
 
 @njit(cache=True, nogil=True, inline="always")
 def _basis_at(basis, k, q):
-    """basis_k at grid coordinate q = e * inv_de (`SpillBasis`): a lerp, the last cell continued above."""
-    i = min(max(np.int64(q), 0), basis.shape[0] - 2)
+    """basis_k at grid coordinate q = e * inv_de (`SpillBasis`): a lerp, the last cell continued above, the
+    first cell continued below and for q >= 9.2e18 or NaN. The cell index is an int32 conversion (one
+    instruction for 8 lanes with AVX2; int64 is converted lane by lane)."""
+    qq = q if q < np.float32(9.2e18) else np.float32(-1.0)
+    i = min(max(np.int32(min(qq, np.float32(1e9))), np.int32(0)), np.int32(basis.shape[0] - 2))
     t = q - np.float32(i)
     a = basis[i, k]
     return a + t * (basis[i + 1, k] - a)
@@ -1102,9 +1105,12 @@ def _colour_compact_planes(values, state, c, basis, inv_de, src, tgt, n_clipped)
             dur[x] = du
             rmr[x] = top - m
             dkr[x] = v if reason == DARK else -np.inf
-            vr[x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
+            # the new value into the o0 row (read above, rewritten below), copied to the values row after the
+            # loop: a store of 'f if ... else v' into v's own place compiles to a masked store (slow)
+            o0r[x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
             # (VALID is 0: st | UNCALIBRATED is (st & FLAG_MASK) | UNCALIBRATED)
             sr[x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
+        vr[:] = o0r
         n = 0                                  # (a count in the loop above would keep it from vectorising)
         for x in range(w):
             st = sr[x]
@@ -1163,16 +1169,17 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
             c = cvb[yy - r0, lo + dx:hi + dx]
             mm = mr[lo - a:hi - a]
             z = pz[0 if f0 else 1, lo:hi]
+            # (+ 0: an unconditional store; `if ci > mi: mm[i] = ci` does not vectorise)
             if f0 and f1:
                 for i in range(hi - lo):
                     ci = c[i]
                     mi = mm[i]
-                    mm[i] = ci if ci > mi else mi
+                    mm[i] = (ci if ci > mi else mi) + zero
             else:
                 for i in range(hi - lo):
                     ci = c[i] + z[i]
                     mi = mm[i]
-                    mm[i] = ci if ci > mi else mi
+                    mm[i] = (ci if ci > mi else mi) + zero
     acc = ar[:n]
     cnt = cr[:n]
     for i in range(n):
@@ -1332,8 +1339,8 @@ def _colour_value(v, st, t, kd, p, q, sd, sv, sh, ndf, invnd, inv_step, g, f0):
     inside = delta >= -room
     nv = max(f2 if inside else f, zero)
     # the grid segments of m and m - delta (as `_compact_line`); below c0 the LUT is one line
-    j = min(np.int64(np.sqrt(max(min(max(m, c0), m + room), zero) * inv_step)), g - 1)
-    j2 = min(np.int64(np.sqrt(max(m2, c0, zero) * inv_step)), g - 1)
+    j = min(np.int32(np.sqrt(max(min(max(m, c0), m + room), zero) * inv_step)), np.int32(g - 1))
+    j2 = min(np.int32(np.sqrt(max(m2, c0, zero) * inv_step)), np.int32(g - 1))
     again = valid & inside & (m2 > c0) & (j2 != j)
     return (nv if valid else v), (m2 if again else np.float32(np.nan))
 
@@ -1423,9 +1430,12 @@ def _colour_compact_correct(values, state, c, clip_flux, src, tgt, wt, pairs, bl
                 sv += _spill_term(w60, w61, b0d[xc], b1d[xc], sdn[xc], dkd[xc], f, fr0, fr1, da0, da1)
                 sh = _spill_term(w30, w31, b0c[x], b1c[x], sc[x], dkc[x], f, fr0, fr1, da0, da1)
                 sh += _spill_term(w40, w41, b0c[x + 2], b1c[x + 2], sc[x + 2], dkc[x + 2], f, fr0, fr1, da0, da1)
-                vr[xc], o0r[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
-                                                _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh,
-                                                ndf, invnd, inv_step, g, f0)
+                # the new value into the c0 row (read above), copied to the values row after the loop (a
+                # masked store otherwise, as in `_colour_compact_planes`)
+                c0r[xc], o0r[xc] = _colour_value(vr[xc], st, (f, c0r[xc], d0r[xc], dur[xc], rmr[xc]),
+                                                 _pick(np.float32(xc & 1), kd_o, kd_e), pr[xc], qr[xc], sd, sv, sh,
+                                                 ndf, invnd, inv_step, g, f0)
+            vr[1:w - 1] = c0r[1:w - 1]
         # the pixels whose corrected code lies on another grid segment: the compact LUT read there (tgt's o0
         # row holds that code)
         for x in range(w):
