@@ -849,7 +849,18 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
         sy = state[y]
         for x in range(w):
             b1[x] = _cv(oy, sy, x)
-    for x in range(x0, w, 2):
+    for x in range(1, w - 1):       # the interior, every column (a select keeps the other parity): it vectorises
+        m = big
+        m = min(m, min(b1[x - 1], b1[x + 1])) if hz else m
+        m = min(m, b0[x]) if vt else m
+        m = min(m, min(b0[x - 1], b0[x + 1])) if dg else m
+        on = (x & 1) == x0
+        v = o[x]
+        o[x] = m if (on & (m > v) & (m < big)) else v
+        fl[x] = m if on else fl[x]
+    for x in (0, w - 1):            # the row's ends (the same column twice when w == 1: a lift is idempotent)
+        if (x & 1) != x0:
+            continue
         m = big
         xl = x - 1 if x > 0 else x
         xr = x + 1 if x + 1 < w else x
