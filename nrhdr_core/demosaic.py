@@ -565,16 +565,19 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
             _clip_rule_row(keys, y, x0, green, mr)
         nj = (w - x0 + 1) // 2
         inf = np.float32(np.inf)
+        nan = np.float32(np.nan)
         for q in range(n):
             x = ix[q]
             j = (x - x0) >> 1
-            m = np.float32(np.nan)
-            if use_bounds and 1 <= j < nj - 1:
-                t = mr[j]
-                m = clip_lower_at_cfa(values, state, chan, y, x, values.shape[0], w) if t == inf else \
-                    (t if t > -inf else m)
-            elif use_bounds:
-                m = _clip_rule_at(values, state, chan, y, x, green)
+            t = mr[j]
+            m = t if t > -inf else nan          # a select (-inf: an attenuated neighbour not CLIPPED, at random)
+            if not (use_bounds & (j >= 1) & (j < nj - 1) & (t < inf)):
+                # rare: no rule, the row's ends, no attenuated photosite in the window (+inf)
+                m = nan
+                if use_bounds and 1 <= j < nj - 1:
+                    m = clip_lower_at_cfa(values, state, chan, y, x, values.shape[0], w)
+                elif use_bounds:
+                    m = _clip_rule_at(values, state, chan, y, x, green)
             ok = (m == m) & (m > vr[x])
             t = hi if hi > m else m
             a = o[x]
