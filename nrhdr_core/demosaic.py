@@ -1055,6 +1055,7 @@ def _phase_split(values, state, pv, pk, pn, rc):
     of the Bayer phase (py, px) (one pass over the mosaic); rc[y2, py, px] = the count of those NOISY
     photosites in its row y2."""
     h, w = values.shape
+    n1 = w // 2
     for y2 in prange(pv.shape[2]):
         for py in range(2):
             y = 2 * y2 + py
@@ -1062,20 +1063,35 @@ def _phase_split(values, state, pv, pk, pn, rc):
                 rc[y2, py, px] = 0
             if y >= h:
                 continue
-            for px in range(2):
-                c = 0
-                v = pv[py, px, y2]
-                k = pk[py, px, y2]
-                z = pn[py, px, y2]
-                for x2 in range((w - px + 1) // 2):
-                    x = 2 * x2 + px
-                    st = state[y, x]
-                    nz = (st & (REASON_MASK | RECONSTRUCTED)) == NOISY
-                    v[x2] = values[y, x]
-                    k[x2] = (st & REASON_MASK) == VALID
-                    z[x2] = nz
-                    c += np.int64(nz)
-                rc[y2, py, px] = c
+            vr = values[y]                  # row slices, both phases in one loop (it vectorises)
+            sr = state[y]
+            v0, v1 = pv[py, 0, y2], pv[py, 1, y2]
+            k0, k1 = pk[py, 0, y2], pk[py, 1, y2]
+            z0, z1 = pn[py, 0, y2], pn[py, 1, y2]
+            c0 = 0
+            c1 = 0
+            for x2 in range(n1):
+                sa = sr[2 * x2]
+                sb = sr[2 * x2 + 1]
+                na = (sa & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                nb = (sb & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                v0[x2] = vr[2 * x2]
+                v1[x2] = vr[2 * x2 + 1]
+                k0[x2] = (sa & REASON_MASK) == VALID
+                k1[x2] = (sb & REASON_MASK) == VALID
+                z0[x2] = na
+                z1[x2] = nb
+                c0 += np.int64(na)
+                c1 += np.int64(nb)
+            if w % 2:                       # the last column: phase 0
+                sa = sr[w - 1]
+                na = (sa & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                v0[n1] = vr[w - 1]
+                k0[n1] = (sa & REASON_MASK) == VALID
+                z0[n1] = na
+                c0 += np.int64(na)
+            rc[y2, py, 0] = c0
+            rc[y2, py, 1] = c1
 
 
 def _fuse(out, blk, noisy, noise, fusion):
