@@ -885,7 +885,8 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
     minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
     else those of the previous call in the same row and channel). fl[x]: the bound found (< _BIG: one
-    applies), for `_floor_row`."""
+    applies), for `_floor_row`. The row's interior in one contiguous loop over every column: the other
+    columns of `o` and `fl` are stored back with the bits they hold."""
     x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
     h, w = state.shape
     big = _BIG
