@@ -40,7 +40,7 @@ from numba import njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .pullpush import SERIAL_LEVEL, fill_px, fill_row, pull_at, pull_push_levels, pull_row, pyramid, small_levels
+from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid, small_levels
 from .scratch import planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_at_cfa
@@ -396,7 +396,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         if not deep:
             pull_push_levels(pv[1], pw[1], hs, ws, off)
             pull_push_levels(pv[2], pw[2], hs, ws, off)
-        _lattice_fill(lat[0], lat[1], kl, pv, pw, hs, ws, off, 2 if deep else hs.shape[0] - 1, o2, w2, rl, sc["mr"])
+        _lattice_fill(lat[0], lat[1], kl, pv, pw, hs, ws, off, 2 if deep else hs.shape[0] - 1, o2, w2, rl)
     elif guided:
         dif = _fse_differences(lat, kl, pos, out[_cfa.G], c, rl)
     else:
@@ -590,7 +590,7 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
            pvb, pwb, kl, fst, ixs, keys, mrs, gout):
-    """Per cell row: the green plane into `gout` (the pull-push fill `_fill_row` of the
+    """Per cell row: the green plane into `gout` (the pull-push fill `pullpush.fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
     colour differences (weight 1 where known, else 0) into level 1 of the d_R and d_B pyramids and `kl`,
@@ -638,61 +638,6 @@ def _push_row(pv, pw, o1, w1, o2, w2, y1):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _fill_row(values, known, pv, o1, w1, y, g, lx):
-    """`pullpush.fill_row(values, known, pv, o1, w1, y, g, True)` (bool `known`, finite `values`): the same
-    sums in the same order; the level-1 value where no neighbour is known taken in the same branch-free loop
-    from the row buffer `lx` (level-1 row y // 2 repeated per column), not in a second loop with a branch
-    on the random mask."""
-    h, w = values.shape
-    if y == 0 or y == h - 1 or w < 3:
-        fill_row(values, known, pv, o1, w1, y, g, True)
-        return
-    zero = np.float32(0.0)
-    one = np.float32(1.0)
-    two = np.float32(2.0)
-    va, vb, vc = values[y - 1], values[y], values[y + 1]
-    ka, kb, kc = known[y - 1], known[y], known[y + 1]
-    gi = g[1:w - 1]
-    base = o1 + (y // 2) * w1
-    lv = pv[base:base + w1]
-    for x1 in range(w // 2):
-        lx[2 * x1] = lv[x1]
-        lx[2 * x1 + 1] = lv[x1]
-    if w % 2:
-        lx[w - 1] = lv[(w - 1) >> 1]
-    for j in range(w - 2):              # photosite x = j + 1
-        k00 = one if ka[j] else zero
-        k01 = one if ka[j + 1] else zero
-        k02 = one if ka[j + 2] else zero
-        k10 = one if kb[j] else zero
-        k12 = one if kb[j + 2] else zero
-        k20 = one if kc[j] else zero
-        k21 = one if kc[j + 1] else zero
-        k22 = one if kc[j + 2] else zero
-        acc = zero + va[j] * k00
-        acc = acc + two * (va[j + 1] * k01)
-        acc = acc + va[j + 2] * k02
-        acc = acc + two * (vb[j] * k10)
-        acc = acc + two * (vb[j + 2] * k12)
-        acc = acc + vc[j] * k20
-        acc = acc + two * (vc[j + 1] * k21)
-        acc = acc + vc[j + 2] * k22
-        ws = zero + k00
-        ws = ws + two * k01
-        ws = ws + k02
-        ws = ws + two * k10
-        ws = ws + two * k12
-        ws = ws + k20
-        ws = ws + two * k21
-        ws = ws + k22
-        r = acc / ws
-        r = r if r == r else lx[j + 1]
-        gi[j] = vb[j + 1] if kb[j + 1] else r
-    for x in (0, w - 1):
-        g[x] = values[y, x] if known[y, x] else fill_px(values, known, pv, o1, w1, y, x)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr, pwr, pvb, pwb,
                  kl, fst, ix, keys, mr, gout, y1):
     """`_green` of cell row y1 (index buffer `ix`; `ix`, `keys`, row buffer `mr`: `_own_row`'s)."""
@@ -709,7 +654,7 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
             for x in range(w):
                 g[x] = gsrc[y, x]
         else:
-            _fill_row(values, kg, pv, o1, w1, y, g, mr)
+            fill_row(values, kg, pv, o1, w1, y, g, True)
         _own_row(g, values, state, chan, y, 0 if blk[y & 1, 0] == 1 else 1, big, use_bounds, True, keys, ix, mr)
     base = o1 + y1 * w1
     for i in range(2):
@@ -763,12 +708,12 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio, lxs):
+def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
     """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
     their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread: level
     `first` by rows, `_pull_level_row` and `_push_row`, the smaller ones by `small_levels`), then each cell its value where known, else the weighted mean of its known
-    8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `_fill_row`, as the monochrome
-    preview fills level 0; row buffers `lxs`, one per chunk of rows); stored as the ratio 2^d."""
+    8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `pullpush.fill_row`, as
+    the monochrome preview fills level 0); stored as the ratio 2^d."""
     levels = hs.shape[0] - 1
     for i in prange(2):
         if first < levels:
@@ -780,15 +725,13 @@ def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio, 
             for y in range(hs[first]):
                 _push_row(v, p, off[first], ws[first], off[first + 1], ws[first + 1], y)
     h1 = known.shape[1]
-    nch = lxs.shape[0]
-    for k in prange(nch):
-        for q in range(k * 2 * h1 // nch, (k + 1) * 2 * h1 // nch):
-            i = q // h1
-            y = q - i * h1
-            r = ratio[i, y]
-            _fill_row(lat0 if i == 0 else lat1, known[i], pv[1 + i], o2, w2, y, r, lxs[k])
-            for j in range(r.shape[0]):
-                r[j] = np.exp2(r[j])
+    for q in prange(2 * h1):
+        i = q // h1
+        y = q - i * h1
+        r = ratio[i, y]
+        fill_row(lat0 if i == 0 else lat1, known[i], pv[1 + i], o2, w2, y, r, True)
+        for j in range(r.shape[0]):
+            r[j] = np.exp2(r[j])
 
 
 @njit(cache=True, nogil=True, parallel=True)
