@@ -565,16 +565,19 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
             _clip_rule_row(keys, y, x0, green, mr)
         nj = (w - x0 + 1) // 2
         inf = np.float32(np.inf)
+        nan = np.float32(np.nan)
         for q in range(n):
             x = ix[q]
             j = (x - x0) >> 1
-            m = np.float32(np.nan)
-            if use_bounds and 1 <= j < nj - 1:
-                t = mr[j]
-                m = clip_lower_at_cfa(values, state, chan, y, x, values.shape[0], w) if t == inf else \
-                    (t if t > -inf else m)
-            elif use_bounds:
-                m = _clip_rule_at(values, state, chan, y, x, green)
+            t = mr[j]
+            m = t if t > -inf else nan          # a select (-inf: an attenuated neighbour not CLIPPED, at random)
+            if not (use_bounds & (j >= 1) & (j < nj - 1) & (t < inf)):
+                # rare: no rule, the row's ends, no attenuated photosite in the window (+inf)
+                m = nan
+                if use_bounds and 1 <= j < nj - 1:
+                    m = clip_lower_at_cfa(values, state, chan, y, x, values.shape[0], w)
+                elif use_bounds:
+                    m = _clip_rule_at(values, state, chan, y, x, green)
             ok = (m == m) & (m > vr[x])
             t = hi if hi > m else m
             a = o[x]
@@ -825,7 +828,8 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
     minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
     else those of the previous call in the same row and channel). fl[x]: the bound found (< _BIG: one
-    applies), for `_floor_row`."""
+    applies), for `_floor_row`. The row's interior in one contiguous loop over every column: the other
+    columns of `o` and `fl` are stored back with the bits they hold."""
     x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
     h, w = state.shape
     big = _BIG
@@ -849,7 +853,18 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
         sy = state[y]
         for x in range(w):
             b1[x] = _cv(oy, sy, x)
-    for x in range(x0, w, 2):
+    for x in range(1, w - 1):       # the interior, every column (a select keeps the other parity): it vectorises
+        m = big
+        m = min(m, min(b1[x - 1], b1[x + 1])) if hz else m
+        m = min(m, b0[x]) if vt else m
+        m = min(m, min(b0[x - 1], b0[x + 1])) if dg else m
+        on = (x & 1) == x0
+        v = o[x]
+        o[x] = m if (on & (m > v) & (m < big)) else v
+        fl[x] = m if on else fl[x]
+    for x in (0, w - 1):            # the row's ends (the same column twice when w == 1: a lift is idempotent)
+        if (x & 1) != x0:
+            continue
         m = big
         xl = x - 1 if x > 0 else x
         xr = x + 1 if x + 1 < w else x
@@ -984,6 +999,7 @@ def _phase_split(values, state, pv, pk, pn, rc):
     of the Bayer phase (py, px) (one pass over the mosaic); rc[y2, py, px] = the count of those NOISY
     photosites in its row y2."""
     h, w = values.shape
+    n1 = w // 2
     for y2 in prange(pv.shape[2]):
         for py in range(2):
             y = 2 * y2 + py
@@ -991,20 +1007,35 @@ def _phase_split(values, state, pv, pk, pn, rc):
                 rc[y2, py, px] = 0
             if y >= h:
                 continue
-            for px in range(2):
-                c = 0
-                v = pv[py, px, y2]
-                k = pk[py, px, y2]
-                z = pn[py, px, y2]
-                for x2 in range((w - px + 1) // 2):
-                    x = 2 * x2 + px
-                    st = state[y, x]
-                    nz = (st & (REASON_MASK | RECONSTRUCTED)) == NOISY
-                    v[x2] = values[y, x]
-                    k[x2] = (st & REASON_MASK) == VALID
-                    z[x2] = nz
-                    c += np.int64(nz)
-                rc[y2, py, px] = c
+            vr = values[y]                  # row slices, both phases in one loop (it vectorises)
+            sr = state[y]
+            v0, v1 = pv[py, 0, y2], pv[py, 1, y2]
+            k0, k1 = pk[py, 0, y2], pk[py, 1, y2]
+            z0, z1 = pn[py, 0, y2], pn[py, 1, y2]
+            c0 = 0
+            c1 = 0
+            for x2 in range(n1):
+                sa = sr[2 * x2]
+                sb = sr[2 * x2 + 1]
+                na = (sa & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                nb = (sb & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                v0[x2] = vr[2 * x2]
+                v1[x2] = vr[2 * x2 + 1]
+                k0[x2] = (sa & REASON_MASK) == VALID
+                k1[x2] = (sb & REASON_MASK) == VALID
+                z0[x2] = na
+                z1[x2] = nb
+                c0 += np.int64(na)
+                c1 += np.int64(nb)
+            if w % 2:                       # the last column: phase 0
+                sa = sr[w - 1]
+                na = (sa & (REASON_MASK | RECONSTRUCTED)) == NOISY
+                v0[n1] = vr[w - 1]
+                k0[n1] = (sa & REASON_MASK) == VALID
+                z0[n1] = na
+                c0 += np.int64(na)
+            rc[y2, py, 0] = c0
+            rc[y2, py, 1] = c1
 
 
 def _fuse(out, blk, noisy, noise, fusion):
