@@ -142,7 +142,7 @@ def main(argv=None) -> int:
         if m == "preview" and hasattr(reconstruction, "_reconstruct_frame_general"):
             t = tm(lambda: (np.copyto(vw, vw_), np.copyto(sw, sw_), reconstruction._reconstruct_frame_general(
                 vw, sw, "preview", "fast", True, prof)), 7)
-            rows.append(("nrreconstruct method=preview (the general frame path it replaced)", t - copy2))
+            rows.append(("nrreconstruct method=preview (the general frame path of the other methods)", t - copy2))
     out8 = np.empty((H, W), np.uint8)
     rows.append(("nrtonemap (GRAY8)", tm(lambda: tonemap.log_tonemap(v, prof.white, out=out8))))
     for name, t in rows if not a.skip_stages else []:
