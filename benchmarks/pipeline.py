@@ -10,6 +10,8 @@ rendered and dropped and the latency the pipeline reports, per reconstruction se
         --scene ../shared/data/hdr/MtTamWest.exr --live --live-methods preview,auto
 
 `--scene`: an HDR file (big clipped areas: MtTamWest.exr) instead of the synthesised scene, for every clip.
+`--dark-policy threshold`: nrvalidity's hard l_min in the whole pipelines (the default, weighted, keeps
+too-dark attenuated pixels as NOISY measurements for the noise fusion).
 The stage rows include nrreconstruct's own frame path (`reconstruction.reconstruct_frame`: masks, bounds,
 reconstruction, NOISY fusion, write-back, in place), which is what the element costs per frame.
 """
@@ -54,6 +56,9 @@ def main(argv=None) -> int:
     ap.add_argument("--live", action="store_true",
                     help="also run nrcamsrc live at --fps through the chain into fakesink sync=true for "
                          "--live-methods, reporting frames rendered/dropped and the latency")
+    ap.add_argument("--dark-policy", choices=("weighted", "threshold"), default="weighted",
+                    help="nrvalidity dark-policy in the whole-pipeline runs (threshold: the paper's hard l_min, "
+                         "no NOISY pixels to fuse)")
     ap.add_argument("--noise-fusion", choices=("auto", "accurate", "fast"), default="auto",
                     help="nrreconstruct noise-fusion in the whole-pipeline runs")
     ap.add_argument("--queues", action="store_true",
@@ -165,7 +170,8 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|")
     src = (f"filesrc location={clip_dir / 'clip.raw'} ! rawvideoparse format=gray16-le width={W} "
            f"height={H} framerate=30/1 plane-strides=<{2 * W}>")
-    chain = f"nrvalidity profile={prof_path} ! nrcrosstalk profile={prof_path} mode=lut"
+    chain = (f"nrvalidity profile={prof_path} dark-policy={a.dark_policy} ! nrcrosstalk profile={prof_path} "
+             f"mode=lut")
     descs = [("anchor: parse only", f"{src} ! fakesink")]
     for m in methods:
         descs.append((f"validity ! crosstalk ! reconstruct {m} ! tonemap",
