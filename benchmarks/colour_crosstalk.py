@@ -40,6 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from numba import get_num_threads
 
 from nrhdr_core import calibration as C
 from nrhdr_core import cfa, io
@@ -205,7 +206,7 @@ def passes(repeats: int, scene: str | None = None) -> None:
     runs = {"_colour_compact_planes": lambda: X._colour_compact_planes(v0.copy(), s0.copy(), c, sb.basis, sb.inv_de,
                                                                        src, tgt, ncl),
             "_colour_compact_clipped": lambda: X._colour_compact_clipped(vp, sp, src, tgt, sb.basis, sb.inv_de, nd,
-                                                                         blk, ncl),
+                                                                         blk, ncl, get_num_threads()),
             "_colour_compact_correct": lambda: X._colour_compact_correct(vp.copy(), sp, c, cf, src, tgt, sb.weight,
                                                                          pairs, blk, ncl),
             "_lut_kernel_compact (anchor)": lambda: X._lut_kernel_compact(vm.copy(), sm.copy(), cm,

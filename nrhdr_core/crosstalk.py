@@ -47,7 +47,7 @@ from collections import namedtuple
 from pathlib import Path
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from .states import ATTENUATED, CLIPPED, DARK, FLAG_MASK, NOISY, REASON_MASK, UNCALIBRATED, VALID
 
@@ -1213,12 +1213,13 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n_clipped):
+def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n_clipped, nt):
     """A CLIPPED pixel's source flux as `_neighbour_estimate` with step 2 (same-colour photosites only): at
     least the largest bound of the clipped ones in the colour plane's 3 x 3, then the mean of the VALID
     ones brighter than that in its 5 x 5 (their `_colour_compact_planes` flux); its `src` basis values
     updated. Visits the rows with CLIPPED pixels (n_clipped), in each the runs of _CLIP_TILE columns with
-    CLIPPED pixels (`_clip_span`)."""
+    CLIPPED pixels (`_clip_span`). `nt`: the thread count the row groups are dealt to (passed in: calling
+    get_num_threads inside would stop numba caching the kernel)."""
     h, w = values.shape
     inv_att = np.float32(1.0) / np.float32(nd)
     ninf = np.float32(-np.inf)
@@ -1228,14 +1229,29 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
         pz[1 - (x & 1), x] = ninf
     ng = (h + _CLIP_ROWS - 1) // _CLIP_ROWS
     groups = np.empty(ng, np.int64)
+    cost = np.empty(ng, np.int64)
     k = 0
     for g in range(ng):
-        if n_clipped[g * _CLIP_ROWS:min(g * _CLIP_ROWS + _CLIP_ROWS, h)].sum() > 0:
+        n = n_clipped[g * _CLIP_ROWS:min(g * _CLIP_ROWS + _CLIP_ROWS, h)].sum()
+        if n > 0:
             groups[k] = g
+            cost[k] = -n
             k += 1
-    nt = (w + _CLIP_TILE - 1) // _CLIP_TILE
-    for gi in prange(k):
-        y0 = groups[gi] * _CLIP_ROWS
+    # prange hands each thread one contiguous run of its range: the groups dealt to the threads by their
+    # CLIPPED count, largest first, back and forth (thread 0, 1, .., nt - 1, nt - 1, .., 0, ...), each
+    # thread's in its own run of `per` slots (-1: empty), so highlights in one part of the frame are shared
+    per = (k + nt - 1) // nt
+    slots = np.full(per * nt, -1, np.int64)
+    order = np.argsort(cost[:k])
+    for r in range(k):
+        rnd = r // nt
+        t = r % nt if rnd % 2 == 0 else nt - 1 - r % nt
+        slots[t * per + rnd] = groups[order[r]]
+    ntile = (w + _CLIP_TILE - 1) // _CLIP_TILE
+    for i in prange(per * nt):
+        if slots[i] < 0:
+            continue
+        y0 = slots[i] * _CLIP_ROWS
         y1 = min(y0 + _CLIP_ROWS, h)
         r0 = max(y0 - 4, 0)
         r1 = min(y1 + 4, h)
@@ -1256,10 +1272,10 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
                 continue
             crow = cvb[y - r0]
             t = 0
-            while t < nt:
+            while t < ntile:
                 a = t * _CLIP_TILE
                 b = a
-                while t < nt:                   # the run of tiles with CLIPPED pixels from tile t
+                while t < ntile:                   # the run of tiles with CLIPPED pixels from tile t
                     hit = False
                     for x in range(t * _CLIP_TILE, min(t * _CLIP_TILE + _CLIP_TILE, w)):
                         if crow[x] != ninf:
@@ -1524,7 +1540,7 @@ def correct(values: np.ndarray, state: np.ndarray, profile, mode: str = "lut", i
         sb = spill_basis(calib)
         _colour_compact_planes(values, state, c.record(), sb.basis, sb.inv_de, src, tgt, n_clipped)
         blk = cfas.block(cfa)
-        _colour_compact_clipped(values, state, src, tgt, sb.basis, sb.inv_de, nd, blk, n_clipped)
+        _colour_compact_clipped(values, state, src, tgt, sb.basis, sb.inv_de, nd, blk, n_clipped, get_num_threads())
         _colour_compact_correct(values, state, c.record(), calib.clip_flux, src, tgt, sb.weight,
                                 colour_pairs(calib, cfa), blk, n_clipped)
         return values, state
