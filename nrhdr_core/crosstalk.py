@@ -1077,52 +1077,48 @@ def _colour_compact_planes(values, state, c, basis, inv_de, src, tgt, n_clipped)
     zero = np.float32(0.0)
     dsc0 = dscale[0]
     dsc1 = dscale[1]
+    # the planes indexed [y, x] from whole-plane views: LLVM does not vectorise a loop that gathers (the record
+    # and spill table reads) and stores through row views made inside the prange body
+    b0p, b1p, dkp = src[_SRC_B0], src[_SRC_B1], src[_SRC_DARK]
+    fp, c0p, d0p, dup, rmp = tgt[_TGT_F], tgt[_TGT_C0], tgt[_TGT_D0], tgt[_TGT_DU], tgt[_TGT_ROOM]
+    o0p, o1p = tgt[_TGT_O0], tgt[_TGT_O1]
     for y in prange(h):
-        vr, sr = values[y], state[y]
-        b0r, b1r, dkr = src[_SRC_B0, y], src[_SRC_B1, y], src[_SRC_DARK, y]
-        fr, c0r, d0r, dur, rmr = tgt[_TGT_F, y], tgt[_TGT_C0, y], tgt[_TGT_D0, y], tgt[_TGT_DU, y], tgt[_TGT_ROOM, y]
-        o0r, o1r = tgt[_TGT_O0, y], tgt[_TGT_O1, y]
-        # the record reads (gathers) first, into the tgt rows that the arithmetic then overwrites, so that the
-        # arithmetic loop vectorises; the spill table lookups (gathers) last
+        # the record reads (gathers) and the compact LUT's arithmetic in one vectorised loop, as
+        # `_lut_kernel_compact`
         for x in range(w):
-            attf = np.float32((sr[x] & ATTENUATED) != 0)
-            c0r[x], rmr[x], o0r[x], o1r[x] = _compact_fetch(rec, y, x, vr[x] * _pick(attf, invnd, one), inv_step, g,
-                                                            clip_rel, qs, qo)
-        for x in range(w):
-            st = sr[x]
-            v = vr[x]
+            st = state[y, x]
+            v = values[y, x]
             attf = np.float32((st & ATTENUATED) != 0)
             m = v * _pick(attf, invnd, one)
-            c0 = c0r[x]
-            top = rmr[x]
-            d0, du = _compact_line(m, c0, top, o0r[x], o1r[x], _pick(attf, dsc1, dsc0), inv_step, g)
+            c0, top, a, b = _compact_fetch(rec, y, x, m, inv_step, g, clip_rel, qs, qo)
+            d0, du = _compact_line(m, c0, top, a, b, _pick(attf, dsc1, dsc0), inv_step, g)
             f = _compact_at(m, c0, d0, du, _pick(attf, ndf, one), inv_step, f0)
             ok = m <= top
             reason = st & REASON_MASK
             valid = (reason == VALID) & ok
-            fr[x] = f if valid else v
-            d0r[x] = d0
-            dur[x] = du
-            rmr[x] = top - m
-            dkr[x] = v if reason == DARK else -np.inf
-            # the new value into the o0 row (read above, rewritten below), copied to the values row after the
-            # loop: a store of 'f if ... else v' into v's own place compiles to a masked store (slow)
-            o0r[x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
+            fp[y, x] = f if valid else v
+            c0p[y, x] = c0
+            d0p[y, x] = d0
+            dup[y, x] = du
+            rmp[y, x] = top - m
+            dkp[y, x] = v if reason == DARK else -np.inf
+            values[y, x] = f if ((reason == DARK) | (reason == NOISY)) & ok & (f > zero) else v
             # (VALID is 0: st | UNCALIBRATED is (st & FLAG_MASK) | UNCALIBRATED)
-            sr[x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
-        vr[:] = o0r
-        n = 0                                  # (a count in the loop above would keep it from vectorising)
+            state[y, x] = st | (np.uint8(UNCALIBRATED) * np.uint8((reason == VALID) & (not ok)))
+        # the spill table lookups (gathers) at the flux, in a second vectorised loop (one loop with both sets
+        # of gathers vectorises narrower)
+        n = 0
         for x in range(w):
-            st = sr[x]
+            st = state[y, x]
             n += np.int64((st & REASON_MASK) == CLIPPED)
             attf = np.float32((st & ATTENUATED) != 0)
-            q = fr[x] * inv_de
+            q = fp[y, x] * inv_de
             q_own = q * _pick(attf, invnd, one)
             q_other = q * _pick(attf, one, invnd)
-            b0r[x] = _basis_at(basis, 0, q_own)
-            b1r[x] = _basis_at(basis, 1, q_own)
-            o0r[x] = _basis_at(basis, 0, q_other)
-            o1r[x] = _basis_at(basis, 1, q_other)
+            b0p[y, x] = _basis_at(basis, 0, q_own)
+            b1p[y, x] = _basis_at(basis, 1, q_own)
+            o0p[y, x] = _basis_at(basis, 0, q_other)
+            o1p[y, x] = _basis_at(basis, 1, q_other)
         n_clipped[y] = n
 
 
