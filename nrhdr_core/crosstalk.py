@@ -713,8 +713,9 @@ def _compact_line(m, c0, top, a, b, dsc, inv_step, g):
 def _compact_at(m, c0, d0, du, s, inv_step, f0):
     """Flux of code m (at most the range's top) on the compact LUT's segment (d0, du) (`_compact_line`): a
     square root and a multiply-add, s: ND or 1; below the dark knot c0 between (black, f0) and the knot, as
-    `lut_eval`; exact on the segment, the segment continued beyond it. `_lut_kernel_compact` writes these
-    lines out itself: a helper call there does not vectorise with its loop."""
+    `lut_eval`; exact on the segment, the segment continued beyond it. The colour passes keep the segment as
+    this line so that `_colour_value` evaluates it at a second code; `_lut_kernel_compact` evaluates it once,
+    as a lerp at the code (a + t (b - a), rounded differently)."""
     zero = np.float32(0.0)
     mm = max(max(m, c0), zero)
     f = max((mm + d0 + du * np.sqrt(mm * inv_step)) * s, zero)
