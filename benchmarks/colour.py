@@ -30,7 +30,7 @@ against the tone-mapped truth (`tonemap.tonemap_rgb`, the profile's white, truth
 the zone plate (`metrics.false_colour_db`: 10 log10 of the mean squared CIELAB chroma error at the truth's
 luminance, on the rings). Frames/s at 1920 x 1080 on the first scene, in the same run: the colour preview
 chain (`validity.classify -> crosstalk.correct` (mode lut, compact; a synthetic calibration, with per-colour
-amplitudes as a colour camera's) `-> reconstruct_cfa
+amplitudes as a colour camera's and a spill table like the prototype sensor's, `stages.prototype_spill`) `-> reconstruct_cfa
 (preview) -> LocalTonemap.rgb`) against the monochrome preview chain of the same sensor (the same stages with
 `reconstruction.reconstruct_frame` (preview) and `LocalTonemap`), ms per stage; tone map `--operator` (default
 `local`, nrtonemap's; one operator per stream and output buffers reused, as in the elements); passes
@@ -211,8 +211,12 @@ def speed(scene_path, h, w, frames, repeat, operator, seed):
     """{'mono' | 'colour': {'fps': frames/s, 'ms': {stage: ms per frame}}} of the preview chains at h x w (the
     stages called as the elements call them), passes interleaved, the best of `repeat` after an untimed frame."""
     base = profile.default(h, w, seed=3)
-    calib = _sibling("stages").synthetic_calibration(base, 40)
+    stages = _sibling("stages")
+    calib = stages.synthetic_calibration(base, 40)
     mono = base.replace(crosstalk=calib)
+    # the colour correction with a spill table like the prototype sensor's (the mono LUT mode reads none)
+    sig_e, sigma = stages.prototype_spill(float(base.clip_code) - float(base.black_level))
+    calib = dataclasses.replace(calib, sig_e=sig_e, sigma=sigma)
     # a colour camera's calibration has per-colour amplitudes (`calibration.colour_spill`): here the pixel's
     # white-light amplitude times SPILL_BY_COLOUR for neighbours of R, G, B
     amp = calib.alpha[None] * np.asarray(SPILL_BY_COLOUR, np.float32)[:, None, None]

@@ -19,13 +19,15 @@ alternating, median of `--repeats`, with the load average.
 1920 x 1080 frame of each pass of the colour compact setting (`_colour_compact_planes`, `_colour_compact_clipped`,
 `_colour_compact_correct`) and of the monochrome compact kernel (`_lut_kernel_compact`, the anchor), on a
 smooth coloured scene (R : G : B = 1.2 : 1 : 0.7, a gradient and a clipped patch) with a synthetic 40-knot table
-and a linear 1 % / 1.2 % / 0.3 % spill table, interleaved, minimum of `--repeats`; with the share of VALID
+and a spill table like the prototype sensor's (`stages.prototype_spill`: 1 % / 1.2 % / 0.3 % coupling, blooming
+beyond the clip), interleaved, minimum of `--repeats`; with the share of VALID
 pixels whose corrected code left its compact-LUT segment (read again).
 
     .venv/bin/python benchmarks/colour_crosstalk.py OUT_FOLDER --passes [--scene PATH.exr]
 
 `--scene`: the passes on an HDR scene instead (`benchmarks/colour.py`'s 1080p frame of it and its synthetic
-40-knot calibration with per-colour amplitudes 1.15 / 1.0 / 0.85; the anchor on the scene's luminance).
+40-knot calibration with per-colour amplitudes 1.15 / 1.0 / 0.85 and the same spill table; the anchor on the
+scene's luminance).
 
 `--coupling`: the sensor model's crosstalk per source colour (`SensorModel.colour_coupling`). The scene crop
 needs ../shared/data/hdr/StillLife.exr ($NRHDR_SHARED_DATA/hdr); without it that row is skipped.
@@ -169,15 +171,12 @@ def speed(small, repeats: int) -> None:
 def passes(repeats: int, scene: str | None = None) -> None:
     """CPU ms per 1920 x 1080 frame of the colour compact passes and of the monochrome compact kernel."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from stages import synthetic_calibration
+    from stages import prototype_spill, synthetic_calibration
     h, w = 1080, 1920
     prof = P.default(h, w, seed=3)
     table = synthetic_calibration(prof, 40)
-    if scene is None:
-        kern = X.make_kernel(0.010, 0.012, 0.003)
-        k_d = np.array([kern[1 + dy, 1 + dx] for dy, dx in X.DIRS])
-        table = D.replace(table, sig_e=np.array([0.0, 1e5], np.float32),
-                          sigma=np.ascontiguousarray((k_d[:, None] * np.array([0.0, 1e5])).astype(np.float32)))
+    sig_e, sigma = prototype_spill(float(prof.clip_code) - float(prof.black_level))
+    table = D.replace(table, sig_e=sig_e, sigma=sigma)
     amp = np.ascontiguousarray(table.alpha[None] * np.asarray((1.15, 1.0, 0.85), np.float32)[:, None, None])
     colr = prof.replace(cfa="rggb", crosstalk=D.replace(table, colour=amp))
     mono = prof.replace(crosstalk=table)

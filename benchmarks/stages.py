@@ -77,6 +77,20 @@ def scene_flux(h, w, scene_path):
     return simulate.view(scene, h, w, 0.3, Motion()) * np.float32(k), prof, name
 
 
+def prototype_spill(top: float):
+    """(sig_e, sigma) of a spill table shaped like the `prototype` sensor model's (crosstalk.sensor_model_preset):
+    coupling 1 % to left/right, 1.2 % to up/down, 0.3 % to diagonal neighbours, linear in the source's
+    signal, and blooming of sources beyond `top` (the regular clip, DN) mostly along columns; rank 2, as
+    `crosstalk.spill_basis` takes it. For timing the colour correction with a spill that is not zero."""
+    kern = crosstalk.make_kernel(0.010, 0.012, 0.003)
+    k_d = np.array([kern[1 + dy, 1 + dx] for dy, dx in crosstalk.DIRS])
+    shape = np.array([0.0 if dx else 1.0 if dy else 0.3 for dy, dx in crosstalk.DIRS])
+    e = float(top) * np.array([0.0, 0.125, 0.5, 2.0, 7.5])
+    bloom = np.array([0.0, 0.0, 0.0, 0.004, 0.01]) * e
+    sigma = k_d[:, None] * e[None] + shape[:, None] * bloom[None]
+    return e.astype(np.float32), np.ascontiguousarray(sigma, np.float32)
+
+
 def synthetic_calibration(prof, knots: int, seed: int = 0):
     """A calibration with `knots` knots per pixel (like calibration.py's flat sweeps): per-pixel gains of
     +-3 %, knots spread geometrically up to the pixel's clipping point. For timing the LUT path only."""
