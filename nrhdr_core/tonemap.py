@@ -185,7 +185,7 @@ class AutoWhite:
 # naturalness model, Yeganeh and Wang 2013 Eq. 9-10). The statistics are smoothed over time like WhiteTracker.
 
 LOCAL_CELL = 4              # pixels per coarse cell (guided-filter subsampling)
-LOCAL_BLOCK = 3             # coarse cells per statistics block (12 x 12 pixels)
+LOCAL_BLOCK = 3             # coarse cells per statistics block (12 x 12 pixels; _block_stats adds 3 cells)
 LOCAL_RADIUS = 0.02         # guided-filter radius, fraction of the larger frame side (Durand: 2 %)
 LOCAL_EPS = 0.5             # guided-filter regulariser, stops^2: edges above ~0.7 stop stay in the base
 LOCAL_RANGE = 7.0           # stops of base range shown
@@ -310,22 +310,44 @@ def _rgb_local_log(rgb, k, scale, toe, l, cm, cm2, mbuf):
             _cell_means(cy, h, w, cm, cm2)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _box(src, r, tmp, acc, dst):
-    """Mean over the (2r+1)^2 window clipped to the frame (running sums: along rows, then down the columns
-    with the row vector `acc`)."""
+    """Mean over the (2r+1)^2 window clipped to the frame (running sums: along rows, four rows at a time as
+    independent chains (the last group repeats the last row), each row then divided by the window widths held
+    in `acc`; then down the columns with the row vector `acc`)."""
     h, w = src.shape
-    for y in range(h):
-        s = 0.0
+    for x in range(w):
+        acc[x] = min(x + r, w - 1) - max(x - r, 0) + 1
+    for y in range(0, h, 4):
+        y1, y2, y3 = min(y + 1, h - 1), min(y + 2, h - 1), min(y + 3, h - 1)
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        s3 = 0.0
         for x in range(min(r, w - 1) + 1):
-            s += src[y, x]
+            s0 += src[y, x]
+            s1 += src[y1, x]
+            s2 += src[y2, x]
+            s3 += src[y3, x]
         for x in range(w):
             lo, hi = x - r, x + r
-            tmp[y, x] = s / (min(hi, w - 1) - max(lo, 0) + 1)
+            tmp[y, x] = s0
+            tmp[y1, x] = s1
+            tmp[y2, x] = s2
+            tmp[y3, x] = s3
             if hi + 1 < w:
-                s += src[y, hi + 1]
+                s0 += src[y, hi + 1]
+                s1 += src[y1, hi + 1]
+                s2 += src[y2, hi + 1]
+                s3 += src[y3, hi + 1]
             if lo >= 0:
-                s -= src[y, lo]
+                s0 -= src[y, lo]
+                s1 -= src[y1, lo]
+                s2 -= src[y2, lo]
+                s3 -= src[y3, lo]
+        for yy in range(y, min(y + 4, h)):
+            for x in range(w):
+                tmp[yy, x] = tmp[yy, x] / acc[x]
     for x in range(w):
         acc[x] = 0.0
     for y in range(min(r, h - 1) + 1):
@@ -344,7 +366,7 @@ def _box(src, r, tmp, acc, dst):
                 acc[x] -= tmp[lo, x]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _guided_coefficients(cm, cm2, r, eps, ca, cb, t1, t2, t3, acc):
     """Guided filter of the coarse log image by itself (He et al. 2013, Alg. 1): a = var / (var + eps),
     b = mean (1 - a), each box-averaged into `ca`, `cb`."""
@@ -363,25 +385,41 @@ def _guided_coefficients(cm, cm2, r, eps, ca, cb, t1, t2, t3, acc):
     _box(t3, r, t1, acc, cb)
 
 
-@njit(cache=True, nogil=True)
-def _block_stats(cm, cm2, ca, cb, stats):
+@njit(cache=True, nogil=True, error_model="numpy")
+def _block_stats(cm, cm2, ca, cb, stats, sums):
     """Per LOCAL_BLOCK^2-cell block: cells, and the sums of the cells' means of base, base^2, detail, detail^2,
-    base detail and of the coefficient a, from each cell's l moments with its coefficients (base = a l + b, detail = (1 - a) l - b)."""
+    base detail and of the coefficient a, from each cell's l moments with its coefficients (base = a l + b,
+    detail = (1 - a) l - b). Block rows one at a time: `sums[0]` (7, wc) a cell row's seven terms, `sums[1]`
+    the block row's sums, added cell by cell in row order."""
     hc, wc = cm.shape
-    stats[:] = 0.0
-    for y in range(hc):
-        by = y // LOCAL_BLOCK
-        for x in range(wc):
-            bx = x // LOCAL_BLOCK
-            a, b, m1, m2 = ca[y, x], cb[y, x], cm[y, x], cm2[y, x]
-            u = 1.0 - a
-            stats[by, bx, 0] += 1.0
-            stats[by, bx, 1] += a * m1 + b
-            stats[by, bx, 2] += a * a * m2 + 2.0 * a * b * m1 + b * b
-            stats[by, bx, 3] += u * m1 - b
-            stats[by, bx, 4] += u * u * m2 - 2.0 * u * b * m1 + b * b
-            stats[by, bx, 5] += a * u * m2 + (b * u - a * b) * m1 - b * b
-            stats[by, bx, 6] += a
+    hb, wb = stats.shape[0], stats.shape[1]
+    blk = LOCAL_BLOCK
+    full = wc // blk
+    tv = sums[0]
+    acc = sums[1]
+    for by in range(hb):
+        for k in range(7):
+            for bx in range(wb):
+                acc[k, bx] = 0.0
+        for y in range(by * blk, min(hc, (by + 1) * blk)):
+            for x in range(wc):
+                a, b, m1, m2 = ca[y, x], cb[y, x], cm[y, x], cm2[y, x]
+                u = 1.0 - a
+                tv[0, x] = 1.0
+                tv[1, x] = a * m1 + b
+                tv[2, x] = a * a * m2 + 2.0 * a * b * m1 + b * b
+                tv[3, x] = u * m1 - b
+                tv[4, x] = u * u * m2 - 2.0 * u * b * m1 + b * b
+                tv[5, x] = a * u * m2 + (b * u - a * b) * m1 - b * b
+                tv[6, x] = a
+            for k in range(7):
+                for bx in range(full):      # the block's LOCAL_BLOCK = 3 cells in order
+                    acc[k, bx] = ((acc[k, bx] + tv[k, 3 * bx]) + tv[k, 3 * bx + 1]) + tv[k, 3 * bx + 2]
+                for x in range(full * blk, wc):
+                    acc[k, full] += tv[k, x]
+        for bx in range(wb):
+            for k in range(7):
+                stats[by, bx, k] = acc[k, bx]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -639,9 +677,9 @@ class LocalTonemap:
             coarse = [np.empty((hc, wc)) for _ in range(7)]
             return (np.empty((h, w), np.float32), np.empty((min(hc, 64), w), np.float32),
                     np.empty((min(h, 64), 2, wc + 2), np.float32), np.empty((min(h, 64), w), np.float32),
-                    np.empty(wc),
+                    np.empty(wc), np.empty((2, 7, wc)),
                     np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 7)), *coarse)
-        l, mbuf, rows, tbuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
+        l, mbuf, rows, tbuf, acc, sums, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
         scale, toe = np.float32(1.0 / white), np.float32(1.0 / contrast)
         if colour is None:
             _local_log(v, scale, toe, l, cm, cm2, mbuf)
@@ -649,7 +687,7 @@ class LocalTonemap:
             _rgb_local_log(v, k, scale, toe, l, cm, cm2, mbuf)
         r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
         _guided_coefficients(cm, cm2, r, LOCAL_EPS, ca, cb, t1, t2, t3, acc)
-        _block_stats(cm, cm2, ca, cb, stats)
+        _block_stats(cm, cm2, ca, cb, stats, sums)
         p = np.array(local_parameters(stats, 1.0 / contrast))
         self.params = p if self.params is None else self.speed * p + (1 - self.speed) * self.params
         c, g, k0 = (float(t) for t in self.params)
