@@ -185,7 +185,7 @@ class AutoWhite:
 # naturalness model, Yeganeh and Wang 2013 Eq. 9-10). The statistics are smoothed over time like WhiteTracker.
 
 LOCAL_CELL = 4              # pixels per coarse cell (guided-filter subsampling)
-LOCAL_BLOCK = 3             # coarse cells per statistics block (12 x 12 pixels; _block_stats adds 3 cells)
+LOCAL_BLOCK = 3             # coarse cells per statistics block (12 x 12 pixels)
 LOCAL_RADIUS = 0.02         # guided-filter radius, fraction of the larger frame side (Durand: 2 %)
 LOCAL_EPS = 0.5             # guided-filter regulariser, stops^2: edges above ~0.7 stop stay in the base
 LOCAL_RANGE = 7.0           # stops of base range shown
@@ -385,41 +385,25 @@ def _guided_coefficients(cm, cm2, r, eps, ca, cb, t1, t2, t3, acc):
     _box(t3, r, t1, acc, cb)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _block_stats(cm, cm2, ca, cb, stats, sums):
+@njit(cache=True, nogil=True)
+def _block_stats(cm, cm2, ca, cb, stats):
     """Per LOCAL_BLOCK^2-cell block: cells, and the sums of the cells' means of base, base^2, detail, detail^2,
-    base detail and of the coefficient a, from each cell's l moments with its coefficients (base = a l + b,
-    detail = (1 - a) l - b). Block rows one at a time: `sums[0]` (7, wc) a cell row's seven terms, `sums[1]`
-    the block row's sums, added cell by cell in row order."""
+    base detail and of the coefficient a, from each cell's l moments with its coefficients (base = a l + b, detail = (1 - a) l - b)."""
     hc, wc = cm.shape
-    hb, wb = stats.shape[0], stats.shape[1]
-    blk = LOCAL_BLOCK
-    full = wc // blk
-    tv = sums[0]
-    acc = sums[1]
-    for by in range(hb):
-        for k in range(7):
-            for bx in range(wb):
-                acc[k, bx] = 0.0
-        for y in range(by * blk, min(hc, (by + 1) * blk)):
-            for x in range(wc):
-                a, b, m1, m2 = ca[y, x], cb[y, x], cm[y, x], cm2[y, x]
-                u = 1.0 - a
-                tv[0, x] = 1.0
-                tv[1, x] = a * m1 + b
-                tv[2, x] = a * a * m2 + 2.0 * a * b * m1 + b * b
-                tv[3, x] = u * m1 - b
-                tv[4, x] = u * u * m2 - 2.0 * u * b * m1 + b * b
-                tv[5, x] = a * u * m2 + (b * u - a * b) * m1 - b * b
-                tv[6, x] = a
-            for k in range(7):
-                for bx in range(full):      # the block's LOCAL_BLOCK = 3 cells in order
-                    acc[k, bx] = ((acc[k, bx] + tv[k, 3 * bx]) + tv[k, 3 * bx + 1]) + tv[k, 3 * bx + 2]
-                for x in range(full * blk, wc):
-                    acc[k, full] += tv[k, x]
-        for bx in range(wb):
-            for k in range(7):
-                stats[by, bx, k] = acc[k, bx]
+    stats[:] = 0.0
+    for y in range(hc):
+        by = y // LOCAL_BLOCK
+        for x in range(wc):
+            bx = x // LOCAL_BLOCK
+            a, b, m1, m2 = ca[y, x], cb[y, x], cm[y, x], cm2[y, x]
+            u = 1.0 - a
+            stats[by, bx, 0] += 1.0
+            stats[by, bx, 1] += a * m1 + b
+            stats[by, bx, 2] += a * a * m2 + 2.0 * a * b * m1 + b * b
+            stats[by, bx, 3] += u * m1 - b
+            stats[by, bx, 4] += u * u * m2 - 2.0 * u * b * m1 + b * b
+            stats[by, bx, 5] += a * u * m2 + (b * u - a * b) * m1 - b * b
+            stats[by, bx, 6] += a
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -463,15 +447,13 @@ def _local_position(rows, c, lv, cx, j, c0, g1, k0, lo, steps):
 
 
 @njit(cache=True, nogil=True)
-def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
-    """Row y's display light into `t[c]`: `_local_apply`'s 16-bit level (code + 0.5, `dlut` the LUT's steps
-    lut[i + 1] - lut[i]) through the sRGB EOTF table `dec`, as `_rgb_row` takes it; `ib[c]` the row's LUT
-    indices. The clamp and the index / fraction split have a loop of their own, the table look-ups another
-    (the first vectorises). Called, not inlined: inlined beside `_rgb_row`, the pair compiles to code that takes
-    about twice the time per row."""
+def _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, n):
+    """Row y's display-curve LUT positions (`_local_position`): indices into `ib[c]`, fractions into `t[c]`,
+    for a LUT of n entries (NaN positions: entry 0). `rows[c]` (2, wc + 2) the coarse a, b interpolated down the
+    column (edge-extended by one cell). The positions and the clamp / index split have loops of their own (both
+    vectorise)."""
     w = l.shape[1]
     hc, wc = ca.shape
-    n = lut.shape[0]
     steps = np.float32(_LUT_STEPS)
     lo = np.float32(_LUT_LO)
     top = np.float32(n - 1)
@@ -500,61 +482,45 @@ def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
         tr[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
     last = np.int32(n - 2)
     for x in range(w):
-        tv = min(max(tr[x], np.float32(0.0)), top)        # (l is finite)
+        tv = min(max(np.float32(0.0), tr[x]), top)        # max(0, NaN) is 0 (`_unit`)
         i = min(np.int32(tv), last)
         ir[x] = i
         tr[x] = tv - np.float32(i)
+
+
+@njit(cache=True, nogil=True)
+def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
+    """Row y's display light into `t[c]`: `_local_apply`'s 16-bit level (code + 0.5, `dlut` the LUT's steps
+    lut[i + 1] - lut[i]) of the `_local_levels` positions through the sRGB EOTF table `dec`, as `_rgb_row`
+    takes it; `ib[c]` the row's LUT indices. The table look-ups have a loop of their own. Called, not inlined:
+    inlined beside `_rgb_row`, the pair compiles to code that takes about twice the time per row."""
+    w = l.shape[1]
+    _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut.shape[0])
+    tr = t[c]
+    ir = ib[c]
     for x in range(w):
         i = np.uint32(ir[x])
         tr[x] = dec[np.uint32((lut[i] + tr[x] * dlut[i]) * np.float32(65535.0) + np.float32(0.5))]
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
+def _local_apply(l, ca, cb, c0, g1, k0, lut, dlut, out_max, rows, tbuf, ibuf, out):
     """o = c base + (1 + (g - 1)(1 - a)) detail + k0 (g1 = g - 1), base = a l + b with a, b bilinear from the
     coarse grid (cell centres): the gain fades to 1 where the base follows the image (a -> 1, strong edges,
-    where a detail is the filter's residual, not texture); display code by the LUT (linear interpolation). Rows in chunks: `rows`
-    (chunks, 2, wc + 2) the coarse a, b interpolated down the column (edge-extended by one cell), `tbuf`
-    (chunks, w) the LUT positions."""
+    where a detail is the filter's residual, not texture); display code by the LUT (linear interpolation, `dlut`
+    its steps lut[i + 1] - lut[i]). Rows in chunks (`_local_levels`): `rows` (chunks, 2, wc + 2) the coarse a, b
+    of a row, `tbuf` (chunks, w) the LUT fractions, `ibuf` (chunks, w) the LUT indices."""
     h, w = l.shape
-    hc, wc = ca.shape
     n = lut.shape[0]
     nch = tbuf.shape[0]
-    steps = np.float32(_LUT_STEPS)
-    lo = np.float32(_LUT_LO)
-    top = np.float32(n - 1)
-    cell = LOCAL_CELL
     for c in prange(nch):
-        ra = rows[c, 0]
-        rb = rows[c, 1]
-        t = tbuf[c]
+        tr = tbuf[c]
+        ir = ibuf[c]
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            f = (y + 0.5) / cell - 0.5
-            f = f if f > 0.0 else 0.0
-            y0 = min(int(f), hc - 1)
-            y1 = min(y0 + 1, hc - 1)
-            fy = f - y0
-            for cx in range(wc):
-                ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
-                rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
-            ra[0], rb[0] = ra[1], rb[1]
-            ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
-            lrow = l[y]
-            # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
-            full = w // cell
-            for cx in range(full):
-                for j in range(cell):
-                    x = cx * cell + j
-                    t[x] = _local_position(rows, c, lrow[x], cx, j, c0, g1, k0, lo, steps)
-            for x in range(full * cell, w):
-                t[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+            _local_levels(l, ca, cb, y, rows, tbuf, ibuf, c, c0, g1, k0, n)
             for x in range(w):
-                tv = t[x]
-                tv = tv if tv > np.float32(0.0) else np.float32(0.0)
-                tv = tv if tv < top else top
-                i = min(int(tv), n - 2)
-                ft = tv - np.float32(i)
-                out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+                i = np.uint32(ir[x])
+                out[y, x] = (lut[i] + tr[x] * dlut[i]) * out_max + np.float32(0.5)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -666,8 +632,8 @@ class LocalTonemap:
 
     def _run(self, v, k, white, exposure_stops, contrast, out_max, colour, out):
         """The operator on the grey `v` (H, W), or on the luminance of the colour `v` (3, H, W) by `k` with
-        `colour` the colour display's rows and tables (`_rgb_local_apply`: index rows, sRGB tables, saturation,
-        channel rows)."""
+        `colour` the colour display's tables and rows (`_rgb_local_apply`: sRGB tables, saturation, channel
+        rows)."""
         from .scratch import planes
         h, w = v.shape[-2:]
         cell = LOCAL_CELL
@@ -677,9 +643,9 @@ class LocalTonemap:
             coarse = [np.empty((hc, wc)) for _ in range(7)]
             return (np.empty((h, w), np.float32), np.empty((min(hc, 64), w), np.float32),
                     np.empty((min(h, 64), 2, wc + 2), np.float32), np.empty((min(h, 64), w), np.float32),
-                    np.empty(wc), np.empty((2, 7, wc)),
+                    np.empty((min(h, 64), w), np.int32), np.empty(wc),
                     np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 7)), *coarse)
-        l, mbuf, rows, tbuf, acc, sums, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
+        l, mbuf, rows, tbuf, ibuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
         scale, toe = np.float32(1.0 / white), np.float32(1.0 / contrast)
         if colour is None:
             _local_log(v, scale, toe, l, cm, cm2, mbuf)
@@ -687,15 +653,15 @@ class LocalTonemap:
             _rgb_local_log(v, k, scale, toe, l, cm, cm2, mbuf)
         r = max(1, int(round(LOCAL_RADIUS * max(h, w) / cell)))
         _guided_coefficients(cm, cm2, r, LOCAL_EPS, ca, cb, t1, t2, t3, acc)
-        _block_stats(cm, cm2, ca, cb, stats, sums)
+        _block_stats(cm, cm2, ca, cb, stats)
         p = np.array(local_parameters(stats, 1.0 / contrast))
         self.params = p if self.params is None else self.speed * p + (1 - self.speed) * self.params
         c, g, k0 = (float(t) for t in self.params)
         c, g1, k0 = np.float32(c), np.float32(g - 1.0), np.float32(k0 + exposure_stops)
         if colour is None:
-            _local_apply(l, ca, cb, c, g1, k0, _lut(), np.float32(out_max), rows, tbuf, out)
+            _local_apply(l, ca, cb, c, g1, k0, *_luts(), np.float32(out_max), rows, tbuf, ibuf, out)
         else:
-            _rgb_local_apply(v, k, l, ca, cb, c, g1, k0, *_luts(), rows, tbuf, *colour, out)
+            _rgb_local_apply(v, k, l, ca, cb, c, g1, k0, *_luts(), rows, tbuf, ibuf, *colour, out)
         return out
 
     def rgb(self, rgb: np.ndarray, white: float, exposure_stops: float = 0.0, contrast: float = DEFAULT_CONTRAST,
@@ -1235,13 +1201,12 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
         raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
     _check_tone(white, contrast)
     k = np.array([*gains, *LUMA_BT709], np.float32)
-    lev, ibuf, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
-                                                             np.empty((min(h, 64), w), np.int32),
-                                                             np.empty((min(h, 64), 3, w), np.float32)))
+    lev, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
+                                                       np.empty((min(h, 64), 3, w), np.float32)))
     colour = (*_srgb_tables(), np.float32(saturation), fbuf, fbuf.view(np.uint32))
     if operator == "local":
         (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0,
-                                                          (ibuf, *colour), out)
+                                                          colour, out)
     else:
         _rgb_log_kernel(v, k, np.float32(2.0 ** exposure_stops / white), np.float32(contrast),
                         np.float32(1.0 / math.log1p(contrast)), lev, *colour, out)
