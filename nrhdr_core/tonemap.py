@@ -423,6 +423,53 @@ def _mean_level(rel, wgt, s, lut):
     return acc
 
 
+_LEVEL_BINS = 256                   # weight bins of `_level_bounds`
+_LEVEL_MARGIN = 1e-9                # relative: far above the rounding of the sums (n u, n = 14400 at 1080p)
+
+
+@njit(cache=True, nogil=True)
+def _level_bins(rel, wgt, lo, width, wb):
+    """The weights `wgt` summed into `wb` by the bin of rel (bins of `width` from `lo`, the last one closed)."""
+    nb = wb.shape[0]
+    wb[:] = 0.0
+    for i in range(rel.shape[0]):
+        wb[min(max(int((rel[i] - lo) / width), 0), nb - 1)] += wgt[i]
+
+
+@njit(cache=True, nogil=True)
+def _level_bounds(wb, lo, width, s, lut):
+    """Lower and upper bounds of `_mean_level` at s from the binned weights: each term's level lies between
+    the display levels of its bin's edges (widened by 1e-6 stop; the LUT curve is non-decreasing)."""
+    lb = 0.0
+    ub = 0.0
+    for b in range(wb.shape[0]):
+        if wb[b] > 0.0:
+            lb += wb[b] * _lut_at(lut, lo + b * width - 1e-6 + s)
+            ub += wb[b] * _lut_at(lut, lo + (b + 1) * width + 1e-6 + s)
+    return lb, ub
+
+
+def _mean_level_for_bisect(rel, wgt, lut, target):
+    """s -> `_mean_level(rel, wgt, s, lut)` as `_bisect` uses it, compared with `target` only: where the bounds
+    of `_level_bounds` put the level on one side of the target by more than _LEVEL_MARGIN, the bound stands in
+    for it (the same comparisons, so the same s) and the full sum is skipped."""
+    lo, hi = float(np.min(rel)), float(np.max(rel))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return lambda s: _mean_level(rel, wgt, s, lut)
+    width = max(hi - lo, 1e-6) / _LEVEL_BINS
+    wb = np.empty(_LEVEL_BINS)
+    _level_bins(rel, wgt, lo, width, wb)
+
+    def level(s):
+        lb, ub = _level_bounds(wb, lo, width, s, lut)
+        if ub * (1.0 + _LEVEL_MARGIN) < target:
+            return ub * (1.0 + _LEVEL_MARGIN)
+        if lb * (1.0 - _LEVEL_MARGIN) > target:
+            return lb * (1.0 - _LEVEL_MARGIN)
+        return _mean_level(rel, wgt, s, lut)
+    return level
+
+
 @njit(cache=True, nogil=True)
 def _mean_contrast(slope, wgt, vb, vd, cov, free, c, g):
     acc = 0.0
@@ -594,7 +641,7 @@ def local_parameters(stats: np.ndarray, toe: float = 1.0 / DEFAULT_CONTRAST) -> 
     c = min(1.0, LOCAL_RANGE / max(float(hi - lo), 1e-6))
     rel = c * (mu - m)
     lut = _lut()
-    s = _bisect(lambda s: _mean_level(rel, wgt, s, lut), -60.0, 60.0, LOCAL_MEAN, 1e-3)
+    s = _bisect(_mean_level_for_bisect(rel, wgt, lut, LOCAL_MEAN), -60.0, 60.0, LOCAL_MEAN, 1e-3)
     slope = _display_slope(rel + s)
     g = _bisect(lambda g: _mean_contrast(slope, wgt, var_b, var_d, cov, free, c, g), 1.0, LOCAL_GAIN_MAX,
                 LOCAL_CONTRAST, 1e-3)
