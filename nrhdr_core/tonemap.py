@@ -310,22 +310,44 @@ def _rgb_local_log(rgb, k, scale, toe, l, cm, cm2, mbuf):
             _cell_means(cy, h, w, cm, cm2)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _box(src, r, tmp, acc, dst):
-    """Mean over the (2r+1)^2 window clipped to the frame (running sums: along rows, then down the columns
-    with the row vector `acc`)."""
+    """Mean over the (2r+1)^2 window clipped to the frame (running sums: along rows, four rows at a time as
+    independent chains (the last group repeats the last row), each row then divided by the window widths held
+    in `acc`; then down the columns with the row vector `acc`)."""
     h, w = src.shape
-    for y in range(h):
-        s = 0.0
+    for x in range(w):
+        acc[x] = min(x + r, w - 1) - max(x - r, 0) + 1
+    for y in range(0, h, 4):
+        y1, y2, y3 = min(y + 1, h - 1), min(y + 2, h - 1), min(y + 3, h - 1)
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        s3 = 0.0
         for x in range(min(r, w - 1) + 1):
-            s += src[y, x]
+            s0 += src[y, x]
+            s1 += src[y1, x]
+            s2 += src[y2, x]
+            s3 += src[y3, x]
         for x in range(w):
             lo, hi = x - r, x + r
-            tmp[y, x] = s / (min(hi, w - 1) - max(lo, 0) + 1)
+            tmp[y, x] = s0
+            tmp[y1, x] = s1
+            tmp[y2, x] = s2
+            tmp[y3, x] = s3
             if hi + 1 < w:
-                s += src[y, hi + 1]
+                s0 += src[y, hi + 1]
+                s1 += src[y1, hi + 1]
+                s2 += src[y2, hi + 1]
+                s3 += src[y3, hi + 1]
             if lo >= 0:
-                s -= src[y, lo]
+                s0 -= src[y, lo]
+                s1 -= src[y1, lo]
+                s2 -= src[y2, lo]
+                s3 -= src[y3, lo]
+        for yy in range(y, min(y + 4, h)):
+            for x in range(w):
+                tmp[yy, x] = tmp[yy, x] / acc[x]
     for x in range(w):
         acc[x] = 0.0
     for y in range(min(r, h - 1) + 1):
@@ -344,7 +366,7 @@ def _box(src, r, tmp, acc, dst):
                 acc[x] -= tmp[lo, x]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _guided_coefficients(cm, cm2, r, eps, ca, cb, t1, t2, t3, acc):
     """Guided filter of the coarse log image by itself (He et al. 2013, Alg. 1): a = var / (var + eps),
     b = mean (1 - a), each box-averaged into `ca`, `cb`."""
@@ -401,6 +423,53 @@ def _mean_level(rel, wgt, s, lut):
     return acc
 
 
+_LEVEL_BINS = 256                   # weight bins of `_level_bounds`
+_LEVEL_MARGIN = 1e-9                # relative: far above the rounding of the sums (n u, n = 14400 at 1080p)
+
+
+@njit(cache=True, nogil=True)
+def _level_bins(rel, wgt, lo, width, wb):
+    """The weights `wgt` summed into `wb` by the bin of rel (bins of `width` from `lo`, the last one closed)."""
+    nb = wb.shape[0]
+    wb[:] = 0.0
+    for i in range(rel.shape[0]):
+        wb[min(max(int((rel[i] - lo) / width), 0), nb - 1)] += wgt[i]
+
+
+@njit(cache=True, nogil=True)
+def _level_bounds(wb, lo, width, s, lut):
+    """Lower and upper bounds of `_mean_level` at s from the binned weights: each term's level lies between
+    the display levels of its bin's edges (widened by 1e-6 stop; the LUT curve is non-decreasing)."""
+    lb = 0.0
+    ub = 0.0
+    for b in range(wb.shape[0]):
+        if wb[b] > 0.0:
+            lb += wb[b] * _lut_at(lut, lo + b * width - 1e-6 + s)
+            ub += wb[b] * _lut_at(lut, lo + (b + 1) * width + 1e-6 + s)
+    return lb, ub
+
+
+def _mean_level_for_bisect(rel, wgt, lut, target):
+    """s -> `_mean_level(rel, wgt, s, lut)` as `_bisect` uses it, compared with `target` only: where the bounds
+    of `_level_bounds` put the level on one side of the target by more than _LEVEL_MARGIN, the bound stands in
+    for it (the same comparisons, so the same s) and the full sum is skipped."""
+    lo, hi = float(np.min(rel)), float(np.max(rel))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return lambda s: _mean_level(rel, wgt, s, lut)
+    width = max(hi - lo, 1e-6) / _LEVEL_BINS
+    wb = np.empty(_LEVEL_BINS)
+    _level_bins(rel, wgt, lo, width, wb)
+
+    def level(s):
+        lb, ub = _level_bounds(wb, lo, width, s, lut)
+        if ub * (1.0 + _LEVEL_MARGIN) < target:
+            return ub * (1.0 + _LEVEL_MARGIN)
+        if lb * (1.0 - _LEVEL_MARGIN) > target:
+            return lb * (1.0 - _LEVEL_MARGIN)
+        return _mean_level(rel, wgt, s, lut)
+    return level
+
+
 @njit(cache=True, nogil=True)
 def _mean_contrast(slope, wgt, vb, vd, cov, free, c, g):
     acc = 0.0
@@ -425,15 +494,13 @@ def _local_position(rows, c, lv, cx, j, c0, g1, k0, lo, steps):
 
 
 @njit(cache=True, nogil=True)
-def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
-    """Row y's display light into `t[c]`: `_local_apply`'s 16-bit level (code + 0.5, `dlut` the LUT's steps
-    lut[i + 1] - lut[i]) through the sRGB EOTF table `dec`, as `_rgb_row` takes it; `ib[c]` the row's LUT
-    indices. The clamp and the index / fraction split have a loop of their own, the table look-ups another
-    (the first vectorises). Called, not inlined: inlined beside `_rgb_row`, the pair compiles to code that takes
-    about twice the time per row."""
+def _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, n):
+    """Row y's display-curve LUT positions (`_local_position`): indices into `ib[c]`, fractions into `t[c]`,
+    for a LUT of n entries (NaN positions: entry 0). `rows[c]` (2, wc + 2) the coarse a, b interpolated down the
+    column (edge-extended by one cell). The positions and the clamp / index split have loops of their own (both
+    vectorise)."""
     w = l.shape[1]
     hc, wc = ca.shape
-    n = lut.shape[0]
     steps = np.float32(_LUT_STEPS)
     lo = np.float32(_LUT_LO)
     top = np.float32(n - 1)
@@ -462,61 +529,45 @@ def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
         tr[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
     last = np.int32(n - 2)
     for x in range(w):
-        tv = min(max(tr[x], np.float32(0.0)), top)        # (l is finite)
+        tv = min(max(np.float32(0.0), tr[x]), top)        # max(0, NaN) is 0 (`_unit`)
         i = min(np.int32(tv), last)
         ir[x] = i
         tr[x] = tv - np.float32(i)
+
+
+@njit(cache=True, nogil=True)
+def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
+    """Row y's display light into `t[c]`: `_local_apply`'s 16-bit level (code + 0.5, `dlut` the LUT's steps
+    lut[i + 1] - lut[i]) of the `_local_levels` positions through the sRGB EOTF table `dec`, as `_rgb_row`
+    takes it; `ib[c]` the row's LUT indices. The table look-ups have a loop of their own. Called, not inlined:
+    inlined beside `_rgb_row`, the pair compiles to code that takes about twice the time per row."""
+    w = l.shape[1]
+    _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut.shape[0])
+    tr = t[c]
+    ir = ib[c]
     for x in range(w):
         i = np.uint32(ir[x])
         tr[x] = dec[np.uint32((lut[i] + tr[x] * dlut[i]) * np.float32(65535.0) + np.float32(0.5))]
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _local_apply(l, ca, cb, c0, g1, k0, lut, out_max, rows, tbuf, out):
+def _local_apply(l, ca, cb, c0, g1, k0, lut, dlut, out_max, rows, tbuf, ibuf, out):
     """o = c base + (1 + (g - 1)(1 - a)) detail + k0 (g1 = g - 1), base = a l + b with a, b bilinear from the
     coarse grid (cell centres): the gain fades to 1 where the base follows the image (a -> 1, strong edges,
-    where a detail is the filter's residual, not texture); display code by the LUT (linear interpolation). Rows in chunks: `rows`
-    (chunks, 2, wc + 2) the coarse a, b interpolated down the column (edge-extended by one cell), `tbuf`
-    (chunks, w) the LUT positions."""
+    where a detail is the filter's residual, not texture); display code by the LUT (linear interpolation, `dlut`
+    its steps lut[i + 1] - lut[i]). Rows in chunks (`_local_levels`): `rows` (chunks, 2, wc + 2) the coarse a, b
+    of a row, `tbuf` (chunks, w) the LUT fractions, `ibuf` (chunks, w) the LUT indices."""
     h, w = l.shape
-    hc, wc = ca.shape
     n = lut.shape[0]
     nch = tbuf.shape[0]
-    steps = np.float32(_LUT_STEPS)
-    lo = np.float32(_LUT_LO)
-    top = np.float32(n - 1)
-    cell = LOCAL_CELL
     for c in prange(nch):
-        ra = rows[c, 0]
-        rb = rows[c, 1]
-        t = tbuf[c]
+        tr = tbuf[c]
+        ir = ibuf[c]
         for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            f = (y + 0.5) / cell - 0.5
-            f = f if f > 0.0 else 0.0
-            y0 = min(int(f), hc - 1)
-            y1 = min(y0 + 1, hc - 1)
-            fy = f - y0
-            for cx in range(wc):
-                ra[cx + 1] = np.float32(ca[y0, cx] + fy * (ca[y1, cx] - ca[y0, cx]))
-                rb[cx + 1] = np.float32(cb[y0, cx] + fy * (cb[y1, cx] - cb[y0, cx]))
-            ra[0], rb[0] = ra[1], rb[1]
-            ra[wc + 1], rb[wc + 1] = ra[wc], rb[wc]
-            lrow = l[y]
-            # pixel j of cell cx sits at cx + (j - 1.5) / 4: between cells cx-1|cx (j < 2) or cx|cx+1
-            full = w // cell
-            for cx in range(full):
-                for j in range(cell):
-                    x = cx * cell + j
-                    t[x] = _local_position(rows, c, lrow[x], cx, j, c0, g1, k0, lo, steps)
-            for x in range(full * cell, w):
-                t[x] = _local_position(rows, c, lrow[x], full, x - full * cell, c0, g1, k0, lo, steps)
+            _local_levels(l, ca, cb, y, rows, tbuf, ibuf, c, c0, g1, k0, n)
             for x in range(w):
-                tv = t[x]
-                tv = tv if tv > np.float32(0.0) else np.float32(0.0)
-                tv = tv if tv < top else top
-                i = min(int(tv), n - 2)
-                ft = tv - np.float32(i)
-                out[y, x] = (lut[i] + ft * (lut[i + 1] - lut[i])) * out_max + np.float32(0.5)
+                i = np.uint32(ir[x])
+                out[y, x] = (lut[i] + tr[x] * dlut[i]) * out_max + np.float32(0.5)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -590,7 +641,7 @@ def local_parameters(stats: np.ndarray, toe: float = 1.0 / DEFAULT_CONTRAST) -> 
     c = min(1.0, LOCAL_RANGE / max(float(hi - lo), 1e-6))
     rel = c * (mu - m)
     lut = _lut()
-    s = _bisect(lambda s: _mean_level(rel, wgt, s, lut), -60.0, 60.0, LOCAL_MEAN, 1e-3)
+    s = _bisect(_mean_level_for_bisect(rel, wgt, lut, LOCAL_MEAN), -60.0, 60.0, LOCAL_MEAN, 1e-3)
     slope = _display_slope(rel + s)
     g = _bisect(lambda g: _mean_contrast(slope, wgt, var_b, var_d, cov, free, c, g), 1.0, LOCAL_GAIN_MAX,
                 LOCAL_CONTRAST, 1e-3)
@@ -628,8 +679,8 @@ class LocalTonemap:
 
     def _run(self, v, k, white, exposure_stops, contrast, out_max, colour, out):
         """The operator on the grey `v` (H, W), or on the luminance of the colour `v` (3, H, W) by `k` with
-        `colour` the colour display's rows and tables (`_rgb_local_apply`: index rows, sRGB tables, saturation,
-        channel rows)."""
+        `colour` the colour display's tables and rows (`_rgb_local_apply`: sRGB tables, saturation, channel
+        rows)."""
         from .scratch import planes
         h, w = v.shape[-2:]
         cell = LOCAL_CELL
@@ -639,9 +690,9 @@ class LocalTonemap:
             coarse = [np.empty((hc, wc)) for _ in range(7)]
             return (np.empty((h, w), np.float32), np.empty((min(hc, 64), w), np.float32),
                     np.empty((min(h, 64), 2, wc + 2), np.float32), np.empty((min(h, 64), w), np.float32),
-                    np.empty(wc),
+                    np.empty((min(h, 64), w), np.int32), np.empty(wc),
                     np.empty((-(-hc // LOCAL_BLOCK), -(-wc // LOCAL_BLOCK), 7)), *coarse)
-        l, mbuf, rows, tbuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
+        l, mbuf, rows, tbuf, ibuf, acc, stats, cm, cm2, ca, cb, t1, t2, t3 = planes("tonemap.local", (h, w), make)
         scale, toe = np.float32(1.0 / white), np.float32(1.0 / contrast)
         if colour is None:
             _local_log(v, scale, toe, l, cm, cm2, mbuf)
@@ -655,9 +706,9 @@ class LocalTonemap:
         c, g, k0 = (float(t) for t in self.params)
         c, g1, k0 = np.float32(c), np.float32(g - 1.0), np.float32(k0 + exposure_stops)
         if colour is None:
-            _local_apply(l, ca, cb, c, g1, k0, _lut(), np.float32(out_max), rows, tbuf, out)
+            _local_apply(l, ca, cb, c, g1, k0, *_luts(), np.float32(out_max), rows, tbuf, ibuf, out)
         else:
-            _rgb_local_apply(v, k, l, ca, cb, c, g1, k0, *_luts(), rows, tbuf, *colour, out)
+            _rgb_local_apply(v, k, l, ca, cb, c, g1, k0, *_luts(), rows, tbuf, ibuf, *colour, out)
         return out
 
     def rgb(self, rgb: np.ndarray, white: float, exposure_stops: float = 0.0, contrast: float = DEFAULT_CONTRAST,
@@ -1197,13 +1248,12 @@ def tonemap_rgb(rgb: np.ndarray, white: float, operator: str = "local", white_ba
         raise ValueError(f"colour tone mapping output must be uint8 ({h}, {w}, 3), got {out.dtype} {out.shape}")
     _check_tone(white, contrast)
     k = np.array([*gains, *LUMA_BT709], np.float32)
-    lev, ibuf, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
-                                                             np.empty((min(h, 64), w), np.int32),
-                                                             np.empty((min(h, 64), 3, w), np.float32)))
+    lev, fbuf = planes("tonemap.rgb", (h, w), lambda: (np.empty((min(h, 64), w), np.float32),
+                                                       np.empty((min(h, 64), 3, w), np.float32)))
     colour = (*_srgb_tables(), np.float32(saturation), fbuf, fbuf.view(np.uint32))
     if operator == "local":
         (LocalTonemap() if local is None else local)._run(v, k, white, exposure_stops, contrast, 65535.0,
-                                                          (ibuf, *colour), out)
+                                                          colour, out)
     else:
         _rgb_log_kernel(v, k, np.float32(2.0 ** exposure_stops / white), np.float32(contrast),
                         np.float32(1.0 / math.log1p(contrast)), lev, *colour, out)

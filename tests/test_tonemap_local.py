@@ -149,3 +149,65 @@ def test_small_and_odd_frames(shape):
         assert (np.diff(out.ravel().astype(np.int64)) >= 0).all()
     if out.size > 1:
         assert out.ravel()[-1] > out.ravel()[0]
+
+
+def _box_reference(src, r):
+    """`tonemap._box` one row at a time in Python floats (the same running sums, in the same order)."""
+    h, w = src.shape
+    tmp = np.empty((h, w))
+    for y in range(h):
+        s = 0.0
+        for x in range(min(r, w - 1) + 1):
+            s += src[y, x]
+        for x in range(w):
+            tmp[y, x] = s / (min(x + r, w - 1) - max(x - r, 0) + 1)
+            if x + r + 1 < w:
+                s += src[y, x + r + 1]
+            if x - r >= 0:
+                s -= src[y, x - r]
+    dst = np.empty((h, w))
+    acc = [0.0] * w
+    for y in range(min(r, h - 1) + 1):
+        for x in range(w):
+            acc[x] += tmp[y, x]
+    for y in range(h):
+        inv = 1.0 / (min(y + r, h - 1) - max(y - r, 0) + 1)
+        for x in range(w):
+            dst[y, x] = acc[x] * inv
+        for x in range(w):
+            if y + r + 1 < h:
+                acc[x] += tmp[y + r + 1, x]
+            if y - r >= 0:
+                acc[x] -= tmp[y - r, x]
+    return dst
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (3, 1), (5, 7), (8, 6), (11, 13)])
+@pytest.mark.parametrize("r", [1, 2, 5, 40])
+def test_box_is_the_row_by_row_running_mean_bit_for_bit(shape, r):
+    """`_box` (rows summed four at a time, divided in a pass of their own) gives the bits of the plain running
+    sums row by row, for heights that are not a multiple of four and windows larger than the frame."""
+    src = np.random.default_rng(r).standard_normal(shape) * 7.0
+    dst = np.empty(shape)
+    tonemap._box(src, r, np.empty(shape), np.empty(shape[1]), dst)
+    assert np.array_equal(dst.view(np.int64), _box_reference(src, r).view(np.int64))
+
+
+def test_mean_level_bounds_give_the_plain_bisection_with_fewer_sums(monkeypatch):
+    """The offset s solved with `_level_bounds` standing in for `_mean_level` where they decide the comparison
+    is the plain bisection's, bit for bit, with fewer full sums (also for flat and two-valued statistics)."""
+    rng = np.random.default_rng(5)
+    lut = tonemap._lut()
+    calls = []
+    plain = tonemap._mean_level
+    monkeypatch.setattr(tonemap, "_mean_level", lambda *a: calls.append(1) or plain(*a))
+    for n, spread in [(14400, 4.0), (300, 0.5), (2, 3.0), (50, 0.0), (1000, 40.0)]:
+        rel = rng.normal(0.0, spread, n) if spread else np.full(n, -2.0)
+        wgt = rng.uniform(0.0, 1.0, n)
+        wgt /= wgt.sum()
+        ref = tonemap._bisect(lambda s: plain(rel, wgt, s, lut), -60.0, 60.0, tonemap.LOCAL_MEAN, 1e-3)
+        calls.clear()
+        got = tonemap._bisect(tonemap._mean_level_for_bisect(rel, wgt, lut, tonemap.LOCAL_MEAN), -60.0, 60.0,
+                              tonemap.LOCAL_MEAN, 1e-3)
+        assert got == ref
+        assert len(calls) < 19
