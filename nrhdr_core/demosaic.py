@@ -1134,7 +1134,8 @@ def _chroma_scratch(h, w):
     (`bnd`: the row above and the row below) and the green plane's range per row."""
     def make():
         return dict(rows=np.zeros((_CHUNKS, _CM_ROWS, w), np.float32),
-                    bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
+                    bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32),
+                    gk=np.zeros((h, 3), np.int64))
     return planes("demosaic.chroma", (h, w), make)
 
 
@@ -1156,11 +1157,15 @@ def _ratio_row(out, y, c, dr, db):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _chroma_edges(out, c, bnd, gmm):
+def _chroma_edges(out, c, bnd, gmm, gk, keyed):
     """Before any row changes: `bnd[k]` = the ratio rows just above and just below chunk k of `_chroma_median`
-    (edge rows replicated) and gmm[y] = (min, max) of green in row y."""
+    (edge rows replicated) and per row y of green: `keyed`: gk[y] = the `fse.f32_key` keys of its min and
+    max and its count of -0 (integer reductions vectorise), else gmm[y] = (min, max) (`_green_range`)."""
     h = out.shape[1]
     nch = bnd.shape[0]
+    gi = out[1].view(np.int32)
+    kmax = np.int32(0x7FFFFFFF)
+    kmin = np.int32(-0x7FFFFFFF - 1)
     for k in prange(nch):
         y0 = k * h // nch
         y1 = (k + 1) * h // nch
@@ -1170,6 +1175,20 @@ def _chroma_edges(out, c, bnd, gmm):
             _ratio_row(out, ya, c, bnd[k, 0, 0], bnd[k, 0, 1])
             _ratio_row(out, yb, c, bnd[k, 1, 0], bnd[k, 1, 1])
         for y in range(y0, y1):
+            if keyed:
+                r = gi[y]
+                klo = kmax
+                khi = kmin
+                nz = 0
+                for x in range(r.shape[0]):
+                    key = f32_key(r[x])
+                    klo = min(klo, key)
+                    khi = max(khi, key)
+                    nz += np.int64(r[x] == kmin)            # the bits of -0
+                gk[y, 0] = klo
+                gk[y, 1] = khi
+                gk[y, 2] = nz
+                continue
             g = out[1, y]
             lo = _BIG
             hi = -_BIG
@@ -1299,6 +1318,20 @@ def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows, nt):
             s0, s1, s2 = s1, s2, s0
 
 
+def _green_range(out, c, sc):
+    """(min, max) of the green plane as floats, each row's taken from +-_BIG on (`_chroma_edges`, which fills
+    the chunks' edge ratio rows `sc["bnd"]` too): from the keys where the plane holds no -0 and its extremes
+    lie within +-_BIG (there equal keys are equal floats), else by float comparisons (the first of equal
+    values kept)."""
+    gk = sc["gk"]
+    _chroma_edges(out, c, sc["bnd"], sc["gmm"], gk, True)
+    lo, hi = _unkey(gk[:, 0].min()), _unkey(gk[:, 1].max())
+    if not gk[:, 2].any() and -_BIG < lo < _BIG and -_BIG < hi < _BIG:
+        return lo, hi
+    _chroma_edges(out, c, sc["bnd"], sc["gmm"], gk, False)
+    return float(sc["gmm"][:, 0].min()), float(sc["gmm"][:, 1].max())
+
+
 def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
     (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
@@ -1307,11 +1340,11 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     h, w = state.shape
     sc = _chroma_scratch(h, w)
     c = np.float32(c)
-    _chroma_edges(out, c, sc["bnd"], sc["gmm"])
     lim = np.empty((3, 2), np.float32)
     lim[:, 0] = rng[:, 0]
     lim[:, 1] = rng[:, 2]
-    lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
+    lo, hi = _green_range(out, c, sc)
+    lim[_cfa.G] = (min(lo, 0.0), hi)
     _chroma_median(out, blk, pos, c, lim, sc["bnd"], crow, fl, sc["rows"], get_num_threads())
 
 
