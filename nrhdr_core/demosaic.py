@@ -219,29 +219,37 @@ def _first_pass(v32, state, blk, g_any, use_bounds):
     _, _, hs, ws, off = pyramid(h, w)
     deep = hs.shape[0] > 2
     _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
-           ws[2] if deep else 1, deep, sc["cnt"], g_any, bool(use_bounds), sc["keys"])
+           ws[2] if deep else 1, deep, sc["cnt"], g_any, bool(use_bounds), sc["keys"], get_num_threads())
     return sc["cnt"].sum(axis=0), sc["kg"]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any, with_keys, keys):
+def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any, with_keys, keys, nt):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
     per channel, CLIPPED photosites); the green plane's pyramid level 1 (`pull_row`) and, `deep`, level 2
     (`_pull_level_row`, per pair of cell rows); `with_keys`: keys[y] (`_clip_key_row`) of the photosite rows
-    of a cell row with a CLIPPED photosite, while they are in cache. Branch-free pixel loops."""
+    of a cell row with a CLIPPED photosite, while they are in cache. Branch-free pixel loops. `_CHUNKS`
+    chunks of rows, interleaved over the `nt` threads (`_chunk`)."""
     h, w = values.shape
     h1 = cnt.shape[0]
     zero = np.float32(0.0)
     step = 2 if deep else 1
-    for q in prange((h1 + step - 1) // step):
-        for y1 in range(step * q, min(step * q + step, h1)):
-            _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
-            if with_keys and cnt[y1, _N_CLIP] > 0:
-                for yy in range(2 * y1, min(2 * y1 + 2, h)):
-                    _clip_key_row(values, state, yy, keys[yy])
-        if deep:
-            _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
+    nq = (h1 + step - 1) // step
+    nch = min(_CHUNKS, nq)
+    per = (nch + nt - 1) // nt
+    for i in prange(per * nt):
+        k = _chunk(i, per, nt)
+        if k >= nch:
+            continue
+        for q in range(k * nq // nch, (k + 1) * nq // nch):
+            for y1 in range(step * q, min(step * q + step, h1)):
+                _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
+                if with_keys and cnt[y1, _N_CLIP] > 0:
+                    for yy in range(2 * y1, min(2 * y1 + 2, h)):
+                        _clip_key_row(values, state, yy, keys[yy])
+            if deep:
+                _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -443,15 +451,20 @@ def _ranges(fst, cnt):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _clip_key(values, state, y, x):
-    """The photosite's term in the clipped-neighbour rule: +inf not attenuated (no term), its value (a lower
-    bound) attenuated and CLIPPED, -inf attenuated and not CLIPPED (the rule does not hold). Branch-free."""
-    st = state[y, x]
+def _clip_key_of(st, v):
+    """The term in the clipped-neighbour rule of a photosite of state `st` and value `v`: +inf not attenuated
+    (no term), its value (a lower bound) attenuated and CLIPPED, -inf attenuated and not CLIPPED (the rule
+    does not hold). Branch-free."""
     att = (st & ATTENUATED) != 0
     cl = (st & REASON_MASK) == CLIPPED
     e = np.float32(-np.inf) if att else np.float32(np.inf)
-    v = values[y, x]
     return v if (att & cl) else e
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip_key(values, state, y, x):
+    """`_clip_key_of` photosite (y, x)."""
+    return _clip_key_of(state[y, x], values[y, x])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -493,10 +506,13 @@ def _clip_key_row(values, state, y, k):
     (each Bayer phase's keys contiguous, for `_clip_rule_row`)."""
     w = state.shape[1]
     wa = (w + 1) // 2
+    sr = state[y]                   # row slices: a 2-D index does not vectorise
+    vr = values[y]
+    ko = k[wa:]
     for j in range(wa):
-        k[j] = _clip_key(values, state, y, 2 * j)
+        k[j] = _clip_key_of(sr[2 * j], vr[2 * j])
     for j in range(w // 2):
-        k[wa + j] = _clip_key(values, state, y, 2 * j + 1)
+        ko[j] = _clip_key_of(sr[2 * j + 1], vr[2 * j + 1])
 
 
 @njit(cache=True, nogil=True, parallel=True)
