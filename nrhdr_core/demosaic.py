@@ -219,37 +219,29 @@ def _first_pass(v32, state, blk, g_any, use_bounds):
     _, _, hs, ws, off = pyramid(h, w)
     deep = hs.shape[0] > 2
     _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
-           ws[2] if deep else 1, deep, sc["cnt"], g_any, bool(use_bounds), sc["keys"], get_num_threads())
+           ws[2] if deep else 1, deep, sc["cnt"], g_any, bool(use_bounds), sc["keys"])
     return sc["cnt"].sum(axis=0), sc["kg"]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any, with_keys, keys, nt):
+def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any, with_keys, keys):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
     per channel, CLIPPED photosites); the green plane's pyramid level 1 (`pull_row`) and, `deep`, level 2
     (`_pull_level_row`, per pair of cell rows); `with_keys`: keys[y] (`_clip_key_row`) of the photosite rows
-    of a cell row with a CLIPPED photosite, while they are in cache. Branch-free pixel loops. `_CHUNKS`
-    chunks of rows, interleaved over the `nt` threads (`_chunk`)."""
+    of a cell row with a CLIPPED photosite, while they are in cache. Branch-free pixel loops."""
     h, w = values.shape
     h1 = cnt.shape[0]
     zero = np.float32(0.0)
     step = 2 if deep else 1
-    nq = (h1 + step - 1) // step
-    nch = min(_CHUNKS, nq)
-    per = (nch + nt - 1) // nt
-    for i in prange(per * nt):
-        k = _chunk(i, per, nt)
-        if k >= nch:
-            continue
-        for q in range(k * nq // nch, (k + 1) * nq // nch):
-            for y1 in range(step * q, min(step * q + step, h1)):
-                _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
-                if with_keys and cnt[y1, _N_CLIP] > 0:
-                    for yy in range(2 * y1, min(2 * y1 + 2, h)):
-                        _clip_key_row(values, state, yy, keys[yy])
-            if deep:
-                _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
+    for q in prange((h1 + step - 1) // step):
+        for y1 in range(step * q, min(step * q + step, h1)):
+            _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
+            if with_keys and cnt[y1, _N_CLIP] > 0:
+                for yy in range(2 * y1, min(2 * y1 + 2, h)):
+                    _clip_key_row(values, state, yy, keys[yy])
+        if deep:
+            _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1286,20 +1278,16 @@ def _floor_row(o, fl, x0, step):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows, nt):
+def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows):
     """Row by row in chunks: the 3 x 3 medians of the ratios R : G and B : G (a ring of three ratio rows per
     chunk, read from rows not yet changed; the rows beside the chunk from `bnd`), then each photosite's other
     two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel); in the rows `crow` then the
     clipped-neighbour lower bounds `fl` that `_colour` and `_clipped_around` found (`_floor_row`; they
-    depend on own channels only, which stay as they are). Chunks interleaved over the `nt` threads (`_chunk`)."""
+    depend on own channels only, which stay as they are)."""
     h = out.shape[1]
     nch = rows.shape[0]
     rlo, rhi, glo, ghi, blo, bhi = lim[0, 0], lim[0, 1], lim[1, 0], lim[1, 1], lim[2, 0], lim[2, 1]
-    per = (nch + nt - 1) // nt
-    for ic in prange(per * nt):
-        k = _chunk(ic, per, nt)
-        if k >= nch:
-            continue
+    for k in prange(nch):
         buf = rows[k]
         y0 = k * h // nch
         y1 = (k + 1) * h // nch
@@ -1361,7 +1349,7 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     lim[:, 1] = rng[:, 2]
     lo, hi = _green_range(out, c, sc)
     lim[_cfa.G] = (min(lo, 0.0), hi)
-    _chroma_median(out, blk, pos, c, lim, sc["bnd"], crow, fl, sc["rows"], get_num_threads())
+    _chroma_median(out, blk, pos, c, lim, sc["bnd"], crow, fl, sc["rows"])
 
 
 # ---- green-guided colour differences of the fse method (docs/COLOUR.md "False colour") ---------------------
