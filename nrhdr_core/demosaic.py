@@ -36,7 +36,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
@@ -88,7 +88,7 @@ def reconstruct_cfa(values, state, cfa, method: str = "preview", preset: str = "
     if out is None:
         out = np.empty((3, h, w), np.float32)
     blk = _cfa.block(name)
-    cnt, kg = _first_pass(v32, state, blk, False)
+    cnt, kg = _first_pass(v32, state, blk, False, use_bounds)
     if cnt[_N_BAD_KNOWN]:
         raise ValueError("reconstruct_cfa: values contain NaN or Inf at known photosites; reconstruction needs "
                          "finite data")
@@ -106,7 +106,7 @@ def reconstruct_cfa(values, state, cfa, method: str = "preview", preset: str = "
             return _with_bounds_as_data(v32, state, name, lacking, method, preset, noise, fusion, out)
     if known[_cfa.G] == 0:
         # no known green photosite: the known photosites of every channel stand in for green
-        cnt, kg = _first_pass(v32, state, blk, True)
+        cnt, kg = _first_pass(v32, state, blk, True, use_bounds)
     chan = planes("demosaic.channels", (name, h, w), lambda: _cfa.channel_index(name, h, w))
     _core(v32, state, chan, blk, kg, cnt, method, preset, bool(use_bounds), noise, fusion, out)
     return out
@@ -209,25 +209,27 @@ def _scratch(h, w):
     return planes("demosaic.preview", (h, w), make)
 
 
-def _first_pass(v32, state, blk, g_any):
+def _first_pass(v32, state, blk, g_any, use_bounds):
     """(counts, green source mask) of the mosaic (`_stats`); the green plane's
-    pull-push level 1 is pulled in the same pass. `g_any`: the known photosites of every channel are
+    pull-push level 1 is pulled in the same pass, and with `use_bounds` the clipped-neighbour keys of the
+    cell rows with a CLIPPED photosite (`_clip_keys`). `g_any`: the known photosites of every channel are
     green's sources."""
     h, w = v32.shape
     sc = _scratch(h, w)
     _, _, hs, ws, off = pyramid(h, w)
     deep = hs.shape[0] > 2
     _stats(v32, state, blk, sc["kg"], sc["pv"][0], sc["pw"][0], off[1], ws[1], off[2] if deep else 0,
-           ws[2] if deep else 1, deep, sc["cnt"], g_any)
+           ws[2] if deep else 1, deep, sc["cnt"], g_any, bool(use_bounds), sc["keys"])
     return sc["cnt"].sum(axis=0), sc["kg"]
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
+def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any, with_keys, keys):
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
     per channel, CLIPPED photosites); the green plane's pyramid level 1 (`pull_row`) and, `deep`, level 2
-    (`_pull_level_row`, per pair of cell rows). Branch-free pixel loops."""
+    (`_pull_level_row`, per pair of cell rows); `with_keys`: keys[y] (`_clip_key_row`) of the photosite rows
+    of a cell row with a CLIPPED photosite, while they are in cache. Branch-free pixel loops."""
     h, w = values.shape
     h1 = cnt.shape[0]
     zero = np.float32(0.0)
@@ -235,6 +237,9 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any):
     for q in prange((h1 + step - 1) // step):
         for y1 in range(step * q, min(step * q + step, h1)):
             _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, zero)
+            if with_keys and cnt[y1, _N_CLIP] > 0:
+                for yy in range(2 * y1, min(2 * y1 + 2, h)):
+                    _clip_key_row(values, state, yy, keys[yy])
         if deep:
             _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
 
@@ -362,6 +367,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     green sources `kg`, levels 1 and 2 of their pyramid pulled by `_stats`); sets the RECONSTRUCTED bits."""
     h, w = v32.shape
     sc = _scratch(h, w)
+    nt = get_num_threads()
     pv, pw, kl, rl = sc["pv"], sc["pw"], sc["kl"], sc["rl"]
     _, _, hs, ws, off = pyramid(h, w)
     pos = _positions(blk)
@@ -385,9 +391,10 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     # `deep`: level 2 pulled)
     crow = _near_clipped(sc["cnt"][:, _N_CLIP], use_bounds, h)
     keys = sc["keys"]
-    _clip_keys(v32, state, crow, keys)
+    # the keys of the rows near a CLIPPED photosite; those of the cell rows with one: `_stats`
+    _clip_keys(v32, state, crow & ~np.repeat(sc["cnt"][:, _N_CLIP] > 0, 2)[:h], keys)
     _green(v32, state, chan, blk, kg, pv[0], pw[0], off[1], w1, o2, w2, deep, gsrc, method != "preview",
-           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], keys, sc["mr"], out[_cfa.G])
+           use_bounds, pos, c, pv[1], pw[1], pv[2], pw[2], kl, fst, sc["ix"], keys, sc["mr"], out[_cfa.G], nt)
     rng = _ranges(fst, cnt)
     # 3. the differences filled on their lattices (as ratios 2^d), bilinear to every photosite, R and B
     lat = [pv[1 + i][off[1]:off[1] + h1 * w1].reshape(h1, w1) for i in range(2)]
@@ -404,11 +411,11 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
             _ratio(_fse_lattice(lat[i], kl[i], preset), rl[i])
     ext = np.array([[(h - pos[ch][0] + 1) // 2, (w - pos[ch][1] + 1) // 2] for ch in range(3)], np.int64)
     _colour(v32, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, sc["rows"], sc["ix"], keys, sc["mr"], sc["fl"],
-            out)
+            out, not guided, nt)
     if guided:
         _fse_colour(out, dif, pos, c, rng)
     if use_bounds and cnt[_N_CLIP]:
-        _clipped_around(state, pos, crow, sc["rows"], sc["fl"], out)
+        _clipped_around(state, pos, crow if guided else crow & _lag_edges(h), sc["rows"], sc["fl"], out)
     if noisy is not None:
         _fuse(out, blk, noisy, noise, fusion)
     _chroma_filter(out, state, blk, pos, c, rng, crow, sc["fl"])
@@ -436,15 +443,20 @@ def _ranges(fst, cnt):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _clip_key(values, state, y, x):
-    """The photosite's term in the clipped-neighbour rule: +inf not attenuated (no term), its value (a lower
-    bound) attenuated and CLIPPED, -inf attenuated and not CLIPPED (the rule does not hold). Branch-free."""
-    st = state[y, x]
+def _clip_key_of(st, v):
+    """The term in the clipped-neighbour rule of a photosite of state `st` and value `v`: +inf not attenuated
+    (no term), its value (a lower bound) attenuated and CLIPPED, -inf attenuated and not CLIPPED (the rule
+    does not hold). Branch-free."""
     att = (st & ATTENUATED) != 0
     cl = (st & REASON_MASK) == CLIPPED
     e = np.float32(-np.inf) if att else np.float32(np.inf)
-    v = values[y, x]
     return v if (att & cl) else e
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip_key(values, state, y, x):
+    """`_clip_key_of` photosite (y, x)."""
+    return _clip_key_of(state[y, x], values[y, x])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -480,19 +492,27 @@ def _clip_rule_at(values, state, chan, y, x, green):
     return m if m > -inf else np.float32(np.nan)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _clip_key_row(values, state, y, k):
+    """k = `_clip_key` of row y's photosites, the even columns first, then the odd ones from (w + 1) // 2 on
+    (each Bayer phase's keys contiguous, for `_clip_rule_row`)."""
+    w = state.shape[1]
+    wa = (w + 1) // 2
+    sr = state[y]                   # row slices: a 2-D index does not vectorise
+    vr = values[y]
+    ko = k[wa:]
+    for j in range(wa):
+        k[j] = _clip_key_of(sr[2 * j], vr[2 * j])
+    for j in range(w // 2):
+        ko[j] = _clip_key_of(sr[2 * j + 1], vr[2 * j + 1])
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _clip_keys(values, state, crow, keys):
-    """keys[y] in the rows `crow`: `_clip_key` of row y's photosites, the even columns first, then the odd
-    ones from (w + 1) // 2 on (each Bayer phase's keys contiguous, for `_clip_rule_row`)."""
-    h, w = state.shape
-    wa = (w + 1) // 2
-    for y in prange(h):
+    """keys[y] (`_clip_key_row`) in the rows `crow`."""
+    for y in prange(state.shape[0]):
         if crow[y]:
-            k = keys[y]
-            for j in range(wa):
-                k[j] = _clip_key(values, state, y, 2 * j)
-            for j in range(w // 2):
-                k[wa + j] = _clip_key(values, state, y, 2 * j + 1)
+            _clip_key_row(values, state, y, keys[y])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -587,9 +607,17 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
             sr[x] = sr[x] | flag
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _chunk(i, per, nt):
+    """The chunk of prange index i (0 <= i < per x nt) of a kernel whose chunks are interleaved over `nt`
+    threads: prange hands each thread one contiguous run of i, so thread t gets chunks t, t + nt, ... (as
+    `reconstruction._fuse_kernel`; `nt` passed in: get_num_threads inside would stop numba caching)."""
+    return (i % per) * nt + i // per
+
+
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
-           pvb, pwb, kl, fst, ixs, keys, mrs, gout):
+           pvb, pwb, kl, fst, ixs, keys, mrs, gout, nt):
     """Per cell row: the green plane into `gout` (the pull-push fill `pullpush.fill_row` of the
     green sources `kg`, or `gsrc` with `from_src`; a convex combination of known values, so only the
     missing green photosites' bounds apply, `_own_row`); then at the cell's red and blue photosites the log
@@ -599,13 +627,17 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
     pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`push_at`) row
     by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_level_row`) per pair of cell
-    rows."""
+    rows. Chunks interleaved over the `nt` threads (`_chunk`)."""
     h, w = values.shape
     h1 = (h + 1) // 2
     nch = ixs.shape[0]
     step = 2 if deep else 1
     n2 = (h1 + step - 1) // step
-    for kc in prange(nch):
+    per = (nch + nt - 1) // nt
+    for i in prange(per * nt):
+        kc = _chunk(i, per, nt)
+        if kc >= nch:
+            continue
         ix = ixs[kc]
         for q in range(kc * n2 // nch, (kc + 1) * n2 // nch):
             for y1 in range(step * q, min(step * q + step, h1)):
@@ -773,19 +805,26 @@ def _expand(lat, i0, i1, a, px, ext_w, w, buf, e):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, ixs, keys, mrs, fl, out):
+def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, rows, ixs, keys, mrs, fl, out, lag, nt):
     """R and B at every photosite, row by row in chunks (row buffers `rows`): (max(G, 0) + c) x the ratio
     2^d bilinear on its lattice (`rl`; `ext`: the lattices' real extents per channel) - c, within the
     channel's range; the red and blue photosites' own channel by `_own_row`. In the rows `crow` (near a
     CLIPPED photosite) first green, then red and blue from their own row, at least the smallest own value
     of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there; the bounds
-    into `fl`). `keys`, `ixs`, `mrs`: `_own_row`'s (buffers per chunk)."""
+    into `fl`). `lag`: then `_clipped_around` of the chunk's inner rows too, one row behind (`_clipped_row`
+    of row y - 1 once row y is done; the chunk's first and last rows: `_lag_edges`). `keys`, `ixs`, `mrs`:
+    `_own_row`'s (buffers per chunk). Chunks interleaved over the `nt` threads (`_chunk`)."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
     nch = rows.shape[0]
-    for k in prange(nch):
-        for y in range(k * h // nch, (k + 1) * h // nch):
+    per = (nch + nt - 1) // nt
+    for ic in prange(per * nt):
+        k = _chunk(ic, per, nt)
+        if k >= nch:
+            continue
+        ya = k * h // nch
+        for y in range(ya, (k + 1) * h // nch):
             g = out[1, y]
             near = crow[y]
             if near:
@@ -813,6 +852,8 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
                     if near:
                         _lift_row(o, out[ch], state, y, 1 - pos[ch, 1], True, False, False, rows[k, 2], rows[k, 3],
                                   True, fl[ch, y])
+            if lag and y - 1 > ya and crow[y - 1]:
+                _clipped_row(state, pos, out, y - 1, rows[k, 2], rows[k, 3], fl)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -915,6 +956,19 @@ def _near_clipped(ccnt, use_bounds, h):
     d[1:] |= c[:-1]
     d[:-1] |= c[1:]
     return np.ascontiguousarray(np.repeat(d, 2)[:h])
+
+
+def _lag_edges(h):
+    """bool (h,): the first and the last row of each chunk of `_colour`, whose `_clipped_around` needs a row
+    of the chunk beside it (the other rows: `_colour` with `lag`)."""
+    def make():
+        e = np.zeros(h, np.bool_)
+        for k in range(_CHUNKS):
+            y0, y1 = k * h // _CHUNKS, (k + 1) * h // _CHUNKS
+            if y1 > y0:
+                e[y0] = e[y1 - 1] = True
+        return e
+    return planes("demosaic.lag_edges", (h,), make)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -1088,7 +1142,8 @@ def _chroma_scratch(h, w):
     (`bnd`: the row above and the row below) and the green plane's range per row."""
     def make():
         return dict(rows=np.zeros((_CHUNKS, _CM_ROWS, w), np.float32),
-                    bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32))
+                    bnd=np.zeros((_CHUNKS, 2, 2, w), np.float32), gmm=np.zeros((h, 2), np.float32),
+                    gk=np.zeros((h, 3), np.int64))
     return planes("demosaic.chroma", (h, w), make)
 
 
@@ -1110,11 +1165,15 @@ def _ratio_row(out, y, c, dr, db):
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _chroma_edges(out, c, bnd, gmm):
+def _chroma_edges(out, c, bnd, gmm, gk, keyed):
     """Before any row changes: `bnd[k]` = the ratio rows just above and just below chunk k of `_chroma_median`
-    (edge rows replicated) and gmm[y] = (min, max) of green in row y."""
+    (edge rows replicated) and per row y of green: `keyed`: gk[y] = the `fse.f32_key` keys of its min and
+    max and its count of -0 (integer reductions vectorise), else gmm[y] = (min, max) (`_green_range`)."""
     h = out.shape[1]
     nch = bnd.shape[0]
+    gi = out[1].view(np.int32)
+    kmax = np.int32(0x7FFFFFFF)
+    kmin = np.int32(-0x7FFFFFFF - 1)
     for k in prange(nch):
         y0 = k * h // nch
         y1 = (k + 1) * h // nch
@@ -1124,6 +1183,20 @@ def _chroma_edges(out, c, bnd, gmm):
             _ratio_row(out, ya, c, bnd[k, 0, 0], bnd[k, 0, 1])
             _ratio_row(out, yb, c, bnd[k, 1, 0], bnd[k, 1, 1])
         for y in range(y0, y1):
+            if keyed:
+                r = gi[y]
+                klo = kmax
+                khi = kmin
+                nz = 0
+                for x in range(r.shape[0]):
+                    key = f32_key(r[x])
+                    klo = min(klo, key)
+                    khi = max(khi, key)
+                    nz += np.int64(r[x] == kmin)            # the bits of -0
+                gk[y, 0] = klo
+                gk[y, 1] = khi
+                gk[y, 2] = nz
+                continue
             g = out[1, y]
             lo = _BIG
             hi = -_BIG
@@ -1249,6 +1322,20 @@ def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows):
             s0, s1, s2 = s1, s2, s0
 
 
+def _green_range(out, c, sc):
+    """(min, max) of the green plane as floats, each row's taken from +-_BIG on (`_chroma_edges`, which fills
+    the chunks' edge ratio rows `sc["bnd"]` too): from the keys where the plane holds no -0 and its extremes
+    lie within +-_BIG (there equal keys are equal floats), else by float comparisons (the first of equal
+    values kept)."""
+    gk = sc["gk"]
+    _chroma_edges(out, c, sc["bnd"], sc["gmm"], gk, True)
+    lo, hi = _unkey(gk[:, 0].min()), _unkey(gk[:, 1].max())
+    if not gk[:, 2].any() and -_BIG < lo < _BIG and -_BIG < hi < _BIG:
+        return lo, hi
+    _chroma_edges(out, c, sc["bnd"], sc["gmm"], gk, False)
+    return float(sc["gmm"][:, 0].min()), float(sc["gmm"][:, 1].max())
+
+
 def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
     (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
@@ -1257,11 +1344,11 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     h, w = state.shape
     sc = _chroma_scratch(h, w)
     c = np.float32(c)
-    _chroma_edges(out, c, sc["bnd"], sc["gmm"])
     lim = np.empty((3, 2), np.float32)
     lim[:, 0] = rng[:, 0]
     lim[:, 1] = rng[:, 2]
-    lim[_cfa.G] = (min(float(sc["gmm"][:, 0].min()), 0.0), float(sc["gmm"][:, 1].max()))
+    lo, hi = _green_range(out, c, sc)
+    lim[_cfa.G] = (min(lo, 0.0), hi)
     _chroma_median(out, blk, pos, c, lim, sc["bnd"], crow, fl, sc["rows"])
 
 

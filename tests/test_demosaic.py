@@ -357,12 +357,18 @@ def test_kodak_fse_beats_preview_beats_bilinear(missing):
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_same_result_for_any_thread_count_and_input_untouched(method):
+@pytest.mark.parametrize("shape", [(70, 90), (301, 90)])
+def test_same_result_for_any_thread_count_and_input_untouched(method, shape):
+    """Same bits for 1 and all threads (the chunks of the row passes dealt to the threads in turn; 301 rows:
+    chunks of several rows, whose inner rows `_colour` lifts one row behind, and clipped regions across
+    chunk edges, ND and regular)."""
     from numba import get_num_threads, set_num_threads
-    h, w = 70, 90
+    h, w = shape
     _, m = _random_mosaic(h, w, "gbrg", 10, 4000, 11)
     st = _states(h, w, 0.4, seed=12, reason=NOISY)
     st[5:20, 10:40] = CLIPPED
+    st[100:230:7, :] = CLIPPED | ATTENUATED
+    st[120:260, 50:80] = CLIPPED | np.where(np.arange(30) % 3 == 0, ATTENUATED, 0).astype(np.uint8)
     m0 = m.copy()
     old = get_num_threads()
     try:

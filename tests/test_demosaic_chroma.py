@@ -184,3 +184,27 @@ def test_chromatic_zone_plate_fse_below_grey():
     ours = metrics.false_colour_db(truth, out, rings)
     assert ours < metrics.false_colour_db(truth, np.repeat(truth[1:2], 3, 0), rings)
     assert ours <= metrics.false_colour_db(truth, _bilinear(m, np.ones(m.shape, bool), "rggb"), rings) - 1.5
+
+
+@pytest.mark.parametrize("case", ["random", "minus_zero", "zeros", "huge", "nan"])
+def test_green_range_from_keys_as_by_floats(case):
+    """The green plane's range for the median's bounds (`_green_range`): from integer keys, the same floats,
+    signs of zero included, as the float comparisons it falls back to (-0, values beyond +-_BIG, NaN)."""
+    h, w = 37, 50
+    rng = np.random.default_rng(7)
+    out = rng.normal(0.0, 100.0, (3, h, w)).astype(np.float32)
+    if case == "minus_zero":
+        out[1] = np.abs(out[1])
+        out[1, 3, 4] = 0.0
+        out[1, 20, 7] = -0.0
+    elif case == "zeros":
+        out[1] = 0.0
+    elif case == "huge":
+        out[1, 5] = 3.2e38
+    elif case == "nan":
+        out[1, 9, 9] = np.nan
+    sc = demosaic._chroma_scratch(h, w)
+    lo, hi = demosaic._green_range(out, np.float32(1.0), sc)
+    demosaic._chroma_edges(out, np.float32(1.0), sc["bnd"], sc["gmm"], sc["gk"], False)
+    ref = np.array([sc["gmm"][:, 0].min(), sc["gmm"][:, 1].max()], np.float32)
+    np.testing.assert_array_equal(np.array([lo, hi], np.float32).view(np.int32), ref.view(np.int32))
