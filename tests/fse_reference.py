@@ -90,8 +90,9 @@ def merge_bounds(lo_arr, hi_arr, use_lo, use_hi, llo, lhi, shape):
 def fse_reconstruct_reference(values, known, lower=None, upper=None, preset="balanced", **overrides):
     """`fse.fse_reconstruct` (no weights, no skip) with numpy passes around the block kernels: statistics,
     offset (`log_offset_reference`), log2 of the data and of the bounds, the local bound (`local_bounds`,
-    `merge_bounds`), 2^work - c back. The same output to float rounding (numpy's SIMD log2 of the bounds
-    differs from libm's by <= 1 ulp)."""
+    `merge_bounds`), 2^work - c back. The same output to float rounding (the log2 of the data and of the
+    bounds in float64 rounded to float32, where the fused driver takes libm's float32 log2f: the same but for
+    rare halfway cases)."""
     p = fse.resolve_params(preset, **overrides)
     v32 = np.ascontiguousarray(values, np.float32)
     k = np.asarray(known, bool)
@@ -125,7 +126,9 @@ def fse_reconstruct_reference(values, known, lower=None, upper=None, preset="bal
     state = np.where(k, KNOWN, MISSING).astype(np.uint8)
     if logd:
         floor = c if c > 0.0 else (0.5 * minpos if minpos > 0 else 1e-30)
-        work = np.where(k, np.log2(np.maximum(v32 + np.float32(c), np.float32(floor))), 0).astype(np.float32)
+        # log2 in float64, rounded to float32: within libm's log2f's 0.502 ulp (numpy's float32 SIMD log2 is not)
+        work = np.where(k, np.log2(np.maximum(v32 + np.float32(c), np.float32(floor)).astype(np.float64)),
+                        0).astype(np.float32)
         lo = np.log2(np.maximum(lo + np.float32(c), floor)).astype(np.float32)
         hi = np.log2(np.maximum(hi + np.float32(c), floor)).astype(np.float32)
         wr = math.log2(max(kmax, 0.0) + c) - math.log2(max(max(kmin, 0.0) + c, floor))
