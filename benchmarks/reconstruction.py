@@ -1,7 +1,7 @@
 """Reconstruction benchmark: every method and FSE preset against OpenCV contrib's FSR
 (INPAINT_FSR_FAST, INPAINT_FSR_BEST) and scipy's Delaunay-linear griddata, in one run on the same inputs.
 
-    .venv/bin/python benchmarks/reconstruction.py            # full run, ~25 min on 2 cores
+    .venv/bin/python benchmarks/reconstruction.py            # full run, ~12 min on the 2-core VM
     .venv/bin/python benchmarks/reconstruction.py --quick    # 2 images, 50 % only, ~4 min
     .venv/bin/python benchmarks/reconstruction.py --docs     # also rewrite docs/BENCHMARKS.md + plot
 
@@ -507,7 +507,7 @@ def write_docs(md, png):
     else:
         if "## Reconstruction" not in text:
             text = text.rstrip() + "\n\n## Reconstruction\n\n"
-            text += ("Reproduce: `.venv/bin/python benchmarks/reconstruction.py` (full run: about 25 min "
+            text += ("Reproduce: `.venv/bin/python benchmarks/reconstruction.py` (full run: about 12 min "
                      "on this project's shared 2-core machine, most of it OpenCV FSR; "
                      "`--quick` for a ~4-minute subset). See docs/FSE.md for the algorithm and presets.\n\n")
             text += body + "\n"
