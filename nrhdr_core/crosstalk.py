@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 from numba import get_num_threads, njit, prange
 
+from .scratch import interleaved
 from .states import ATTENUATED, CLIPPED, DARK, FLAG_MASK, NOISY, REASON_MASK, UNCALIBRATED, VALID
 
 MODES = ("lut", "kernel", "off")
@@ -1215,8 +1216,7 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
     least the largest bound of the clipped ones in the colour plane's 3 x 3, then the mean of the VALID
     ones brighter than that in its 5 x 5 (their `_colour_compact_planes` flux); its `src` basis values
     updated. Visits the rows with CLIPPED pixels (n_clipped), in each the runs of _CLIP_TILE columns with
-    CLIPPED pixels (`_clip_span`). `nt`: the thread count the row groups are dealt to (passed in: calling
-    get_num_threads inside would stop numba caching the kernel)."""
+    CLIPPED pixels (`_clip_span`); the row groups interleaved over `nt` threads (`scratch.interleaved`)."""
     h, w = values.shape
     inv_att = np.float32(1.0) / np.float32(nd)
     ninf = np.float32(-np.inf)
@@ -1226,29 +1226,18 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
         pz[1 - (x & 1), x] = ninf
     ng = (h + _CLIP_ROWS - 1) // _CLIP_ROWS
     groups = np.empty(ng, np.int64)
-    cost = np.empty(ng, np.int64)
     k = 0
     for g in range(ng):
-        n = n_clipped[g * _CLIP_ROWS:min(g * _CLIP_ROWS + _CLIP_ROWS, h)].sum()
-        if n > 0:
+        if n_clipped[g * _CLIP_ROWS:min(g * _CLIP_ROWS + _CLIP_ROWS, h)].sum() > 0:
             groups[k] = g
-            cost[k] = -n
             k += 1
-    # prange hands each thread one contiguous run of its range: the groups dealt to the threads by their
-    # CLIPPED count, largest first, back and forth (thread 0, 1, .., nt - 1, nt - 1, .., 0, ...), each
-    # thread's in its own run of `per` slots (-1: empty), so highlights in one part of the frame are shared
-    per = (k + nt - 1) // nt
-    slots = np.full(per * nt, -1, np.int64)
-    order = np.argsort(cost[:k])
-    for r in range(k):
-        rnd = r // nt
-        t = r % nt if rnd % 2 == 0 else nt - 1 - r % nt
-        slots[t * per + rnd] = groups[order[r]]
     ntile = (w + _CLIP_TILE - 1) // _CLIP_TILE
+    per = (k + nt - 1) // nt
     for i in prange(per * nt):
-        if slots[i] < 0:
+        gi = interleaved(i, per, nt)          # highlights at one end of the frame shared by the threads
+        if gi >= k:
             continue
-        y0 = slots[i] * _CLIP_ROWS
+        y0 = groups[gi] * _CLIP_ROWS
         y1 = min(y0 + _CLIP_ROWS, h)
         r0 = max(y0 - 4, 0)
         r1 = min(y1 + 4, h)

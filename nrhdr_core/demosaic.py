@@ -41,7 +41,7 @@ from numba import get_num_threads, njit, prange
 from . import cfa as _cfa
 from .fse import f32_key
 from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid, small_levels
-from .scratch import planes
+from .scratch import interleaved, planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_at_cfa
 
@@ -607,14 +607,6 @@ def _own_row(o, values, state, chan, y, x0, hi, use_bounds, green, keys, ix, mr)
             sr[x] = sr[x] | flag
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _chunk(i, per, nt):
-    """The chunk of prange index i (0 <= i < per x nt) of a kernel whose chunks are interleaved over `nt`
-    threads: prange hands each thread one contiguous run of i, so thread t gets chunks t, t + nt, ... (as
-    `reconstruction._fuse_kernel`; `nt` passed in: get_num_threads inside would stop numba caching)."""
-    return (i % per) * nt + i // per
-
-
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, from_src, use_bounds, pos, c, pvr, pwr,
            pvb, pwb, kl, fst, ixs, keys, mrs, gout, nt):
@@ -627,7 +619,7 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
     pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`push_at`) row
     by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_level_row`) per pair of cell
-    rows. Chunks interleaved over the `nt` threads (`_chunk`)."""
+    rows. Chunks interleaved over the `nt` threads (`scratch.interleaved`)."""
     h, w = values.shape
     h1 = (h + 1) // 2
     nch = ixs.shape[0]
@@ -635,7 +627,7 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
     n2 = (h1 + step - 1) // step
     per = (nch + nt - 1) // nt
     for i in prange(per * nt):
-        kc = _chunk(i, per, nt)
+        kc = interleaved(i, per, nt)
         if kc >= nch:
             continue
         ix = ixs[kc]
@@ -813,14 +805,14 @@ def _colour(values, state, chan, blk, rl, ext, pos, c, rng, use_bounds, crow, ro
     of their adjacent CLIPPED photosites (`_clipped_around`; the other rows' neighbours there; the bounds
     into `fl`). `lag`: then `_clipped_around` of the chunk's inner rows too, one row behind (`_clipped_row`
     of row y - 1 once row y is done; the chunk's first and last rows: `_lag_edges`). `keys`, `ixs`, `mrs`:
-    `_own_row`'s (buffers per chunk). Chunks interleaved over the `nt` threads (`_chunk`)."""
+    `_own_row`'s (buffers per chunk). Chunks interleaved over the `nt` threads (`scratch.interleaved`)."""
     h, w = values.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
     nch = rows.shape[0]
     per = (nch + nt - 1) // nt
     for ic in prange(per * nt):
-        k = _chunk(ic, per, nt)
+        k = interleaved(ic, per, nt)
         if k >= nch:
             continue
         ya = k * h // nch

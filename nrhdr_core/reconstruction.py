@@ -22,7 +22,7 @@ from .fse import f32_key as _f32_key  # order-preserving int32 keys of float32 b
 from .fse import f32_unkey as _unkey
 from .fill import nearest  # the nearest fill (method "nearest", outside the hull, non-finite repair)
 from .pullpush import fill_row, pull_push, pull_push_levels, pull_row, pyramid  # the preview's pull-push
-from .scratch import planes
+from .scratch import interleaved, planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_row  # the clip rule, for the fused preview pass
 
@@ -289,9 +289,7 @@ def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, 
     nch = (h + rows - 1) // rows
     per = (nch + nt - 1) // nt
     for i in prange(per * nt):
-        # prange hands each thread one contiguous run of i: interleave the chunks over the threads
-        # (thread t gets chunks t, t + nt, ...) so dark areas at one end of the frame are shared
-        ci = (i % per) * nt + i // per
+        ci = interleaved(i, per, nt)        # dark areas at one end of the frame shared by the threads
         if ci >= nch:
             continue
         ya = ci * rows

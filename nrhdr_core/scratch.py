@@ -1,5 +1,6 @@
 """Per-thread scratch storage for the working arrays the kernels reuse frame after frame (no per-frame
-allocation): `planes(name, key, make)` is the one cache every stage uses.
+allocation): `planes(name, key, make)` is the one cache every stage uses. Also `interleaved`, the one way a
+parallel kernel shares its chunks of rows between the threads.
 
 `threading.local()` cannot do this job inside GStreamer: its data lives in the Python thread state, and
 the Python bindings create a thread state when a streaming thread calls into a Python element and destroy it
@@ -13,6 +14,8 @@ from __future__ import annotations
 
 import os
 import threading
+
+from numba import njit
 
 MAX_THREADS = 64   # entries kept where thread liveness cannot be checked (no /proc/self/task)
 
@@ -77,3 +80,13 @@ def planes(name: str, key, make):
         setattr(_STORE, name, entry)
     return entry[1]
 
+
+
+@njit(cache=True, nogil=True, inline="always")
+def interleaved(i, per, nt):
+    """The chunk of prange index i (0 <= i < per x nt, per = ceil(chunks / nt)) when the chunks are
+    interleaved over `nt` threads: prange hands each thread one contiguous run of i, so thread t gets chunks
+    t, t + nt, ..., and work that sits at one end of the frame (highlights, dark areas) is shared. A result
+    >= the chunk count is no chunk. `nt` is passed in by the kernel's caller (`numba.get_num_threads()`):
+    calling it inside a kernel would stop numba caching the kernel."""
+    return (i % per) * nt + i // per

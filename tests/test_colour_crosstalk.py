@@ -462,7 +462,7 @@ def test_colour_compact_clipped_estimate_follows_its_definition(cfa, shape):
     """The colour compact pass's flux of CLIPPED pixels (`_colour_compact_clipped`) equals the rule written
     from its definition, bit for bit, on random frames with VALID, CLIPPED and DARK pixels, attenuated or
     not, in every Bayer phase; a wide frame with sparse CLIPPED pixels and rows without any; a tall one
-    whose row groups are dealt to 1, 2, 3 or 5 threads."""
+    whose row groups are interleaved over 1, 2, 3 or 5 threads."""
     from nrhdr_core import cfa as cfas
     from nrhdr_core.states import ATTENUATED, CLIPPED, DARK, VALID
     rng = np.random.default_rng(sum(map(ord, cfa)) + shape[1])
@@ -482,7 +482,7 @@ def test_colour_compact_clipped_estimate_follows_its_definition(cfa, shape):
     for (y, x), b in ref.items():
         expect[:2, y, x] = b
     assert len(ref) > 5
-    for nt in (1, 2, 3, 5):                 # the row groups dealt to nt threads: the same result
+    for nt in (1, 2, 3, 5):                 # the row groups interleaved over nt threads: the same result
         got = src.copy()
         crosstalk._colour_compact_clipped(values, state, got, tgt, basis, inv_de, nd, cfas.block(cfa), n_clipped, nt)
         assert np.array_equal(got, expect), nt
