@@ -34,7 +34,9 @@ amplitudes as a colour camera's and a spill table like the prototype sensor's, `
 (preview) -> LocalTonemap.rgb`) against the monochrome preview chain of the same sensor (the same stages with
 `reconstruction.reconstruct_frame` (preview) and `LocalTonemap`), ms per stage; tone map `--operator` (default
 `local`, nrtonemap's; one operator per stream and output buffers reused, as in the elements); passes
-interleaved, best of `--repeat`.
+interleaved, best of `--repeat`. `--ceiling` adds the colour chain with parts of its model left out (the
+calibration's per-colour amplitudes, so that crosstalk takes the monochrome compact kernel; the colour-difference
+median; the crosstalk correction and the bounds): how far the frame rate could rise without them.
 Writes bench_out/colour/results.json and results.md.
 """
 from __future__ import annotations
@@ -207,9 +209,19 @@ def _timed(acc, i, f, *args, **kw):
     return r
 
 
-def speed(scene_path, h, w, frames, repeat, operator, seed):
+# the colour chain with parts of its colour model left out (`--ceiling`): what the frame rate could be without them
+CEILING = {
+    "colour-white-crosstalk": "colour, the monochrome crosstalk kernel (the calibration without its per-colour "
+                              "amplitudes)",
+    "colour-white-crosstalk-no-median": "colour, the monochrome crosstalk kernel, no colour-difference median",
+    "colour-no-crosstalk-median-bounds": "colour, no crosstalk correction, no median, no bounds (`use_bounds=False`)",
+}
+
+
+def speed(scene_path, h, w, frames, repeat, operator, seed, ceiling=False):
     """{'mono' | 'colour': {'fps': frames/s, 'ms': {stage: ms per frame}}} of the preview chains at h x w (the
-    stages called as the elements call them), passes interleaved, the best of `repeat` after an untimed frame."""
+    stages called as the elements call them), passes interleaved, the best of `repeat` after an untimed frame;
+    `ceiling`: also the colour chain without parts of its model (CEILING; the same frames)."""
     base = profile.default(h, w, seed=3)
     stages = _sibling("stages")
     calib = stages.synthetic_calibration(base, 40)
@@ -251,14 +263,29 @@ def speed(scene_path, h, w, frames, repeat, operator, seed):
                fusion=sm.noise_fusion)
         _timed(t, 3, tone_mono, v)
 
-    def colour_frame(raw, t):
-        v, s = _timed(t, 0, validity.classify, raw, col, dark_policy=sm.dark_policy)
-        v, s = _timed(t, 1, crosstalk.correct, v, s, col, sm.crosstalk, lut=sm.crosstalk_lut)
-        rgb = _timed(t, 2, demosaic.reconstruct_cfa, v, s, col.cfa, method=sm.method, preset=sm.preset, noise=col,
-                     fusion=sm.noise_fusion, out=rgb_out)
+    def colour_frame(raw, t, prof=col, correct=True, median=True, bounds=True):
+        v, s = _timed(t, 0, validity.classify, raw, prof, dark_policy=sm.dark_policy)
+        if correct:
+            v, s = _timed(t, 1, crosstalk.correct, v, s, prof, sm.crosstalk, lut=sm.crosstalk_lut)
+        filt = demosaic._chroma_filter
+        if not median:                  # the median pass left out (a measurement only: no setting does this)
+            demosaic._chroma_filter = lambda *args: None
+        try:
+            rgb = _timed(t, 2, demosaic.reconstruct_cfa, v, s, prof.cfa, method=sm.method, preset=sm.preset,
+                         noise=prof, fusion=sm.noise_fusion, use_bounds=bounds, out=rgb_out)
+        finally:
+            demosaic._chroma_filter = filt
         _timed(t, 3, tone_colour, rgb)
 
     chains = {"mono": (mono_frame, raws_m), "colour": (colour_frame, raws_c)}
+    if ceiling:
+        white = base.replace(cfa=PATTERN, crosstalk=calib)
+        crosstalk.compact_for(white)
+        variants = {"colour-white-crosstalk": dict(prof=white),
+                    "colour-white-crosstalk-no-median": dict(prof=white, median=False),
+                    "colour-no-crosstalk-median-bounds": dict(correct=False, median=False, bounds=False)}
+        for k, kw in variants.items():
+            chains[k] = (lambda raw, t, kw=kw: colour_frame(raw, t, **kw), raws_c)
     best = {k: (float("inf"), None) for k in chains}
     for k, (f, raws) in chains.items():               # untimed: compiles, fills caches
         f(raws[0], [0.0] * len(SPEED_STAGES))
@@ -301,9 +328,11 @@ def zone_table(res_m) -> str:
 def speed_table(fps) -> str:
     lines = ["| chain | frames/s | " + " | ".join(f"{n} ms" for n in SPEED_STAGES) + " |",
              "|---" * (len(SPEED_STAGES) + 2) + "|"]
-    for k, label in (("mono", "monochrome preview (anchor)"), ("colour", "colour preview")):
+    labels = {"mono": "monochrome preview (anchor)", "colour": "colour preview", **CEILING}
+    for k in fps:
         ms = " | ".join(f"{fps[k]['ms'][n]:.1f}" for n in SPEED_STAGES)
-        lines.append(f"| {label} | {fps[k]['fps']:.1f} | {ms} |")
+        ratio = "" if k == "mono" else f" ({100 * fps[k]['fps'] / fps['mono']['fps']:.0f} %)"
+        lines.append(f"| {labels[k]} | {fps[k]['fps']:.1f}{ratio} | {ms} |")
     return "\n".join(lines)
 
 
@@ -359,6 +388,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fps-frames", type=int, default=None, help="frames per timed pass (default 4)")
     ap.add_argument("--repeat", type=int, default=3, help="timed passes per chain (best counts)")
     ap.add_argument("--no-fps", action="store_true", help="quality only")
+    ap.add_argument("--ceiling", action="store_true", help="frames/s also of the colour chain without parts of its "
+                                                           "model (the monochrome crosstalk kernel, no median, ...)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default=str(OUT))
     a = ap.parse_args(argv)
@@ -397,7 +428,7 @@ def main(argv=None) -> int:
     fps = None
     if not a.no_fps:
         print(f"frames/s: {fw} x {fh}, {fframes} frames per pass", flush=True)
-        fps = speed((paths + kodak)[0], fh, fw, fframes, a.repeat, a.operator, a.seed)
+        fps = speed((paths + kodak)[0], fh, fw, fframes, a.repeat, a.operator, a.seed, a.ceiling)
     g = goals(q, z, fps)
     text = (f"{w} x {h} views, CFA {PATTERN}, shot and read noise; tone map `{a.operator}`; HDR: "
              f"{', '.join(Path(p).stem for p in paths) or '-'}; Kodak: {', '.join(Path(p).stem for p in kodak) or '-'}\n")

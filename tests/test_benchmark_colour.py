@@ -1,5 +1,6 @@
 """benchmarks/colour.py: its ND layouts, and a `--quick` run at a tiny size on a shared HDR scene and a Kodak image
-(every camera, both scene kinds where the shared data is present, the zone plate, frames/s, the goals table)."""
+(every camera, both scene kinds where the shared data is present, the zone plate, frames/s with the `--ceiling` chains,
+the goals table)."""
 import json
 
 import numpy as np
@@ -41,7 +42,7 @@ def test_quick_run_at_a_tiny_size(bench, tmp_path, capsys):
     hdr, kodak = shared_data("hdr", "Desk.exr"), shared_data("kodak", "kodim01.png")
     rc = bench.main(["--quick", "--scenes", str(hdr), "--kodak", str(kodak), "--size", "48x32",
                      "--zone-size", "24", "--fps-size", "64x48", "--fps-frames", "1", "--repeat", "1",
-                     "--out", str(tmp_path)])
+                     "--ceiling", "--out", str(tmp_path)])
     assert rc == 0
     info = json.loads((tmp_path / "results.json").read_text())
     q = info["quality"]["preview"]
@@ -57,8 +58,10 @@ def test_quick_run_at_a_tiny_size(bench, tmp_path, capsys):
         assert hdr_q[c]["report"]["bright"]["log2_psnr"] > hdr_q["bayer"]["report"]["bright"]["log2_psnr"]
     z = info["zone_plate"]["preview"]
     assert all(np.isfinite(z[c]["all"]) for c in bench.CAMERAS)
-    for k in ("mono", "colour"):
+    assert list(info["fps"]) == ["mono", "colour", *bench.CEILING]
+    for k in info["fps"]:
         assert info["fps"][k]["fps"] > 0 and set(info["fps"][k]["ms"]) == set(bench.SPEED_STAGES)
+    assert info["fps"]["colour-no-crosstalk-median-bounds"]["ms"]["crosstalk"] == 0      # the stage left out
     goals = [g["goal"] for g in info["goals"]]
     assert any("+12 dB" in g for g in goals) and any("3 dB below SVE" in g for g in goals)
     assert any("70 %" in g for g in goals)
