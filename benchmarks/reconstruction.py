@@ -437,7 +437,7 @@ def miss_notes(rows, tg):
     for t in tg:
         if t["met"]:
             continue
-        if t["target"].startswith("preview preset"):
+        if t["target"].startswith("FSE `preview` preset"):
             pv = {r["method"]: r for r in rows if r["case"] == "preview640"}
             a = pv.get("fse preview")
             b = pv.get("preview (pull-push)")
@@ -465,59 +465,113 @@ def targets(rows):
         ims = sorted(set(a) & set(b))
         dp = np.mean([a[i]["psnr"] for i in ims]) - np.mean([b[i]["psnr"] for i in ims])
         sp = sum(b[i]["seconds"] for i in ims) / sum(a[i]["seconds"] for i in ims)
-        out.append(dict(target="balanced: PSNR >= FSR_FAST + 0.3 dB (Kodak, 50 %)",
+        out.append(dict(target="FSE `balanced`: PSNR >= FSR_FAST + 0.3 dB (Kodak, 50 % known)",
                         measured=f"{dp:+.2f} dB", met=bool(dp >= 0.3)))
-        out.append(dict(target="balanced: >= 20x faster than FSR_FAST (Kodak, 50 %)",
+        out.append(dict(target="FSE `balanced`: >= 20x faster than FSR_FAST (Kodak, 50 %)",
                         measured=f"{sp:.1f}x", met=bool(sp >= 20)))
     g = agg(rows, case="crops", known=0.5)
     if "fse best" in g and "OpenCV FSR_BEST" in g:
         dp = mean(g["fse best"], "psnr") - mean(g["OpenCV FSR_BEST"], "psnr")
         sp = mean(g["OpenCV FSR_BEST"], "seconds") / mean(g["fse best"], "seconds")
-        out.append(dict(target="best: PSNR >= FSR_BEST (crops)", measured=f"{dp:+.2f} dB, {sp:.0f}x faster",
+        out.append(dict(target="FSE `best`: PSNR >= FSR_BEST (crops)", measured=f"{dp:+.2f} dB, {sp:.0f}x faster",
                         met=bool(dp >= 0)))
     pv = [r for r in rows if r["case"] == "preview640" and r["method"] == "fse preview"]
     if pv:
-        out.append(dict(target="preview preset: >= 30 fps at 640 x 480, 50 % missing",
-                        measured=f"{pv[0]['fps']:.1f} fps", met=bool(pv[0]["fps"] >= 30)))
+        out.append(dict(target="FSE `preview` preset: >= 30 frames/s at 640 x 480, 50 % missing",
+                        measured=f"{pv[0]['fps']:.1f} frames/s", met=bool(pv[0]["fps"] >= 30)))
     pvm = [r for r in rows if r["case"] == "preview640" and r["method"].startswith("preview")]
     if pvm:
-        out.append(dict(target="preview method: >= 30 fps at 640 x 480, 50 % missing",
-                        measured=f"{pvm[0]['fps']:.1f} fps", met=bool(pvm[0]["fps"] >= 30)))
+        out.append(dict(target="`method=preview` (pull-push): >= 30 frames/s at 640 x 480, 50 % missing",
+                        measured=f"{pvm[0]['fps']:.0f} frames/s", met=bool(pvm[0]["fps"] >= 30)))
     for case, known in (("kodak", 0.5), ("kodak", 0.25), ("kodak", 0.1), ("crops", 0.5)):
         pts = pareto_points(rows, case, known)
         if any(not is_ours(m) for m in pts):
             ok, worst = frontier_check(pts)
             out.append(dict(target=f"frontier above OpenCV/scipy at every time budget ({case}, {int(known * 100)} %)",
-                            measured=f"smallest margin {worst:+.2f} dB", met=bool(ok)))
+                            measured=f"smallest margin {worst:+.2f} dB", met=bool(ok), case=case, known=known,
+                            margin=worst))
     return out
 
 
-def write_docs(md, png):
+# the HDR captures' rows of docs/BENCHMARKS.md, in this order, with their labels there
+HDR_DOC_METHODS = {
+    "fse best": "fse best", "fse balanced (auto)": "fse balanced (auto domain: log)",
+    "fse balanced linear": "fse balanced, linear domain",
+    "fse balanced log, no bounds": "fse balanced, log domain, no bounds", "fse fast": "fse fast",
+    "fse preview": "fse preview", "linear (Delaunay)": "linear (Delaunay)", "preview (pull-push)": "preview (pull-push)",
+    "nearest": "nearest", "OpenCV FSR_FAST (8-bit log)": "OpenCV FSR_FAST (8-bit log)",
+}
+
+
+def docs_section(rows, threads) -> str:
+    """docs/BENCHMARKS.md's reconstruction section from a run's rows: the targets (the frontier in one row), PSNR
+    (SSIM) on Kodak and the crops with s / image, the HDR captures, the Pareto plot."""
+    L = ["**Targets** (one full run):\n", "| target | measured | met |", "|---|---|---|"]
+    tg = targets(rows)
+    front = [t for t in tg if t["target"].startswith("frontier")]
+    for t in tg:
+        if t not in front:
+            L.append(f"| {t['target']} | {t['measured']} | {'yes' if t['met'] else 'no'} |")
+    if front:
+        margins = ", ".join(("crops" if t["case"] == "crops" else f"Kodak {int(100 * t['known'])} %")
+                            + f" {t['margin']:+.2f}" for t in front)
+        L.append(f"| PSNR frontier above OpenCV/scipy at every time budget | smallest margin: {margins} dB | "
+                 f"{'yes' if all(t['met'] for t in front) else 'no'} |")
+    cols = [("kodak", 0.5, "Kodak 50 %"), ("kodak", 0.25, "Kodak 25 %"), ("kodak", 0.1, "Kodak 10 %"),
+            ("crops", 0.5, "crops 50 %")]
+    groups = {c[2]: agg(rows, case=c[0], known=c[1]) for c in cols}
+    methods = sorted({m for g in groups.values() for m in g},
+                     key=lambda m: (m not in groups["Kodak 50 %"], -mean(groups["Kodak 50 %"][m], "psnr")
+                                    if m in groups["Kodak 50 %"] else -mean(groups["crops 50 %"][m], "psnr")))
+    n_kodak = len({r["image"] for r in rows if r["case"] == "kodak"})
+    n_crops = len({r["image"] for r in rows if r["case"] == "crops"})
+    L += ["", f"**Full run**, PSNR dB (SSIM), means over {n_kodak} Kodak images and over {n_crops} crops; s / image at "
+          "Kodak 50 % (wall,", f"numba's default {threads} threads):", "",
+          "| method | " + " | ".join(c[2] for c in cols) + " | s / image |", "|---" * (len(cols) + 2) + "|"]
+    for m in methods:
+        cells = [f"{mean(groups[c[2]][m], 'psnr'):.2f} ({mean(groups[c[2]][m], 'ssim'):.4f})"
+                 if m in groups[c[2]] else "-" for c in cols]
+        if m in groups["Kodak 50 %"]:
+            secs = f"{mean(groups['Kodak 50 %'][m], 'seconds'):.3f}"
+        else:
+            secs = f"{mean(groups['crops 50 %'][m], 'seconds'):.3g} (a crop)"
+        L.append(f"| {m} | " + " | ".join(cells) + f" | {secs} |")
+    g = agg(rows, case="hdr")
+    if g:
+        hr = [r for r in rows if r["case"] == "hdr"]
+        per = {r["image"]: r for r in hr}
+        clip = [100 * r["clipped"] for r in per.values()]
+        dark = [100 * r["dark"] for r in per.values()]
+        L += ["", f"**Full run, non-regular HDR captures** ({len(per)} shared scenes, noise-free; {min(clip):.1f}-"
+              f"{max(clip):.1f} % clipped, {min(dark):.1f}-{max(dark):.0f} % dark;", "linear PSNR over white = 4094 x "
+              "ND; log PSNR whole frame / missing pixels; s / image at <= 512 px):", "",
+              "| method | PSNR dB | log PSNR dB | log PSNR missing dB | SSIM (log) | s / image |",
+              "|---|---|---|---|---|---|"]
+        for m, label in HDR_DOC_METHODS.items():
+            if m in g:
+                rs = g[m]
+                L.append(f"| {label} | {mean(rs, 'psnr'):.2f} | {mean(rs, 'psnr_log'):.2f} | "
+                         f"{mean(rs, 'psnr_log_missing'):.2f} | {mean(rs, 'ssim'):.4f} | {mean(rs, 'seconds'):.3f} |")
+    L += ["", "![PSNR against time, full run](img/reconstruction_pareto.png)", "",
+          "Times of the FSE presets on the current kernels: [FSE kernels](#fse-kernels)."]
+    return "\n".join(L) + "\n"
+
+
+def write_docs(rows, meta, png):
+    """Replace docs/BENCHMARKS.md's reconstruction section (between its markers) by `docs_section` of a run and
+    docs/img/reconstruction_pareto.png by `png`; the markers must be there."""
     import shutil
     doc = ROOT / "docs" / "BENCHMARKS.md"
-    (ROOT / "docs" / "img").mkdir(parents=True, exist_ok=True)
-    shutil.copy(png, ROOT / "docs" / "img" / "reconstruction_pareto.png")
     begin, end = "<!-- reconstruction:begin -->", "<!-- reconstruction:end -->"
-    body = (f"{begin}\n_Generated by `benchmarks/reconstruction.py --docs`; numbers from one run._\n\n"
-            f"![PSNR against time](img/reconstruction_pareto.png)\n\n{md}{end}")
-    text = doc.read_text() if doc.exists() else "# Benchmarks\n"
-    if begin in text and end in text:
-        a, b = text.index(begin), text.index(end) + len(end)
-        text = text[:a] + body + text[b:]
-    else:
-        if "## Reconstruction" not in text:
-            text = text.rstrip() + "\n\n## Reconstruction\n\n"
-            text += ("Reproduce: `.venv/bin/python benchmarks/reconstruction.py` (full run: about 12 min "
-                     "on this project's shared 2-core machine, most of it OpenCV FSR; "
-                     "`--quick` for a ~4-minute subset). See docs/FSE.md for the algorithm and presets.\n\n")
-            text += body + "\n"
-        else:
-            a = text.index("## Reconstruction")
-            nxt = text.find("\n## ", a + 5)
-            head = text[:nxt] if nxt >= 0 else text
-            tail = text[nxt:] if nxt >= 0 else ""
-            text = head.rstrip() + "\n\n" + body + "\n" + tail
-    doc.write_text(text)
+    text = doc.read_text()
+    if begin not in text or end not in text:
+        raise SystemExit(f"{doc}: no '{begin}' ... '{end}' markers: the section is not rewritten")
+    a, b = text.index(begin), text.index(end) + len(end)
+    text = text[:a] + f"{begin}\n{docs_section(rows, meta['threads'])}{end}" + text[b:]
+    tmp = doc.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    shutil.copy(png, ROOT / "docs" / "img" / "reconstruction_pareto.png")
+    tmp.replace(doc)
 
 
 def main(argv=None):
@@ -538,7 +592,7 @@ def main(argv=None):
         plot(data["rows"], png)
         print(md)
         if args.docs:
-            write_docs(md, png)
+            write_docs(data["rows"], data["meta"], png)
         return
     t_all = time.perf_counter()
     out_dir = Path(args.out)
@@ -605,7 +659,7 @@ def main(argv=None):
     plot(rows, png)
     print(md)
     if args.docs:
-        write_docs(md, png)
+        write_docs(rows, meta, png)
         print("docs/BENCHMARKS.md and docs/img/reconstruction_pareto.png updated")
 
 
