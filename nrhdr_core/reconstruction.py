@@ -280,10 +280,9 @@ def _fuse_kernel(out, values, known, noisy, gain, floor, nd, texture, r, joint, 
     """`fuse_noisy`'s pass: (2r+1)^2 window sums of the known pixels (count, sum, sum of squares) and,
     `joint`, 3 x 3 window sums of the known and the NOISY pixels (count, sum) at every noisy pixel,
     from column sums that slide down each chunk of `rows` rows (parallel over chunks, one scratch per
-    chunk; rows without a noisy pixel cost the slide only). Per row the window sums and the fusion are
-    computed for every pixel in branch-free loops over zero-margined column sums (they vectorise; the
-    sums keep the order of the per-pixel loops they replaced) and stored at the noisy pixels only.
-    `nt`: the thread count the chunks are interleaved over (passed in: calling get_num_threads inside
+    chunk; rows without a noisy pixel cost the slide only). Per row the column sums slide in branch-free
+    loops (they vectorise), the row's noisy pixels are listed without branches (random masks) and each is
+    fused from the column sums around it. `nt`: the thread count the chunks are interleaved over (passed in: calling get_num_threads inside
     would stop numba caching the kernel)."""
     h, w = out.shape
     nch = (h + rows - 1) // rows
