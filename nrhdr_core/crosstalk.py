@@ -1228,7 +1228,12 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
     groups = np.empty(ng, np.int64)
     k = 0
     for g in range(ng):
-        if n_clipped[g * _CLIP_ROWS:min(g * _CLIP_ROWS + _CLIP_ROWS, h)].sum() > 0:
+        # (a scalar loop: an array expression here, as `.sum()` of a slice, is a parallel region of its own
+        # per group, each a wake-up of the threads)
+        n = 0
+        for y in range(g * _CLIP_ROWS, min(g * _CLIP_ROWS + _CLIP_ROWS, h)):
+            n += n_clipped[y]
+        if n > 0:
             groups[k] = g
             k += 1
     ntile = (w + _CLIP_TILE - 1) // _CLIP_TILE
