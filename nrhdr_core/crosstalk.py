@@ -1346,6 +1346,7 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
         mr = np.empty(w, np.float32)
         ar = np.empty(w, np.float32)
         cn = np.empty(w, np.float32)
+        cx = np.empty(w, np.int64)
         for y in range(y0, y1):
             if n_clipped[y] == 0:
                 continue
@@ -1368,17 +1369,22 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
                     t += 1
                     continue
                 _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cn)
+                # the span's CLIPPED pixels listed (no branch), then their source basis values
+                sr, b0r, b1r = state[y], src[_SRC_B0, y], src[_SRC_B1, y]
+                nc = 0
                 for x in range(a, b):
-                    st = state[y, x]
-                    if (st & REASON_MASK) != CLIPPED:
-                        continue
+                    cx[nc] = x
+                    nc += np.int64((sr[x] & REASON_MASK) == CLIPPED)
+                for j in range(nc):
+                    x = cx[j]
+                    st = sr[x]
                     v = mr[x - a]
                     n = np.int64(cn[x - a])
                     if n > 0:
                         v = ar[x - a] / n
                     q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
-                    src[_SRC_B0, y, x] = _basis_at(basis, 0, q)
-                    src[_SRC_B1, y, x] = _basis_at(basis, 1, q)
+                    b0r[x] = _basis_at(basis, 0, q)
+                    b1r[x] = _basis_at(basis, 1, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
