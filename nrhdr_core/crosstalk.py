@@ -1347,6 +1347,7 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
         ar = np.empty(w, np.float32)
         cn = np.empty(w, np.float32)
         cx = np.empty(w, np.int64)
+        vf = np.empty(w, np.float64)
         for y in range(y0, y1):
             if n_clipped[y] == 0:
                 continue
@@ -1369,7 +1370,13 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
                     t += 1
                     continue
                 _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cn)
-                # the span's CLIPPED pixels listed (no branch), then their source basis values
+                # the estimate of every pixel of the span (the mean where there are VALID fluxes above the
+                # maximum, else the maximum), then the span's CLIPPED pixels listed and their source basis
+                # values: loops without branches
+                for u in range(b - a):
+                    n = np.int64(cn[u])
+                    d = ar[u] / max(n, np.int64(1))
+                    vf[u] = d if n > 0 else np.float64(mr[u])
                 sr, b0r, b1r = state[y], src[_SRC_B0, y], src[_SRC_B1, y]
                 nc = 0
                 for x in range(a, b):
@@ -1378,11 +1385,7 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
                 for j in range(nc):
                     x = cx[j]
                     st = sr[x]
-                    v = mr[x - a]
-                    n = np.int64(cn[x - a])
-                    if n > 0:
-                        v = ar[x - a] / n
-                    q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
+                    q = vf[x - a] * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
                     b0r[x] = _basis_at(basis, 0, q)
                     b1r[x] = _basis_at(basis, 1, q)
 
