@@ -1127,6 +1127,7 @@ def _colour_compact_planes(values, state, c, basis, inv_de, src, tgt, n_clipped)
 # the rows of `_colour_compact_clipped`'s work unit (a thread's share) and the columns of its skip test
 _CLIP_ROWS = 16
 _CLIP_TILE = 64
+_CLIP_PAD = 4         # -inf columns each side of `_clip_span`'s VALID flux rows (its 9 x 9 window)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1143,15 +1144,16 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
     """`_colour_compact_clipped`'s estimate for the pixels x in [a, b) of row y, into mr (the largest
     CLIPPED value, itself included, of its colour's photosites in its 5 x 5), ar and cr (sum and count of its
     colour's VALID fluxes above mr in its 9 x 9), at x - a. cvb, veb: rows r0.. of the CLIPPED values and
-    VALID fluxes (-inf elsewhere); pz[p, x]: 0 where x & 1 == p, -inf elsewhere. One pass per window offset
-    (dy, dx) over the span, window rows top to bottom and columns left to right (the sum's order), in loops
-    without branches (they vectorise): an offset that reaches the pixel's colour from one column parity only
-    is masked by pz (a -inf candidate, a +inf threshold)."""
+    VALID fluxes (-inf elsewhere; veb with _CLIP_PAD columns of -inf each side); pz[p, x]: 0 where x & 1 == p,
+    -inf elsewhere (p = 0, 1), 0 (p = 2). One pass per window row over the span, its offsets dx left to right
+    in one loop (the sum's order: window rows top to bottom, columns left to right); the maximum of a span
+    within 2 columns of the frame's sides one pass per offset (dy, dx). Loops without branches (they
+    vectorise): an offset that reaches the pixel's colour from one column parity only is masked by pz (a -inf
+    candidate, a +inf threshold); one outside the frame adds 0."""
     h = r0 + cvb.shape[0]
     w = cvb.shape[1]
     n = b - a
     zero = np.float32(0.0)
-    one = np.float32(1.0)
     m = mr[:n]
     c = cvb[y - r0, a:b]
     for i in range(n):
@@ -1159,6 +1161,13 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
     for dy in range(-2, 3):
         yy = y + dy
         if yy < r0 or yy >= h:
+            continue
+        if a >= 2 and b + 2 <= w:
+            # away from the frame's sides: the row's offsets in one loop (dx left to right)
+            _, _, e0, e1 = _span_offset(y, yy, 0, a, b, w, block)
+            _, _, o0, o1 = _span_offset(y, yy, 1, a, b, w, block)
+            _max_row(m, cvb[yy - r0, a - 2:b + 2], pz[_pz_row(e0, e1), a:b], pz[_pz_row(o0, o1), a:b], n,
+                     e0 or e1, o0 or o1, dy == 0)
             continue
         for dx in range(-2, 3):
             lo, hi, f0, f1 = _span_offset(y, yy, dx, a, b, w, block)
@@ -1187,27 +1196,102 @@ def _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cr):
         yy = y + dy
         if yy < r0 or yy >= h:
             continue
-        for dx in range(-4, 5):
-            lo, hi, f0, f1 = _span_offset(y, yy, dx, a, b, w, block)
-            if not (f0 or f1) or hi <= lo:
-                continue
-            e = veb[yy - r0, lo + dx:hi + dx]
-            mm = mr[lo - a:hi - a]
-            sa = ar[lo - a:hi - a]
-            sc = cr[lo - a:hi - a]
-            z = pz[0 if f0 else 1, lo:hi]
-            if f0 and f1:
-                for i in range(hi - lo):
-                    ei = e[i]
-                    s = ei > mm[i]
-                    sa[i] += ei if s else zero
-                    sc[i] += one if s else zero
-            else:
-                for i in range(hi - lo):
-                    ei = e[i]
-                    s = ei > mm[i] - z[i]
-                    sa[i] += ei if s else zero
-                    sc[i] += one if s else zero
+        # whether an even (e.) / odd (o.) dx reaches the pixel's colour from an even (.0) / odd (.1) x
+        _, _, e0, e1 = _span_offset(y, yy, 0, a, b, w, block)
+        _, _, o0, o1 = _span_offset(y, yy, 1, a, b, w, block)
+        ev = e0 or e1
+        od = o0 or o1
+        if not (ev or od):
+            continue
+        e = veb[yy - r0, a:b + 2 * _CLIP_PAD]            # e[i + _CLIP_PAD + dx]: the flux at x + dx
+        ze = pz[_pz_row(e0, e1), a:b]
+        zo = pz[_pz_row(o0, o1), a:b]
+        if ev and od:
+            for i in range(n):
+                te = mr[i] - ze[i]
+                to = mr[i] - zo[i]
+                sv, cv = _above(e[i], te, acc[i], cnt[i])
+                sv, cv = _above(e[i + 1], to, sv, cv)
+                sv, cv = _above(e[i + 2], te, sv, cv)
+                sv, cv = _above(e[i + 3], to, sv, cv)
+                sv, cv = _above(e[i + 4], te, sv, cv)
+                sv, cv = _above(e[i + 5], to, sv, cv)
+                sv, cv = _above(e[i + 6], te, sv, cv)
+                sv, cv = _above(e[i + 7], to, sv, cv)
+                acc[i], cnt[i] = _above(e[i + 8], te, sv, cv)
+        elif ev:
+            for i in range(n):
+                te = mr[i] - ze[i]
+                sv, cv = _above(e[i], te, acc[i], cnt[i])
+                sv, cv = _above(e[i + 2], te, sv, cv)
+                sv, cv = _above(e[i + 4], te, sv, cv)
+                sv, cv = _above(e[i + 6], te, sv, cv)
+                acc[i], cnt[i] = _above(e[i + 8], te, sv, cv)
+        else:
+            for i in range(n):
+                to = mr[i] - zo[i]
+                sv, cv = _above(e[i + 1], to, acc[i], cnt[i])
+                sv, cv = _above(e[i + 3], to, sv, cv)
+                sv, cv = _above(e[i + 5], to, sv, cv)
+                acc[i], cnt[i] = _above(e[i + 7], to, sv, cv)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _max_row(m, c, ze, zo, n, ev, od, centre):
+    """`_clip_span`'s largest CLIPPED values m[:n] with one window row's offsets dx = -2..2 (c[i + 2 + dx]:
+    the value at x + dx) taken in, left to right: those of even (ev) / odd (od) dx, masked by ze / zo; the
+    centre (dx = 0) left out where `centre`."""
+    if ev and od and centre:
+        for i in range(n):
+            te, to = ze[i], zo[i]
+            mi = _larger(c[i] + te, m[i])
+            mi = _larger(c[i + 1] + to, mi)
+            mi = _larger(c[i + 3] + to, mi)
+            m[i] = _larger(c[i + 4] + te, mi)
+    elif ev and od:
+        for i in range(n):
+            te, to = ze[i], zo[i]
+            mi = _larger(c[i] + te, m[i])
+            mi = _larger(c[i + 1] + to, mi)
+            mi = _larger(c[i + 2] + te, mi)
+            mi = _larger(c[i + 3] + to, mi)
+            m[i] = _larger(c[i + 4] + te, mi)
+    elif ev and centre:
+        for i in range(n):
+            te = ze[i]
+            mi = _larger(c[i] + te, m[i])
+            m[i] = _larger(c[i + 4] + te, mi)
+    elif ev:
+        for i in range(n):
+            te = ze[i]
+            mi = _larger(c[i] + te, m[i])
+            mi = _larger(c[i + 2] + te, mi)
+            m[i] = _larger(c[i + 4] + te, mi)
+    elif od:
+        for i in range(n):
+            to = zo[i]
+            mi = _larger(c[i + 1] + to, m[i])
+            m[i] = _larger(c[i + 3] + to, mi)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _larger(ci, mi):
+    """ci where it is larger than mi, else mi, plus 0 (`_clip_span`'s maximum step)."""
+    return (ci if ci > mi else mi) + np.float32(0.0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pz_row(f0, f1):
+    """The row of `_clip_span`'s pz masking an offset that reaches the pixel's colour from even x only (f0),
+    odd x only (f1), both (the row of zeros)."""
+    return 2 if f0 and f1 else (0 if f0 else 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _above(e, t, s, c):
+    """`_clip_span`'s sum s and count c with the flux e added where e > t."""
+    k = e > t
+    return s + (e if k else np.float32(0.0)), c + (np.float32(1.0) if k else np.float32(0.0))
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -1220,15 +1304,21 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
     h, w = values.shape
     inv_att = np.float32(1.0) / np.float32(nd)
     ninf = np.float32(-np.inf)
-    pz = np.empty((2, w), np.float32)
+    pz = np.empty((3, w), np.float32)
     for x in range(w):
         pz[x & 1, x] = np.float32(0.0)
         pz[1 - (x & 1), x] = ninf
+        pz[2, x] = np.float32(0.0)
     ng = (h + _CLIP_ROWS - 1) // _CLIP_ROWS
     groups = np.empty(ng, np.int64)
     k = 0
     for g in range(ng):
-        if n_clipped[g * _CLIP_ROWS:min(g * _CLIP_ROWS + _CLIP_ROWS, h)].sum() > 0:
+        # (a scalar loop: an array expression here, as `.sum()` of a slice, is a parallel region of its own
+        # per group, each a wake-up of the threads)
+        n = 0
+        for y in range(g * _CLIP_ROWS, min(g * _CLIP_ROWS + _CLIP_ROWS, h)):
+            n += n_clipped[y]
+        if n > 0:
             groups[k] = g
             k += 1
     ntile = (w + _CLIP_TILE - 1) // _CLIP_TILE
@@ -1242,17 +1332,22 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
         r0 = max(y0 - 4, 0)
         r1 = min(y1 + 4, h)
         cvb = np.empty((r1 - r0, w), np.float32)
-        veb = np.empty((r1 - r0, w), np.float32)
+        veb = np.empty((r1 - r0, w + 2 * _CLIP_PAD), np.float32)
         for r in range(r0, r1):
             sr, vr, fr = state[r], values[r], tgt[_TGT_F, r]
-            cr_, vb = cvb[r - r0], veb[r - r0]
+            cr_, vb = cvb[r - r0], veb[r - r0, _CLIP_PAD:_CLIP_PAD + w]
             for x in range(w):
                 reason = sr[x] & REASON_MASK
                 cr_[x] = vr[x] if reason == CLIPPED else ninf
                 vb[x] = fr[x] if reason == VALID else ninf
+            for x in range(_CLIP_PAD):
+                veb[r - r0, x] = ninf
+                veb[r - r0, _CLIP_PAD + w + x] = ninf
         mr = np.empty(w, np.float32)
         ar = np.empty(w, np.float32)
         cn = np.empty(w, np.float32)
+        cx = np.empty(w, np.int64)
+        vf = np.empty(w, np.float64)
         for y in range(y0, y1):
             if n_clipped[y] == 0:
                 continue
@@ -1275,17 +1370,24 @@ def _colour_compact_clipped(values, state, src, tgt, basis, inv_de, nd, block, n
                     t += 1
                     continue
                 _clip_span(y, a, b, r0, cvb, veb, pz, block, mr, ar, cn)
+                # the estimate of every pixel of the span (the mean where there are VALID fluxes above the
+                # maximum, else the maximum), then the span's CLIPPED pixels listed and their source basis
+                # values: loops without branches
+                for u in range(b - a):
+                    n = np.int64(cn[u])
+                    d = ar[u] / max(n, np.int64(1))
+                    vf[u] = d if n > 0 else np.float64(mr[u])
+                sr, b0r, b1r = state[y], src[_SRC_B0, y], src[_SRC_B1, y]
+                nc = 0
                 for x in range(a, b):
-                    st = state[y, x]
-                    if (st & REASON_MASK) != CLIPPED:
-                        continue
-                    v = mr[x - a]
-                    n = np.int64(cn[x - a])
-                    if n > 0:
-                        v = ar[x - a] / n
-                    q = v * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
-                    src[_SRC_B0, y, x] = _basis_at(basis, 0, q)
-                    src[_SRC_B1, y, x] = _basis_at(basis, 1, q)
+                    cx[nc] = x
+                    nc += np.int64((sr[x] & REASON_MASK) == CLIPPED)
+                for j in range(nc):
+                    x = cx[j]
+                    st = sr[x]
+                    q = vf[x - a] * inv_de * (inv_att if (st & ATTENUATED) != 0 else np.float32(1.0))
+                    b0r[x] = _basis_at(basis, 0, q)
+                    b1r[x] = _basis_at(basis, 1, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
