@@ -535,19 +535,25 @@ def _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, n):
         tr[x] = tv - np.float32(i)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _display_light(lut, dlut, dec, i, t):
+    """The sRGB EOTF (table `dec`) of `_local_apply`'s 16-bit level (code + 0.5) at LUT index i (uint32) and
+    fraction t (`dlut` the LUT's steps lut[i + 1] - lut[i])."""
+    return dec[np.uint32((lut[i] + t * dlut[i]) * np.float32(65535.0) + np.float32(0.5))]
+
+
 @njit(cache=True, nogil=True)
 def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
-    """Row y's display light into `t[c]`: `_local_apply`'s 16-bit level (code + 0.5, `dlut` the LUT's steps
-    lut[i + 1] - lut[i]) of the `_local_levels` positions through the sRGB EOTF table `dec`, as `_rgb_row`
-    takes it; `ib[c]` the row's LUT indices. The table look-ups have a loop of their own. Called, not inlined:
-    inlined beside `_rgb_row`, the pair compiles to code that takes about twice the time per row."""
+    """Row y's display light (`_display_light`) of the `_local_levels` positions into `t[c]`, as
+    `_rgb_channels` takes it; `ib[c]` the row's LUT indices. The table look-ups have a loop of their own.
+    Called, not inlined: inlined beside `_rgb_row`, the pair compiles to code that takes about twice the time
+    per row."""
     w = l.shape[1]
     _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut.shape[0])
     tr = t[c]
     ir = ib[c]
     for x in range(w):
-        i = np.uint32(ir[x])
-        tr[x] = dec[np.uint32((lut[i] + tr[x] * dlut[i]) * np.float32(65535.0) + np.float32(0.5))]
+        tr[x] = _display_light(lut, dlut, dec, np.uint32(ir[x]), tr[x])
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -572,15 +578,30 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, dlut, out_max, rows, tbuf, ibuf, ou
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, dlut, rows, tbuf, ibuf, dec, code, sat, fbuf, fbits, out):
-    """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour (`_local_display`,
-    `_rgb_row`) into sRGB `out` (H, W, 3); `ibuf` (chunks, w) the LUT indices, `fbuf` (chunks, 3, w) the rows'
-    channels."""
+    """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour into sRGB `out`
+    (H, W, 3); `ibuf` (chunks, w) the LUT indices, `fbuf` (chunks, 3, w) the rows' channels. A chunk's rows in
+    turn: row y's channels (`_rgb_channels` of its display light), then row y + 1's LUT positions
+    (`_local_levels`) and one loop of the two scalar table look-ups, row y + 1's display light
+    (`_display_light`) beside row y's codes (`_rgb_codes`)."""
     h, w = l.shape
+    n = lut.shape[0]
     nch = tbuf.shape[0]
     for c in prange(nch):
-        for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            _local_display(l, ca, cb, y, rows, tbuf, ibuf, c, c0, g1, k0, lut, dlut, dec)
-            _rgb_row(rgb, y, k, tbuf, c, code, sat, fbuf, fbits, out)
+        y0, y1 = (c * h) // nch, ((c + 1) * h) // nch
+        tr = tbuf[c]
+        ir = ibuf[c]
+        if y0 < y1:
+            _local_display(l, ca, cb, y0, rows, tbuf, ibuf, c, c0, g1, k0, lut, dlut, dec)
+        for y in range(y0, y1):
+            _rgb_channels(rgb, y, k, tbuf, c, sat, fbuf)
+            if y + 1 < y1:
+                _local_levels(l, ca, cb, y + 1, rows, tbuf, ibuf, c, c0, g1, k0, n)
+                for x in range(w):
+                    tr[x] = _display_light(lut, dlut, dec, np.uint32(ir[x]), tr[x])
+                    _rgb_codes(fbits, c, x, code, out, y)
+            else:
+                for x in range(w):
+                    _rgb_codes(fbits, c, x, code, out, y)
 
 
 def _display(o):
@@ -1120,12 +1141,11 @@ def _srgb_code(b, code):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rgb_row(rgb, y, k, lev, c, code, sat, fb, fbits, out):
-    """Row y of the colour display codes (H, W, 3) from the display light Y' of the grey operator's 16-bit
-    level of its luminance (`lev[c]`, the sRGB EOTF of the code): channel t = (c / L)^sat Y' (Y' where L = 0);
-    above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes by `_srgb_code` from the bits of t
-    (`fbits`, the uint32 view of `fb`). `fb[c]` (3, w): the row's channels. Every array indexed in full (no
-    slices), table indices unsigned (no negative-index wrap); the arithmetic loop vectorises."""
+def _rgb_channels(rgb, y, k, lev, c, sat, fb):
+    """Row y's channels in linear display light into `fb[c]` (3, w) from the display light Y' of the grey
+    operator's 16-bit level of its luminance (`lev[c]`, the sRGB EOTF of the code): channel t = (c / L)^sat Y'
+    (Y' where L = 0); above full scale mixed with Y' until max(t) = 1. Every array indexed in full (no slices);
+    the loop vectorises."""
     npx = lev.shape[1]
     zero = np.float32(0.0)
     one = np.float32(1.0)
@@ -1159,9 +1179,23 @@ def _rgb_row(rgb, y, k, lev, c, code, sat, fb, fbits, out):
             fb[c, 0, x] = _unit(yd + (t0 - yd) * mix)
             fb[c, 1, x] = _unit(yd + (t1 - yd) * mix)
             fb[c, 2, x] = _unit(yd + (t2 - yd) * mix)
-    for x in range(npx):
-        for ch in range(3):
-            out[y, x, ch] = _srgb_code(fbits[c, ch, x], code)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rgb_codes(fbits, c, x, code, out, y):
+    """The sRGB 8-bit codes (`_srgb_code`) of pixel x's channels, bits `fbits[c, :, x]` (the uint32 view of
+    `_rgb_channels`' `fb`), into out[y, x] (table indices unsigned: no negative-index wrap)."""
+    for ch in range(3):
+        out[y, x, ch] = _srgb_code(fbits[c, ch, x], code)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rgb_row(rgb, y, k, lev, c, code, sat, fb, fbits, out):
+    """Row y of the colour display codes (H, W, 3): the channels (`_rgb_channels`), then their codes
+    (`_rgb_codes`) in a loop of their own."""
+    _rgb_channels(rgb, y, k, lev, c, sat, fb)
+    for x in range(lev.shape[1]):
+        _rgb_codes(fbits, c, x, code, out, y)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
