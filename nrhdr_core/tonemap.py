@@ -535,19 +535,25 @@ def _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, n):
         tr[x] = tv - np.float32(i)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _display_light(lut, dlut, dec, i, t):
+    """The sRGB EOTF (table `dec`) of `_local_apply`'s 16-bit level (code + 0.5) at LUT index i (uint32) and
+    fraction t (`dlut` the LUT's steps lut[i + 1] - lut[i])."""
+    return dec[np.uint32((lut[i] + t * dlut[i]) * np.float32(65535.0) + np.float32(0.5))]
+
+
 @njit(cache=True, nogil=True)
 def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
-    """Row y's display light into `t[c]`: `_local_apply`'s 16-bit level (code + 0.5, `dlut` the LUT's steps
-    lut[i + 1] - lut[i]) of the `_local_levels` positions through the sRGB EOTF table `dec`, as `_rgb_row`
-    takes it; `ib[c]` the row's LUT indices. The table look-ups have a loop of their own. Called, not inlined:
-    inlined beside `_rgb_row`, the pair compiles to code that takes about twice the time per row."""
+    """Row y's display light (`_display_light`) of the `_local_levels` positions into `t[c]`, as
+    `_rgb_channels` takes it; `ib[c]` the row's LUT indices. The table look-ups have a loop of their own.
+    Called, not inlined: inlined beside `_rgb_row`, the pair compiles to code that takes about twice the time
+    per row."""
     w = l.shape[1]
     _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut.shape[0])
     tr = t[c]
     ir = ib[c]
     for x in range(w):
-        i = np.uint32(ir[x])
-        tr[x] = dec[np.uint32((lut[i] + tr[x] * dlut[i]) * np.float32(65535.0) + np.float32(0.5))]
+        tr[x] = _display_light(lut, dlut, dec, np.uint32(ir[x]), tr[x])
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -571,17 +577,31 @@ def _local_apply(l, ca, cb, c0, g1, k0, lut, dlut, out_max, rows, tbuf, ibuf, ou
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, dlut, rows, tbuf, ibuf, dec, first, thr, sat, fbuf, fbits,
-                     out):
-    """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour (`_local_display`,
-    `_rgb_row`) into sRGB `out` (H, W, 3); `ibuf` (chunks, w) the LUT indices, `fbuf` (chunks, 3, w) the rows'
-    channels."""
+def _rgb_local_apply(rgb, k, l, ca, cb, c0, g1, k0, lut, dlut, rows, tbuf, ibuf, dec, code, sat, fbuf, fbits, out):
+    """`_local_apply` on the luminance of the colour frame `rgb` by `k`, shown in colour into sRGB `out`
+    (H, W, 3); `ibuf` (chunks, w) the LUT indices, `fbuf` (chunks, 3, w) the rows' channels. A chunk's rows in
+    turn: row y's channels (`_rgb_channels` of its display light), then row y + 1's LUT positions
+    (`_local_levels`) and one loop of the two scalar table look-ups, row y + 1's display light
+    (`_display_light`) beside row y's codes (`_rgb_codes`)."""
     h, w = l.shape
+    n = lut.shape[0]
     nch = tbuf.shape[0]
     for c in prange(nch):
-        for y in range((c * h) // nch, ((c + 1) * h) // nch):
-            _local_display(l, ca, cb, y, rows, tbuf, ibuf, c, c0, g1, k0, lut, dlut, dec)
-            _rgb_row(rgb, y, k, tbuf, c, first, thr, sat, fbuf, fbits, out)
+        y0, y1 = (c * h) // nch, ((c + 1) * h) // nch
+        tr = tbuf[c]
+        ir = ibuf[c]
+        if y0 < y1:
+            _local_display(l, ca, cb, y0, rows, tbuf, ibuf, c, c0, g1, k0, lut, dlut, dec)
+        for y in range(y0, y1):
+            _rgb_channels(rgb, y, k, tbuf, c, sat, fbuf)
+            if y + 1 < y1:
+                _local_levels(l, ca, cb, y + 1, rows, tbuf, ibuf, c, c0, g1, k0, n)
+                for x in range(w):
+                    tr[x] = _display_light(lut, dlut, dec, np.uint32(ir[x]), tr[x])
+                    _rgb_codes(fbits, c, x, code, out, y)
+            else:
+                for x in range(w):
+                    _rgb_codes(fbits, c, x, code, out, y)
 
 
 def _display(o):
@@ -1112,21 +1132,20 @@ def _into_gamut(t0, t1, t2, yd, tb, c, x):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _srgb_code(b, first, thr):
+def _srgb_code(b, code):
     """The sRGB 8-bit code of the linear light t in [+0, 1] with float32 bit pattern b (uint32): the number of
-    code thresholds at or below t, from the `_srgb_tables` entries of b's top 16 bits (the thresholds below
-    the entry's range, and the bit pattern of the one threshold in its range)."""
-    i = b >> np.uint32(16)
-    return first[i] + np.uint8(b >= thr[i])
+    code thresholds at or below t, from the `_srgb_tables` entry of b's top 16 bits ((n << 16) + 2^16 - o: n
+    thresholds below the entry's range, o the low 16 bits of the one threshold in its range, 2^16 where none;
+    adding b's low 16 bits carries into bit 16 exactly where they are at or above o)."""
+    return np.uint8((code[b >> np.uint32(16)] + (b & np.uint32(0xFFFF))) >> np.uint32(16))
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rgb_row(rgb, y, k, lev, c, first, thr, sat, fb, fbits, out):
-    """Row y of the colour display codes (H, W, 3) from the display light Y' of the grey operator's 16-bit
-    level of its luminance (`lev[c]`, the sRGB EOTF of the code): channel t = (c / L)^sat Y' (Y' where L = 0);
-    above full scale mixed with Y' until max(t) = 1; sRGB 8-bit codes by `_srgb_code` from the bits of t
-    (`fbits`, the uint32 view of `fb`). `fb[c]` (3, w): the row's channels. Every array indexed in full (no
-    slices), table indices unsigned (no negative-index wrap); the arithmetic loop vectorises."""
+def _rgb_channels(rgb, y, k, lev, c, sat, fb):
+    """Row y's channels in linear display light into `fb[c]` (3, w) from the display light Y' of the grey
+    operator's 16-bit level of its luminance (`lev[c]`, the sRGB EOTF of the code): channel t = (c / L)^sat Y'
+    (Y' where L = 0); above full scale mixed with Y' until max(t) = 1. Every array indexed in full (no slices);
+    the loop vectorises."""
     npx = lev.shape[1]
     zero = np.float32(0.0)
     one = np.float32(1.0)
@@ -1160,13 +1179,27 @@ def _rgb_row(rgb, y, k, lev, c, first, thr, sat, fb, fbits, out):
             fb[c, 0, x] = _unit(yd + (t0 - yd) * mix)
             fb[c, 1, x] = _unit(yd + (t1 - yd) * mix)
             fb[c, 2, x] = _unit(yd + (t2 - yd) * mix)
-    for x in range(npx):
-        for ch in range(3):
-            out[y, x, ch] = _srgb_code(fbits[c, ch, x], first, thr)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rgb_codes(fbits, c, x, code, out, y):
+    """The sRGB 8-bit codes (`_srgb_code`) of pixel x's channels, bits `fbits[c, :, x]` (the uint32 view of
+    `_rgb_channels`' `fb`), into out[y, x] (table indices unsigned: no negative-index wrap)."""
+    for ch in range(3):
+        out[y, x, ch] = _srgb_code(fbits[c, ch, x], code)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rgb_row(rgb, y, k, lev, c, code, sat, fb, fbits, out):
+    """Row y of the colour display codes (H, W, 3): the channels (`_rgb_channels`), then their codes
+    (`_rgb_codes`) in a loop of their own."""
+    _rgb_channels(rgb, y, k, lev, c, sat, fb)
+    for x in range(lev.shape[1]):
+        _rgb_codes(fbits, c, x, code, out, y)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, first, thr, sat, fbuf, fbits, out):
+def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, code, sat, fbuf, fbits, out):
     """`_log_kernel` on the luminance of the colour frame `rgb` (3, H, W) by `k` (`_luminance`, 16-bit levels
     into `lev` (chunks, w), then their display light by the sRGB EOTF table `dec`), shown in colour (`_rgb_row`)
     into sRGB `out` (H, W, 3); `fbuf` (chunks, 3, w) its rows, before them the log curve's 1 + q v, mantissas and
@@ -1193,7 +1226,7 @@ def _rgb_log_kernel(rgb, k, scale, q, inv_den, lev, dec, first, thr, sat, fbuf, 
                 lev[c, x] = _log_level(mbuf[x], ebuf[x], ubuf[x], lev[c, x], q) * inv_den * lmax + np.float32(0.5)
             for x in range(w):
                 lev[c, x] = dec[np.uint32(lev[c, x])]     # the look-up on its own: the loops beside vectorise
-            _rgb_row(rgb, y, k, lev, c, first, thr, sat, fbuf, fbits, out)
+            _rgb_row(rgb, y, k, lev, c, code, sat, fbuf, fbits, out)
 
 
 def srgb_eotf(v):
@@ -1206,11 +1239,10 @@ _SRGB = []
 
 
 def _srgb_tables():
-    """(decode: float32 sRGB EOTF of each 16-bit level; first, thr: `_srgb_code`'s uint8 code and uint32
-    threshold bit pattern (2^32 - 1 where none) for each top 16 bits of a float32 in [+0, 1]). Code k + 1
-    starts at the float32 threshold srgb_eotf((k + 0.5) / 255) (rounding in the encoded domain); an entry's
-    range (2^16 bit patterns, less than 0.79 % of its values) holds at most one threshold (those are 0.89 %
-    or more apart)."""
+    """(decode: float32 sRGB EOTF of each 16-bit level; code: `_srgb_code`'s uint32 entry for each top 16 bits
+    of a float32 in [+0, 1]). Code k + 1 starts at the float32 threshold srgb_eotf((k + 0.5) / 255) (rounding
+    in the encoded domain); an entry's range (2^16 bit patterns, less than 0.79 % of its values) holds at most
+    one threshold (those are 0.89 % or more apart)."""
     if not _SRGB:
         dec = srgb_eotf(np.arange(65536) / 65535.0).astype(np.float32)
         tb = srgb_eotf((np.arange(255) + 0.5) / 255.0).astype(np.float32).view(np.uint32).astype(np.int64)
@@ -1219,8 +1251,8 @@ def _srgb_tables():
         inside = np.searchsorted(tb, (top + 1) << 16, side="left") - below
         if inside.max() > 1:
             raise AssertionError("sRGB code tables: two thresholds in one entry's range")
-        thr = np.where(inside == 1, tb[np.minimum(below, tb.size - 1)], 2 ** 32 - 1).astype(np.uint32)
-        _SRGB.append((dec, below.astype(np.uint8), thr))
+        low = np.where(inside == 1, tb[np.minimum(below, tb.size - 1)] & 0xFFFF, 0x10000)
+        _SRGB.append((dec, ((below << 16) + 0x10000 - low).astype(np.uint32)))
     return _SRGB[0]
 
 
