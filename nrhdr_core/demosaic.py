@@ -40,7 +40,7 @@ from numba import get_num_threads, njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid, small_levels
+from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid
 from .scratch import interleaved, planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_at_cfa
@@ -336,16 +336,29 @@ def _positions(blk):
 
 def _levels_from(pv, pw, hs, ws, off, first):
     """`pullpush.pull_push_levels` from level `first` (pulled already) to the top and back to it:
-    big levels in parallel regions by rows (`_pull_rows`, `_push_rows`), the small ones in one serial call."""
+    big levels in parallel regions by rows (`_pull_rows`, `_push_rows`), the small ones in one serial call
+    (`_small_levels`)."""
     levels = hs.shape[0] - 1
     small = first
     while small < levels and hs[small] * ws[small] >= SERIAL_LEVEL:
         small += 1
     for lv in range(first, small):
         _pull_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
-    small_levels(pv, pw, hs, ws, off, small, levels)
+    _small_levels(pv, pw, hs, ws, off, small, levels)
     for lv in range(small - 1, first - 1, -1):
         _push_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _small_levels(pv, pw, hs, ws, off, first, levels):
+    """`pullpush.small_levels` (pull from level `first` to the top, push back down to `first`, serially) by
+    rows: `_pull_level_row` and `_push_row`, the same sums and quotients as `pull_at` and `push_at`."""
+    for lv in range(first, levels):
+        for y1 in range(hs[lv + 1]):
+            _pull_level_row(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1], y1)
+    for lv in range(levels - 1, first - 1, -1):
+        for y in range(hs[lv]):
+            _push_row(pv, pw, off[lv], ws[lv], off[lv + 1], ws[lv + 1], y)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -734,20 +747,13 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
     """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
-    their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread: level
-    `first` by rows, `_pull_level_row` and `_push_row`, the smaller ones by `small_levels`), then each cell its value where known, else the weighted mean of its known
+    their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread,
+    `_small_levels`), then each cell its value where known, else the weighted mean of its known
     8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `pullpush.fill_row`, as
     the monochrome preview fills level 0); stored as the ratio 2^d."""
     levels = hs.shape[0] - 1
     for i in prange(2):
-        if first < levels:
-            v = pv[1 + i]
-            p = pw[1 + i]
-            for y in range(hs[first + 1]):
-                _pull_level_row(v, p, off[first], hs[first], ws[first], off[first + 1], ws[first + 1], y)
-            small_levels(v, p, hs, ws, off, first + 1, levels)
-            for y in range(hs[first]):
-                _push_row(v, p, off[first], ws[first], off[first + 1], ws[first + 1], y)
+        _small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
     h1 = known.shape[1]
     for q in prange(2 * h1):
         i = q // h1
