@@ -40,7 +40,7 @@ from numba import get_num_threads, njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid, small_levels
+from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid
 from .scratch import interleaved, planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_at_cfa
@@ -336,16 +336,29 @@ def _positions(blk):
 
 def _levels_from(pv, pw, hs, ws, off, first):
     """`pullpush.pull_push_levels` from level `first` (pulled already) to the top and back to it:
-    big levels in parallel regions by rows (`_pull_rows`, `_push_rows`), the small ones in one serial call."""
+    big levels in parallel regions by rows (`_pull_rows`, `_push_rows`), the small ones in one serial call
+    (`_small_levels`)."""
     levels = hs.shape[0] - 1
     small = first
     while small < levels and hs[small] * ws[small] >= SERIAL_LEVEL:
         small += 1
     for lv in range(first, small):
         _pull_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
-    small_levels(pv, pw, hs, ws, off, small, levels)
+    _small_levels(pv, pw, hs, ws, off, small, levels)
     for lv in range(small - 1, first - 1, -1):
         _push_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _small_levels(pv, pw, hs, ws, off, first, levels):
+    """`pullpush.small_levels` (pull from level `first` to the top, push back down to `first`, serially) by
+    rows: `_pull_level_row` and `_push_row`, the same sums and quotients as `pull_at` and `push_at`."""
+    for lv in range(first, levels):
+        for y1 in range(hs[lv + 1]):
+            _pull_level_row(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1], y1)
+    for lv in range(levels - 1, first - 1, -1):
+        for y in range(hs[lv]):
+            _push_row(pv, pw, off[lv], ws[lv], off[lv + 1], ws[lv + 1], y)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -418,7 +431,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
         _clipped_around(state, pos, crow if guided else crow & _lag_edges(h), sc["rows"], sc["fl"], out)
     if noisy is not None:
         _fuse(out, blk, noisy, noise, fusion)
-    _chroma_filter(out, state, blk, pos, c, rng, crow, sc["fl"])
+    _chroma_filter(out, state, blk, c, rng, crow, sc["fl"])
 
 
 def _unkey(key) -> float:
@@ -734,20 +747,13 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
     """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
-    their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread: level
-    `first` by rows, `_pull_level_row` and `_push_row`, the smaller ones by `small_levels`), then each cell its value where known, else the weighted mean of its known
+    their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread,
+    `_small_levels`), then each cell its value where known, else the weighted mean of its known
     8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `pullpush.fill_row`, as
     the monochrome preview fills level 0); stored as the ratio 2^d."""
     levels = hs.shape[0] - 1
     for i in prange(2):
-        if first < levels:
-            v = pv[1 + i]
-            p = pw[1 + i]
-            for y in range(hs[first + 1]):
-                _pull_level_row(v, p, off[first], hs[first], ws[first], off[first + 1], ws[first + 1], y)
-            small_levels(v, p, hs, ws, off, first + 1, levels)
-            for y in range(hs[first]):
-                _push_row(v, p, off[first], ws[first], off[first + 1], ws[first + 1], y)
+        _small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
     h1 = known.shape[1]
     for q in prange(2 * h1):
         i = q // h1
@@ -861,7 +867,7 @@ def _lift_row(o, own, state, y, x0, hz, vt, dg, b0, b1, fresh, fl):
     neighbour not CLIPPED counts -_BIG, one outside the frame +_BIG. b0, b1: row buffers (the column
     minima of rows y -+ 1 and row y's values, in branch-free loops that vectorise; computed with `fresh`,
     else those of the previous call in the same row and channel). fl[x]: the bound found (< _BIG: one
-    applies), for `_floor_row`. The row's interior in one contiguous loop over every column: the other
+    applies), for `_rebuild_row`. The row's interior in one contiguous loop over every column: the other
     columns of `o` and `fl` are stored back with the bits they hold."""
     x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
     h, w = state.shape
@@ -1232,11 +1238,19 @@ def _median3_row(a, b, c, lo, mi, hi, m):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
+def _floored(m, v):
+    """v lifted to the clipped-neighbour lower bound m where one applies (m < _BIG)."""
+    return m if ((m > v) & (m < _BIG)) else v
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi, fg, fs, ft, floor):
     """A row of green photosites (columns of parity gp) and photosites of one other colour s (t: the third
     channel; ms, mt: their median ratios), each rebuilt from its own channel a: with A = (max(a, 0) + c) / q
     (q = 1 at green, ms at s) green = A - c, s = A ms - c, t = A mt - c where not its own, within
-    [lo, hi] (a non-finite result: hi). Contiguous and branch-free (it vectorises)."""
+    [lo, hi] (a non-finite result: hi); with `floor` each rebuilt value then at least its clipped-neighbour
+    lower bound (fg, fs, ft: the bounds `_lift_row` found for the same photosites and channels, `_floored`).
+    Contiguous and branch-free (it vectorises)."""
     zero = np.float32(0.0)
     one = np.float32(1.0)
     for x in range(g.shape[0]):
@@ -1252,29 +1266,24 @@ def _rebuild_row(g, s, t, ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi):
         eg = eg if eg - eg == zero else ghi
         es = es if es - es == zero else shi
         et = et if et - et == zero else thi
-        g[x] = g0 if isg else min(max(eg, glo), ghi)
-        s[x] = min(max(es, slo), shi) if isg else s0
-        t[x] = min(max(et, tlo), thi)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _floor_row(o, fl, x0, step):
-    """o[x] (x = x0, x0 + step, ...) at least fl[x] where fl[x] < _BIG: the clipped-neighbour lower bounds
-    `_lift_row` found for the same photosites."""
-    x0 = x0 & 1                     # provably >= 0 (as `_own_row`'s x0)
-    big = _BIG
-    for x in range(x0, o.shape[0], step):
-        m = fl[x]
-        v = o[x]
-        o[x] = m if ((m > v) & (m < big)) else v
+        eg = min(max(eg, glo), ghi)
+        es = min(max(es, slo), shi)
+        et = min(max(et, tlo), thi)
+        if floor:
+            eg = _floored(fg[x], eg)
+            es = _floored(fs[x], es)
+            et = _floored(ft[x], et)
+        g[x] = g0 if isg else eg
+        s[x] = es if isg else s0
+        t[x] = et
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows):
+def _chroma_median(out, blk, c, lim, bnd, crow, fl, rows):
     """Row by row in chunks: the 3 x 3 medians of the ratios R : G and B : G (a ring of three ratio rows per
     chunk, read from rows not yet changed; the rows beside the chunk from `bnd`), then each photosite's other
-    two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel); in the rows `crow` then the
-    clipped-neighbour lower bounds `fl` that `_colour` and `_clipped_around` found (`_floor_row`; they
+    two channels from its own one (`_rebuild_row`; `lim`: (lo, hi) per channel), in the rows `crow` each at
+    least the clipped-neighbour lower bound `fl` that `_colour` and `_clipped_around` found for it (they
     depend on own channels only, which stay as they are)."""
     h = out.shape[1]
     nch = rows.shape[0]
@@ -1298,19 +1307,17 @@ def _chroma_median(out, blk, pos, c, lim, bnd, crow, fl, rows):
             for i in range(2):
                 _median3_row(buf[s0 + i], buf[s1 + i], buf[s2 + i], buf[_CM_LO], buf[_CM_MI], buf[_CM_HI],
                              buf[_CM_MR + i])
-            mr = buf[_CM_MR]
-            mb = buf[_CM_MB]
             gp = 0 if blk[y & 1, 0] == 1 else 1
-            if blk[y & 1, 1 - gp] == 0:
-                _rebuild_row(out[1, y], out[0, y], out[2, y], mr, mb, gp, c, glo, ghi, rlo, rhi, blo, bhi)
-            else:
-                _rebuild_row(out[1, y], out[2, y], out[0, y], mb, mr, gp, c, glo, ghi, blo, bhi, rlo, rhi)
+            red = blk[y & 1, 1 - gp] == 0               # the row's other colour
+            a, b = (0, 2) if red else (2, 0)
+            ms, mt = (buf[_CM_MR], buf[_CM_MB]) if red else (buf[_CM_MB], buf[_CM_MR])
+            slo, shi, tlo, thi = (rlo, rhi, blo, bhi) if red else (blo, bhi, rlo, rhi)
             if crow[y]:
-                gx = pos[1, 1] if (y & 1) == pos[1, 0] else 1 - pos[1, 1]
-                _floor_row(out[1, y], fl[1, y], 1 - gx, 2)
-                for ch in (0, 2):
-                    own = pos[ch, 0] == (y & 1)
-                    _floor_row(out[ch, y], fl[ch, y], 1 - pos[ch, 1] if own else 0, 2 if own else 1)
+                _rebuild_row(out[1, y], out[a, y], out[b, y], ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi,
+                             fl[1, y], fl[a, y], fl[b, y], True)
+            else:
+                _rebuild_row(out[1, y], out[a, y], out[b, y], ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi,
+                             fl[1, y], fl[a, y], fl[b, y], False)
             s0, s1, s2 = s1, s2, s0
 
 
@@ -1328,7 +1335,7 @@ def _green_range(out, c, sc):
     return float(sc["gmm"][:, 0].min()), float(sc["gmm"][:, 1].max())
 
 
-def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
+def _chroma_filter(out, state, blk, c, rng, crow, fl):
     """The colour-difference median (the block comment above) on the finished `out`: own channels untouched
     (measured photosites bit for bit, fused NOISY ones, bounded ones), the other channels within their
     channel's range (`rng`: R, B as `_colour`; green within the green plane's range), the clipped-neighbour
@@ -1341,7 +1348,7 @@ def _chroma_filter(out, state, blk, pos, c, rng, crow, fl):
     lim[:, 1] = rng[:, 2]
     lo, hi = _green_range(out, c, sc)
     lim[_cfa.G] = (min(lo, 0.0), hi)
-    _chroma_median(out, blk, pos, c, lim, sc["bnd"], crow, fl, sc["rows"])
+    _chroma_median(out, blk, c, lim, sc["bnd"], crow, fl, sc["rows"])
 
 
 # ---- green-guided colour differences of the fse method (docs/COLOUR.md "False colour") ---------------------
