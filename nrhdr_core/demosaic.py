@@ -40,7 +40,8 @@ from numba import get_num_threads, njit, prange
 
 from . import cfa as _cfa
 from .fse import f32_key
-from .pullpush import SERIAL_LEVEL, fill_row, pull_at, pull_push_levels, pull_row, pyramid
+from .pullpush import (fill_row, pull, pull_level_row, pull_push_levels, pull_row, push,
+                       push_row, pyramid, small_levels)
 from .scratch import interleaved, planes
 from .states import ATTENUATED, CLIPPED, DARK, NOISY, REASON_MASK, RECONSTRUCTED, VALID
 from .validity import clip_lower_at_cfa
@@ -228,7 +229,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any, wit
     """Per cell row y1 (photosite rows 2 y1, 2 y1 + 1): kg = the known green photosites (`g_any`: every
     known photosite); counts (missing, NOISY, non-finite values, non-finite known values, known photosites
     per channel, CLIPPED photosites); the green plane's pyramid level 1 (`pull_row`) and, `deep`, level 2
-    (`_pull_level_row`, per pair of cell rows); `with_keys`: keys[y] (`_clip_key_row`) of the photosite rows
+    (`pullpush.pull_level_row`, per pair of cell rows); `with_keys`: keys[y] (`_clip_key_row`) of the photosite rows
     of a cell row with a CLIPPED photosite, while they are in cache. Branch-free pixel loops."""
     h, w = values.shape
     h1 = cnt.shape[0]
@@ -241,7 +242,7 @@ def _stats(values, state, blk, kg, pv, pw, o1, w1, o2, w2, deep, cnt, g_any, wit
                 for yy in range(2 * y1, min(2 * y1 + 2, h)):
                     _clip_key_row(values, state, yy, keys[yy])
         if deep:
-            _pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
+            pull_level_row(pv, pw, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -289,90 +290,12 @@ def _stats_cells(values, state, blk, kg, pv, pw, o1, w1, cnt, g_any, y1, h, w, z
     pull_row(values, kg, pv, pw, o1, w1, y1)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1):
-    """Row y1 of a pyramid level (at o1, w1 wide) pulled from the level below it (at o0, h0 x w0):
-    `pullpush.pull_at` of each of its pixels, the same sums in the same order; the full 2 x 2 blocks in a
-    branch-free loop over row slices (it vectorises), a last odd row or column by `pull_at`."""
-    y = 2 * y1
-    if y + 1 >= h0:
-        for x1 in range(w1):
-            pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
-        return
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    a0 = o0 + y * w0
-    va = pv[a0:a0 + w0]
-    vb = pv[a0 + w0:a0 + 2 * w0]
-    ca = pw[a0:a0 + w0]
-    cb = pw[a0 + w0:a0 + 2 * w0]
-    b1 = o1 + y1 * w1
-    vo = pv[b1:b1 + w1]
-    co = pw[b1:b1 + w1]
-    for x1 in range(w0 // 2):
-        x = 2 * x1
-        s = zero + va[x]
-        s = s + va[x + 1]
-        s = s + vb[x]
-        s = s + vb[x + 1]
-        c = zero + ca[x]
-        c = c + ca[x + 1]
-        c = c + cb[x]
-        c = c + cb[x + 1]
-        over = c > one
-        vo[x1] = s / c if over else s
-        co[x1] = one if over else c
-    if w0 % 2:
-        pull_at(pv, pw, o0, h0, w0, o1, w1, y1, w1 - 1)
-
-
 def _positions(blk):
     """int64 (3, 2): the (row, column) of each channel's photosite in the 2 x 2 block (green: the first)."""
     pos = np.zeros((3, 2), np.int64)
     for py, px in ((1, 1), (1, 0), (0, 1), (0, 0)):
         pos[int(blk[py, px])] = (py, px)
     return pos
-
-
-def _levels_from(pv, pw, hs, ws, off, first):
-    """`pullpush.pull_push_levels` from level `first` (pulled already) to the top and back to it:
-    big levels in parallel regions by rows (`_pull_rows`, `_push_rows`), the small ones in one serial call
-    (`_small_levels`)."""
-    levels = hs.shape[0] - 1
-    small = first
-    while small < levels and hs[small] * ws[small] >= SERIAL_LEVEL:
-        small += 1
-    for lv in range(first, small):
-        _pull_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
-    _small_levels(pv, pw, hs, ws, off, small, levels)
-    for lv in range(small - 1, first - 1, -1):
-        _push_rows(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _small_levels(pv, pw, hs, ws, off, first, levels):
-    """`pullpush.small_levels` (pull from level `first` to the top, push back down to `first`, serially) by
-    rows: `_pull_level_row` and `_push_row`, the same sums and quotients as `pull_at` and `push_at`."""
-    for lv in range(first, levels):
-        for y1 in range(hs[lv + 1]):
-            _pull_level_row(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1], y1)
-    for lv in range(levels - 1, first - 1, -1):
-        for y in range(hs[lv]):
-            _push_row(pv, pw, off[lv], ws[lv], off[lv + 1], ws[lv + 1], y)
-
-
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _pull_rows(pv, pw, o0, h0, w0, o1, h1, w1):
-    """`pullpush.pull` by rows (`_pull_level_row`)."""
-    for y1 in prange(h1):
-        _pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1)
-
-
-@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _push_rows(pv, pw, o0, h0, w0, o1, w1):
-    """`pullpush.push` by rows (`_push_row`)."""
-    for y in prange(h0):
-        _push_row(pv, pw, o0, w0, o1, w1, y)
 
 
 def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fusion, out):
@@ -390,7 +313,7 @@ def _core(v32, state, chan, blk, kg, cnt, method, preset, use_bounds, noise, fus
     # 1. green: its pyramid pulled to the top and pushed back to level 2 (`deep`: `_stats` pulled levels 1
     # and 2, `_green` pushes level 1 row by row); the top: the mean known green level, for the log offset
     if deep:
-        _levels_from(pv[0], pw[0], hs, ws, off, 2)
+        pull_push_levels(pv[0], pw[0], hs, ws, off, 2)
     else:
         pull_push_levels(pv[0], pw[0], hs, ws, off)
     top = int(off[hs.shape[0] - 1])
@@ -630,8 +553,8 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
     and the lattices' statistics `fst` (keys of the known min and max and the largest CLIPPED value;
     integer reductions vectorise, float ones do not). The logarithm only at
     the known cells (compacted through the index buffers `ixs`, one per chunk of cell rows). `deep` (the
-    pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`push_at`) row
-    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`_pull_level_row`) per pair of cell
+    pyramids have a level 2, at o2, w2 wide): green's level 1 is pushed from its level 2 (`pullpush.push_row`) row
+    by row before the fill reads it, and level 2 of d_R and d_B is pulled (`pullpush.pull_level_row`) per pair of cell
     rows. Chunks interleaved over the `nt` threads (`scratch.interleaved`)."""
     h, w = values.shape
     h1 = (h + 1) // 2
@@ -647,31 +570,12 @@ def _green(values, state, chan, blk, kg, pv, pw, o1, w1, o2, w2, deep, gsrc, fro
         for q in range(kc * n2 // nch, (kc + 1) * n2 // nch):
             for y1 in range(step * q, min(step * q + step, h1)):
                 if deep and not from_src:
-                    _push_row(pv, pw, o1, w1, o2, w2, y1)
+                    push_row(pv, pw, o1, w1, o2, w2, y1)
                 _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_bounds, pos, c, pvr,
                              pwr, pvb, pwb, kl, fst, ix, keys, mrs[kc], gout, y1)
             if deep:
-                _pull_level_row(pvr, pwr, o1, h1, w1, o2, w2, q)
-                _pull_level_row(pvb, pwb, o1, h1, w1, o2, w2, q)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _push_row(pv, pw, o1, w1, o2, w2, y1):
-    """`pullpush.push_at` of row y1 of level 1 from level 2, branch-free."""
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    b1 = o1 + y1 * w1
-    b2 = o2 + (y1 // 2) * w2
-    v1 = pv[b1:b1 + w1]             # row slices: indices from 0 (no wraparound select; the loop vectorises)
-    q1 = pw[b1:b1 + w1]
-    v2 = pv[b2:b2 + w2]
-    q2 = pw[b2:b2 + w2]
-    for x1 in range(w1):
-        a = v2[x1 // 2]
-        c = q2[x1 // 2]
-        p = a / c if c > zero else zero
-        v1[x1] = p if q1[x1] < one else v1[x1]
-        q1[x1] = one
+                pull_level_row(pvr, pwr, o1, h1, w1, o2, w2, q)
+                pull_level_row(pvb, pwb, o1, h1, w1, o2, w2, q)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -748,12 +652,12 @@ def _green_cells(values, state, chan, blk, kg, pv, o1, w1, gsrc, from_src, use_b
 def _lattice_fill(lat0, lat1, known, pv, pw, hs, ws, off, first, o2, w2, ratio):
     """The two difference lattices (level 1 of the pyramids pv[1], pv[2]; levels up to `first` pulled):
     their pyramids pulled from level `first` to the top and pushed back to it (one pyramid per thread,
-    `_small_levels`), then each cell its value where known, else the weighted mean of its known
+    `pullpush.small_levels`), then each cell its value where known, else the weighted mean of its known
     8-neighbours, else its parent's pushed value (level 2 at o2, w2 wide: `pullpush.fill_row`, as
     the monochrome preview fills level 0); stored as the ratio 2^d."""
     levels = hs.shape[0] - 1
     for i in prange(2):
-        _small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
+        small_levels(pv[1 + i], pw[1 + i], hs, ws, off, first, levels)
     h1 = known.shape[1]
     for q in prange(2 * h1):
         i = q // h1
@@ -1116,12 +1020,13 @@ def warmup() -> None:
     for method in METHODS:
         for v in (vals, ro):
             reconstruct_cfa(v, st.copy(), "rggb", method=method, preset="fast", noise=default_noise())
-    # the pyramid levels pulled and pushed in parallel (`_levels_from`: level 2 of SERIAL_LEVEL cells or more)
+    # the pyramid levels pulled and pushed in parallel (`pullpush.pull_push_levels`: levels of
+    # `pullpush.SERIAL_LEVEL` cells or more)
     _, _, hs, ws, off = pyramid(h, w)
     pv = np.zeros((3, off[-1]), np.float32)
     pw = np.zeros((3, off[-1]), np.float32)
-    _pull_rows(pv[0], pw[0], off[1], hs[1], ws[1], off[2], hs[2], ws[2])
-    _push_rows(pv[0], pw[0], off[1], hs[1], ws[1], off[2], ws[2])
+    pull(pv[0], pw[0], off[1], hs[1], ws[1], off[2], hs[2], ws[2])
+    push(pv[0], pw[0], off[1], hs[1], ws[1], off[2], ws[2])
 
 
 # ---- colour-difference median (docs/COLOUR.md "Colour-difference median") ---------------------------------

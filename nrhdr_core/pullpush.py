@@ -122,63 +122,106 @@ def pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def push_at(pv, pw, o0, w0, o1, w1, y, x):
-    """One fine pixel of the push: an under-weighted pixel takes its parent's normalised value."""
-    one = np.float32(1.0)
-    i0 = o0 + y * w0 + x
-    if pw[i0] < one:
-        i1 = o1 + (y // 2) * w1 + x // 2
-        pv[i0] = pv[i1] / pw[i1] if pw[i1] > 0 else np.float32(0.0)
-    pw[i0] = one
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def pull(pv, pw, o0, h0, w0, o1, h1, w1):
-    for y1 in prange(h1):
+def pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1):
+    """Row y1 of a pyramid level (at o1, w1 wide) pulled from the level below it (at o0, h0 x w0):
+    `pull_at` of each of its pixels, the same sums in the same order; the full 2 x 2 blocks in a
+    branch-free loop over row slices (it vectorises), a last odd row or column by `pull_at`."""
+    y = 2 * y1
+    if y + 1 >= h0:
         for x1 in range(w1):
             pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
+        return
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    a0 = o0 + y * w0
+    va = pv[a0:a0 + w0]
+    vb = pv[a0 + w0:a0 + 2 * w0]
+    ca = pw[a0:a0 + w0]
+    cb = pw[a0 + w0:a0 + 2 * w0]
+    b1 = o1 + y1 * w1
+    vo = pv[b1:b1 + w1]
+    co = pw[b1:b1 + w1]
+    for x1 in range(w0 // 2):
+        x = 2 * x1
+        s = zero + va[x]
+        s = s + va[x + 1]
+        s = s + vb[x]
+        s = s + vb[x + 1]
+        c = zero + ca[x]
+        c = c + ca[x + 1]
+        c = c + cb[x]
+        c = c + cb[x + 1]
+        over = c > one
+        vo[x1] = s / c if over else s
+        co[x1] = one if over else c
+    if w0 % 2:
+        pull_at(pv, pw, o0, h0, w0, o1, w1, y1, w1 - 1)
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, inline="always")
+def push_row(pv, pw, o0, w0, o1, w1, y):
+    """Row y of a level (at o0, w0 wide) pushed from the level above it (at o1, w1 wide): an under-weighted
+    pixel takes its parent's normalised value (0 where the parent has no weight), every weight becomes 1;
+    branch-free."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    b0 = o0 + y * w0
+    b1 = o1 + (y // 2) * w1
+    v0 = pv[b0:b0 + w0]             # row slices: indices from 0 (no wraparound select; the loop vectorises)
+    q0 = pw[b0:b0 + w0]
+    v1 = pv[b1:b1 + w1]
+    q1 = pw[b1:b1 + w1]
+    for x in range(w0):
+        a = v1[x // 2]
+        c = q1[x // 2]
+        p = a / c if c > zero else zero
+        v0[x] = p if q0[x] < one else v0[x]
+        q0[x] = one
+
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def pull(pv, pw, o0, h0, w0, o1, h1, w1):
+    """A pyramid level (at o1, h1 x w1) pulled from the level below it, rows in parallel (`pull_level_row`)."""
+    for y1 in prange(h1):
+        pull_level_row(pv, pw, o0, h0, w0, o1, w1, y1)
+
+
+@njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def push(pv, pw, o0, h0, w0, o1, w1):
+    """A pyramid level (at o0, h0 x w0) pushed from the level above it, rows in parallel (`push_row`)."""
     for y in prange(h0):
-        for x in range(w0):
-            push_at(pv, pw, o0, w0, o1, w1, y, x)
+        push_row(pv, pw, o0, w0, o1, w1, y)
 
 
 SERIAL_LEVEL = 1 << 16    # levels smaller than this many pixels are pulled and pushed in one serial call
 
 
-def pull_push_levels(pv, pw, hs, ws, off):
-    """Pull levels 1 -> L, then push back to level 1 (level 1 already pulled from the frame): big levels
+def pull_push_levels(pv, pw, hs, ws, off, first=1):
+    """Pull levels first -> L, then push back to level `first` (level `first` already pulled): big levels
     in parallel regions, the small ones in one serial call (a parallel region per tiny level costs more
     than its work, and much more when the cores are busy)."""
     levels = hs.shape[0] - 1
-    small = 1
+    small = first
     while small < levels and hs[small] * ws[small] >= SERIAL_LEVEL:
         small += 1
-    for lv in range(1, small):
+    for lv in range(first, small):
         pull(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], hs[lv + 1], ws[lv + 1])
     small_levels(pv, pw, hs, ws, off, small, levels)
-    for lv in range(small - 1, 0, -1):
+    for lv in range(small - 1, first - 1, -1):
         push(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def small_levels(pv, pw, hs, ws, off, first, levels):
-    """Pull from level `first` to the top and push back down to `first`, serially (`pull_at`, `push_at`)."""
+    """Pull from level `first` to the top and push back down to `first`, serially, by rows
+    (`pull_level_row`, `push_row`)."""
     for lv in range(first, levels):
-        o0, h0, w0 = off[lv], hs[lv], ws[lv]
-        o1, h1, w1 = off[lv + 1], hs[lv + 1], ws[lv + 1]
-        for y1 in range(h1):
-            for x1 in range(w1):
-                pull_at(pv, pw, o0, h0, w0, o1, w1, y1, x1)
+        for y1 in range(hs[lv + 1]):
+            pull_level_row(pv, pw, off[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1], y1)
     for lv in range(levels - 1, first - 1, -1):
-        o0, h0, w0 = off[lv], hs[lv], ws[lv]
-        o1, w1 = off[lv + 1], ws[lv + 1]
-        for y in range(h0):
-            for x in range(w0):
-                push_at(pv, pw, o0, w0, o1, w1, y, x)
+        for y in range(hs[lv]):
+            push_row(pv, pw, off[lv], ws[lv], off[lv + 1], ws[lv + 1], y)
 
 
 @njit(cache=True, nogil=True)
