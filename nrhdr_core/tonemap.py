@@ -545,9 +545,8 @@ def _display_light(lut, dlut, dec, i, t):
 @njit(cache=True, nogil=True)
 def _local_display(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut, dlut, dec):
     """Row y's display light (`_display_light`) of the `_local_levels` positions into `t[c]`, as
-    `_rgb_channels` takes it; `ib[c]` the row's LUT indices. The table look-ups have a loop of their own.
-    Called, not inlined: inlined beside `_rgb_row`, the pair compiles to code that takes about twice the time
-    per row."""
+    `_rgb_channels` takes it; `ib[c]` the row's LUT indices: the first row of a `_rgb_local_apply` chunk (the
+    kernel looks the next rows' display light up beside the codes of the row before)."""
     w = l.shape[1]
     _local_levels(l, ca, cb, y, rows, t, ib, c, c0, g1, k0, lut.shape[0])
     tr = t[c]
