@@ -48,31 +48,37 @@ def pull_row(values, known, pv, pw, o1, w1, y1):
     y = 2 * y1
     base = o1 + y1 * w1
     if y + 1 < h:
+        va = values[y]              # row slices: indices from 0 (no wraparound select; the loop vectorises)
+        vb = values[y + 1]
+        ka = known[y]
+        kb = known[y + 1]
+        vo = pv[base:base + w1]
+        co = pw[base:base + w1]
         for x1 in range(w // 2):
             x = 2 * x1
-            k00 = one if known[y, x] else zero
-            k01 = one if known[y, x + 1] else zero
-            k10 = one if known[y + 1, x] else zero
-            k11 = one if known[y + 1, x + 1] else zero
-            s = zero + values[y, x] * k00
-            s = s + values[y, x + 1] * k01
-            s = s + values[y + 1, x] * k10
-            s = s + values[y + 1, x + 1] * k11
+            k00 = one if ka[x] else zero
+            k01 = one if ka[x + 1] else zero
+            k10 = one if kb[x] else zero
+            k11 = one if kb[x + 1] else zero
+            s = zero + va[x] * k00
+            s = s + va[x + 1] * k01
+            s = s + vb[x] * k10
+            s = s + vb[x + 1] * k11
             c = zero + k00
             c = c + k01
             c = c + k10
             c = c + k11
             d = c if c > one else one
-            pv[base + x1] = s / d
-            pw[base + x1] = c if c < one else one
+            vo[x1] = s / d
+            co[x1] = c if c < one else one
         if w % 2:
             x = w - 1
-            k00 = one if known[y, x] else zero
-            k10 = one if known[y + 1, x] else zero
-            s = zero + values[y, x] * k00 + values[y + 1, x] * k10
+            k00 = one if ka[x] else zero
+            k10 = one if kb[x] else zero
+            s = zero + va[x] * k00 + vb[x] * k10
             c = zero + k00 + k10
-            pv[base + w // 2] = s / c if c > one else s
-            pw[base + w // 2] = c if c < one else one
+            vo[w // 2] = s / c if c > one else s
+            co[w // 2] = c if c < one else one
     else:
         for x1 in range(w1):
             s = zero
