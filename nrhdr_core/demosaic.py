@@ -1217,6 +1217,7 @@ def _chroma_median(out, blk, c, lim, bnd, crow, fl, rows):
             a, b = (0, 2) if red else (2, 0)
             ms, mt = (buf[_CM_MR], buf[_CM_MB]) if red else (buf[_CM_MB], buf[_CM_MR])
             slo, shi, tlo, thi = (rlo, rhi, blo, bhi) if red else (blo, bhi, rlo, rhi)
+            # the flag as a constant in each call: the inlined loop compiles without the floors where none apply
             if crow[y]:
                 _rebuild_row(out[1, y], out[a, y], out[b, y], ms, mt, gp, c, glo, ghi, slo, shi, tlo, thi,
                              fl[1, y], fl[a, y], fl[b, y], True)
